@@ -1,0 +1,1 @@
+"""drivesim command line."""

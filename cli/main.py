@@ -1,0 +1,80 @@
+"""The `drivesim` command: one thin sub-command per stage of the chain."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from drivesim.cli import ingest, preprocess, status, synth, world
+from drivesim.cli.common import err_console, state
+from drivesim.cli.not_built import not_built_command
+from drivesim.pipeline.errors import DrivesimError
+
+app = typer.Typer(
+    name="drivesim",
+    help="Turn a real vehicle recording into a data-driven driving simulator; train, evaluate and export a policy.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode="rich",
+)
+
+
+@app.callback()
+def _global_options(
+    workspace: Annotated[
+        Path, typer.Option("--workspace", "-w", help="Folder holding every artifact of the chain.")
+    ] = Path("drivesim-work"),
+) -> None:
+    state.workspace = workspace
+
+
+app.command("ingest", help="Read a recording (ROS1 .bag, rosbag2, .mcap, KITTI raw) into the trace artifact.")(
+    ingest.ingest_command
+)
+app.command("preprocess", help="Poses (GPS/IMU/odometry fusion) and per-frame depth from the trace.")(
+    preprocess.preprocess_command
+)
+app.command("build-world", help="The simulatable world: frames, depth, reference path, index, point cloud.")(
+    world.build_world_command
+)
+not_built_command(app, "meshes", "The parametrizable vehicle mesh library (build, import, preview).")
+app.command("synth", help="Render a procedural drive with ground truth and write it as a ROS2 MCAP recording.")(
+    synth.synth_command
+)
+not_built_command(app, "train", "Train a driving policy with PPO (tasks: lane, follow, overtake).")
+not_built_command(app, "eval", "Offline closed-loop evaluation: metrics, plots, report.")
+not_built_command(app, "export", "Export the policy as ONNX, checked with onnxruntime.")
+not_built_command(app, "run", "Every stage of the chain, on the embedded demo drive by default.")
+app.command("status", help="Every stage as fresh / stale / missing, with a summary of each artifact.")(
+    status.status_command
+)
+app.add_typer(world.bench_app, name="bench", help="Measure the simulator against ground truth (fidelity).")
+
+
+def main() -> None:
+    """Entry point: run the app; user errors become one line on stderr and exit code 2."""
+    try:
+        app(standalone_mode=False)
+    except DrivesimError as e:
+        err_console.print(f"[bold red]error:[/] {e.one_line()}", highlight=False, soft_wrap=True)
+        sys.exit(e.exit_code)
+    except KeyboardInterrupt:
+        err_console.print("interrupted: nothing was written; run the command again to redo it", highlight=False)
+        sys.exit(130)
+    except typer.Exit as e:
+        sys.exit(e.exit_code)
+    except typer.Abort:
+        sys.exit(130)
+    except typer.TyperException as e:  # usage errors (unknown option, missing argument)
+        show = getattr(e, "show", None)
+        if show is not None:
+            show()
+        sys.exit(getattr(e, "exit_code", 2))
+
+
+if __name__ == "__main__":
+    main()

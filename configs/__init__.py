@@ -1,0 +1,1 @@
+"""YAML config presets, one per stage."""

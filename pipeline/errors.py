@@ -1,0 +1,40 @@
+"""Errors a user can act on: printed as one line, exit code 2, never a traceback."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class DrivesimError(Exception):
+    """A problem with the user's input or workspace, reported as one readable line.
+
+    :param message: what is wrong and what to do about it.
+    :param path: the file or folder the problem is about, named at the start of the line.
+    """
+
+    exit_code = 2
+
+    def __init__(self, message: str, path: str | Path | None = None) -> None:
+        self.message = message
+        self.path = Path(path) if path is not None else None
+        super().__init__(self.one_line())
+
+    def one_line(self) -> str:
+        """The message as the single line the CLI prints."""
+        return f"{self.path}: {self.message}" if self.path is not None else self.message
+
+
+class InputError(DrivesimError):
+    """The input recording or file is unreadable, incomplete or unsupported."""
+
+
+class ConfigError(DrivesimError):
+    """A config file or `--set` override is invalid."""
+
+
+class MissingArtifactError(DrivesimError):
+    """A stage needs an artifact that the workspace does not have yet."""
+
+
+class NotBuiltError(DrivesimError):
+    """The command exists in the design but is not built yet."""

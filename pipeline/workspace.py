@@ -1,0 +1,218 @@
+"""The workspace: one folder per artifact, each written atomically with a manifest.json.
+
+Layout (DESIGN §2): `trace/`, `preprocessed/`, `world/`, `meshes/`, `runs/<task>-<timestamp>/`, `eval/<name>/`,
+`export/`. An artifact is built in a hidden temporary sibling (`.tmp-<name>-...`) and moved into place with
+`os.replace` only after its manifest is written, so a crash or Ctrl-C never leaves a half-written artifact.
+
+`manifest.json` (stable; scripts may read it):
+    stage          str    the stage that wrote it ("ingest", "preprocess", ...)
+    artifact       str    the artifact's folder name relative to the workspace ("trace")
+    code_version   str    drivesim version that wrote it
+    config         dict   the resolved stage config
+    config_hash    str    sha256 of that config (canonical JSON)
+    inputs         dict   name -> {"kind": "artifact"|"external", "path": str, "hash": str}
+                          (artifact paths relative to the workspace, external paths absolute)
+    outputs        dict   relative file path -> {"size_bytes": int, "sha256": str}
+    artifact_hash  str    sha256 over the outputs: what downstream manifests record as their input hash
+    key            str    sha256 of (stage, code_version, config_hash, inputs): equal key = nothing to redo
+    summary        dict   stage-specific figures for `drivesim status`
+    created_utc    str    ISO 8601
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from drivesim.pipeline.errors import DrivesimError, MissingArtifactError
+from drivesim.pipeline.hashing import fingerprint_external, sha256_file, sha256_json
+from drivesim.pipeline.version import code_version
+
+MANIFEST_NAME = "manifest.json"
+_TMP_PREFIX = ".tmp-"
+_TMP_PID = re.compile(r"-(\d+)-[0-9a-f]{8}(?:-|$)")
+
+DEFAULT_WORKSPACE = Path("drivesim-work")
+
+
+@dataclass(frozen=True)
+class InputRef:
+    """One input of an artifact: another artifact of the workspace, or an external file/folder."""
+
+    kind: str
+    path: str
+    hash: str
+
+    def to_json(self) -> dict[str, str]:
+        """The manifest form of this input."""
+        return {"kind": self.kind, "path": self.path, "hash": self.hash}
+
+
+@dataclass
+class ArtifactBuild:
+    """An artifact being written: files go into `dir`; `summary` is recorded in the manifest."""
+
+    dir: Path
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+def artifact_key(stage: str, config_hash: str, inputs: dict[str, InputRef]) -> str:
+    """The identity of a stage run: equal keys mean the artifact would come out the same."""
+    return sha256_json(
+        {
+            "stage": stage,
+            "code_version": code_version(),
+            "config_hash": config_hash,
+            "inputs": {k: v.to_json() for k, v in sorted(inputs.items())},
+        }
+    )
+
+
+class Workspace:
+    """A drivesim workspace folder holding one sub-folder per artifact.
+
+    :param root: the workspace folder; created on first write.
+    """
+
+    def __init__(self, root: Path | str = DEFAULT_WORKSPACE) -> None:
+        self.root = Path(root).absolute()
+
+    def artifact_dir(self, name: str) -> Path:
+        """Folder of artifact `name` (it may not exist yet)."""
+        return self.root / name
+
+    def read_manifest(self, name: str) -> dict[str, Any] | None:
+        """The manifest of artifact `name`, or None when it is missing or unreadable."""
+        path = self.artifact_dir(name) / MANIFEST_NAME
+        try:
+            return json.loads(path.read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            return None
+
+    def require(self, name: str, how_to_make: str) -> Path:
+        """The folder of an artifact a stage needs, or a clear error saying which command makes it."""
+        if self.read_manifest(name) is None:
+            raise MissingArtifactError(f"no {name} artifact in workspace {self.root}; run `{how_to_make}` first")
+        return self.artifact_dir(name)
+
+    def artifact_input(self, name: str) -> InputRef:
+        """An InputRef to artifact `name` for a downstream manifest."""
+        manifest = self.read_manifest(name)
+        if manifest is None:
+            raise MissingArtifactError(f"no {name} artifact in workspace {self.root}")
+        return InputRef(kind="artifact", path=name, hash=manifest["artifact_hash"])
+
+    @staticmethod
+    def external_input(path: Path) -> InputRef:
+        """An InputRef to a recording outside the workspace, identified by a fast fingerprint."""
+        return InputRef(kind="external", path=str(Path(path).absolute()), hash=fingerprint_external(Path(path)))
+
+    def is_fresh(self, name: str, key: str) -> bool:
+        """True when artifact `name` exists, was made with this key, and its files are all present."""
+        manifest = self.read_manifest(name)
+        if manifest is None or manifest.get("key") != key:
+            return False
+        folder = self.artifact_dir(name)
+        return all(
+            (folder / rel).is_file() and (folder / rel).stat().st_size == meta["size_bytes"]
+            for rel, meta in manifest.get("outputs", {}).items()
+        )
+
+    def clean_stale_temporaries(self) -> None:
+        """Remove temporary folders left by a process that was killed before it could clean up."""
+        if not self.root.is_dir():
+            return
+        for tmp in self.root.glob(f"{_TMP_PREFIX}*"):
+            match = _TMP_PID.search(tmp.name)
+            if match and _pid_alive(int(match.group(1))):
+                continue
+            shutil.rmtree(tmp, ignore_errors=True)
+
+    @contextmanager
+    def write_artifact(
+        self,
+        name: str,
+        stage: str,
+        config: dict[str, Any],
+        inputs: dict[str, InputRef],
+    ) -> Iterator[ArtifactBuild]:
+        """Build artifact `name` in a temporary folder; on success write its manifest and move it into place.
+
+        On any exception, KeyboardInterrupt included, the temporary folder is removed and an existing artifact
+        of that name is left as it was.
+        """
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.clean_stale_temporaries()
+        safe_name = name.replace("/", "_")
+        tmp = self.root / f"{_TMP_PREFIX}{safe_name}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        tmp.mkdir()
+        build = ArtifactBuild(dir=tmp)
+        try:
+            yield build
+            manifest = self._manifest(name, stage, config, inputs, build)
+            (tmp / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2, default=str) + "\n")
+            self._move_into_place(tmp, self.artifact_dir(name))
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+
+    def _manifest(
+        self, name: str, stage: str, config: dict[str, Any], inputs: dict[str, InputRef], build: ArtifactBuild
+    ) -> dict[str, Any]:
+        outputs = {}
+        for path in sorted(build.dir.rglob("*")):
+            if path.is_file() and path.name != MANIFEST_NAME:
+                rel = str(path.relative_to(build.dir))
+                outputs[rel] = {"size_bytes": path.stat().st_size, "sha256": sha256_file(path)}
+        config_hash = sha256_json(config)
+        return {
+            "stage": stage,
+            "artifact": name,
+            "code_version": code_version(),
+            "config": config,
+            "config_hash": config_hash,
+            "inputs": {k: v.to_json() for k, v in sorted(inputs.items())},
+            "outputs": outputs,
+            "artifact_hash": sha256_json({"outputs": {k: v["sha256"] for k, v in outputs.items()}}),
+            "key": artifact_key(stage, config_hash, inputs),
+            "summary": build.summary,
+            "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        }
+
+    @staticmethod
+    def _move_into_place(tmp: Path, final: Path) -> None:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        old = None
+        if final.exists():
+            # os.replace cannot replace a non-empty folder: move the old one aside first.
+            old = final.with_name(f"{_TMP_PREFIX}old-{os.getpid()}-{uuid.uuid4().hex[:8]}-{final.name}")
+            os.replace(final, old)
+        try:
+            os.replace(tmp, final)
+        except OSError as e:
+            if old is not None:
+                os.replace(old, final)
+            raise DrivesimError(f"could not move the new artifact into place: {e}", final) from e
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
