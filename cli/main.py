@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli import ingest, preprocess, status, synth, world
+from drivesim.cli import bench, ingest, preprocess, status, synth, world
 from drivesim.cli.common import err_console, state
 from drivesim.cli.not_built import not_built_command
 from drivesim.pipeline.errors import DrivesimError
@@ -52,7 +52,7 @@ not_built_command(app, "run", "Every stage of the chain, on the embedded demo dr
 app.command("status", help="Every stage as fresh / stale / missing, with a summary of each artifact.")(
     status.status_command
 )
-app.add_typer(world.bench_app, name="bench", help="Measure the simulator against ground truth (fidelity).")
+app.add_typer(bench.bench_app, name="bench", help="Measure the simulator against ground truth (fidelity).")
 
 
 def main() -> None:

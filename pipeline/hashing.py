@@ -30,9 +30,7 @@ def fingerprint_external(path: Path) -> str:
     """
     path = Path(path)
     if path.is_dir():
-        parts = [
-            (str(p.relative_to(path)), fingerprint_external(p)) for p in sorted(path.rglob("*")) if p.is_file()
-        ]
+        parts = [(str(p.relative_to(path)), fingerprint_external(p)) for p in sorted(path.rglob("*")) if p.is_file()]
         return sha256_json(parts)
     size = path.stat().st_size
     h = hashlib.sha256(str(size).encode())
