@@ -1,0 +1,39 @@
+"""The `drivesim` command as a user types it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+STAGES = ["ingest", "preprocess", "build-world", "meshes", "synth", "train", "eval", "export", "run", "status"]
+
+
+def _drivesim(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "drivesim.cli.main", *args], cwd=cwd, capture_output=True, text=True, timeout=120
+    )
+
+
+def test_help_lists_every_stage(tmp_path: Path) -> None:
+    result = _drivesim("--help", cwd=tmp_path)
+    assert result.returncode == 0
+    for stage in STAGES:
+        assert f" {stage} " in result.stdout, stage
+
+
+def test_unbuilt_stage_says_so_and_exits_2(tmp_path: Path) -> None:
+    result = _drivesim("train", "overtake", cwd=tmp_path)
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "not built yet" in lines[0]
+
+
+def test_status_json_on_empty_workspace(tmp_path: Path) -> None:
+    result = _drivesim("--workspace", str(tmp_path / "ws"), "status", "--json", cwd=tmp_path)
+    assert result.returncode == 0
+    report = json.loads(result.stdout)
+    assert report["format"] == 1
+    assert [row["stage"] for row in report["stages"]][:3] == ["ingest", "preprocess", "build-world"]
+    assert {row["state"] for row in report["stages"]} == {"missing"}
