@@ -1,0 +1,74 @@
+"""Lighting and the Blinn–Phong / PBR-lite shading model used by the rasterizer (paper §III-A, DESIGN §4 step 4).
+
+All vectors are in the camera optical frame (x right, y down, z forward); colours are linear RGB in [0, 1].
+
+Per pixel, with base = diffuse_rgb x vertex_rgb x texture, n the unit normal turned towards the viewer (two-sided),
+l = -light_dir_cam (towards the light), v towards the viewer and h = normalize(l + v):
+
+    exponent = 1 + shininess * (1 - roughness)^2        # rough surfaces spread (and dim) the highlight
+    f0       = (1 - metalness) * specular_rgb + metalness * base
+    rgb      = ambient_rgb * base + light_rgb * ((1 - metalness) * base * max(n.l, 0) + f0 * max(n.h, 0)^exponent)
+
+with the specular term only where n.l > 0, clamped to [0, 1]. Unlit materials give `base` as is.
+The GLSL reference renderer in tests/gl_reference.py implements the same formula.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+
+@dataclass
+class Lighting:
+    """Ambient plus one directional light.
+
+    :param ambient_rgb: (3,) ambient light colour, linear [0, 1] (DESIGN: the scene's mean colour).
+    :param light_dir_cam: (3,) unit vector the light travels along, in the camera optical frame. The default
+        (0, 0, 1) is a directional light from the ego viewpoint at infinity.
+    :param light_rgb: (3,) directional light colour, linear [0, 1].
+    """
+
+    ambient_rgb: np.ndarray = field(default_factory=lambda: np.array([0.35, 0.35, 0.35]))
+    light_dir_cam: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    light_rgb: np.ndarray = field(default_factory=lambda: np.array([0.7, 0.7, 0.7]))
+
+
+def specular_exponent(shininess: torch.Tensor, roughness: torch.Tensor) -> torch.Tensor:
+    """Blinn–Phong exponent after roughness damping: 1 + shininess * (1 - roughness)^2."""
+    return 1.0 + shininess * (1.0 - roughness) ** 2
+
+
+def shade_blinn_phong(
+    base_rgb: torch.Tensor,
+    normal_cam: torch.Tensor,
+    to_viewer_cam: torch.Tensor,
+    specular_rgb: torch.Tensor,
+    shininess: torch.Tensor,
+    metalness: torch.Tensor,
+    roughness: torch.Tensor,
+    unlit: torch.Tensor,
+    ambient_rgb: torch.Tensor,
+    light_dir_cam: torch.Tensor,
+    light_rgb: torch.Tensor,
+) -> torch.Tensor:
+    """Shaded colour (P, 3) of P surface points (module docstring has the formula).
+
+    :param base_rgb: (P, 3) albedo. :param normal_cam: (P, 3) unit normals (any side; made two-sided here).
+    :param to_viewer_cam: (P, 3) unit vectors from the point towards the camera.
+    :param specular_rgb: (P, 3). :param shininess, metalness, roughness: (P,). :param unlit: (P,) bool.
+    :param ambient_rgb, light_dir_cam, light_rgb: (P, 3) or (3,) (per-camera lighting gathered per pixel).
+    """
+    n = torch.where((normal_cam * to_viewer_cam).sum(-1, keepdim=True) < 0, -normal_cam, normal_cam)
+    to_light = -light_dir_cam
+    half = torch.nn.functional.normalize(to_light + to_viewer_cam, dim=-1)
+    n_dot_l = (n * to_light).sum(-1, keepdim=True).clamp_min(0.0)
+    n_dot_h = (n * half).sum(-1, keepdim=True).clamp_min(0.0)
+    metal = metalness[:, None]
+    f0 = (1.0 - metal) * specular_rgb + metal * base_rgb
+    exponent = specular_exponent(shininess, roughness)[:, None]
+    spec = f0 * n_dot_h.pow(exponent) * (n_dot_l > 0)
+    lit = ambient_rgb * base_rgb + light_rgb * ((1.0 - metal) * base_rgb * n_dot_l + spec)
+    return torch.where(unlit[:, None], base_rgb, lit).clamp_(0.0, 1.0)
