@@ -2,10 +2,27 @@
 
 from __future__ import annotations
 
-from drivesim.cli.common import ConfigOption, ForceOption, SetOption
-from drivesim.pipeline.errors import NotBuiltError
+from drivesim.cli.common import ConfigOption, ForceOption, SetOption, console, workspace
+from drivesim.pipeline.config import load_config
 
 
 def preprocess_command(config: ConfigOption = None, set_: SetOption = None, force: ForceOption = False) -> None:
-    """Fuse poses and estimate per-frame depth."""
-    raise NotBuiltError("`drivesim preprocess` is not built yet")
+    """Fuse poses (GPS + IMU + speed, odometry or visual SfM) and estimate per-frame depth (plane, mvs, lidar)."""
+    # Imported here so `drivesim --help` stays fast (the stage pulls in torch, open3d, matplotlib).
+    from drivesim.stages.preprocess.config import PreprocessConfig
+    from drivesim.stages.preprocess.stage import run_preprocess
+
+    cfg = load_config(PreprocessConfig, preset="preprocess", config_file=config, overrides=set_)
+    result = run_preprocess(workspace(), cfg, force=force)
+    s = result.summary
+    if result.skipped:
+        console.print(f"preprocessed is fresh, nothing to do ({result.path}); --force redoes it")
+        return
+    depth = f"median {s['depth_median_m']} m" if s.get("depth_median_m") is not None else "no near depth"
+    residual = f", residual {s['residual_m']} m" if s.get("residual_m") is not None else ""
+    console.print(
+        f"[green]preprocessed[/] {s['frame_count']} frames, {s['path_length_m']:.1f} m of path "
+        f"(poses: {s['pose_source']}{residual}); depth {s['depth_method']}: {depth}, "
+        f"{100 * s['depth_far_fraction']:.0f} % far -> {result.path}",
+        highlight=False,
+    )

@@ -1,0 +1,257 @@
+"""The `drivesim preprocess` stage: read the trace, fuse poses, estimate depth, write the preprocessed artifact.
+
+The artifact's schema is in `stages/preprocess/artifact.py`. Depth is streamed frame by frame into an .npy memmap
+inside the artifact's temporary folder, so memory stays bounded by a few frames whatever the drive's length.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivesim.pipeline.errors import InputError
+from drivesim.pipeline.hashing import sha256_json
+from drivesim.pipeline.progress import console, progress_bar
+from drivesim.pipeline.workspace import Workspace, artifact_key
+from drivesim.stages.ingest import trace as trace_schema
+from drivesim.stages.preprocess import depth as depth_mod
+from drivesim.stages.preprocess import poses as poses_mod
+from drivesim.stages.preprocess import series as series_mod
+from drivesim.stages.preprocess.artifact import POSE_ARRAYS_FLOAT
+from drivesim.stages.preprocess.config import PreprocessConfig
+
+STAGE = "preprocess"
+ARTIFACT = "preprocessed"
+TRACE_HINT = "drivesim ingest PATH"
+
+
+@dataclass
+class TraceView:
+    """The parts of a trace artifact that preprocess and build-world read.
+
+    :param root: the trace folder.
+    :param frames: (N, H, W, 3) uint8 RGB, memory-mapped.
+    :param frame_times_ns: (N,) int64 camera stamps.
+    :param calibration: the contents of calibration.json.
+    :param K: 3x3 intrinsics at the working resolution.
+    :param T_vehicle_camera: 4x4 camera optical frame -> vehicle frame.
+    """
+
+    root: Path
+    frames: np.ndarray
+    frame_times_ns: np.ndarray
+    calibration: dict[str, Any]
+    K: np.ndarray
+    T_vehicle_camera: np.ndarray
+
+
+@dataclass
+class PreprocessResult:
+    """What `run_preprocess` did.
+
+    :param path: the preprocessed artifact folder.
+    :param skipped: True when the artifact was already fresh and nothing was redone.
+    :param summary: the manifest summary (pose_source, frame_count, path_length_m, depth figures).
+    """
+
+    path: Path
+    skipped: bool
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+def open_trace(trace_dir: Path) -> TraceView:
+    """Open the trace's frames (memory-mapped), stamps and calibration; InputError naming the file when malformed."""
+    validator = getattr(trace_schema, "validate_trace", None)
+    if validator is not None:
+        validator(trace_dir)
+    try:
+        calibration = json.loads((trace_dir / "calibration.json").read_text())
+        frames = np.load(trace_dir / "frames.npy", mmap_mode="r")
+        frame_times_ns = np.load(trace_dir / "frame_times_ns.npy")
+    except FileNotFoundError as e:
+        raise InputError(f"the trace lacks {Path(e.filename).name}; run `{TRACE_HINT}` again", trace_dir) from e
+    except (OSError, ValueError) as e:
+        raise InputError(f"unreadable trace: {e}; run `{TRACE_HINT}` again", trace_dir) from e
+    for key in ("K", "T_vehicle_camera", "width_px", "height_px"):
+        if key not in calibration:
+            raise InputError(f"calibration.json lacks {key!r}", trace_dir)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
+        raise InputError(f"frames.npy must be uint8 (N, H, W, 3), got {frames.dtype} {frames.shape}", trace_dir)
+    if frame_times_ns.shape != (frames.shape[0],) or np.any(np.diff(frame_times_ns) <= 0):
+        raise InputError("frame_times_ns.npy must hold one strictly increasing stamp per frame", trace_dir)
+    K = np.asarray(calibration["K"], dtype=float)
+    T_vehicle_camera = np.asarray(calibration["T_vehicle_camera"], dtype=float)
+    if K.shape != (3, 3) or T_vehicle_camera.shape != (4, 4):
+        raise InputError("calibration.json: K must be 3x3 and T_vehicle_camera 4x4", trace_dir)
+    return TraceView(trace_dir, frames, frame_times_ns, calibration, K, T_vehicle_camera)
+
+
+def select_frames(n_frames: int, cfg: PreprocessConfig) -> slice:
+    """The trace frames to preprocess as a slice (a slice keeps memmap views lazy; fancy indexing would copy)."""
+    stop = n_frames if cfg.frames.stop is None else min(cfg.frames.stop, n_frames)
+    selected = slice(cfg.frames.start, stop, cfg.frames.step)
+    count = len(range(*selected.indices(n_frames)))
+    if count < 2:
+        raise InputError(
+            f"frames {cfg.frames.start}:{cfg.frames.stop}:{cfg.frames.step} select {count} of the trace's "
+            f"{n_frames} frames; a drive needs at least 2"
+        )
+    return selected
+
+
+def run_preprocess(ws: Workspace, cfg: PreprocessConfig, force: bool = False) -> PreprocessResult:
+    """Fuse poses and estimate per-frame depth for the workspace's trace, writing `<ws>/preprocessed/`.
+
+    Does nothing when the artifact is fresh for this config and trace, unless `force`.
+    """
+    trace_dir = ws.require("trace", TRACE_HINT)
+    inputs = {"trace": ws.artifact_input("trace")}
+    config = cfg.model_dump(mode="json")
+    key = artifact_key(STAGE, sha256_json(config), inputs)
+    if ws.is_fresh(ARTIFACT, key) and not force:
+        manifest = ws.read_manifest(ARTIFACT) or {}
+        return PreprocessResult(path=ws.artifact_dir(ARTIFACT), skipped=True, summary=manifest.get("summary", {}))
+
+    trace = open_trace(trace_dir)
+    selected = select_frames(trace.frames.shape[0], cfg)
+    frame_index = np.arange(trace.frames.shape[0])[selected]
+    frames = trace.frames[selected]
+    frame_times_ns = trace.frame_times_ns[selected]
+    K, T_vehicle_camera = trace.K, trace.T_vehicle_camera
+
+    with console.status("fusing poses"):
+        series = series_mod.load_series(trace_dir)
+        fused = poses_mod.estimate_poses(
+            series, frame_times_ns, cfg.poses, frames=frames, K=K, T_vehicle_camera=T_vehicle_camera
+        )
+    T_world_vehicle = np.asarray(fused.T_world_vehicle, dtype=float)
+    T_world_camera = T_world_vehicle @ T_vehicle_camera
+    n, h, w = frames.shape[:3]
+
+    with ws.write_artifact(ARTIFACT, STAGE, config, inputs) as build:
+        depth_out = np.lib.format.open_memmap(build.dir / "depth.npy", mode="w+", dtype=np.float32, shape=(n, h, w))
+        with progress_bar(f"depth ({cfg.depth.method})", total=n) as (progress, task):
+            depth_summary = depth_mod.estimate_depth(
+                frames,
+                K,
+                T_world_camera,
+                T_vehicle_camera,
+                trace.calibration.get("camera_height_m"),
+                cfg.depth,
+                depth_out,
+                progress=lambda done: progress.advance(task, done),
+            )
+        depth_out.flush()
+        poses = {
+            "frame_index": frame_index.astype(np.int64),
+            "t_ns": np.asarray(frame_times_ns, dtype=np.int64),
+            **{k: np.asarray(getattr(fused, k), dtype=np.float64) for k in POSE_ARRAYS_FLOAT},
+            "T_world_vehicle": T_world_vehicle,
+            "T_world_camera": T_world_camera,
+        }
+        np.savez(build.dir / "poses.npz", **poses)
+        origin = {
+            "pose_source": str(fused.source),
+            "origin_lat_deg": _float_or_none(getattr(fused, "origin_lat_deg", None)),
+            "origin_lon_deg": _float_or_none(getattr(fused, "origin_lon_deg", None)),
+            "origin_alt_m": _float_or_none(getattr(fused, "origin_alt_m", None)),
+            "residual_m": _rms_or_none(getattr(fused, "residual_m", None)),
+            "depth_method": cfg.depth.method,
+            "max_depth_m": cfg.depth.max_depth_m,
+            "width_px": int(w),
+            "height_px": int(h),
+        }
+        (build.dir / "origin.json").write_text(json.dumps(origin, indent=2) + "\n")
+        preview = np.linspace(0, n - 1, min(cfg.preview.frame_count, n)).round().astype(int)
+        write_depth_preview(
+            build.dir / "depth_preview.png", frames, depth_out, preview, frame_index, cfg.depth.max_depth_m
+        )
+        depth_stats = _depth_stats(depth_out, cfg.depth.max_depth_m)
+        del depth_out
+        build.summary = {
+            "pose_source": origin["pose_source"],
+            "frame_count": int(n),
+            "path_length_m": round(float(poses["arc_length_m"][-1] - poses["arc_length_m"][0]), 3),
+            "residual_m": origin["residual_m"],
+            "depth_method": cfg.depth.method,
+            "width_px": int(w),
+            "height_px": int(h),
+            **depth_stats,
+            "depth_seconds_per_frame": depth_summary.get("seconds_per_frame"),
+        }
+    return PreprocessResult(path=ws.artifact_dir(ARTIFACT), skipped=False, summary=build.summary)
+
+
+def _float_or_none(value: Any) -> float | None:
+    if value is None:
+        return None
+    value = float(value)
+    return value if np.isfinite(value) else None
+
+
+def _rms_or_none(value: Any) -> float | None:
+    """One figure for the pose residual, whether the estimator gives a scalar or one residual per fix."""
+    if value is None:
+        return None
+    values = np.asarray(value, dtype=float).ravel()
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return None
+    return round(float(np.sqrt(np.mean(values**2))), 4)
+
+
+def _depth_stats(depth_m: np.ndarray, max_depth_m: float) -> dict[str, float | None]:
+    """Median and 95th percentile of the estimated (non-far) depth, and the far fraction, over up to 50 frames."""
+    n = depth_m.shape[0]
+    sample = depth_m[:: max(1, n // 50)]
+    near = sample[sample < max_depth_m]
+    far_fraction = 1.0 - near.size / max(sample.size, 1)
+    if near.size == 0:
+        return {"depth_median_m": None, "depth_p95_m": None, "depth_far_fraction": round(far_fraction, 4)}
+    median, p95 = np.percentile(near, [50, 95])
+    return {
+        "depth_median_m": round(float(median), 3),
+        "depth_p95_m": round(float(p95), 3),
+        "depth_far_fraction": round(far_fraction, 4),
+    }
+
+
+def write_depth_preview(
+    path: Path,
+    frames: np.ndarray,
+    depth_m: np.ndarray,
+    indices: np.ndarray,
+    trace_index: np.ndarray,
+    max_depth_m: float,
+) -> None:
+    """A PNG of the chosen frames (top row) above their depth on a log colour scale (bottom row), for people."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    count = len(indices)
+    h, w = frames.shape[1:3]
+    panel_w = 3.2
+    fig, axes = plt.subplots(
+        2, count, figsize=(panel_w * count + 1.0, 2 * panel_w * h / w + 0.8), squeeze=False, layout="constrained"
+    )
+    norm = LogNorm(vmin=1.0, vmax=max_depth_m)
+    image = None
+    for col, i in enumerate(indices):
+        axes[0, col].imshow(frames[i])
+        axes[0, col].set_title(f"frame {int(trace_index[i])}", fontsize=9)
+        depth = np.clip(np.asarray(depth_m[i], dtype=np.float32), 1.0, max_depth_m)
+        image = axes[1, col].imshow(depth, cmap="turbo_r", norm=norm, interpolation="nearest")
+        for row in (0, 1):
+            axes[row, col].set_axis_off()
+    bar = fig.colorbar(image, ax=axes[1, :].tolist(), shrink=0.9, pad=0.01)
+    bar.set_label("depth (m)")
+    fig.suptitle("preprocess: frames and estimated depth", fontsize=10)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

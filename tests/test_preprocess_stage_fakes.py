@@ -1,0 +1,119 @@
+"""A tiny trace artifact and a fake pose estimator shared by the preprocess-stage and world tests (no tests here).
+
+The fake estimator drives a known left-hand arc, so every figure downstream (path length, curvature, the ground
+depth of a pixel) has an exact expected value.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+
+from drivesim.pipeline.workspace import Workspace
+from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, pose_2d
+
+WIDTH_PX, HEIGHT_PX = 96, 60
+FRAME_COUNT = 12
+FRAME_PERIOD_NS = 100_000_000
+RADIUS_M = 50.0
+SPEED_MPS = 10.0
+CAMERA_HEIGHT_M = 1.6
+T_VEHICLE_CAMERA = camera_mount(1.5, 0.0, CAMERA_HEIGHT_M, pitch_down_rad=0.08)
+K = intrinsics_from_hfov(WIDTH_PX, HEIGHT_PX, np.deg2rad(90.0))
+
+
+def ensure_poses_module() -> None:
+    """Make `drivesim.stages.preprocess.poses` importable while the real module has not landed yet."""
+    try:
+        import drivesim.stages.preprocess.poses  # noqa: F401
+    except ImportError:
+        from drivesim.pipeline.config import StageConfig
+
+        module = types.ModuleType("drivesim.stages.preprocess.poses")
+
+        class PoseConfig(StageConfig):
+            """Placeholder pose config."""
+
+        def estimate_poses(*args, **kwargs):
+            raise NotImplementedError("the real pose estimator has not landed")
+
+        module.PoseConfig = PoseConfig
+        module.estimate_poses = estimate_poses
+        sys.modules["drivesim.stages.preprocess.poses"] = module
+        import drivesim.stages.preprocess as package
+
+        package.poses = module
+
+
+def make_trace(ws: Workspace, frame_count: int = FRAME_COUNT) -> Path:
+    """Write a small trace artifact (random-textured frames, stamps, calibration) into `ws`; returns its folder."""
+    rng = np.random.default_rng(0)
+    with ws.write_artifact("trace", "ingest", {"fake": True}, {}) as build:
+        frames = rng.integers(0, 256, size=(frame_count, HEIGHT_PX, WIDTH_PX, 3), dtype=np.uint8)
+        frames[:, :, :, 0] = np.arange(frame_count, dtype=np.uint8)[:, None, None] * 10  # frame id in red
+        np.save(build.dir / "frames.npy", frames)
+        np.save(build.dir / "frame_times_ns.npy", 1_700_000_000_000_000_000 + np.arange(frame_count) * FRAME_PERIOD_NS)
+        calibration = {
+            "width_px": WIDTH_PX,
+            "height_px": HEIGHT_PX,
+            "K": K.tolist(),
+            "source_width_px": WIDTH_PX,
+            "source_height_px": HEIGHT_PX,
+            "distortion_model": "none",
+            "T_vehicle_camera": T_VEHICLE_CAMERA.tolist(),
+            "camera_height_m": CAMERA_HEIGHT_M,
+            "extrinsics_source": "config",
+            "time_base": "unix",
+        }
+        (build.dir / "calibration.json").write_text(json.dumps(calibration))
+        (build.dir / "sources.json").write_text(json.dumps({"recording": "fake", "format": "mcap", "sensors": {}}))
+        build.summary = {"frame_count": frame_count}
+    return ws.artifact_dir("trace")
+
+
+def arc_poses(frame_times_ns: np.ndarray) -> types.SimpleNamespace:
+    """FusedPoses of a car driving a left-hand arc of RADIUS_M at SPEED_MPS, starting at the origin heading east."""
+    t_s = (np.asarray(frame_times_ns) - frame_times_ns[0]) * 1e-9
+    s = SPEED_MPS * t_s
+    yaw = s / RADIUS_M
+    x = RADIUS_M * np.sin(yaw)
+    y = RADIUS_M * (1.0 - np.cos(yaw))
+    n = len(t_s)
+    return types.SimpleNamespace(
+        t_ns=np.asarray(frame_times_ns),
+        x_m=x,
+        y_m=y,
+        z_m=np.zeros(n),
+        yaw_rad=yaw,
+        speed_mps=np.full(n, SPEED_MPS),
+        curvature_1pm=np.full(n, 1.0 / RADIUS_M),
+        arc_length_m=s,
+        T_world_vehicle=np.stack([pose_2d(x[i], y[i], yaw[i]) for i in range(n)]),
+        source="fake_gps_imu",
+        origin_lat_deg=49.0,
+        origin_lon_deg=8.4,
+        origin_alt_m=116.0,
+        residual_m=np.full(n, 0.2),
+    )
+
+
+def install_fake_poses(monkeypatch) -> list[dict]:
+    """Replace series loading and pose fusion by the arc above; returns a list recording each call's arguments."""
+    ensure_poses_module()
+    from drivesim.stages.preprocess import stage
+
+    calls: list[dict] = []
+
+    def fake_estimate(series, frame_times_ns, cfg, frames=None, K=None, T_vehicle_camera=None):
+        calls.append(
+            {"frame_times_ns": np.array(frame_times_ns), "frames_shape": None if frames is None else frames.shape}
+        )
+        return arc_poses(frame_times_ns)
+
+    monkeypatch.setattr(stage.series_mod, "load_series", lambda trace_dir: object())
+    monkeypatch.setattr(stage.poses_mod, "estimate_poses", fake_estimate)
+    return calls
