@@ -1,0 +1,590 @@
+"""Per-frame vehicle poses from the trace's sensors: GPS+IMU+speed fusion (CTRV EKF + RTS smoother), odometry,
+given poses, ground truth or visual SfM; with speed, curvature and arc length along the path.
+
+World frame: local ENU (x east, y north, z up) with its origin at the first good GPS fix; without GPS, the frame of
+the pose source (odometry frame, or the first vehicle pose for given camera poses that are not z-up).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+from pyproj import Transformer
+from scipy.ndimage import gaussian_filter1d
+from scipy.spatial.transform import Rotation, Slerp
+
+from drivesim.pipeline.config import StageConfig
+from drivesim.pipeline.errors import InputError
+from drivesim.sim.geometry import invert, wrap_angle
+from drivesim.stages.preprocess import ekf
+from drivesim.stages.preprocess.series import GpsSeries, SensorSeries
+
+PoseSource = Literal["auto", "gps_imu", "odometry", "given", "sfm", "ground_truth"]
+
+NO_SOURCE_MESSAGE = (
+    "no GPS, odometry or given poses in the trace; set poses.source=sfm with poses.sfm_scale_m or a speed series"
+)
+
+
+class PoseConfig(StageConfig):
+    """How per-frame poses are estimated."""
+
+    source: PoseSource = "auto"
+    """Pose source. auto: given poses > GPS (+IMU, +speed) > odometry > error. ground_truth (synthetic drives) and
+    sfm (camera-only, slow) are used only when asked for."""
+    gps_max_std_m: float = Field(10.0, gt=0)
+    """Fixes whose horizontal position std exceeds this (m) are dropped before fusion."""
+    gps_min_std_m: float = Field(0.02, gt=0)
+    """Floor on a fix's position std (m), so an over-confident receiver cannot pin the track."""
+    gps_default_std_m: float = Field(3.0, gt=0)
+    """Position std (m) assumed for fixes whose covariance is unknown (covariance_type 0)."""
+    gps_gate_chi2: float = Field(13.8, gt=0)
+    """Mahalanobis gate for fixes (chi-square, 2 dof; 13.8 = 99.9 %); farther fixes are outliers."""
+    gps_gate_reset_s: float = Field(5.0, gt=0)
+    """When every fix has been gated out for this long (s), the filter re-accepts fixes (it, not the GPS, drifted)."""
+    accel_std_mps2: float = Field(1.0, gt=0)
+    """Process noise: std of unmodelled longitudinal acceleration (m/s^2 per sqrt(Hz))."""
+    yaw_accel_std_radps2: float = Field(0.5, gt=0)
+    """Process noise: std of unmodelled yaw acceleration (rad/s^2 per sqrt(Hz))."""
+    position_walk_m_per_sqrt_s: float = Field(0.05, ge=0)
+    """Process noise: position random walk for what CTRV does not model (slip, bumps) (m/sqrt(s))."""
+    gyro_bias_init_std_radps: float = Field(0.01, ge=0)
+    """Prior std of the gyro's yaw-rate bias (rad/s); the filter estimates the bias."""
+    gyro_bias_walk_radps_per_sqrt_s: float = Field(1e-4, ge=0)
+    """Random walk of the gyro bias (rad/s/sqrt(s))."""
+    imu_yaw_rate_std_radps: float = Field(0.01, gt=0)
+    """Noise of one averaged IMU yaw-rate measurement (rad/s), i.e. one update at imu_rate_hz."""
+    odometry_yaw_rate_std_radps: float = Field(0.05, gt=0)
+    """Noise of odometry yaw rate (rad/s), used only without an IMU (wheel yaw rates slip)."""
+    speed_std_mps: float = Field(0.1, gt=0)
+    """Noise of one averaged speed measurement (m/s)."""
+    imu_rate_hz: float = Field(25.0, gt=0)
+    """IMU and speed samples are averaged into bins at this rate before fusion (Hz): a 1-hour drive at 100 Hz
+    runs in seconds, and averaging loses nothing a 5-state vehicle model can use."""
+    smoothing: bool = True
+    """Run the RTS smoother after the filter (off: the causal filter estimate)."""
+    use_altitude: bool = True
+    """z from the smoothed GPS altitude (else 0)."""
+    altitude_smoothing_s: float = Field(2.0, ge=0)
+    """Gaussian smoothing of the altitude over time (s, sigma)."""
+    curvature_min_speed_mps: float = Field(1.0, gt=0)
+    """Curvature is yaw_rate*v/(v^2+v0^2) with this v0 (m/s): below it, it fades to 0 instead of dividing noise."""
+    curvature_smoothing_m: float = Field(2.0, ge=0)
+    """Gaussian smoothing of the curvature along the arc length (m, sigma)."""
+    sfm_scale_m: float | None = Field(None, gt=0)
+    """Camera-only SfM: the metric length of the camera path over the sequence (m), when there is no speed series."""
+    sfm_image_width_px: int = Field(640, ge=64)
+    """Camera-only SfM: frames are resized to at most this width (px) before feature extraction."""
+
+
+@dataclass
+class FusedPoses:
+    """Per-frame vehicle poses in the world frame.
+
+    :param t_ns: frame times (N,) int64.
+    :param x_m, y_m, z_m: vehicle origin in the world frame (N,).
+    :param yaw_rad: heading from world +x, counter-clockwise (N,).
+    :param speed_mps: forward speed (N,) (negative when reversing).
+    :param curvature_1pm: signed path curvature dyaw/ds, smoothed (N,) (positive = left turn).
+    :param arc_length_m: distance travelled since the first frame (N,).
+    :param T_world_vehicle: (N, 4, 4).
+    :param source: which source produced them ("gps_imu", "odometry", "given", "sfm", "ground_truth").
+    :param origin_lat_deg, origin_lon_deg, origin_alt_m: WGS84 of the world origin when GPS-referenced.
+    :param residual_m: RMS distance of the fused track to the accepted GPS fixes (m), for GPS fusion.
+    """
+
+    t_ns: np.ndarray
+    x_m: np.ndarray
+    y_m: np.ndarray
+    z_m: np.ndarray
+    yaw_rad: np.ndarray
+    speed_mps: np.ndarray
+    curvature_1pm: np.ndarray
+    arc_length_m: np.ndarray
+    T_world_vehicle: np.ndarray
+    source: str
+    origin_lat_deg: float | None = None
+    origin_lon_deg: float | None = None
+    origin_alt_m: float | None = None
+    residual_m: float | None = None
+    fixes_used: int | None = None
+    fixes_rejected: int | None = None
+
+
+def camera_poses(T_world_vehicle: np.ndarray, T_vehicle_camera: np.ndarray) -> np.ndarray:
+    """T_world_camera (N, 4, 4) of a camera mounted at T_vehicle_camera on each vehicle pose."""
+    return T_world_vehicle @ T_vehicle_camera
+
+
+def enu_transformer(lat0_deg: float, lon0_deg: float, alt0_m: float) -> Transformer:
+    """pyproj transform WGS84 (lon, lat, h) -> local ENU (e, n, u) metres about the given origin."""
+    return Transformer.from_pipeline(
+        "+proj=pipeline +step +proj=cart +ellps=WGS84 "
+        f"+step +proj=topocentric +ellps=WGS84 +lat_0={lat0_deg!r} +lon_0={lon0_deg!r} +h_0={alt0_m!r}"
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Shared per-frame quantities
+
+
+def _poses_from_planar(x_m: np.ndarray, y_m: np.ndarray, z_m: np.ndarray, yaw_rad: np.ndarray) -> np.ndarray:
+    T = np.zeros((len(x_m), 4, 4))
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
+    T[:, 2, 2] = T[:, 3, 3] = 1.0
+    T[:, 0, 3], T[:, 1, 3], T[:, 2, 3] = x_m, y_m, z_m
+    return T
+
+
+def arc_length(x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
+    """Cumulative 2D distance along the points, starting at 0."""
+    step = np.hypot(np.diff(x_m), np.diff(y_m))
+    return np.concatenate([[0.0], np.cumsum(step)])
+
+
+def smooth_curvature(
+    yaw_rate_radps: np.ndarray, speed_mps: np.ndarray, arc_length_m: np.ndarray, min_speed_mps: float, sigma_m: float
+) -> np.ndarray:
+    """Curvature dyaw/ds = yaw_rate/speed, regularised below `min_speed_mps` and smoothed along the arc length."""
+    v = speed_mps
+    kappa = yaw_rate_radps * v / (v * v + min_speed_mps**2)
+    if sigma_m <= 0 or len(kappa) < 3 or arc_length_m[-1] - arc_length_m[0] < 1e-6:
+        return kappa
+    # Smooth on a uniform arc-length grid (stops collapse to one grid cell, so low speed cannot dominate).
+    ds = min(0.1, sigma_m / 4.0)
+    grid = np.arange(arc_length_m[0], arc_length_m[-1] + ds, ds)
+    cell = np.clip(np.round((arc_length_m - arc_length_m[0]) / ds).astype(np.int64), 0, len(grid) - 1)
+    total = np.bincount(cell, weights=kappa, minlength=len(grid))
+    count = np.bincount(cell, minlength=len(grid)).astype(float)
+    filled = count > 0
+    on_grid = np.interp(grid, grid[filled], total[filled] / count[filled])
+    smoothed = gaussian_filter1d(on_grid, sigma_m / ds, mode="nearest")
+    return smoothed[cell]
+
+
+def _interp_yaw(t_query: np.ndarray, t: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    return wrap_angle(np.interp(t_query, t, np.unwrap(yaw)))
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# GPS + IMU + speed
+
+
+def _bin_mean(t_s: np.ndarray, values: np.ndarray, bin_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Average samples into time bins of `bin_s`: (bin index, mean time, mean value) per non-empty bin."""
+    idx = np.floor(t_s / bin_s).astype(np.int64)
+    bins, inverse, counts = np.unique(idx, return_inverse=True, return_counts=True)
+    mean_t = np.bincount(inverse, weights=t_s) / counts
+    mean_v = np.bincount(inverse, weights=values) / counts
+    return bins, mean_t, mean_v
+
+
+def _yaw_rate_up(imu_w: np.ndarray, orientation_xyzw: np.ndarray) -> np.ndarray:
+    """Rotation rate about the gravity-up axis: the body rates rotated by the IMU's tilt where it gives one."""
+    w_up = imu_w[:, 2].copy()
+    ok = np.all(np.isfinite(orientation_xyzw), axis=1) & (np.linalg.norm(orientation_xyzw, axis=1) > 0.5)
+    if ok.any():
+        w_up[ok] = Rotation.from_quat(orientation_xyzw[ok]).apply(imu_w[ok])[:, 2]
+    return w_up
+
+
+def _gps_enu(gps: GpsSeries, cfg: PoseConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple]:
+    """Good fixes in ENU about the first good fix: (index into gps, e/n/u (M,3), covariance (M,2,2), origin)."""
+    cov = gps.covariance_m2[:, :2, :2].copy()
+    unknown = gps.covariance_type == 0
+    cov[unknown] = np.eye(2) * cfg.gps_default_std_m**2
+    var_max = np.maximum(cov[:, 0, 0], cov[:, 1, 1])
+    good = (
+        (gps.status >= 0)
+        & np.isfinite(gps.lat_deg)
+        & np.isfinite(gps.lon_deg)
+        & np.isfinite(var_max)
+        & (var_max <= cfg.gps_max_std_m**2)
+    )
+    idx = np.flatnonzero(good)
+    if len(idx) == 0:
+        return idx, np.zeros((0, 3)), np.zeros((0, 2, 2)), (None, None, None)
+    alt = np.where(np.isfinite(gps.alt_m), gps.alt_m, 0.0)
+    i0 = idx[0]
+    origin = (float(gps.lat_deg[i0]), float(gps.lon_deg[i0]), float(alt[i0]))
+    e, n, u = enu_transformer(*origin).transform(gps.lon_deg[idx], gps.lat_deg[idx], alt[idx])
+    floor = cfg.gps_min_std_m**2
+    cov = cov[idx]
+    cov[:, 0, 0] = np.maximum(cov[:, 0, 0], floor)
+    cov[:, 1, 1] = np.maximum(cov[:, 1, 1], floor)
+    return idx, np.column_stack([e, n, u]), cov, origin
+
+
+def _initial_yaw(t_fix: np.ndarray, xy_fix: np.ndarray, std_m: float, t_w: np.ndarray, w: np.ndarray) -> float:
+    """Heading at the first fix from the first clear displacement, corrected for the turn made meanwhile."""
+    d = np.hypot(xy_fix[:, 0] - xy_fix[0, 0], xy_fix[:, 1] - xy_fix[0, 1])
+    far = np.flatnonzero(d > max(3.0, 4.0 * std_m))
+    if len(far) == 0:
+        return 0.0
+    j = far[0]
+    chord = float(np.arctan2(xy_fix[j, 1] - xy_fix[0, 1], xy_fix[j, 0] - xy_fix[0, 0]))
+    if len(t_w) < 2:
+        return chord
+    inside = (t_w >= t_fix[0]) & (t_w <= t_fix[j])
+    turned = float(np.trapezoid(w[inside], t_w[inside])) if inside.sum() > 1 else 0.0
+    return float(wrap_angle(chord - 0.5 * turned))
+
+
+def fuse_gps_imu(series: SensorSeries, frame_times_ns: np.ndarray, cfg: PoseConfig) -> FusedPoses:
+    """Fuse GPS fixes with IMU yaw rate and speed (wheel / odometry) by the CTRV EKF + RTS smoother.
+
+    Yaw rate comes from the IMU (tilt-compensated, bias estimated) or else the odometry; speed from the speed series
+    or else the odometry's forward velocity. Fixes with status -1, a too large covariance, or failing the Mahalanobis
+    gate are not used.
+    :raises InputError: the trace has no usable GPS fix.
+    """
+    gps = series.gps
+    if gps is None or len(gps.t_ns) == 0:
+        raise InputError("source gps_imu needs GPS fixes, and the trace has none")
+    gidx, enu, fix_cov, origin = _gps_enu(gps, cfg)
+    if len(gidx) == 0:
+        raise InputError(
+            f"none of the {len(gps.t_ns)} GPS fixes is usable (status -1 or std above "
+            f"poses.gps_max_std_m={cfg.gps_max_std_m} m)"
+        )
+    frame_times_ns = np.asarray(frame_times_ns, dtype=np.int64)
+    t0_ns = int(min(gps.t_ns[gidx[0]], frame_times_ns[0] if len(frame_times_ns) else gps.t_ns[gidx[0]]))
+
+    def rel_s(t_ns: np.ndarray) -> np.ndarray:
+        return (np.asarray(t_ns, dtype=np.int64) - t0_ns) * 1e-9
+
+    # Yaw-rate and speed samples, averaged on a common bin grid.
+    bin_s = 1.0 / cfg.imu_rate_hz
+    rate_t = rate_w = np.zeros(0)
+    rate_biased = False
+    rate_var = cfg.imu_yaw_rate_std_radps**2
+    if series.imu is not None and len(series.imu.t_ns):
+        rate_t = rel_s(series.imu.t_ns)
+        rate_w = _yaw_rate_up(series.imu.angular_velocity_radps, series.imu.orientation_xyzw)
+        rate_biased = True
+    elif series.odometry is not None and len(series.odometry.t_ns):
+        rate_t = rel_s(series.odometry.t_ns)
+        rate_w = series.odometry.angular_velocity_radps[:, 2]
+        rate_var = cfg.odometry_yaw_rate_std_radps**2
+    speed_t = speed_v = np.zeros(0)
+    if series.speed is not None and len(series.speed.t_ns):
+        speed_t, speed_v = rel_s(series.speed.t_ns), series.speed.speed_mps
+    elif series.odometry is not None and len(series.odometry.t_ns):
+        speed_t, speed_v = rel_s(series.odometry.t_ns), series.odometry.linear_velocity_mps[:, 0]
+    ok = np.isfinite(rate_w)
+    rate_t, rate_w = rate_t[ok], rate_w[ok]
+    ok = np.isfinite(speed_v)
+    speed_t, speed_v = speed_t[ok], speed_v[ok]
+
+    wb, wt, wv = _bin_mean(rate_t, rate_w, bin_s)
+    sb, st, sv = _bin_mean(speed_t, speed_v, bin_s)
+    grid_bins = np.union1d(wb, sb)
+    G = len(grid_bins)
+    g_t = np.zeros(G)
+    g_n = np.zeros(G)
+    g_w = np.full(G, np.nan)
+    g_v = np.full(G, np.nan)
+    iw = np.searchsorted(grid_bins, wb)
+    is_ = np.searchsorted(grid_bins, sb)
+    g_w[iw] = wv
+    g_v[is_] = sv
+    np.add.at(g_t, iw, wt)
+    np.add.at(g_n, iw, 1)
+    np.add.at(g_t, is_, st)
+    np.add.at(g_n, is_, 1)
+    g_t = g_t / np.maximum(g_n, 1)
+
+    fix_t = rel_s(gps.t_ns[gidx])
+    F = len(fix_t)
+    t_all = np.concatenate([g_t, fix_t])
+    order = np.argsort(t_all, kind="stable")
+    K = G + F
+    nan = np.full(K, np.nan)
+    w_all = np.concatenate([g_w, nan[:F]])[order]
+    v_all = np.concatenate([g_v, nan[:F]])[order]
+    fix_xy = np.concatenate([np.full((G, 2), np.nan), enu[:, :2]])[order]
+    fix_cov_all = np.concatenate([np.tile(np.eye(2), (G, 1, 1)), fix_cov])[order]
+    meas = ekf.Measurements(
+        t_s=t_all[order],
+        yaw_rate_radps=w_all,
+        yaw_rate_var=np.full(K, rate_var),
+        yaw_rate_biased=np.full(K, rate_biased),
+        speed_mps=v_all,
+        speed_var=np.full(K, cfg.speed_std_mps**2),
+        fix_xy_m=fix_xy,
+        fix_cov_m2=fix_cov_all,
+    )
+
+    # Initial state at the first event: position of the first good fix, heading from the first clear displacement.
+    std0 = float(np.sqrt(max(fix_cov[0, 0, 0], fix_cov[0, 1, 1])))
+    yaw0 = _initial_yaw(fix_t, enu[:, :2], std0, rate_t, rate_w)
+    x0 = np.array([enu[0, 0], enu[0, 1], yaw0, sv[0] if len(sv) else 0.0, 0.0, 0.0])
+    P0 = np.diag(
+        [
+            std0**2 + 1.0,
+            std0**2 + 1.0,
+            0.5**2,
+            (1.0 if len(sv) else 10.0) ** 2,
+            0.2**2,
+            (cfg.gyro_bias_init_std_radps if rate_biased else 0.0) ** 2 + 1e-12,
+        ]
+    )
+    noise = ekf.CtrvNoise(
+        accel_std_mps2=cfg.accel_std_mps2,
+        yaw_accel_std_radps2=cfg.yaw_accel_std_radps2,
+        gyro_bias_walk_radps_per_sqrt_s=cfg.gyro_bias_walk_radps_per_sqrt_s if rate_biased else 0.0,
+        position_walk_m_per_sqrt_s=cfg.position_walk_m_per_sqrt_s,
+        gate_chi2=cfg.gps_gate_chi2,
+        gate_reset_s=cfg.gps_gate_reset_s,
+    )
+    track = ekf.run_filter_smoother(meas, x0, P0, noise)
+    states = track.state if cfg.smoothing else track.filtered
+
+    # Residual to the fixes that were used.
+    is_fix = np.isfinite(meas.fix_xy_m[:, 0])
+    used = is_fix & track.fix_accepted
+    residual = (
+        float(np.sqrt(np.mean(np.sum((states[used, :2] - meas.fix_xy_m[used]) ** 2, axis=1)))) if used.any() else None
+    )
+
+    t_frames = rel_s(frame_times_ns)
+    x, y, yaw, v, w = _sample_states(track.t_s, states, t_frames)
+    if cfg.use_altitude:
+        fix_used_sorted = track.fix_accepted[np.argsort(order)][G:]  # back to the order of `enu`
+        zt, zu = fix_t[fix_used_sorted], enu[fix_used_sorted, 2]
+        if len(zt) == 0:
+            zt, zu = fix_t, enu[:, 2]
+        z = np.interp(t_frames, zt, _smooth_in_time(zt, zu, cfg.altitude_smoothing_s))
+    else:
+        z = np.zeros_like(x)
+    s = arc_length(x, y)
+    kappa = smooth_curvature(w, v, s, cfg.curvature_min_speed_mps, cfg.curvature_smoothing_m)
+    return FusedPoses(
+        t_ns=frame_times_ns,
+        x_m=x,
+        y_m=y,
+        z_m=z,
+        yaw_rad=yaw,
+        speed_mps=v,
+        curvature_1pm=kappa,
+        arc_length_m=s,
+        T_world_vehicle=_poses_from_planar(x, y, z, yaw),
+        source="gps_imu",
+        origin_lat_deg=origin[0],
+        origin_lon_deg=origin[1],
+        origin_alt_m=origin[2],
+        residual_m=residual,
+        fixes_used=int(used.sum()),
+        fixes_rejected=int(len(gps.t_ns) - used.sum()),
+    )
+
+
+def _smooth_in_time(t_s: np.ndarray, values: np.ndarray, sigma_s: float) -> np.ndarray:
+    if sigma_s <= 0 or len(values) < 3:
+        return values
+    dt = float(np.median(np.diff(t_s))) if len(t_s) > 1 else 1.0
+    return gaussian_filter1d(values, max(sigma_s / max(dt, 1e-3), 1e-3), mode="nearest")
+
+
+def _sample_states(
+    t_s: np.ndarray, states: np.ndarray, t_query: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """x, y, yaw, speed, yaw rate at the query times: interpolated inside, CTRV-extrapolated outside the events."""
+    x = np.interp(t_query, t_s, states[:, ekf.IX])
+    y = np.interp(t_query, t_s, states[:, ekf.IY])
+    yaw = _interp_yaw(t_query, t_s, states[:, ekf.IYAW])
+    v = np.interp(t_query, t_s, states[:, ekf.IV])
+    w = np.interp(t_query, t_s, states[:, ekf.IW])
+    for k in np.flatnonzero((t_query < t_s[0]) | (t_query > t_s[-1])):
+        j = 0 if t_query[k] < t_s[0] else -1
+        pred, _ = ekf.ctrv_predict(states[j], float(t_query[k] - t_s[j]))
+        x[k], y[k], yaw[k] = pred[ekf.IX], pred[ekf.IY], pred[ekf.IYAW]
+    return x, y, yaw, v, w
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Pose tracks: odometry, given poses, ground truth, SfM
+
+
+def track_poses(
+    t_ns: np.ndarray,
+    T_world_vehicle: np.ndarray,
+    frame_times_ns: np.ndarray,
+    source: str,
+    cfg: PoseConfig,
+    speed: tuple[np.ndarray, np.ndarray] | None = None,
+) -> FusedPoses:
+    """Per-frame poses from a track of full vehicle poses (interpolated; speed and curvature from its motion).
+
+    :param speed: optional (t_ns, speed_mps) measured speed, used instead of the track's differentiated speed.
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    frame_times_ns = np.asarray(frame_times_ns, dtype=np.int64)
+    keep = np.concatenate([[True], np.diff(t_ns) > 0])
+    t_ns, T_world_vehicle = t_ns[keep], T_world_vehicle[keep]
+    t0 = int(min(t_ns[0], frame_times_ns[0]))
+    ts = (t_ns - t0) * 1e-9
+    tf = (frame_times_ns - t0) * 1e-9
+    if len(ts) == 1:
+        T = np.repeat(T_world_vehicle[:1], len(tf), axis=0)
+    else:
+        rot = Slerp(ts, Rotation.from_matrix(T_world_vehicle[:, :3, :3]))(np.clip(tf, ts[0], ts[-1]))
+        T = np.zeros((len(tf), 4, 4))
+        T[:, :3, :3] = rot.as_matrix()
+        T[:, 3, 3] = 1.0
+        for i in range(3):
+            T[:, i, 3] = np.interp(tf, ts, T_world_vehicle[:, i, 3])
+    x, y, z = T[:, 0, 3], T[:, 1, 3], T[:, 2, 3]
+    yaw = np.arctan2(T[:, 1, 0], T[:, 0, 0])
+    # Motion from the source track (finer than the frames, when it is), then sampled at the frames.
+    if len(ts) > 2:
+        px, py = T_world_vehicle[:, 0, 3], T_world_vehicle[:, 1, 3]
+        yaw_src = np.unwrap(np.arctan2(T_world_vehicle[:, 1, 0], T_world_vehicle[:, 0, 0]))
+        vx, vy = np.gradient(px, ts), np.gradient(py, ts)
+        v_src = vx * np.cos(yaw_src) + vy * np.sin(yaw_src)
+        w_src = np.gradient(yaw_src, ts)
+        v = np.interp(tf, ts, v_src)
+        w = np.interp(tf, ts, w_src)
+    else:
+        v = w = np.zeros(len(tf))
+    if speed is not None and len(speed[0]) > 0:
+        v = np.interp(tf, (np.asarray(speed[0], dtype=np.int64) - t0) * 1e-9, speed[1])
+    s = arc_length(x, y)
+    kappa = smooth_curvature(w, v, s, cfg.curvature_min_speed_mps, cfg.curvature_smoothing_m)
+    return FusedPoses(
+        t_ns=frame_times_ns,
+        x_m=x.copy(),
+        y_m=y.copy(),
+        z_m=z.copy(),
+        yaw_rad=yaw,
+        speed_mps=v,
+        curvature_1pm=kappa,
+        arc_length_m=s,
+        T_world_vehicle=T,
+        source=source,
+    )
+
+
+def _quat_poses(position_m: np.ndarray, orientation_xyzw: np.ndarray) -> np.ndarray:
+    T = np.zeros((len(position_m), 4, 4))
+    q = orientation_xyzw
+    ok = np.all(np.isfinite(q), axis=1) & (np.linalg.norm(q, axis=1) > 0.5)
+    T[:, :3, :3] = np.eye(3)
+    if ok.any():
+        T[ok, :3, :3] = Rotation.from_quat(q[ok]).as_matrix()
+    T[:, :3, 3] = position_m
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def odometry_track(series: SensorSeries, frame_times_ns: np.ndarray, cfg: PoseConfig) -> FusedPoses:
+    """Per-frame poses from the odometry alone (its own frame), speed from its forward velocity.
+
+    :raises InputError: the trace has no odometry.
+    """
+    odo = series.odometry
+    if odo is None or len(odo.t_ns) == 0:
+        raise InputError("source odometry needs an odometry series, and the trace has none")
+    T = _quat_poses(odo.position_m, odo.orientation_xyzw)
+    speed = (odo.t_ns, odo.linear_velocity_mps[:, 0]) if np.isfinite(odo.linear_velocity_mps[:, 0]).all() else None
+    return track_poses(odo.t_ns, T, frame_times_ns, "odometry", cfg, speed=speed)
+
+
+def level_world(T_world_vehicle: np.ndarray) -> np.ndarray:
+    """Re-anchor a track whose world is not z-up (e.g. KITTI's first-camera frame) at its first vehicle pose.
+
+    Kept as is when the vehicles' up axes already point along world +z (within 30 degrees on average).
+    """
+    up = T_world_vehicle[:, :3, 2].mean(axis=0)
+    if up[2] > np.cos(np.radians(30.0)) * np.linalg.norm(up):
+        return T_world_vehicle
+    return invert(T_world_vehicle[0]) @ T_world_vehicle
+
+
+def given_track(series: SensorSeries, frame_times_ns: np.ndarray, cfg: PoseConfig, T_vehicle_camera: np.ndarray):
+    """Per-frame poses from the trace's given camera poses (T_world_vehicle = T_world_camera @ T_camera_vehicle)."""
+    given = series.given_poses
+    if given is None or len(given.t_ns) == 0:
+        raise InputError("source given needs given poses (poses.npz), and the trace has none")
+    T = level_world(given.T_world_camera @ invert(T_vehicle_camera))
+    speed = (series.speed.t_ns, series.speed.speed_mps) if series.speed is not None else None
+    return track_poses(given.t_ns, T, frame_times_ns, "given", cfg, speed=speed)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+
+
+def estimate_poses(
+    series: SensorSeries,
+    frame_times_ns: np.ndarray,
+    cfg: PoseConfig,
+    frames: np.ndarray | None = None,
+    K: np.ndarray | None = None,
+    T_vehicle_camera: np.ndarray | None = None,
+) -> FusedPoses:
+    """Per-frame vehicle poses from the best (or the configured) source.
+
+    auto: given poses, else GPS (+IMU, +speed), else odometry. ground_truth and sfm only when asked for;
+    sfm needs `frames`, `K` and `T_vehicle_camera`.
+    :raises InputError: the chosen source is missing, or there is no source at all.
+    """
+    frame_times_ns = np.asarray(frame_times_ns, dtype=np.int64)
+    if len(frame_times_ns) == 0:
+        raise InputError("the trace has no frames to estimate poses for")
+    T_vc = np.eye(4) if T_vehicle_camera is None else np.asarray(T_vehicle_camera, dtype=float)
+    source = cfg.source
+    if source == "auto":
+        if series.given_poses is not None:
+            source = "given"
+        elif series.gps is not None and len(_gps_enu(series.gps, cfg)[0]) > 0:
+            source = "gps_imu"
+        elif series.odometry is not None:
+            source = "odometry"
+        else:
+            raise InputError(NO_SOURCE_MESSAGE)
+    if source == "given":
+        return given_track(series, frame_times_ns, cfg, T_vc)
+    if source == "gps_imu":
+        return fuse_gps_imu(series, frame_times_ns, cfg)
+    if source == "odometry":
+        return odometry_track(series, frame_times_ns, cfg)
+    if source == "ground_truth":
+        gt = series.ground_truth
+        if gt is None or len(gt.t_ns) == 0:
+            raise InputError("source ground_truth needs ground_truth.npz (synthetic recordings only)")
+        return track_poses(gt.t_ns, gt.T_world_vehicle, frame_times_ns, "ground_truth", cfg)
+    if source == "sfm":
+        from drivesim.stages.preprocess.sfm import sfm_poses  # pycolmap is slow to import; only load it when used
+
+        if frames is None or K is None:
+            raise InputError("source sfm needs the trace's frames and intrinsics")
+        speed = (series.speed.t_ns, series.speed.speed_mps) if series.speed is not None else None
+        if speed is None and series.odometry is not None:
+            speed = (series.odometry.t_ns, series.odometry.linear_velocity_mps[:, 0])
+        return sfm_poses(
+            frames,
+            K,
+            frame_times_ns,
+            speed,
+            cfg.sfm_scale_m,
+            T_vc,
+            max_width_px=cfg.sfm_image_width_px,
+            cfg=cfg,
+        )
+    raise InputError(f"unknown pose source {source!r}")
+
+
+__all__ = [
+    "FusedPoses",
+    "PoseConfig",
+    "camera_poses",
+    "enu_transformer",
+    "estimate_poses",
+    "fuse_gps_imu",
+    "odometry_track",
+    "track_poses",
+]

@@ -1,0 +1,332 @@
+"""Pose estimation on synthetic drives with known ground truth: GPS+IMU+speed fusion, odometry, given poses."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from drivesim.pipeline.errors import InputError
+from drivesim.sim.geometry import camera_mount, wrap_angle
+from drivesim.stages.preprocess.poses import (
+    PoseConfig,
+    camera_poses,
+    enu_transformer,
+    estimate_poses,
+    fuse_gps_imu,
+    odometry_track,
+)
+from drivesim.stages.preprocess.series import (
+    GivenPoses,
+    GpsSeries,
+    ImuSeries,
+    OdometrySeries,
+    SensorSeries,
+    SpeedSeries,
+    load_series,
+)
+
+ORIGIN = (48.0, 11.0, 500.0)
+
+
+@dataclass
+class Truth:
+    t_s: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+    v: np.ndarray
+    w: np.ndarray
+
+    def at(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return (
+            np.interp(t_s, self.t_s, self.x),
+            np.interp(t_s, self.t_s, self.y),
+            wrap_angle(np.interp(t_s, self.t_s, np.unwrap(self.yaw))),
+        )
+
+
+def simulate_truth(duration_s: float, speed_fn, yaw_rate_fn, yaw0_rad: float = 0.3) -> Truth:
+    """Integrate a planar drive at 1 kHz from speed(t) and yaw_rate(t)."""
+    t = np.arange(0.0, duration_s + 1e-9, 1e-3)
+    v, w = speed_fn(t), yaw_rate_fn(t)
+    yaw = yaw0_rad + np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * 1e-3)])
+    vx, vy = v * np.cos(yaw), v * np.sin(yaw)
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (vx[1:] + vx[:-1]) * 1e-3)]) + 5.0
+    y = np.concatenate([[0.0], np.cumsum(0.5 * (vy[1:] + vy[:-1]) * 1e-3)]) - 3.0
+    return Truth(t, x, y, yaw, v, w)
+
+
+def sensors_from_truth(
+    truth: Truth,
+    rng: np.random.Generator,
+    gps_std_m: float = 1.0,
+    gps_hz: float = 10.0,
+    imu_hz: float = 100.0,
+    speed_hz: float = 50.0,
+    gyro_bias_radps: float = 0.02,
+    gyro_std_radps: float = 0.01,
+    speed_std_mps: float = 0.05,
+    t0_ns: int = 1_700_000_000_000_000_000,
+) -> SensorSeries:
+    """GPS (lat/lon with white noise), IMU (biased, noisy yaw rate) and wheel speed sampled from a true drive."""
+    end = truth.t_s[-1]
+    tg = np.arange(0.0, end, 1.0 / gps_hz)
+    gx, gy, _ = truth.at(tg)
+    gx = gx + rng.normal(0, gps_std_m, len(tg))
+    gy = gy + rng.normal(0, gps_std_m, len(tg))
+    to_geo = enu_transformer(*ORIGIN)
+    lon, lat, alt = to_geo.transform(gx, gy, np.full(len(tg), 2.0), direction="INVERSE")
+    cov = np.zeros((len(tg), 3, 3))
+    cov[:, 0, 0] = cov[:, 1, 1] = gps_std_m**2
+    cov[:, 2, 2] = (2 * gps_std_m) ** 2
+    gps = GpsSeries(
+        t_ns=t0_ns + np.round(tg * 1e9).astype(np.int64),
+        lat_deg=lat,
+        lon_deg=lon,
+        alt_m=alt,
+        status=np.zeros(len(tg), np.int8),
+        covariance_m2=cov,
+        covariance_type=np.full(len(tg), 2, np.uint8),
+    )
+    ti = np.arange(0.0, end, 1.0 / imu_hz)
+    gyro = np.zeros((len(ti), 3))
+    gyro[:, 2] = np.interp(ti, truth.t_s, truth.w) + gyro_bias_radps + rng.normal(0, gyro_std_radps, len(ti))
+    acc = np.zeros((len(ti), 3))
+    acc[:, 2] = 9.81
+    imu = ImuSeries(
+        t_ns=t0_ns + np.round(ti * 1e9).astype(np.int64),
+        angular_velocity_radps=gyro,
+        linear_acceleration_mps2=acc,
+        orientation_xyzw=np.full((len(ti), 4), np.nan),
+    )
+    ts = np.arange(0.0, end, 1.0 / speed_hz)
+    speed = SpeedSeries(
+        t_ns=t0_ns + np.round(ts * 1e9).astype(np.int64),
+        speed_mps=np.interp(ts, truth.t_s, truth.v) + rng.normal(0, speed_std_mps, len(ts)),
+    )
+    return SensorSeries(gps=gps, imu=imu, speed=speed)
+
+
+def frame_times(
+    truth: Truth, hz: float = 10.0, t0_ns: int = 1_700_000_000_000_000_000
+) -> tuple[np.ndarray, np.ndarray]:
+    tf = np.arange(0.05, truth.t_s[-1] - 0.05, 1.0 / hz)
+    return tf, t0_ns + np.round(tf * 1e9).astype(np.int64)
+
+
+def position_error(truth: Truth, tf: np.ndarray, fused) -> np.ndarray:
+    """Distance of the fused track to the truth, both in the ENU frame about ORIGIN (the fused one is about the
+    first fix: a few metres away, so the two frames differ by a shift only)."""
+    x, y, _ = truth.at(tf)
+    dx = dy = 0.0
+    if fused.origin_lat_deg is not None:
+        dx, dy, _ = enu_transformer(*ORIGIN).transform(fused.origin_lon_deg, fused.origin_lat_deg, fused.origin_alt_m)
+    return np.hypot(fused.x_m + dx - x, fused.y_m + dy - y)
+
+
+def circle_truth(radius_m: float = 40.0, speed_mps: float = 10.0, duration_s: float = 60.0) -> Truth:
+    return simulate_truth(
+        duration_s, lambda t: np.full_like(t, speed_mps), lambda t: np.full_like(t, speed_mps / radius_m)
+    )
+
+
+def test_rts_beats_gps_noise_on_a_circle_with_gyro_bias():
+    truth = circle_truth()
+    series = sensors_from_truth(truth, np.random.default_rng(0), gps_std_m=1.0, gyro_bias_radps=0.02)
+    tf, tf_ns = frame_times(truth)
+    fused = fuse_gps_imu(series, tf_ns, PoseConfig())
+    err = position_error(truth, tf, fused)
+    rms = float(np.sqrt(np.mean(err**2)))
+    assert rms < 0.4, f"RMS position error {rms:.3f} m with 1 m GPS noise"
+    _, _, yaw = truth.at(tf)
+    yaw_err = np.abs(wrap_angle(fused.yaw_rad - yaw))
+    assert np.degrees(yaw_err[10:-10]).max() < 2.0
+    assert fused.source == "gps_imu"
+    assert fused.origin_lat_deg == pytest.approx(series.gps.lat_deg[0])
+    # the residual to the fixes is about the GPS noise (sqrt(2) * 1 m for 2D), not the filter's error
+    assert 1.1 < fused.residual_m < 1.7
+    # the causal filter alone is worse than the smoother
+    filtered = fuse_gps_imu(series, tf_ns, PoseConfig(smoothing=False))
+    assert np.sqrt(np.mean(position_error(truth, tf, filtered) ** 2)) > rms
+
+
+def test_curvature_speed_and_arc_length_on_a_constant_radius_arc():
+    truth = circle_truth(radius_m=40.0, speed_mps=10.0)
+    series = sensors_from_truth(truth, np.random.default_rng(1))
+    tf, tf_ns = frame_times(truth)
+    fused = fuse_gps_imu(series, tf_ns, PoseConfig())
+    inner = slice(20, -20)
+    kappa = fused.curvature_1pm[inner]
+    assert np.all(np.abs(kappa - 1 / 40.0) < 0.1 / 40.0), (kappa.min(), kappa.max())
+    assert np.abs(fused.speed_mps[inner] - 10.0).max() < 0.2
+    travelled = 10.0 * (tf[-1] - tf[0])
+    assert fused.arc_length_m[-1] == pytest.approx(travelled, rel=0.01)
+    assert fused.arc_length_m[0] == 0.0 and np.all(np.diff(fused.arc_length_m) >= 0)
+
+
+def test_curvature_sign_and_straight_segments_on_an_s_curve():
+    # straight 10 s, left arc (R=50 m) 10 s, right arc (R=25 m) 10 s, at 8 m/s
+    def w(t):
+        return np.where(t < 10, 0.0, np.where(t < 20, 8.0 / 50.0, -8.0 / 25.0))
+
+    truth = simulate_truth(30.0, lambda t: np.full_like(t, 8.0), w)
+    series = sensors_from_truth(truth, np.random.default_rng(2))
+    tf, tf_ns = frame_times(truth)
+    fused = fuse_gps_imu(series, tf_ns, PoseConfig())
+    k = fused.curvature_1pm
+    assert np.abs(k[(tf > 1) & (tf < 8)]).max() < 0.003
+    assert np.abs(k[(tf > 12) & (tf < 18)] - 1 / 50).max() < 0.1 / 50
+    assert np.abs(k[(tf > 22) & (tf < 28)] + 1 / 25).max() < 0.1 / 25
+
+
+def test_gps_outage_of_five_seconds_is_bridged_by_imu_and_speed():
+    truth = circle_truth(radius_m=60.0, speed_mps=12.0, duration_s=40.0)
+    series = sensors_from_truth(truth, np.random.default_rng(3))
+    t_gps = (series.gps.t_ns - series.gps.t_ns[0]) * 1e-9
+    keep = (t_gps < 20.0) | (t_gps >= 25.0)
+    g = series.gps
+    series.gps = GpsSeries(*(getattr(g, f)[keep] for f in g.__dataclass_fields__))
+    tf, tf_ns = frame_times(truth)
+    fused = fuse_gps_imu(series, tf_ns, PoseConfig())
+    err = position_error(truth, tf, fused)
+    in_gap = (tf > 20.0) & (tf < 25.0)
+    assert err[in_gap].max() < 1.0, f"max error in the 5 s gap {err[in_gap].max():.2f} m (60 m travelled)"
+    assert np.sqrt(np.mean(err**2)) < 0.5
+
+
+def test_bad_fixes_are_rejected():
+    truth = circle_truth(radius_m=50.0, speed_mps=10.0, duration_s=40.0)
+    rng = np.random.default_rng(4)
+    series = sensors_from_truth(truth, rng)
+    g = series.gps
+    n = len(g.t_ns)
+    # status -1 fixes far away, isolated 50 m jumps that claim 1 m accuracy, and fixes with 30 m std
+    no_fix = np.arange(20, n, 37)
+    jumps = np.arange(30, n, 41)
+    vague = np.arange(45, n, 53)
+    g.status[no_fix] = -1
+    g.lat_deg[no_fix] += 0.01
+    g.lat_deg[jumps] += 50.0 / 111_000.0
+    g.covariance_m2[vague, 0, 0] = g.covariance_m2[vague, 1, 1] = 30.0**2
+    g.lon_deg[vague] += 40.0 / 74_000.0
+    tf, tf_ns = frame_times(truth)
+    fused = fuse_gps_imu(series, tf_ns, PoseConfig())
+    err = position_error(truth, tf, fused)
+    assert err.max() < 1.0, f"max error {err.max():.2f} m: a bad fix got through"
+    assert np.sqrt(np.mean(err**2)) < 0.4
+    bad = len(set(no_fix) | set(jumps) | set(vague))
+    assert fused.fixes_rejected >= bad
+    assert fused.fixes_rejected < bad + 0.02 * n  # the gate rejects little else
+
+
+def test_gps_only_without_imu_or_speed_still_tracks():
+    truth = circle_truth(radius_m=80.0, speed_mps=8.0, duration_s=40.0)
+    series = sensors_from_truth(truth, np.random.default_rng(5), gps_std_m=0.5)
+    series.imu = series.speed = None
+    tf, tf_ns = frame_times(truth)
+    fused = fuse_gps_imu(series, tf_ns, PoseConfig())
+    err = position_error(truth, tf, fused)
+    assert np.sqrt(np.mean(err**2)) < 0.4
+    assert np.abs(fused.speed_mps[20:-20] - 8.0).max() < 0.5
+
+
+def _odometry_from_truth(truth: Truth, hz: float = 20.0, t0_ns: int = 1_700_000_000_000_000_000) -> OdometrySeries:
+    to = np.arange(0.0, truth.t_s[-1], 1.0 / hz)
+    x, y, yaw = truth.at(to)
+    q = np.zeros((len(to), 4))
+    q[:, 2], q[:, 3] = np.sin(yaw / 2), np.cos(yaw / 2)
+    lin = np.zeros((len(to), 3))
+    lin[:, 0] = np.interp(to, truth.t_s, truth.v)
+    ang = np.zeros((len(to), 3))
+    ang[:, 2] = np.interp(to, truth.t_s, truth.w)
+    return OdometrySeries(
+        t_ns=t0_ns + np.round(to * 1e9).astype(np.int64),
+        position_m=np.column_stack([x, y, np.zeros_like(x)]),
+        orientation_xyzw=q,
+        linear_velocity_mps=lin,
+        angular_velocity_radps=ang,
+    )
+
+
+def test_odometry_only_path():
+    truth = circle_truth(radius_m=30.0, speed_mps=6.0, duration_s=30.0)
+    series = SensorSeries(odometry=_odometry_from_truth(truth))
+    tf, tf_ns = frame_times(truth)
+    fused = estimate_poses(series, tf_ns, PoseConfig())
+    assert fused.source == "odometry"
+    assert position_error(truth, tf, fused).max() < 0.05
+    assert np.abs(fused.speed_mps - 6.0).max() < 1e-6
+    assert np.abs(fused.curvature_1pm[20:-20] - 1 / 30).max() < 0.05 / 30
+    assert fused.origin_lat_deg is None and fused.residual_m is None
+    same = odometry_track(series, tf_ns, PoseConfig())
+    np.testing.assert_allclose(same.T_world_vehicle, fused.T_world_vehicle)
+
+
+def test_auto_prefers_given_then_gps_then_odometry_and_ground_truth_only_on_request():
+    truth = circle_truth(duration_s=20.0)
+    series = sensors_from_truth(truth, np.random.default_rng(6))
+    series.odometry = _odometry_from_truth(truth)
+    tf, tf_ns = frame_times(truth)
+    assert estimate_poses(series, tf_ns, PoseConfig()).source == "gps_imu"
+    assert estimate_poses(series, tf_ns, PoseConfig(source="odometry")).source == "odometry"
+    with pytest.raises(InputError, match="ground_truth"):
+        estimate_poses(series, tf_ns, PoseConfig(source="ground_truth"))
+    series.gps.status[:] = -1
+    assert estimate_poses(series, tf_ns, PoseConfig()).source == "odometry"
+    with pytest.raises(InputError, match="none of the"):
+        estimate_poses(series, tf_ns, PoseConfig(source="gps_imu"))
+
+
+def test_given_camera_poses_in_kitti_convention_become_z_up_vehicle_poses():
+    truth = circle_truth(radius_m=30.0, speed_mps=6.0, duration_s=20.0)
+    odo = _odometry_from_truth(truth, hz=10.0)
+    T_vc = camera_mount(1.5, 0.0, 1.6, pitch_down_rad=0.05)
+    T_wv = np.zeros((len(odo.t_ns), 4, 4))
+    yaw = 2 * np.arctan2(odo.orientation_xyzw[:, 2], odo.orientation_xyzw[:, 3])
+    T_wv[:, 0, 0], T_wv[:, 0, 1], T_wv[:, 1, 0], T_wv[:, 1, 1] = np.cos(yaw), -np.sin(yaw), np.sin(yaw), np.cos(yaw)
+    T_wv[:, 2, 2] = T_wv[:, 3, 3] = 1
+    T_wv[:, :3, 3] = odo.position_m
+    # KITTI: the world is the first camera's optical frame
+    T_wc = np.linalg.inv(T_wv[0] @ T_vc) @ T_wv @ T_vc
+    series = SensorSeries(given_poses=GivenPoses(odo.t_ns, T_wc))
+    fused = estimate_poses(series, odo.t_ns, PoseConfig(), T_vehicle_camera=T_vc)
+    assert fused.source == "given"
+    expected = np.linalg.inv(T_wv[0]) @ T_wv  # the first vehicle pose becomes the world origin, z up
+    np.testing.assert_allclose(fused.T_world_vehicle, expected, atol=1e-9)
+    assert fused.yaw_rad[0] == pytest.approx(0.0, abs=1e-9)
+    np.testing.assert_allclose(camera_poses(fused.T_world_vehicle, T_vc), expected @ T_vc, atol=1e-9)
+    assert np.abs(fused.speed_mps[5:-5] - 6.0).max() < 0.05
+
+
+def test_missing_every_source_is_one_clear_input_error():
+    with pytest.raises(InputError, match="no GPS, odometry or given poses in the trace; set poses.source=sfm"):
+        estimate_poses(SensorSeries(), np.arange(10, dtype=np.int64) * 100_000_000, PoseConfig())
+    with pytest.raises(InputError, match="frames and intrinsics"):
+        estimate_poses(SensorSeries(), np.arange(10, dtype=np.int64), PoseConfig(source="sfm"))
+
+
+def test_load_series_round_trip_and_bad_shape(tmp_path):
+    truth = circle_truth(duration_s=5.0)
+    series = sensors_from_truth(truth, np.random.default_rng(7))
+    np.savez(tmp_path / "gps.npz", **vars(series.gps))
+    np.savez(tmp_path / "speed.npz", **vars(series.speed))
+    loaded = load_series(tmp_path)
+    assert loaded.imu is None and loaded.odometry is None and loaded.given_poses is None
+    np.testing.assert_array_equal(loaded.gps.lat_deg, series.gps.lat_deg)
+    np.testing.assert_array_equal(loaded.speed.t_ns, series.speed.t_ns)
+    np.savez(
+        tmp_path / "imu.npz", t_ns=series.imu.t_ns, angular_velocity_radps=series.imu.angular_velocity_radps[:, :2]
+    )
+    with pytest.raises(InputError, match=r"imu.npz: imu series lacks"):
+        load_series(tmp_path)
+    np.savez(
+        tmp_path / "imu.npz",
+        t_ns=series.imu.t_ns,
+        angular_velocity_radps=series.imu.angular_velocity_radps[:, :2],
+        linear_acceleration_mps2=series.imu.linear_acceleration_mps2,
+        orientation_xyzw=series.imu.orientation_xyzw,
+    )
+    with pytest.raises(InputError, match=r"imu.angular_velocity_radps has shape"):
+        load_series(tmp_path)
