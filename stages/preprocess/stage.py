@@ -251,6 +251,8 @@ def write_depth_preview(
         for row in (0, 1):
             axes[row, col].set_axis_off()
     bar = fig.colorbar(image, ax=axes[1, :].tolist(), shrink=0.9, pad=0.01)
+    ticks = [t for t in (1, 2, 5, 10, 20, 50, 100, 200, 500) if t <= max_depth_m]
+    bar.set_ticks(ticks, labels=[f"{t:g}" for t in ticks])
     bar.set_label("depth (m)")
     fig.suptitle("preprocess: frames and estimated depth", fontsize=10)
     fig.savefig(path, dpi=110)

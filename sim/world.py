@@ -1,0 +1,236 @@
+"""The simulatable world (`<workspace>/world/`, written by `drivesim build-world`) and its loader.
+
+The world is what the simulator reads at run time: the recorded frames and their depth at the simulation resolution,
+the camera model, and the reference path (the recorded trajectory is the lane centre, DESIGN §3). Frames follow
+`sim/geometry.py`: world = local ENU, vehicle x forward / y left / z up, camera optical x right / y down / z forward.
+
+Files (N = frame count, h x w = simulation resolution; arrays are .npy opened with mmap_mode="r"):
+    frames.npy      uint8   (N, h, w, 3)  RGB frames resized with cv2.INTER_AREA
+    depth_m.npy     float32 (N, h, w)     metric depth along the optical axis; min-pooled (or nearest) from the
+                                          preprocessed depth so thin near objects survive; inf = sky / no depth
+    camera.json     {"width_px": w, "height_px": h, "K": 3x3 at (w, h), "T_vehicle_camera": 4x4,
+                     "camera_height_m": float | null, "source_width_px", "source_height_px"}
+    path.npz        per frame, float64 unless noted:
+                    frame_index int64 (N,)   index of the frame in the trace
+                    t_ns int64 (N,); x_m, y_m, z_m, yaw_rad, speed_mps, curvature_1pm (+ = left turn),
+                    arc_length_m (N,); T_world_vehicle (N,4,4); T_world_camera (N,4,4)
+    world.json      {"format": 1, "frame_count": N, "road_width_m", "lane_width_m", "path_length_m",
+                     "curvature_min_1pm", "curvature_max_1pm", "pose_source", "origin_lat_deg",
+                     "origin_lon_deg", "origin_alt_m", "depth_method"}
+    pointcloud.ply  fused coloured point cloud of the drive (for people; the simulator does not read it)
+    birdseye.png    the path from above coloured by curvature (for people)
+
+The KD-tree over the frame positions is not stored: `World.load` builds a `scipy.spatial.cKDTree` over (x, y), which
+takes milliseconds even for an hour of driving and keeps the artifact free of pickles.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from drivesim.sim.geometry import wrap_angle
+
+WORLD_FORMAT_VERSION = 1
+
+PATH_ARRAYS_FLOAT = (
+    "x_m",
+    "y_m",
+    "z_m",
+    "yaw_rad",
+    "speed_mps",
+    "curvature_1pm",
+    "arc_length_m",
+)
+
+# How many nearest frames to consider before filtering by heading and arc length: a handful is enough because
+# frames are spaced along one path; more only matters where the path passes the same place twice.
+_CANDIDATES = 8
+
+
+class Association(NamedTuple):
+    """The recorded frame closest to an agent, and the agent's pose relative to it (paper §III-B).
+
+    :param index: index of the frame in the world (0..N-1).
+    :param q_lat_m: lateral offset of the agent from the frame's pose, + = to the left of the recorded heading.
+    :param q_long_m: longitudinal offset, + = ahead of the recorded frame.
+    :param q_rot_rad: heading of the agent minus the recorded heading, wrapped to [-pi, pi).
+    """
+
+    index: int
+    q_lat_m: float
+    q_long_m: float
+    q_rot_rad: float
+
+
+def relative_pose(
+    x_m: np.ndarray | float,
+    y_m: np.ndarray | float,
+    yaw_rad: np.ndarray | float,
+    ref_x_m: np.ndarray | float,
+    ref_y_m: np.ndarray | float,
+    ref_yaw_rad: np.ndarray | float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(q_lat, q_long, q_rot) of poses (x, y, yaw) relative to reference poses, in the reference's vehicle frame.
+
+    The paper writes this as a rotation of [x_t - x_s, y_t - y_s, theta_t - theta_s] by the reference heading in
+    VISTA's frame (lateral x, longitudinal y); in our ENU frame with yaw measured from +x the same projection is the
+    rotation by -theta_s: q_long = cos(theta_s) dx + sin(theta_s) dy, q_lat = -sin(theta_s) dx + cos(theta_s) dy.
+    """
+    dx = np.asarray(x_m, dtype=float) - ref_x_m
+    dy = np.asarray(y_m, dtype=float) - ref_y_m
+    c, s = np.cos(ref_yaw_rad), np.sin(ref_yaw_rad)
+    q_long = c * dx + s * dy
+    q_lat = -s * dx + c * dy
+    q_rot = wrap_angle(np.asarray(yaw_rad, dtype=float) - ref_yaw_rad)
+    return q_lat, q_long, np.asarray(q_rot)
+
+
+@dataclass
+class World:
+    """A loaded world: memory-mapped frames and depth, camera model, reference path and a KD-tree over frame poses.
+
+    :param root: the world folder.
+    :param frames: (N, h, w, 3) uint8 RGB frames, memory-mapped.
+    :param depth_m: (N, h, w) float32 depth in metres, memory-mapped.
+    :param K: 3x3 intrinsics at the simulation resolution.
+    :param T_vehicle_camera: 4x4 camera optical frame -> vehicle frame.
+    :param width_px: simulation image width.
+    :param height_px: simulation image height.
+    :param camera_height_m: optical centre above the ground, or None when unknown.
+    :param path: per-frame reference path arrays (see the module docstring), plain numpy arrays.
+    :param road_width_m: width of the drivable road.
+    :param lane_width_m: width of the ego lane centred on the recorded path.
+    :param info: the whole of world.json.
+    """
+
+    root: Path
+    frames: np.ndarray
+    depth_m: np.ndarray
+    K: np.ndarray
+    T_vehicle_camera: np.ndarray
+    width_px: int
+    height_px: int
+    camera_height_m: float | None
+    path: dict[str, np.ndarray]
+    road_width_m: float
+    lane_width_m: float
+    info: dict
+    _tree: cKDTree | None = None
+
+    @classmethod
+    def load(cls, root: Path | str) -> World:
+        """Open a world folder written by `drivesim build-world` (FileNotFoundError/ValueError name the bad file)."""
+        root = Path(root)
+        for name in ("frames.npy", "depth_m.npy", "camera.json", "path.npz", "world.json"):
+            if not (root / name).is_file():
+                raise FileNotFoundError(f"{root / name}: missing; is {root} a world built by `drivesim build-world`?")
+        info = json.loads((root / "world.json").read_text())
+        if info.get("format") != WORLD_FORMAT_VERSION:
+            raise ValueError(
+                f"{root / 'world.json'}: world format {info.get('format')}, expected {WORLD_FORMAT_VERSION}"
+            )
+        camera = json.loads((root / "camera.json").read_text())
+        frames = np.load(root / "frames.npy", mmap_mode="r")
+        depth = np.load(root / "depth_m.npy", mmap_mode="r")
+        with np.load(root / "path.npz") as data:
+            path = {k: np.asarray(data[k]) for k in data.files}
+        world = cls(
+            root=root,
+            frames=frames,
+            depth_m=depth,
+            K=np.asarray(camera["K"], dtype=float),
+            T_vehicle_camera=np.asarray(camera["T_vehicle_camera"], dtype=float),
+            width_px=int(camera["width_px"]),
+            height_px=int(camera["height_px"]),
+            camera_height_m=camera.get("camera_height_m"),
+            path=path,
+            road_width_m=float(info["road_width_m"]),
+            lane_width_m=float(info["lane_width_m"]),
+            info=info,
+        )
+        world._check()
+        world._tree = cKDTree(np.column_stack([world.path["x_m"], world.path["y_m"]]))
+        return world
+
+    def _check(self) -> None:
+        n = self.frame_count
+        if n < 2:
+            raise ValueError(f"{self.root}: a world needs at least 2 frames, this one has {n}")
+        if self.frames.shape != (n, self.height_px, self.width_px, 3) or self.frames.dtype != np.uint8:
+            raise ValueError(f"{self.root / 'frames.npy'}: {self.frames.dtype} {self.frames.shape} does not match")
+        if self.depth_m.shape != (n, self.height_px, self.width_px) or self.depth_m.dtype != np.float32:
+            raise ValueError(f"{self.root / 'depth_m.npy'}: {self.depth_m.dtype} {self.depth_m.shape} does not match")
+        for key in (*PATH_ARRAYS_FLOAT, "t_ns", "frame_index", "T_world_vehicle", "T_world_camera"):
+            if key not in self.path or len(self.path[key]) != n:
+                raise ValueError(f"{self.root / 'path.npz'}: array {key!r} is missing or not of length {n}")
+
+    @property
+    def frame_count(self) -> int:
+        """Number of frames N."""
+        return int(self.path["x_m"].shape[0])
+
+    @property
+    def path_length_m(self) -> float:
+        """Length of the reference path."""
+        return float(self.path["arc_length_m"][-1] - self.path["arc_length_m"][0])
+
+    def closest_frames(
+        self,
+        x_m: np.ndarray,
+        y_m: np.ndarray,
+        yaw_rad: np.ndarray,
+        near_index: np.ndarray | None = None,
+        max_arc_gap_m: float = 15.0,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Batched `closest_frame`: arrays of shape (B,) in, (index, q_lat_m, q_long_m, q_rot_rad) arrays out."""
+        x = np.atleast_1d(np.asarray(x_m, dtype=float))
+        y = np.atleast_1d(np.asarray(y_m, dtype=float))
+        yaw = np.atleast_1d(np.asarray(yaw_rad, dtype=float))
+        k = min(_CANDIDATES, self.frame_count)
+        dist, cand = self._tree.query(np.column_stack([x, y]), k=k)
+        dist = dist.reshape(len(x), k)
+        cand = cand.reshape(len(x), k)
+        # Candidates facing the other way (the road back on a loop) or far along the path from the previous
+        # association (another pass of the same place) are only taken when nothing else is near.
+        penalty = np.zeros_like(dist)
+        heading_gap = np.abs(wrap_angle(yaw[:, None] - self.path["yaw_rad"][cand]))
+        penalty += np.where(heading_gap > 0.5 * np.pi, 1e6, 0.0)
+        if near_index is not None:
+            arc = self.path["arc_length_m"]
+            near = np.broadcast_to(np.asarray(near_index, dtype=int), x.shape)
+            gap = np.abs(arc[cand] - arc[near][:, None])
+            penalty += np.where(gap > max_arc_gap_m, 1e3, 0.0)
+        best = cand[np.arange(len(x)), np.argmin(dist + penalty, axis=1)]
+        q_lat, q_long, q_rot = relative_pose(
+            x, y, yaw, self.path["x_m"][best], self.path["y_m"][best], self.path["yaw_rad"][best]
+        )
+        return best.astype(np.int64), q_lat, q_long, q_rot
+
+    def closest_frame(
+        self, x_m: float, y_m: float, yaw_rad: float, near_index: int | None = None, max_arc_gap_m: float = 15.0
+    ) -> Association:
+        """The recorded frame to synthesise an agent's view from, and the agent's (q_lat, q_long, q_rot) relative to it.
+
+        The frame is the nearest in position (KD-tree) among those heading the same way as the agent (within 90°);
+        with `near_index` (the previous association) frames more than `max_arc_gap_m` of arc length away are
+        avoided, so a path that passes the same place twice does not make the agent jump between passes.
+        Unpack as `index, q_lat_m, q_long_m, q_rot_rad = world.closest_frame(x, y, yaw)`.
+        """
+        idx, q_lat, q_long, q_rot = self.closest_frames(
+            np.array([x_m]),
+            np.array([y_m]),
+            np.array([yaw_rad]),
+            None if near_index is None else [near_index],
+            max_arc_gap_m,
+        )
+        return Association(int(idx[0]), float(q_lat[0]), float(q_long[0]), float(q_rot[0]))
+
+    def pose(self, index: int) -> tuple[float, float, float]:
+        """(x_m, y_m, yaw_rad) of recorded frame `index`."""
+        return float(self.path["x_m"][index]), float(self.path["y_m"][index]), float(self.path["yaw_rad"][index])

@@ -1,0 +1,196 @@
+"""The `drivesim build-world` stage: the simulatable world from the trace and the preprocessed artifact.
+
+The world's schema is in `sim/world.py` (the simulator's loader). Frames and depth are resized to the simulation
+resolution chunk by chunk into .npy memmaps inside the artifact's temporary folder, so memory stays bounded.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from drivesim.pipeline.errors import InputError
+from drivesim.pipeline.hashing import sha256_json
+from drivesim.pipeline.progress import progress_bar
+from drivesim.pipeline.workspace import Workspace, artifact_key
+from drivesim.sim.geometry import scale_intrinsics
+from drivesim.sim.world import WORLD_FORMAT_VERSION
+from drivesim.stages.preprocess.artifact import POSE_ARRAYS, load_preprocessed
+from drivesim.stages.preprocess.stage import TRACE_HINT, open_trace
+from drivesim.stages.world.birdseye import write_birdseye
+from drivesim.stages.world.config import WorldConfig
+from drivesim.stages.world.pointcloud import fuse_pointcloud, write_ply
+
+STAGE = "build-world"
+ARTIFACT = "world"
+PREPROCESS_HINT = "drivesim preprocess"
+_CHUNK_FRAMES = 16
+
+
+@dataclass
+class WorldResult:
+    """What `run_build_world` did.
+
+    :param path: the world folder.
+    :param skipped: True when the world was already fresh and nothing was redone.
+    :param summary: the manifest summary (frame_count, path_length_m, curvature range, sim resolution).
+    """
+
+    path: Path
+    skipped: bool
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+def sim_resolution(width_px: int, height_px: int, sim_width_px: int) -> tuple[int, int]:
+    """(width, height) of the simulated image: `sim_width_px` wide, keeping the recording's aspect ratio."""
+    return int(sim_width_px), max(1, round(height_px * sim_width_px / width_px))
+
+
+def resize_depth(depth_m: np.ndarray, width_px: int, height_px: int, mode: str) -> np.ndarray:
+    """Resize (..., H, W) depth to (..., height_px, width_px) by block minimum ("min") or nearest pixel ("nearest").
+
+    Block minimum is hand-written with `np.minimum.reduceat` because OpenCV has no min-pooling resize for
+    non-integer factors; each output pixel takes the nearest surface among the source pixels it covers.
+    """
+    depth = np.asarray(depth_m, dtype=np.float32)
+    src_h, src_w = depth.shape[-2:]
+    if mode == "nearest":
+        rows = np.minimum(((np.arange(height_px) + 0.5) * src_h / height_px).astype(int), src_h - 1)
+        cols = np.minimum(((np.arange(width_px) + 0.5) * src_w / width_px).astype(int), src_w - 1)
+        return depth[..., rows[:, None], cols[None, :]]
+    rows = np.minimum((np.arange(height_px) * src_h // height_px), src_h - 1)
+    cols = np.minimum((np.arange(width_px) * src_w // width_px), src_w - 1)
+    clean = np.where(np.isnan(depth), np.inf, depth)
+    pooled = np.minimum.reduceat(clean, rows, axis=-2)
+    return np.minimum.reduceat(pooled, cols, axis=-1).astype(np.float32)
+
+
+def resize_frames(frames: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
+    """Resize (B, H, W, 3) uint8 frames with cv2.INTER_AREA (the anti-aliased choice for shrinking)."""
+    return np.stack([cv2.resize(np.asarray(f), (width_px, height_px), interpolation=cv2.INTER_AREA) for f in frames])
+
+
+def run_build_world(ws: Workspace, cfg: WorldConfig, force: bool = False) -> WorldResult:
+    """Build `<ws>/world/` from the trace and the preprocessed poses and depth; no-op when fresh unless `force`."""
+    trace_dir = ws.require("trace", TRACE_HINT)
+    pre_dir = ws.require("preprocessed", PREPROCESS_HINT)
+    inputs = {"trace": ws.artifact_input("trace"), "preprocessed": ws.artifact_input("preprocessed")}
+    config = cfg.model_dump(mode="json")
+    key = artifact_key(STAGE, sha256_json(config), inputs)
+    if ws.is_fresh(ARTIFACT, key) and not force:
+        manifest = ws.read_manifest(ARTIFACT) or {}
+        return WorldResult(path=ws.artifact_dir(ARTIFACT), skipped=True, summary=manifest.get("summary", {}))
+
+    trace = open_trace(trace_dir)
+    pre = load_preprocessed(pre_dir)
+    frame_index = pre.poses["frame_index"]
+    n = pre.frame_count
+    src_h, src_w = trace.frames.shape[1:3]
+    if pre.depth_m.shape[1:] != (src_h, src_w):
+        raise InputError(
+            f"depth.npy is {pre.depth_m.shape[2]}x{pre.depth_m.shape[1]} but the trace's frames are {src_w}x{src_h}; "
+            f"run `{PREPROCESS_HINT} --force`",
+            pre_dir,
+        )
+    if frame_index[-1] >= trace.frames.shape[0]:
+        raise InputError(
+            f"refers to trace frame {frame_index[-1]} of {trace.frames.shape[0]}; run `{PREPROCESS_HINT} --force`",
+            pre_dir,
+        )
+    w, h = sim_resolution(src_w, src_h, cfg.sim_width_px)
+    K_sim = scale_intrinsics(trace.K, w / src_w, h / src_h)
+    far_depth_m = float(pre.origin.get("max_depth_m") or np.inf)
+
+    with ws.write_artifact(ARTIFACT, STAGE, config, inputs) as build:
+        frames_out = np.lib.format.open_memmap(build.dir / "frames.npy", mode="w+", dtype=np.uint8, shape=(n, h, w, 3))
+        depth_out = np.lib.format.open_memmap(build.dir / "depth_m.npy", mode="w+", dtype=np.float32, shape=(n, h, w))
+        with progress_bar(f"world frames at {w}x{h}", total=n) as (progress, task):
+            for start in range(0, n, _CHUNK_FRAMES):
+                stop = min(n, start + _CHUNK_FRAMES)
+                frames_out[start:stop] = resize_frames(trace.frames[frame_index[start:stop]], w, h)
+                depth_out[start:stop] = resize_depth(pre.depth_m[start:stop], w, h, cfg.depth_resize)
+                progress.advance(task, stop - start)
+        frames_out.flush()
+        depth_out.flush()
+        del frames_out, depth_out
+
+        camera = {
+            "width_px": w,
+            "height_px": h,
+            "K": K_sim.tolist(),
+            "T_vehicle_camera": trace.T_vehicle_camera.tolist(),
+            "camera_height_m": trace.calibration.get("camera_height_m"),
+            "source_width_px": int(src_w),
+            "source_height_px": int(src_h),
+        }
+        (build.dir / "camera.json").write_text(json.dumps(camera, indent=2) + "\n")
+        path = {key: pre.poses[key] for key in POSE_ARRAYS}
+        np.savez(build.dir / "path.npz", **path)
+        curvature = path["curvature_1pm"]
+        path_length_m = float(path["arc_length_m"][-1] - path["arc_length_m"][0])
+        info = {
+            "format": WORLD_FORMAT_VERSION,
+            "frame_count": int(n),
+            "road_width_m": cfg.road_width_m,
+            "lane_width_m": cfg.lane_width_m,
+            "path_length_m": round(path_length_m, 3),
+            "curvature_min_1pm": round(float(curvature.min()), 6),
+            "curvature_max_1pm": round(float(curvature.max()), 6),
+            "pose_source": pre.origin.get("pose_source"),
+            "origin_lat_deg": pre.origin.get("origin_lat_deg"),
+            "origin_lon_deg": pre.origin.get("origin_lon_deg"),
+            "origin_alt_m": pre.origin.get("origin_alt_m"),
+            "depth_method": pre.origin.get("depth_method"),
+        }
+        (build.dir / "world.json").write_text(json.dumps(info, indent=2) + "\n")
+
+        point_count = 0
+        if cfg.pointcloud.enabled:
+            points, colours = fuse_pointcloud(
+                _FrameLookup(trace.frames, frame_index),
+                pre.depth_m,
+                trace.K,
+                pre.poses["T_world_camera"],
+                far_depth_m,
+                cfg.pointcloud,
+            )
+            write_ply(build.dir / "pointcloud.ply", points, colours)
+            point_count = int(points.shape[0])
+        write_birdseye(
+            build.dir / "birdseye.png",
+            path["x_m"],
+            path["y_m"],
+            path["yaw_rad"],
+            curvature,
+            cfg.lane_width_m,
+            title=f"reference path: {n} frames, {path_length_m:.1f} m ({info['pose_source']})",
+        )
+        build.summary = {
+            "frame_count": int(n),
+            "path_length_m": info["path_length_m"],
+            "curvature_min_1pm": info["curvature_min_1pm"],
+            "curvature_max_1pm": info["curvature_max_1pm"],
+            "sim_width_px": w,
+            "sim_height_px": h,
+            "pointcloud_points": point_count,
+            "pose_source": info["pose_source"],
+            "depth_method": info["depth_method"],
+        }
+    return WorldResult(path=ws.artifact_dir(ARTIFACT), skipped=False, summary=build.summary)
+
+
+class _FrameLookup:
+    """The trace frames of the preprocessed selection, indexed 0..N-1 without copying the memmap."""
+
+    def __init__(self, frames: np.ndarray, frame_index: np.ndarray) -> None:
+        self._frames = frames
+        self._index = frame_index
+
+    def __getitem__(self, key: tuple) -> np.ndarray:
+        i, *rest = key
+        return self._frames[(int(self._index[i]), *rest)]
