@@ -15,20 +15,16 @@ from test_preprocess_stage_fakes import (
     SPEED_MPS,
     T_VEHICLE_CAMERA,
     WIDTH_PX,
-    ensure_poses_module,
     install_fake_poses,
     make_trace,
 )
 
+from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError, InputError, MissingArtifactError
 from drivesim.pipeline.workspace import Workspace
-
-ensure_poses_module()
-
-from drivesim.pipeline.config import load_config  # noqa: E402
-from drivesim.stages.preprocess import stage  # noqa: E402
-from drivesim.stages.preprocess.artifact import load_preprocessed  # noqa: E402
-from drivesim.stages.preprocess.config import PreprocessConfig  # noqa: E402
+from drivesim.stages.preprocess import stage
+from drivesim.stages.preprocess.artifact import load_preprocessed
+from drivesim.stages.preprocess.config import PreprocessConfig
 
 
 @pytest.fixture

@@ -7,7 +7,6 @@ depth of a pixel) has an exact expected value.
 from __future__ import annotations
 
 import json
-import sys
 import types
 from pathlib import Path
 
@@ -24,29 +23,6 @@ SPEED_MPS = 10.0
 CAMERA_HEIGHT_M = 1.6
 T_VEHICLE_CAMERA = camera_mount(1.5, 0.0, CAMERA_HEIGHT_M, pitch_down_rad=0.08)
 K = intrinsics_from_hfov(WIDTH_PX, HEIGHT_PX, np.deg2rad(90.0))
-
-
-def ensure_poses_module() -> None:
-    """Make `drivesim.stages.preprocess.poses` importable while the real module has not landed yet."""
-    try:
-        import drivesim.stages.preprocess.poses  # noqa: F401
-    except ImportError:
-        from drivesim.pipeline.config import StageConfig
-
-        module = types.ModuleType("drivesim.stages.preprocess.poses")
-
-        class PoseConfig(StageConfig):
-            """Placeholder pose config."""
-
-        def estimate_poses(*args, **kwargs):
-            raise NotImplementedError("the real pose estimator has not landed")
-
-        module.PoseConfig = PoseConfig
-        module.estimate_poses = estimate_poses
-        sys.modules["drivesim.stages.preprocess.poses"] = module
-        import drivesim.stages.preprocess as package
-
-        package.poses = module
 
 
 def make_trace(ws: Workspace, frame_count: int = FRAME_COUNT) -> Path:
@@ -103,7 +79,6 @@ def arc_poses(frame_times_ns: np.ndarray) -> types.SimpleNamespace:
 
 def install_fake_poses(monkeypatch) -> list[dict]:
     """Replace series loading and pose fusion by the arc above; returns a list recording each call's arguments."""
-    ensure_poses_module()
     from drivesim.stages.preprocess import stage
 
     calls: list[dict] = []

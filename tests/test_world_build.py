@@ -13,7 +13,6 @@ from test_preprocess_stage_fakes import (
     RADIUS_M,
     SPEED_MPS,
     WIDTH_PX,
-    ensure_poses_module,
     install_fake_poses,
     make_trace,
 )
@@ -23,13 +22,10 @@ from drivesim.pipeline.errors import MissingArtifactError
 from drivesim.pipeline.status import status_report
 from drivesim.pipeline.workspace import Workspace
 from drivesim.sim.world import World
-
-ensure_poses_module()
-
-from drivesim.stages.preprocess import stage as preprocess_stage  # noqa: E402
-from drivesim.stages.preprocess.config import PreprocessConfig  # noqa: E402
-from drivesim.stages.world.build import resize_depth, run_build_world, sim_resolution  # noqa: E402
-from drivesim.stages.world.config import WorldConfig  # noqa: E402
+from drivesim.stages.preprocess import stage as preprocess_stage
+from drivesim.stages.preprocess.config import PreprocessConfig
+from drivesim.stages.world.build import resize_depth, run_build_world, sim_resolution
+from drivesim.stages.world.config import WorldConfig
 
 
 @pytest.fixture
