@@ -121,9 +121,10 @@ def camera_poses(T_world_vehicle: np.ndarray, T_vehicle_camera: np.ndarray) -> n
 
 def enu_transformer(lat0_deg: float, lon0_deg: float, alt0_m: float) -> Transformer:
     """pyproj transform WGS84 (lon, lat, h) -> local ENU (e, n, u) metres about the given origin."""
+    lat0, lon0, h0 = float(lat0_deg), float(lon0_deg), float(alt0_m)  # numpy scalars would print as np.float64(...)
     return Transformer.from_pipeline(
         "+proj=pipeline +step +proj=cart +ellps=WGS84 "
-        f"+step +proj=topocentric +ellps=WGS84 +lat_0={lat0_deg!r} +lon_0={lon0_deg!r} +h_0={alt0_m!r}"
+        f"+step +proj=topocentric +ellps=WGS84 +lat_0={lat0!r} +lon_0={lon0!r} +h_0={h0!r}"
     )
 
 
@@ -558,10 +559,10 @@ def estimate_poses(
             raise InputError("source ground_truth needs ground_truth.npz (synthetic recordings only)")
         return track_poses(gt.t_ns, gt.T_world_vehicle, frame_times_ns, "ground_truth", cfg)
     if source == "sfm":
-        from drivesim.stages.preprocess.sfm import sfm_poses  # pycolmap is slow to import; only load it when used
-
         if frames is None or K is None:
             raise InputError("source sfm needs the trace's frames and intrinsics")
+        from drivesim.stages.preprocess.sfm import sfm_poses  # pycolmap is slow to import; only load it when used
+
         speed = (series.speed.t_ns, series.speed.speed_mps) if series.speed is not None else None
         if speed is None and series.odometry is not None:
             speed = (series.odometry.t_ns, series.odometry.linear_velocity_mps[:, 0])
