@@ -16,11 +16,12 @@ def build_world_command(config: ConfigOption = None, set_: SetOption = None, for
     result = run_build_world(workspace(), cfg, force=force)
     s = result.summary
     if result.skipped:
-        console.print(f"world is fresh, nothing to do ({result.path}); --force redoes it")
+        console.print(f"world is fresh, nothing to do ({result.path}); --force redoes it", soft_wrap=True)
         return
     console.print(
         f"[green]world[/] {s['frame_count']} frames at {s['sim_width_px']}x{s['sim_height_px']}, "
         f"{s['path_length_m']:.1f} m of path, curvature {s['curvature_min_1pm']:+.4f}..{s['curvature_max_1pm']:+.4f} "
         f"1/m, {s['pointcloud_points']} cloud points -> {result.path} (see birdseye.png)",
         highlight=False,
+        soft_wrap=True,
     )

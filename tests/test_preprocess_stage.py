@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -139,3 +141,40 @@ def test_truncated_trace_is_one_clear_error(ws: Workspace, monkeypatch) -> None:
     with pytest.raises(InputError, match="frame_times_ns.npy"):
         stage.run_preprocess(ws, PreprocessConfig())
     assert ws.read_manifest("preprocessed") is None
+
+
+@pytest.mark.parametrize(
+    ("command", "hint"), [("preprocess", "drivesim ingest PATH"), ("build-world", "drivesim ingest")]
+)
+def test_cli_without_trace_is_one_line_and_exit_2(tmp_path: Path, command: str, hint: str) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(tmp_path / "ws"), command],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "no trace artifact" in lines[0] and hint in lines[0]
+    assert not (tmp_path / "ws" / "preprocessed").exists() and not (tmp_path / "ws" / "world").exists()
+
+
+def test_cli_bad_override_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "drivesim.cli.main",
+            "--workspace",
+            str(tmp_path),
+            "preprocess",
+            "--set",
+            "depth.method=x",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "depth.method" in lines[0]
