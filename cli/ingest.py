@@ -7,8 +7,30 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli.common import ConfigOption, ForceOption, SetOption
-from drivesim.pipeline.errors import NotBuiltError
+from drivesim.cli.common import ConfigOption, ForceOption, SetOption, console, workspace
+from drivesim.pipeline.config import load_config
+from drivesim.pipeline.errors import ConfigError, InputError
+from drivesim.pipeline.hashing import sha256_json
+from drivesim.pipeline.workspace import artifact_key
+from drivesim.stages.ingest.config import TOPIC_ROLES, IngestConfig
+from drivesim.stages.ingest.run import ingest_recording
+
+STAGE = "ingest"
+ARTIFACT = "trace"
+
+
+def topic_overrides(topic: list[str] | None) -> list[str]:
+    """`--topic camera=/x` options as `--set topics.camera=/x` overrides (so they are part of the config hash)."""
+    overrides = []
+    for item in topic or []:
+        role, sep, name = item.partition("=")
+        role = role.strip()
+        if not sep or not name.strip():
+            raise ConfigError(f"--topic {item!r}: expected ROLE=TOPIC, e.g. --topic camera=/cam/image_raw")
+        if role not in TOPIC_ROLES:
+            raise ConfigError(f"--topic {item!r}: unknown role {role!r}; roles: {', '.join(TOPIC_ROLES)}")
+        overrides.append(f"topics.{role}={name.strip()}")
+    return overrides
 
 
 def ingest_command(
@@ -21,4 +43,27 @@ def ingest_command(
     force: ForceOption = False,
 ) -> None:
     """Read a recording into the trace artifact."""
-    raise NotBuiltError("`drivesim ingest` is not built yet")
+    cfg = load_config(
+        IngestConfig, preset="ingest", config_file=config, overrides=[*(set_ or []), *topic_overrides(topic)]
+    )
+    if not path.exists():
+        raise InputError("no such file or folder", path)
+    ws = workspace()
+    config_json = cfg.model_dump(mode="json")
+    inputs = {"recording": ws.external_input(path)}
+    key = artifact_key(STAGE, sha256_json(config_json), inputs)
+    if ws.is_fresh(ARTIFACT, key) and not force:
+        console.print(f"trace is fresh ({ws.artifact_dir(ARTIFACT)}), nothing to do; --force to redo")
+        return
+    with ws.write_artifact(ARTIFACT, STAGE, config_json, inputs) as build:
+        result = ingest_recording(path, cfg, build.dir)
+        build.summary = result.summary
+    for note in result.notes:
+        console.print(f"[dim]{note}[/]", highlight=False)
+    s = result.summary
+    sensors = ", ".join(f"{name} {v['message_count']}" for name, v in s["sensors"].items())
+    console.print(
+        f"[green]trace[/] {ws.artifact_dir(ARTIFACT)}: {s['frame_count']} frames "
+        f"{s['width_px']}x{s['height_px']}, {s['duration_s']:.1f} s; {sensors}",
+        highlight=False,
+    )

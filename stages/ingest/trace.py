@@ -32,3 +32,184 @@ Files (all arrays are .npy; N = frame count):
     ground_truth.npz  (synthetic recordings only) t_ns (M,); T_world_vehicle float64 (M,4,4) in the synth world's
                   ENU frame; depth at the frame times is in gt_depth.npy float32 (N,H,W) metres (inf = sky)
 """
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivesim.pipeline.errors import InputError
+
+CALIBRATION_KEYS = (
+    "width_px",
+    "height_px",
+    "K",
+    "source_width_px",
+    "source_height_px",
+    "distortion_model",
+    "T_vehicle_camera",
+    "camera_height_m",
+    "extrinsics_source",
+    "time_base",
+)
+SERIES_COLUMNS: dict[str, dict[str, tuple[tuple[int, ...], str]]] = {
+    "gps": {
+        "lat_deg": ((), "f"),
+        "lon_deg": ((), "f"),
+        "alt_m": ((), "f"),
+        "status": ((), "i"),
+        "covariance_m2": ((3, 3), "f"),
+        "covariance_type": ((), "u"),
+    },
+    "imu": {
+        "angular_velocity_radps": ((3,), "f"),
+        "linear_acceleration_mps2": ((3,), "f"),
+        "orientation_xyzw": ((4,), "f"),
+    },
+    "speed": {"speed_mps": ((), "f")},
+    "odometry": {
+        "position_m": ((3,), "f"),
+        "orientation_xyzw": ((4,), "f"),
+        "linear_velocity_mps": ((3,), "f"),
+        "angular_velocity_radps": ((3,), "f"),
+    },
+    "poses": {"T_world_camera": ((4, 4), "f")},
+    "ground_truth": {"T_world_vehicle": ((4, 4), "f")},
+}
+
+
+@dataclass(frozen=True)
+class TraceInfo:
+    """What a valid trace holds, for later stages (arrays are opened lazily from `path`)."""
+
+    path: Path
+    frame_count: int
+    width_px: int
+    height_px: int
+    K: np.ndarray
+    T_vehicle_camera: np.ndarray
+    camera_height_m: float | None
+    duration_s: float
+    time_base: str
+    calibration: dict[str, Any]
+    sources: dict[str, Any]
+    series: tuple[str, ...]
+    has_gt_depth: bool
+
+    def frames(self) -> np.ndarray:
+        """frames.npy memory-mapped read-only, uint8 (N, H, W, 3)."""
+        return np.load(self.path / "frames.npy", mmap_mode="r")
+
+    def frame_times_ns(self) -> np.ndarray:
+        """int64 (N,) frame stamps."""
+        return np.load(self.path / "frame_times_ns.npy")
+
+    def load_series(self, name: str) -> dict[str, np.ndarray] | None:
+        """The arrays of series `name` (gps, imu, speed, odometry, poses, ground_truth), or None when absent."""
+        if name not in self.series:
+            return None
+        with np.load(self.path / f"{name}.npz") as data:
+            return {k: data[k] for k in data.files}
+
+    def gt_depth(self) -> np.ndarray | None:
+        """gt_depth.npy memory-mapped read-only, float32 (N, H, W) metres, or None."""
+        return np.load(self.path / "gt_depth.npy", mmap_mode="r") if self.has_gt_depth else None
+
+
+def _fail(path: Path, problem: str) -> InputError:
+    return InputError(f"invalid trace: {problem}", path)
+
+
+def _npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
+    try:
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read_header = (
+                np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            )
+            shape, _, dtype = read_header(f)  # the header only: frames are never read here
+    except (OSError, ValueError) as e:
+        raise _fail(path, f"unreadable .npy ({e})") from e
+    return shape, dtype
+
+
+def validate_trace(path: Path | str) -> TraceInfo:
+    """Check a trace folder against the schema above (files, shapes, dtypes, increasing times); return its TraceInfo.
+
+    Raises InputError naming the file and the problem. Only headers and small arrays are read, never frames.
+    """
+    path = Path(path)
+    for name in ("frames.npy", "frame_times_ns.npy", "calibration.json", "sources.json"):
+        if not (path / name).is_file():
+            raise _fail(path / name, "missing file")
+    try:
+        calibration = json.loads((path / "calibration.json").read_text())
+        sources = json.loads((path / "sources.json").read_text())
+    except json.JSONDecodeError as e:
+        raise _fail(path, f"unreadable JSON ({e})") from e
+    missing = [k for k in CALIBRATION_KEYS if k not in calibration]
+    if missing:
+        raise _fail(path / "calibration.json", f"missing keys {missing}")
+    width, height = int(calibration["width_px"]), int(calibration["height_px"])
+    K = np.asarray(calibration["K"], dtype=float)
+    T = np.asarray(calibration["T_vehicle_camera"], dtype=float)
+    if K.shape != (3, 3) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise _fail(path / "calibration.json", f"K must be 3x3 with positive focal lengths, got {K.tolist()}")
+    if T.shape != (4, 4) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-4):
+        raise _fail(path / "calibration.json", "T_vehicle_camera must be a 4x4 rigid transform")
+
+    shape, dtype = _npy_header(path / "frames.npy")
+    if dtype != np.uint8 or len(shape) != 4 or shape[1:] != (height, width, 3):
+        raise _fail(path / "frames.npy", f"expected uint8 (N, {height}, {width}, 3), got {dtype} {shape}")
+    n = shape[0]
+    expected_bytes = n * height * width * 3
+    if (path / "frames.npy").stat().st_size < expected_bytes:
+        raise _fail(path / "frames.npy", "file shorter than its header says (truncated)")
+    times = np.load(path / "frame_times_ns.npy")
+    if times.dtype != np.int64 or times.shape != (n,):
+        raise _fail(path / "frame_times_ns.npy", f"expected int64 ({n},), got {times.dtype} {times.shape}")
+    if n > 1 and np.any(np.diff(times) <= 0):
+        raise _fail(path / "frame_times_ns.npy", "frame times are not strictly increasing")
+
+    series = []
+    for name, columns in SERIES_COLUMNS.items():
+        file = path / f"{name}.npz"
+        if not file.is_file():
+            continue
+        with np.load(file) as data:
+            if "t_ns" not in data.files:
+                raise _fail(file, "no t_ns array")
+            m = len(data["t_ns"])
+            for col, (row_shape, kind) in columns.items():
+                if col not in data.files:
+                    raise _fail(file, f"no {col} array")
+                arr = data[col]
+                if arr.shape != (m, *row_shape) or arr.dtype.kind != kind:
+                    raise _fail(file, f"{col} is {arr.dtype} {arr.shape}, expected ({m}, {row_shape}) of kind {kind}")
+        series.append(name)
+
+    has_gt_depth = (path / "gt_depth.npy").is_file()
+    if has_gt_depth:
+        d_shape, d_dtype = _npy_header(path / "gt_depth.npy")
+        if d_dtype != np.float32 or d_shape != (n, height, width):
+            raise _fail(path / "gt_depth.npy", f"expected float32 ({n}, {height}, {width}), got {d_dtype} {d_shape}")
+
+    return TraceInfo(
+        path=path,
+        frame_count=n,
+        width_px=width,
+        height_px=height,
+        K=K,
+        T_vehicle_camera=T,
+        camera_height_m=calibration["camera_height_m"],
+        duration_s=float(times[-1] - times[0]) / 1e9 if n > 1 else 0.0,
+        time_base=calibration["time_base"],
+        calibration=calibration,
+        sources=sources,
+        series=tuple(series),
+        has_gt_depth=has_gt_depth,
+    )

@@ -1,0 +1,67 @@
+"""Configuration of `drivesim ingest` (preset: configs/ingest.yaml)."""
+
+from __future__ import annotations
+
+from pydantic import Field
+
+from drivesim.pipeline.config import StageConfig
+
+TOPIC_ROLES = ("camera", "camera_info", "gps", "imu", "twist", "odometry", "gt_depth", "gt_pose")
+
+
+class ImageConfig(StageConfig):
+    """How frames are stored."""
+
+    width_px: int = Field(640, ge=16, le=8192)
+    """Working width of the stored frames (px); the height follows the recorded aspect ratio."""
+    upscale: bool = False
+    """Allow a working width larger than the recorded one (otherwise the recorded width is the maximum)."""
+    reduced_jpeg_decode: bool = True
+    """Decode jpeg frames at 1/2, 1/4 or 1/8 size when that still covers the working width (faster)."""
+
+
+class TopicsConfig(StageConfig):
+    """Topics by role; unset roles are found by message type (`--topic ROLE=/name` sets one)."""
+
+    camera: str | None = None
+    """Camera image topic (sensor_msgs/Image or CompressedImage); KITTI: the image folder, e.g. image_02."""
+    camera_info: str | None = None
+    """CameraInfo topic of that camera (default: the one in the camera's namespace)."""
+    gps: str | None = None
+    """NavSatFix topic."""
+    imu: str | None = None
+    """Imu topic."""
+    twist: str | None = None
+    """TwistStamped topic giving the forward speed."""
+    odometry: str | None = None
+    """nav_msgs/Odometry topic."""
+    gt_depth: str | None = None
+    """Ground-truth depth image topic of synthetic recordings (default /ground_truth/depth)."""
+    gt_pose: str | None = None
+    """Ground-truth PoseStamped topic of synthetic recordings (default /ground_truth/pose)."""
+
+
+class ExtrinsicsConfig(StageConfig):
+    """Where the camera sits on the vehicle."""
+
+    vehicle_frames: list[str] = ["base_footprint", "base_link"]
+    """tf frames tried in order as the vehicle frame; base_footprint (on the ground) also gives the camera height."""
+    T_vehicle_camera: list[list[float]] | None = None
+    """4x4 camera optical -> vehicle transform (m) used instead of /tf_static or KITTI calibration."""
+    camera_height_m: float | None = Field(None, gt=0.0, lt=10.0)
+    """Camera height above the ground (m) when the recording does not give it (no base_footprint frame)."""
+
+
+class IngestConfig(StageConfig):
+    """`drivesim ingest`: recording -> trace artifact."""
+
+    image: ImageConfig = ImageConfig()
+    """Stored frame format."""
+    topics: TopicsConfig = TopicsConfig()
+    """Topic choice by role."""
+    extrinsics: ExtrinsicsConfig = ExtrinsicsConfig()
+    """Camera mounting."""
+    require_pose_source: bool = True
+    """Refuse recordings without GPS or odometry (set false to let preprocess use visual SfM alone)."""
+    kitti_time_step_s: float = Field(0.1, gt=0.0)
+    """Frame interval (s) of KITTI folders without timestamps files."""

@@ -1,0 +1,157 @@
+"""Writing the trace files: frames streamed into .npy, growable series arrays, calibration and sources JSON."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+
+
+class NpyStreamWriter:
+    """Writes an (N, ...) array into an .npy file one row at a time, N known up front.
+
+    The header is written first and rows appended with plain file writes: a writable memmap would do the same
+    I/O, but its dirty pages count toward the process's resident memory until the kernel writes them back,
+    which for an hour of frames is gigabytes; file writes keep memory flat.
+
+    :param path: the .npy file to create.
+    :param shape: full array shape, first axis = row count.
+    :param dtype: element type.
+    """
+
+    def __init__(self, path: Path, shape: tuple[int, ...], dtype: np.dtype | type) -> None:
+        self.path = path
+        self.shape = shape
+        self.dtype = np.dtype(dtype)
+        self.row_shape = shape[1:]
+        self.rows_written = 0
+        self._file: BinaryIO = open(path, "wb")  # noqa: SIM115 (closed by close())
+        header = {"descr": np.lib.format.dtype_to_descr(self.dtype), "fortran_order": False, "shape": shape}
+        np.lib.format.write_array_header_1_0(self._file, header)
+
+    def write(self, row: np.ndarray) -> None:
+        """Append the next row (must have the row shape and dtype)."""
+        if row.shape != self.row_shape or row.dtype != self.dtype:
+            raise ValueError(f"row {row.shape} {row.dtype} does not match {self.row_shape} {self.dtype}")
+        if self.rows_written >= self.shape[0]:
+            raise ValueError(f"more rows than the {self.shape[0]} announced")
+        self._file.write(memoryview(np.ascontiguousarray(row)).cast("B"))
+        self.rows_written += 1
+
+    def close(self) -> None:
+        """Close the file (an incomplete array is left to the caller to reject)."""
+        self._file.close()
+
+
+class GrowableArray:
+    """A numpy array that grows by doubling: series accumulate without lists of Python objects.
+
+    :param row_shape: shape of one row.
+    :param dtype: element type.
+    """
+
+    def __init__(self, row_shape: tuple[int, ...] = (), dtype: np.dtype | type = np.float64) -> None:
+        self._data = np.empty((64, *row_shape), dtype=dtype)
+        self._size = 0
+
+    def append(self, row: Any) -> None:
+        """Add one row."""
+        if self._size == len(self._data):
+            grown = np.empty((2 * len(self._data), *self._data.shape[1:]), dtype=self._data.dtype)
+            grown[: self._size] = self._data[: self._size]
+            self._data = grown
+        self._data[self._size] = row
+        self._size += 1
+
+    def __len__(self) -> int:
+        return self._size
+
+    def array(self) -> np.ndarray:
+        """The rows so far as one array (a copy)."""
+        return self._data[: self._size].copy()
+
+
+class Series:
+    """Named growable columns of one time series, saved as an .npz sorted by time.
+
+    :param columns: column name -> (row shape, dtype); `t_ns` (int64) is always added.
+    """
+
+    def __init__(self, columns: dict[str, tuple[tuple[int, ...], np.dtype | type]]) -> None:
+        self.columns = {"t_ns": GrowableArray((), np.int64)}
+        for name, (shape, dtype) in columns.items():
+            self.columns[name] = GrowableArray(shape, dtype)
+
+    def append(self, **values: Any) -> None:
+        """Add one sample: every column must be given."""
+        for name, column in self.columns.items():
+            column.append(values[name])
+
+    def __len__(self) -> int:
+        return len(self.columns["t_ns"])
+
+    def save(self, path: Path) -> int:
+        """Write the series as .npz, stably sorted by time (topics from several publishers may interleave)."""
+        arrays = {name: col.array() for name, col in self.columns.items()}
+        order = np.argsort(arrays["t_ns"], kind="stable")
+        if np.any(order != np.arange(len(order))):
+            arrays = {name: a[order] for name, a in arrays.items()}
+        np.savez(path, **arrays)
+        return len(order)
+
+
+def gps_series() -> Series:
+    """Columns of gps.npz (see trace.py)."""
+    return Series(
+        {
+            "lat_deg": ((), np.float64),
+            "lon_deg": ((), np.float64),
+            "alt_m": ((), np.float64),
+            "status": ((), np.int8),
+            "covariance_m2": ((3, 3), np.float64),
+            "covariance_type": ((), np.uint8),
+        }
+    )
+
+
+def imu_series() -> Series:
+    """Columns of imu.npz (see trace.py)."""
+    return Series(
+        {
+            "angular_velocity_radps": ((3,), np.float64),
+            "linear_acceleration_mps2": ((3,), np.float64),
+            "orientation_xyzw": ((4,), np.float64),
+        }
+    )
+
+
+def speed_series() -> Series:
+    """Columns of speed.npz (see trace.py)."""
+    return Series({"speed_mps": ((), np.float64)})
+
+
+def odometry_series() -> Series:
+    """Columns of odometry.npz (see trace.py)."""
+    return Series(
+        {
+            "position_m": ((3,), np.float64),
+            "orientation_xyzw": ((4,), np.float64),
+            "linear_velocity_mps": ((3,), np.float64),
+            "angular_velocity_radps": ((3,), np.float64),
+        }
+    )
+
+
+def write_json(path: Path, value: dict[str, Any]) -> None:
+    """Pretty JSON with numpy values turned into lists/floats."""
+
+    def default(obj: Any) -> Any:
+        if isinstance(obj, np.ndarray):
+            return obj.tolist()
+        if isinstance(obj, np.generic):
+            return obj.item()
+        raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+    path.write_text(json.dumps(value, indent=2, default=default) + "\n")

@@ -1,0 +1,411 @@
+"""Ingest of ROS recordings (ROS1 bag, rosbag2, plain MCAP) into a trace folder.
+
+One pass over the recording in log-time order: camera frames are decoded, undistorted, resized and appended to
+frames.npy as they arrive; the series accumulate in growable arrays. Before that pass, the small topics that
+configure it are read once: /tf_static, the first CameraInfo and the first camera message.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from drivesim.pipeline.errors import InputError
+from drivesim.pipeline.progress import progress_bar
+from drivesim.stages.ingest.config import IngestConfig
+from drivesim.stages.ingest.extrinsics import StaticTfTree, pose_from_msg
+from drivesim.stages.ingest.images import (
+    CameraModel,
+    EncodingError,
+    FrameProcessor,
+    compressed_format_ok,
+    decode_compressed,
+    decode_depth,
+    decode_raw,
+    resize_depth,
+    working_size,
+)
+from drivesim.stages.ingest.output import (
+    GrowableArray,
+    NpyStreamWriter,
+    Series,
+    gps_series,
+    imu_series,
+    odometry_series,
+    speed_series,
+    write_json,
+)
+from drivesim.stages.ingest.sources import MessageSource, open_source
+from drivesim.stages.ingest.topics import TopicChoice, choose_topics, describe_topics
+
+_NAN3 = np.full(3, np.nan)
+_NAN4 = np.full(4, np.nan)
+
+
+@dataclass
+class IngestResult:
+    """What an ingest produced: the manifest summary and notes for the user (e.g. which camera was chosen)."""
+
+    summary: dict[str, Any]
+    notes: list[str] = field(default_factory=list)
+
+
+def _field(msg: Any, *names: str) -> Any:
+    """A message field under its ROS2 or ROS1 name (CameraInfo `k` vs `K`)."""
+    for name in names:
+        if hasattr(msg, name):
+            return getattr(msg, name)
+    raise AttributeError(names[0])
+
+
+def stamp_ns(msg: Any, log_time_ns: int) -> int:
+    """The header stamp in ns, or the log time when the stamp is zero (drivers that do not fill it)."""
+    stamp = msg.header.stamp
+    t = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    return t if t > 0 else int(log_time_ns)
+
+
+def _first(source: MessageSource, topic: str) -> Any | None:
+    for _, _, msg in source.messages([topic]):
+        return msg
+    return None
+
+
+def camera_model_from_info(info: Any) -> CameraModel:
+    """The camera model a CameraInfo message describes (ROS1 or ROS2 field names)."""
+    K = np.asarray(_field(info, "k", "K"), dtype=float).reshape(3, 3)
+    D = np.asarray(_field(info, "d", "D"), dtype=float).ravel()
+    R = np.asarray(_field(info, "r", "R"), dtype=float).reshape(3, 3)
+    P = np.asarray(_field(info, "p", "P"), dtype=float).reshape(3, 4)[:, :3]
+    if not np.any(R):
+        R = np.eye(3)
+    if not np.any(P) or P[0, 0] <= 0:
+        P = K.copy()
+    model = (info.distortion_model or "").strip().lower()
+    if model in ("", "none") or not np.any(D):
+        model = "none"
+    elif model not in ("plumb_bob", "rational_polynomial", "equidistant", "fisheye"):
+        raise EncodingError(f"unsupported distortion model {info.distortion_model!r}")
+    if model == "fisheye":
+        model = "equidistant"
+    return CameraModel(K=K, D=D, model=model, P=P, R=R, width_px=int(info.width), height_px=int(info.height))
+
+
+class _CameraDecoder:
+    """Turns one camera message into RGB at source (or reduced) size."""
+
+    def __init__(self, msgtype: str, reduce_factor: int) -> None:
+        self.compressed = msgtype.endswith("CompressedImage")
+        self.reduce_factor = reduce_factor
+
+    def __call__(self, msg: Any) -> np.ndarray:
+        if self.compressed:
+            if not compressed_format_ok(msg.format):
+                raise EncodingError(f"unsupported CompressedImage format {msg.format!r} (jpeg and png are)")
+            return decode_compressed(msg.data, self.reduce_factor)
+        return decode_raw(
+            msg.data, msg.encoding, int(msg.height), int(msg.width), int(msg.step), bool(msg.is_bigendian)
+        )
+
+
+def _source_size(msg: Any, msgtype: str) -> tuple[int, int]:
+    if msgtype.endswith("CompressedImage"):
+        rgb = decode_compressed(msg.data)
+        return rgb.shape[1], rgb.shape[0]
+    return int(msg.width), int(msg.height)
+
+
+def _extrinsics(
+    cfg: IngestConfig, tf: StaticTfTree, camera_frame: str, notes: list[str]
+) -> tuple[np.ndarray, float | None, str, str | None]:
+    """(T_vehicle_camera, camera height m or None, source, vehicle frame name)."""
+    if cfg.extrinsics.T_vehicle_camera is not None:
+        T = np.asarray(cfg.extrinsics.T_vehicle_camera, dtype=float)
+        return T, cfg.extrinsics.camera_height_m, "config", None
+    for vehicle_frame in cfg.extrinsics.vehicle_frames:
+        T = tf.lookup(vehicle_frame, camera_frame) if camera_frame else None
+        if T is None:
+            continue
+        height_m = cfg.extrinsics.camera_height_m
+        if vehicle_frame == "base_footprint":
+            height_m = float(T[2, 3])
+        return T, height_m, "tf_static", vehicle_frame
+    notes.append(
+        f"no /tf_static path from {'/'.join(cfg.extrinsics.vehicle_frames)} to camera frame {camera_frame!r}: "
+        "camera assumed at the vehicle origin looking forward (set extrinsics.T_vehicle_camera to fix)"
+    )
+    from drivesim.sim.geometry import camera_mount
+
+    height_m = cfg.extrinsics.camera_height_m
+    return camera_mount(0.0, 0.0, height_m or 0.0), height_m, "default", None
+
+
+def _rotation_to_vehicle(tf: StaticTfTree, vehicle_frame: str | None, frame_id: str) -> np.ndarray | None:
+    if vehicle_frame is None or not frame_id:
+        return None
+    T = tf.lookup(vehicle_frame, frame_id)
+    return None if T is None else T[:3, :3]
+
+
+def ingest_ros(path: Path, fmt: str, cfg: IngestConfig, out_dir: Path) -> IngestResult:
+    """Read a ROS1 bag / rosbag2 folder / MCAP file at `path` into the trace folder `out_dir`."""
+    source = open_source(path, fmt)
+    try:
+        return _ingest(source, path, fmt, cfg, out_dir)
+    except EncodingError as e:
+        raise InputError(str(e), path) from None
+    finally:
+        source.close()
+
+
+def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_dir: Path) -> IngestResult:
+    notes: list[str] = []
+    choice = choose_topics(source.topics, cfg.topics, path)
+    camera = choice.roles["camera"]
+    notes.append(f"camera: {camera.name} ({choice.camera_reason})")
+    if cfg.require_pose_source and "gps" not in choice.roles and "odometry" not in choice.roles:
+        raise InputError(
+            f"camera {camera.name} has no pose source: no NavSatFix or Odometry topic "
+            f"(found: {describe_topics(source.topics)}); set require_pose_source=false to rely on visual SfM",
+            path,
+        )
+    if camera.message_count == 0:
+        raise InputError(f"camera topic {camera.name} has no messages", path)
+
+    tf = StaticTfTree()
+    if choice.tf_static is not None:
+        for _, _, msg in source.messages([choice.tf_static.name]):
+            tf.add_message(msg)
+
+    first_image = _first(source, camera.name)
+    if first_image is None:
+        raise InputError(f"camera topic {camera.name} has no readable messages", path)
+    source_w, source_h = _source_size(first_image, camera.msgtype)
+
+    info_topic = choice.roles.get("camera_info")
+    info = _first(source, info_topic.name) if info_topic is not None else None
+    if info is None:
+        raise InputError(
+            f"no CameraInfo for camera {camera.name} (needed for the intrinsics K); "
+            f"pass --topic camera_info=/... (found: {describe_topics(source.topics)})",
+            path,
+        )
+    model = camera_model_from_info(info)
+    if model.K[0, 0] <= 0 or model.K[1, 1] <= 0:
+        raise InputError(f"CameraInfo {info_topic.name} has no focal length (uncalibrated camera)", path)
+    if (model.width_px, model.height_px) != (source_w, source_h):
+        raise InputError(
+            f"CameraInfo {info_topic.name} is for {model.width_px}x{model.height_px} images but "
+            f"{camera.name} has {source_w}x{source_h}",
+            path,
+        )
+
+    out_size = working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale)
+    processor = FrameProcessor(model, out_size)
+    reduce = processor.reduce_factor_for(source_w) if cfg.image.reduced_jpeg_decode else 1
+    decode = _CameraDecoder(camera.msgtype, reduce)
+
+    camera_frame = (info.header.frame_id or first_image.header.frame_id or "").lstrip("/")
+    T_vehicle_camera, height_m, extrinsics_source, vehicle_frame = _extrinsics(cfg, tf, camera_frame, notes)
+
+    n_frames = camera.message_count
+    width, height = out_size
+    frames = NpyStreamWriter(out_dir / "frames.npy", (n_frames, height, width, 3), np.uint8)
+    frame_times = GrowableArray((), np.int64)
+    out_frame = np.empty((height, width, 3), np.uint8)
+
+    gt_depth_topic = choice.roles.get("gt_depth")
+    depth_writer = None
+    depth_times = GrowableArray((), np.int64)
+    if gt_depth_topic is not None:
+        depth_writer = NpyStreamWriter(out_dir / "gt_depth.npy", (n_frames, height, width), np.float32)
+
+    series: dict[str, Series] = {}
+    handlers: dict[str, Any] = {}
+    last_t = [-1]
+
+    def on_camera(msg: Any, log_ns: int) -> None:
+        t = stamp_ns(msg, log_ns)
+        if t <= last_t[0]:
+            raise InputError(
+                f"camera {camera.name}: stamps not strictly increasing at frame {len(frame_times)} "
+                f"({last_t[0]} ns then {t} ns)",
+                path,
+            )
+        last_t[0] = t
+        frames.write(processor.process(decode(msg), out=out_frame))
+        frame_times.append(t)
+        progress.advance(task)
+
+    handlers[camera.name] = on_camera
+
+    if depth_writer is not None:
+
+        def on_depth(msg: Any, log_ns: int) -> None:
+            if depth_writer.rows_written >= n_frames:
+                raise InputError(f"{gt_depth_topic.name} has more messages than {camera.name}", path)
+            depth_m = decode_depth(msg.data, msg.encoding, int(msg.height), int(msg.width), int(msg.step))
+            depth_writer.write(np.ascontiguousarray(resize_depth(depth_m, out_size), dtype=np.float32))
+            depth_times.append(stamp_ns(msg, log_ns))
+
+        handlers[gt_depth_topic.name] = on_depth
+
+    if "gps" in choice.roles:
+        gps = series["gps"] = gps_series()
+
+        def on_gps(msg: Any, log_ns: int) -> None:
+            cov = np.asarray(msg.position_covariance, dtype=float).reshape(3, 3)
+            gps.append(
+                t_ns=stamp_ns(msg, log_ns),
+                lat_deg=msg.latitude,
+                lon_deg=msg.longitude,
+                alt_m=msg.altitude,
+                status=msg.status.status,
+                covariance_m2=cov,
+                covariance_type=msg.position_covariance_type,
+            )
+
+        handlers[choice.roles["gps"].name] = on_gps
+
+    if "imu" in choice.roles:
+        imu = series["imu"] = imu_series()
+        imu_rotation: dict[str, np.ndarray | None] = {}
+
+        def on_imu(msg: Any, log_ns: int) -> None:
+            frame_id = msg.header.frame_id.lstrip("/")
+            if frame_id not in imu_rotation:
+                imu_rotation[frame_id] = _rotation_to_vehicle(tf, vehicle_frame, frame_id)
+            R = imu_rotation[frame_id]
+            w = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
+            a = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
+            q = msg.orientation
+            has_orientation = float(_field(msg, "orientation_covariance")[0]) != -1.0
+            quat = np.array([q.x, q.y, q.z, q.w]) if has_orientation else _NAN4
+            if R is not None:
+                w, a = R @ w, R @ a
+                if has_orientation and np.linalg.norm(quat) > 1e-9:
+                    # orientation of the vehicle = orientation of the IMU composed with R_imu_vehicle
+                    quat = (Rotation.from_quat(quat) * Rotation.from_matrix(R.T)).as_quat()
+            imu.append(
+                t_ns=stamp_ns(msg, log_ns), angular_velocity_radps=w, linear_acceleration_mps2=a, orientation_xyzw=quat
+            )
+
+        handlers[choice.roles["imu"].name] = on_imu
+
+    speed = None
+    if "twist" in choice.roles or "odometry" in choice.roles:
+        speed = series["speed"] = speed_series()
+    if "twist" in choice.roles:
+
+        def on_twist(msg: Any, log_ns: int) -> None:
+            twist = msg.twist.twist if hasattr(msg.twist, "twist") else msg.twist
+            speed.append(t_ns=stamp_ns(msg, log_ns), speed_mps=twist.linear.x)
+
+        handlers[choice.roles["twist"].name] = on_twist
+
+    if "odometry" in choice.roles:
+        odom = series["odometry"] = odometry_series()
+        speed_from_odometry = "twist" not in choice.roles
+
+        def on_odometry(msg: Any, log_ns: int) -> None:
+            t = stamp_ns(msg, log_ns)
+            p, q = msg.pose.pose.position, msg.pose.pose.orientation
+            v, w = msg.twist.twist.linear, msg.twist.twist.angular
+            odom.append(
+                t_ns=t,
+                position_m=(p.x, p.y, p.z),
+                orientation_xyzw=(q.x, q.y, q.z, q.w),
+                linear_velocity_mps=(v.x, v.y, v.z),
+                angular_velocity_radps=(w.x, w.y, w.z),
+            )
+            if speed_from_odometry:
+                speed.append(t_ns=t, speed_mps=v.x)
+
+        handlers[choice.roles["odometry"].name] = on_odometry
+
+    gt_poses: Series | None = None
+    if "gt_pose" in choice.roles:
+        gt_poses = Series({"T_world_vehicle": ((4, 4), np.float64)})
+
+        def on_gt_pose(msg: Any, log_ns: int) -> None:
+            gt_poses.append(
+                t_ns=stamp_ns(msg, log_ns), T_world_vehicle=pose_from_msg(msg.pose.position, msg.pose.orientation)
+            )
+
+        handlers[choice.roles["gt_pose"].name] = on_gt_pose
+
+    try:
+        with progress_bar(f"ingest {camera.name}", total=n_frames) as (progress, task):
+            for topic, log_ns, msg in source.messages(list(handlers)):
+                handlers[topic](msg, log_ns)
+    finally:
+        frames.close()
+        if depth_writer is not None:
+            depth_writer.close()
+
+    times = frame_times.array()
+    if len(times) != n_frames:
+        raise InputError(
+            f"camera {camera.name}: the index announces {n_frames} messages but {len(times)} could be read "
+            "(truncated recording?)",
+            path,
+        )
+    np.save(out_dir / "frame_times_ns.npy", times)
+    if depth_writer is not None and (
+        depth_writer.rows_written != n_frames or not np.array_equal(depth_times.array(), times)
+    ):
+        raise InputError(
+            f"{gt_depth_topic.name}: {depth_writer.rows_written} depth images whose stamps do not match the "
+            f"{n_frames} frames of {camera.name}",
+            path,
+        )
+
+    for name, s in series.items():
+        if len(s):
+            s.save(out_dir / f"{name}.npz")
+    if gt_poses is not None and len(gt_poses):
+        gt_poses.save(out_dir / "ground_truth.npz")
+
+    write_json(
+        out_dir / "calibration.json",
+        {
+            "width_px": width,
+            "height_px": height,
+            "K": processor.K_out,
+            "source_width_px": source_w,
+            "source_height_px": source_h,
+            "distortion_model": model.model if model.distorted else "none",
+            "T_vehicle_camera": T_vehicle_camera,
+            "camera_height_m": height_m,
+            "extrinsics_source": extrinsics_source,
+            "time_base": "unix",
+        },
+    )
+    sensors = _sensors(choice)
+    write_json(
+        out_dir / "sources.json",
+        {"recording": str(path), "format": fmt, "camera_topic": camera.name, "sensors": sensors},
+    )
+    duration_s = float(times[-1] - times[0]) / 1e9 if len(times) > 1 else 0.0
+    summary = {
+        "frame_count": int(n_frames),
+        "duration_s": round(duration_s, 3),
+        "width_px": width,
+        "height_px": height,
+        "sensors": sensors,
+    }
+    return IngestResult(summary=summary, notes=notes)
+
+
+def _sensors(choice: TopicChoice) -> dict[str, dict[str, Any]]:
+    sensors = {
+        role: {"topic": t.name, "type": t.msgtype, "message_count": t.message_count} for role, t in choice.roles.items()
+    }
+    if choice.tf_static is not None:
+        t = choice.tf_static
+        sensors["tf_static"] = {"topic": t.name, "type": t.msgtype, "message_count": t.message_count}
+    return sensors
