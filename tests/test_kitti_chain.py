@@ -71,8 +71,9 @@ def test_status_reports_the_world(chain: Path) -> None:
     world = stages["build-world"]["summary"]
     assert world["frame_count"] == FRAME_COUNT
     assert world["path_length_m"] == pytest.approx(107.0, abs=3.0)
+    calibration = json.loads((chain / "trace" / "calibration.json").read_text())
     assert world["sim_width_px"] == 320
-    assert world["sim_height_px"] == round(375 * 320 / 1242)
+    assert world["sim_height_px"] == round(calibration["height_px"] * 320 / calibration["width_px"])
     # a gentle bend: curvature stays within a 50 m radius everywhere, and the bend is to the right
     assert -0.02 < world["curvature_min_1pm"] < 0.0
     assert world["curvature_max_1pm"] < 0.02
@@ -89,15 +90,15 @@ def test_fused_path_agrees_with_oxts(chain: Path) -> None:
         oxts[:, 0], oxts[:, 1], oxts[:, 2], (origin["origin_lat_deg"], origin["origin_lon_deg"], origin["origin_alt_m"])
     )
     error_m = np.hypot(poses["x_m"] - east, poses["y_m"] - north)
-    # the vehicle origin is the OXTS unit projected to the ground: agreement within GPS/INS-fusion noise
-    assert np.sqrt(np.mean(error_m**2)) < 0.3, f"RMS {np.sqrt(np.mean(error_m**2)):.3f} m"
-    assert error_m.max() < 0.6, f"max {error_m.max():.3f} m"
+    # the vehicle origin is below the OXTS unit; measured: RMS 0.03 m, max 0.06 m (tolerance 5x)
+    assert np.sqrt(np.mean(error_m**2)) < 0.15, f"RMS {np.sqrt(np.mean(error_m**2)):.3f} m"
+    assert error_m.max() < 0.3, f"max {error_m.max():.3f} m"
     # heading: the fused yaw follows OXTS yaw, and the drive turns right by ~8 degrees
     yaw_error = np.abs(wrap_angle(poses["yaw_rad"] - oxts[:, 5]))
-    assert np.degrees(yaw_error.max()) < 2.0
+    assert np.degrees(yaw_error.max()) < 1.5
     turn_rad = np.unwrap(poses["yaw_rad"])[-1] - poses["yaw_rad"][0]
     oxts_turn_rad = np.unwrap(oxts[:, 5])[-1] - oxts[:, 5][0]
-    assert turn_rad < 0.0 and turn_rad == pytest.approx(oxts_turn_rad, abs=np.radians(1.5))
+    assert turn_rad < 0.0 and turn_rad == pytest.approx(oxts_turn_rad, abs=np.radians(1.0))
     oxts_length_m = np.hypot(np.diff(east), np.diff(north)).sum()
     assert poses["arc_length_m"][-1] == pytest.approx(oxts_length_m, rel=0.02)
 
@@ -105,7 +106,8 @@ def test_fused_path_agrees_with_oxts(chain: Path) -> None:
 def test_world_loads_and_associates_recorded_poses(chain: Path) -> None:
     world = World.load(chain / "world")
     assert world.frame_count == FRAME_COUNT
-    assert world.frames.shape == (FRAME_COUNT, 97, 320, 3)
+    assert world.frames.shape == (FRAME_COUNT, world.height_px, 320, 3)
+    assert 0.28 < world.height_px / world.width_px < 0.32  # KITTI's 1242x375 aspect
     for i in (0, 50, FRAME_COUNT - 1):
         index, q_lat, q_long, q_rot = world.closest_frame(*world.pose(i))
         assert index == i and abs(q_lat) < 1e-9 and abs(q_rot) < 1e-9

@@ -239,7 +239,7 @@ def write_depth_preview(
     h, w = frames.shape[1:3]
     panel_w = 3.2
     fig, axes = plt.subplots(
-        2, count, figsize=(panel_w * count + 1.0, 2 * panel_w * h / w + 0.8), squeeze=False, layout="constrained"
+        2, count, figsize=(panel_w * count + 1.0, 2 * panel_w * h / w + 1.4), squeeze=False, layout="constrained"
     )
     norm = LogNorm(vmin=1.0, vmax=max_depth_m)
     image = None
@@ -250,7 +250,7 @@ def write_depth_preview(
         image = axes[1, col].imshow(depth, cmap="turbo_r", norm=norm, interpolation="nearest")
         for row in (0, 1):
             axes[row, col].set_axis_off()
-    bar = fig.colorbar(image, ax=axes[1, :].tolist(), shrink=0.9, pad=0.01)
+    bar = fig.colorbar(image, ax=axes[1, :].tolist(), location="bottom", shrink=0.5, aspect=40, pad=0.02)
     ticks = [t for t in (1, 2, 5, 10, 20, 50, 100, 200, 500) if t <= max_depth_m]
     bar.set_ticks(ticks, labels=[f"{t:g}" for t in ticks])
     bar.set_label("depth (m)")

@@ -46,12 +46,16 @@ def write_birdseye(
     ax.add_collection(lines)
     ax.plot(x[0], y[0], "o", color="tab:green", markersize=9, label="start", zorder=3)
     ax.plot(x[-1], y[-1], "s", color="black", markersize=8, label="end", zorder=3)
-    if len(x) > 1:
+    # An arrow from the start along the first tenth of the view's span shows the driving direction.
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+    tip = int(min(np.searchsorted(travelled, 0.1 * span_m), len(x) - 1))
+    if tip > 0:
         ax.annotate(
             "",
-            xy=(x[min(len(x) - 1, 3)], y[min(len(y) - 1, 3)]),
+            xy=(x[tip], y[tip]),
             xytext=(x[0], y[0]),
-            arrowprops={"arrowstyle": "->", "color": "tab:green", "lw": 1.5},
+            arrowprops={"arrowstyle": "-|>", "color": "tab:green", "lw": 2.0, "shrinkA": 6},
+            zorder=4,
         )
     pad = 0.08 * span_m + lane_width_m
     cx, cy = 0.5 * (x.min() + x.max()), 0.5 * (y.min() + y.max())
