@@ -1,0 +1,161 @@
+"""Camera-only poses: incremental structure-from-motion with pycolmap (SIFT, sequential matching, known intrinsics),
+scaled to metres from a speed series or a user-given path length.
+
+The reconstruction's world is re-anchored at the first vehicle pose (x forward, z up when the drive starts level).
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from drivesim.pipeline.errors import InputError
+from drivesim.sim.geometry import invert, scale_intrinsics
+
+SCALE_HINT = (
+    "SfM recovers the path only up to scale: set poses.sfm_scale_m (the camera's path length in metres) "
+    "or record a speed series"
+)
+
+log = logging.getLogger(__name__)
+
+
+def _write_images(frames: np.ndarray, folder: Path, max_width_px: int) -> tuple[list[str], float]:
+    """Frames as PNGs at most `max_width_px` wide; returns (names, resize factor)."""
+    h, w = frames.shape[1:3]
+    factor = min(1.0, max_width_px / w)
+    size = (max(1, round(w * factor)), max(1, round(h * factor)))
+    names = []
+    for i, frame in enumerate(frames):
+        image = np.asarray(frame)
+        if factor < 1.0:
+            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        name = f"{i:06d}.png"
+        cv2.imwrite(str(folder / name), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        names.append(name)
+    return names, size[0] / w
+
+
+def reconstruct(frames: np.ndarray, K: np.ndarray, max_width_px: int = 640, overlap: int = 10) -> dict[int, np.ndarray]:
+    """Camera poses T_sfm_camera (4x4, arbitrary scale and frame) of the frames pycolmap registers, by frame index.
+
+    :raises InputError: fewer than 2 frames, or no reconstruction could be made.
+    """
+    import pycolmap  # heavy import, only for camera-only recordings
+
+    if len(frames) < 2:
+        raise InputError("SfM needs at least 2 frames")
+    with tempfile.TemporaryDirectory(prefix="drivesim-sfm-") as tmp:
+        tmp_dir = Path(tmp)
+        image_dir = tmp_dir / "images"
+        image_dir.mkdir()
+        names, factor = _write_images(frames, image_dir, max_width_px)
+        Ks = scale_intrinsics(np.asarray(K, dtype=float), factor, factor)
+        database = tmp_dir / "database.db"
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "PINHOLE"
+        reader.camera_params = ",".join(repr(float(v)) for v in (Ks[0, 0], Ks[1, 1], Ks[0, 2], Ks[1, 2]))
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.use_gpu = False
+        pycolmap.extract_features(
+            database,
+            image_dir,
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = overlap
+        pairing.loop_detection = False
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.use_gpu = False
+        pycolmap.match_sequential(
+            database, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
+        )
+        options = pycolmap.IncrementalPipelineOptions()
+        options.ba_refine_focal_length = False
+        options.ba_refine_principal_point = False
+        options.ba_refine_extra_params = False
+        options.multiple_models = False
+        options.random_seed = 0
+        out_dir = tmp_dir / "sparse"
+        out_dir.mkdir()
+        models = pycolmap.incremental_mapping(database, image_dir, out_dir, options=options)
+        if not models:
+            raise InputError(f"SfM could not reconstruct the {len(frames)} frames (too little texture or motion)")
+        model = max(models.values(), key=lambda m: m.num_reg_images())
+        index = {name: i for i, name in enumerate(names)}
+        poses = {}
+        for image in model.images.values():
+            if not image.has_pose:
+                continue
+            T_cam_world = np.eye(4)
+            T_cam_world[:3, :] = image.cam_from_world().matrix()
+            poses[index[image.name]] = invert(T_cam_world)
+    return poses
+
+
+def metric_scale(
+    t_ns: np.ndarray, positions: np.ndarray, speed: tuple[np.ndarray, np.ndarray] | None, scale_m: float | None
+) -> float:
+    """Metres per SfM unit: the user's path length or the speed integrated over the registered span, over the SfM
+    path length.
+
+    :raises InputError: neither is given, or the camera did not move.
+    """
+    sfm_length = float(np.sum(np.linalg.norm(np.diff(positions, axis=0), axis=1)))
+    if sfm_length <= 0:
+        raise InputError("SfM: the camera does not move between the registered frames; cannot scale the path")
+    if scale_m is not None:
+        return scale_m / sfm_length
+    if speed is None or len(speed[0]) == 0:
+        raise InputError(SCALE_HINT)
+    ts = (np.asarray(speed[0], dtype=np.int64) - t_ns[0]) * 1e-9
+    tf = (np.asarray(t_ns, dtype=np.int64) - t_ns[0]) * 1e-9
+    grid = np.linspace(tf[0], tf[-1], max(2, 20 * len(tf)))
+    metric_length = float(np.trapezoid(np.abs(np.interp(grid, ts, np.asarray(speed[1], dtype=float))), grid))
+    if metric_length <= 0:
+        raise InputError("SfM: the speed series says the vehicle stands still; cannot scale the path")
+    return metric_length / sfm_length
+
+
+def sfm_poses(
+    frames: np.ndarray,
+    K: np.ndarray,
+    frame_times_ns: np.ndarray,
+    speed: tuple[np.ndarray, np.ndarray] | None,
+    scale_m: float | None,
+    T_vehicle_camera: np.ndarray,
+    max_width_px: int = 640,
+    cfg=None,
+):
+    """Per-frame vehicle poses from the images alone, in metres (source "sfm").
+
+    :param speed: (t_ns, speed_mps) to scale the path, or None.
+    :param scale_m: the camera's path length over the sequence (m), used instead of the speed when given.
+    :param cfg: the PoseConfig (curvature settings); defaults when None.
+    :raises InputError: no scale source, or the reconstruction failed or registered under half of the frames.
+    """
+    from drivesim.stages.preprocess.poses import PoseConfig, track_poses
+
+    cfg = cfg if cfg is not None else PoseConfig()
+    if scale_m is None and (speed is None or len(speed[0]) == 0):
+        raise InputError(SCALE_HINT)  # before spending minutes on the reconstruction
+    frame_times_ns = np.asarray(frame_times_ns, dtype=np.int64)
+    poses = reconstruct(frames, K, max_width_px=max_width_px)
+    if len(poses) < max(2, len(frames) // 2):
+        raise InputError(f"SfM registered only {len(poses)} of {len(frames)} frames; the poses would be guesses")
+    idx = np.array(sorted(poses))
+    T_sfm_camera = np.stack([poses[i] for i in idx])
+    t_ns = frame_times_ns[idx]
+    scale = metric_scale(t_ns, T_sfm_camera[:, :3, 3], speed, scale_m)
+    T_sfm_camera[:, :3, 3] *= scale
+    T_camera_vehicle = invert(np.asarray(T_vehicle_camera, dtype=float))
+    T_sfm_vehicle = T_sfm_camera @ T_camera_vehicle
+    T_world_vehicle = invert(T_sfm_vehicle[0]) @ T_sfm_vehicle
+    return track_poses(t_ns, T_world_vehicle, frame_times_ns, "sfm", cfg, speed=speed)
