@@ -1,0 +1,317 @@
+"""Plane-sweep multi-view stereo over neighbouring frames with known poses, fused with the ground-plane prior.
+
+For each frame (the reference) and each neighbour frame (index offsets from the config), on grey images at a
+reduced matching resolution:
+1. sweep fronto-parallel depth planes spaced evenly in inverse depth, plus one extra per-pixel hypothesis: the
+   ground-plane depth; back-project every reference pixel at each hypothesis, move it into the neighbour's camera with
+   the relative pose, project with K and sample the neighbour with `grid_sample`;
+2. score each hypothesis by zero-mean normalized cross-correlation (ZNCC) over a square window (box filters), cost
+   (1 - ZNCC) / 2, with out-of-view samples costing the maximum;
+3. aggregate over neighbours as the mean of the best k costs (a point occluded or out of view in some neighbours
+   still matches in the others);
+4. winner-take-all with parabolic sub-sample refinement in inverse depth;
+5. fuse: keep the ground plane where its cost is within a margin of the best; keep stereo where it is confident
+   (good ZNCC, a distinct minimum, and enough parallax: near the focus of expansion of a forward drive a depth
+   change barely moves a pixel); elsewhere fall back to the plane below the horizon and to max_depth_m above it;
+6. upsample to the working resolution with a 4-tap joint bilateral filter guided by the full-resolution colour.
+
+Frames stream through a small cache of matching-resolution grey images (the reference plus its neighbours), so
+memory stays bounded whatever the drive's length.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from drivesim.sim.geometry import invert, scale_intrinsics
+from drivesim.stages.preprocess.depth_plane import pixel_rays, plane_depth
+
+if TYPE_CHECKING:
+    from drivesim.stages.preprocess.depth import DepthConfig
+
+_EPS_VAR = 1e-4  # grey levels are in [0, 1]; variance below ~(1 % grey)^2 means no texture to match
+_RANGE_SIGMA = 12.0 / 255.0  # colour difference (0-1 scale) at which the upsampling weight falls to exp(-1/2)
+
+
+def _box(x: torch.Tensor, size: int) -> torch.Tensor:
+    """Mean over a size x size window, borders replicated; x is (B, C, H, W)."""
+    # Running sums (cumsum differences) cost the same for any window size and beat avg_pool2d on CPU.
+    pad = size // 2
+    y = F.pad(x, (pad + 1, pad, pad + 1, pad), mode="replicate")
+    y = y.cumsum(-1)
+    y = y[..., size:] - y[..., :-size]
+    y = y.cumsum(-2)
+    y = y[..., size:, :] - y[..., :-size, :]
+    return y * (1.0 / (size * size))
+
+
+class _FrameCache:
+    """Matching-resolution images of the frames near the one being processed: grey (1, 1, h, w) and colour (h, w, 3)."""
+
+    def __init__(self, frames: np.ndarray, width_px: int, height_px: int, device: torch.device) -> None:
+        self.frames = frames
+        self.size = (width_px, height_px)
+        self.device = device
+        self.grey: dict[int, torch.Tensor] = {}
+        self.colour: dict[int, np.ndarray] = {}
+
+    def get(self, index: int) -> torch.Tensor:
+        """Grey image (1, 1, h, w) in [0, 1] of frame `index`."""
+        if index not in self.grey:
+            small = cv2.resize(np.asarray(self.frames[index]), self.size, interpolation=cv2.INTER_AREA)
+            grey = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0
+            self.grey[index] = torch.from_numpy(grey)[None, None].to(self.device)
+            self.colour[index] = small.astype(np.float32) / 255.0
+        return self.grey[index]
+
+    def keep_only(self, indices: set[int]) -> None:
+        """Drop every cached frame not in `indices`."""
+        for index in list(self.grey):
+            if index not in indices:
+                del self.grey[index]
+                del self.colour[index]
+
+
+def _window_stats(ref: torch.Tensor, patch_px: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Window mean and standard deviation of the reference image, each (1, 1, h, w)."""
+    mean = _box(ref, patch_px)
+    var = (_box(ref * ref, patch_px) - mean * mean).clamp_min(0.0)
+    return mean, torch.sqrt(var)
+
+
+def _sweep_costs(
+    ref: torch.Tensor,
+    ref_stats: tuple[torch.Tensor, torch.Tensor],
+    neighbour: torch.Tensor,
+    T_nbr_ref: np.ndarray,
+    K: torch.Tensor,
+    rays: torch.Tensor,
+    hypotheses_m: torch.Tensor,
+    patch_px: int,
+) -> torch.Tensor:
+    """(1 - ZNCC) / 2 of each reference pixel against `neighbour` at each depth hypothesis (P, h, w), shape (P, h, w);
+    1 (the worst) where the hypothesis projects out of the neighbour's view."""
+    n_hyp, h, w = hypotheses_m.shape
+    # Project straight to grid_sample's [-1, 1] coordinates: p = d * (N K R ray) + N K t, with N the normalization.
+    N = torch.tensor([[2.0 / (w - 1), 0.0, -1.0], [0.0, 2.0 / (h - 1), -1.0], [0.0, 0.0, 1.0]], dtype=K.dtype)
+    NK = N.to(K.device) @ K
+    R = torch.as_tensor(T_nbr_ref[:3, :3], dtype=rays.dtype, device=rays.device)
+    t = torch.as_tensor(T_nbr_ref[:3, 3], dtype=rays.dtype, device=rays.device)
+    a = rays @ (NK @ R).T  # (h, w, 3)
+    b = NK @ t
+    pz = hypotheses_m * a[..., 2] + b[2]
+    in_front = pz > 0.05
+    pz = torch.where(in_front, pz, torch.ones_like(pz))
+    gx = (hypotheses_m * a[..., 0] + b[0]) / pz
+    gy = (hypotheses_m * a[..., 1] + b[1]) / pz
+    # The whole matching window must fall inside the neighbour's view.
+    margin_x = 1.0 - (patch_px // 2) * 2.0 / (w - 1)
+    margin_y = 1.0 - (patch_px // 2) * 2.0 / (h - 1)
+    inside = in_front & (gx.abs() <= margin_x) & (gy.abs() <= margin_y)
+    warped = F.grid_sample(
+        neighbour.expand(n_hyp, 1, h, w),
+        torch.stack([gx, gy], dim=-1),
+        mode="bilinear",
+        padding_mode="border",
+        align_corners=True,
+    )
+    # One box filter over the three stacked products (fewer passes than three calls).
+    sums = _box(torch.cat([warped, warped * warped, warped * ref], dim=1), patch_px)
+    mean_r, std_r = ref_stats
+    mean_w = sums[:, 0:1]
+    var_w = (sums[:, 1:2] - mean_w * mean_w).clamp_min(0.0)
+    cov = sums[:, 2:3] - mean_r * mean_w
+    zncc = (cov / (std_r * torch.sqrt(var_w) + _EPS_VAR))[:, 0]
+    return torch.where(inside, (1.0 - zncc.clamp(-1.0, 1.0)) * 0.5, torch.ones_like(zncc))
+
+
+def _parallax_px(
+    depth_m: torch.Tensor, T_nbr_ref: np.ndarray, K: torch.Tensor, rays: torch.Tensor, ratio: float = 1.25
+) -> torch.Tensor:
+    """How far (pixels) each reference pixel moves in the neighbour when its depth changes by `ratio`."""
+    R = torch.as_tensor(T_nbr_ref[:3, :3], dtype=rays.dtype, device=rays.device)
+    t = torch.as_tensor(T_nbr_ref[:3, 3], dtype=rays.dtype, device=rays.device)
+    rotated = rays @ R.T
+    uv = []
+    for d in (depth_m, depth_m * ratio):
+        p = d[..., None] * rotated + t
+        z = p[..., 2].clamp_min(0.05)
+        uv.append(torch.stack([K[0, 0] * p[..., 0] / z, K[1, 1] * p[..., 1] / z], dim=-1))
+    return torch.linalg.vector_norm(uv[0] - uv[1], dim=-1)
+
+
+def _joint_bilateral_upsample(
+    inv_depth_lo: np.ndarray, colour_lo: np.ndarray, colour_hi: np.ndarray, bilateral: bool
+) -> np.ndarray:
+    """Inverse depth at the high resolution of `colour_hi`: bilinear taps weighted by colour similarity."""
+    h, w = inv_depth_lo.shape
+    H, W = colour_hi.shape[:2]
+    if not bilateral:
+        return cv2.resize(inv_depth_lo, (W, H), interpolation=cv2.INTER_LINEAR)
+    x = (np.arange(W, dtype=np.float32) + 0.5) * (w / W) - 0.5
+    y = (np.arange(H, dtype=np.float32) + 0.5) * (h / H) - 0.5
+    x0 = np.clip(np.floor(x).astype(np.int64), 0, w - 1)
+    y0 = np.clip(np.floor(y).astype(np.int64), 0, h - 1)
+    x1 = np.minimum(x0 + 1, w - 1)
+    y1 = np.minimum(y0 + 1, h - 1)
+    fx = np.clip(x - x0, 0.0, 1.0)[None, :]
+    fy = np.clip(y - y0, 0.0, 1.0)[:, None]
+    total = np.zeros((H, W), np.float32)
+    weight_sum = np.zeros((H, W), np.float32)
+    for ys, wy in ((y0, 1.0 - fy), (y1, fy)):
+        for xs, wx in ((x0, 1.0 - fx), (x1, fx)):
+            tap_colour = colour_lo[ys[:, None], xs[None, :]]
+            diff2 = np.sum((tap_colour - colour_hi) ** 2, axis=-1)
+            weight = (wy * wx) * np.exp(-diff2 / (2.0 * _RANGE_SIGMA**2)) + 1e-6 * (wy * wx)
+            total += weight * inv_depth_lo[ys[:, None], xs[None, :]]
+            weight_sum += weight
+    return total / weight_sum
+
+
+# Where each fused depth came from (counted for the summary).
+_STEREO, _PLANE, _FILLED, _FALLBACK_PLANE, _FAR = range(5)
+
+
+def _fuse(
+    stereo_m: np.ndarray,
+    use_stereo: np.ndarray,
+    plane_ok: np.ndarray,
+    plane_m: np.ndarray,
+    far_m: float,
+    fill_sigma_px: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fused depth (h, w) and the source label of each pixel.
+
+    Trusted stereo and agreeing plane pixels are kept; a pixel with neither takes the Gaussian-weighted mean inverse
+    depth of the trusted pixels around it (normalized convolution) when they surround it densely enough (textureless
+    patches on walls and the rims of objects), else the plane below the horizon and `far_m` above it.
+    """
+    trusted = use_stereo | plane_ok
+    depth = np.where(use_stereo, stereo_m, plane_m).astype(np.float32)
+    labels = np.where(use_stereo, _STEREO, np.where(plane_ok, _PLANE, _FALLBACK_PLANE)).astype(np.int64)
+    below_horizon = plane_m < far_m
+    labels[~trusted & ~below_horizon] = _FAR
+    if fill_sigma_px > 0 and trusted.any() and not trusted.all():
+        weight = trusted.astype(np.float32)
+        support = cv2.GaussianBlur(weight, (0, 0), fill_sigma_px)
+        inv = cv2.GaussianBlur(weight / depth, (0, 0), fill_sigma_px)
+        fill = ~trusted & (support >= 0.25)
+        depth[fill] = np.clip(support[fill] / inv[fill], 0.0, far_m)
+        labels[fill] = _FILLED
+    return depth, labels
+
+
+def mvs_depth(
+    frames: np.ndarray,
+    K: np.ndarray,
+    T_world_camera: np.ndarray,
+    T_vehicle_camera: np.ndarray,
+    camera_height_m: float | None,
+    cfg: DepthConfig,
+    out: np.ndarray,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, Any]:
+    """Fill `out` with plane-sweep stereo depth fused with the ground plane; returns the fusion fractions."""
+    m = cfg.mvs
+    device = torch.device("cuda" if m.device == "cuda" or (m.device == "auto" and torch.cuda.is_available()) else "cpu")
+    n, H, W = frames.shape[:3]
+    w = min(W, m.matching_width_px)
+    h = max(8, round(H * w / W))
+    K_lo = scale_intrinsics(np.asarray(K, dtype=np.float64), w / W, h / H)
+    K_t = torch.as_tensor(K_lo, dtype=torch.float32, device=device)
+    rays = torch.as_tensor(pixel_rays(K_lo, w, h), dtype=torch.float32, device=device)
+    far_m = cfg.max_depth_m
+    plane_lo_np = plane_depth(K_lo, w, h, T_vehicle_camera, camera_height_m, far_m)
+    plane_lo = torch.from_numpy(plane_lo_np).to(device)
+    plane_hi = plane_depth(K, W, H, T_vehicle_camera, camera_height_m, far_m)
+    below_horizon = plane_lo < far_m
+    inv_depths = torch.linspace(1.0 / m.min_depth_m, 1.0 / far_m, m.num_hypotheses, device=device)
+    sweep = (1.0 / inv_depths)[:, None, None].expand(-1, h, w)
+    hypotheses = torch.cat([sweep, plane_lo[None]], dim=0)  # the last one is the ground plane
+    poses = np.asarray(T_world_camera, dtype=np.float64)
+    cache = _FrameCache(frames, w, h, device)
+    counts = np.zeros(5, np.int64)
+
+    for i in range(n):
+        nbrs = [i + o for o in m.neighbour_offsets if 0 <= i + o < n]
+        cache.keep_only({i, *nbrs})
+        ref = cache.get(i)
+        if nbrs:
+            with torch.no_grad():
+                T_ref = poses[i]
+                rel = [invert(poses[j]) @ T_ref for j in nbrs]
+                stats = _window_stats(ref, m.patch_size_px)
+                costs = torch.stack(
+                    [
+                        _sweep_costs(ref, stats, cache.get(j), T, K_t, rays, hypotheses, m.patch_size_px)
+                        for j, T in zip(nbrs, rel, strict=True)
+                    ]
+                )
+                k = min(m.best_k, len(nbrs))
+                agg = torch.topk(costs, k, dim=0, largest=False).values.mean(dim=0)  # (P, h, w)
+                sweep_cost, plane_cost = agg[:-1], agg[-1]
+                best_cost, best = sweep_cost.min(dim=0)
+                # Parabolic refinement of the minimum in hypothesis index (inverse depth is linear in it).
+                lo_i = (best - 1).clamp_min(0)
+                hi_i = (best + 1).clamp_max(m.num_hypotheses - 1)
+                c_lo = sweep_cost.gather(0, lo_i[None])[0]
+                c_hi = sweep_cost.gather(0, hi_i[None])[0]
+                curvature = c_lo - 2.0 * best_cost + c_hi
+                interior = (best > 0) & (best < m.num_hypotheses - 1) & (curvature > 1e-6)
+                shift = torch.where(interior, (c_lo - c_hi) / (2.0 * curvature.clamp_min(1e-6)), 0.0).clamp(-0.5, 0.5)
+                step = inv_depths[1] - inv_depths[0]
+                inv_best = (inv_depths[best] + shift * step).clamp(1.0 / far_m, 1.0 / m.min_depth_m)
+                stereo_m = 1.0 / inv_best
+                # Distinctness: the best cost away from the winner's immediate neighbourhood.
+                index = torch.arange(m.num_hypotheses, device=device)[:, None, None]
+                away = (index - best[None]).abs() > 2
+                second = torch.where(away, sweep_cost, torch.ones_like(sweep_cost)).min(dim=0).values
+                parallax = torch.stack([_parallax_px(stereo_m, T, K_t, rays) for T in rel]).max(dim=0).values
+                confident = (
+                    (1.0 - 2.0 * best_cost >= m.min_zncc)
+                    & (second - best_cost >= m.min_distinctness)
+                    & (parallax >= m.min_parallax_px)
+                    & (best > 0)  # the nearest plane winning means the true depth may be nearer still
+                )
+                plane_ok = below_horizon & (plane_cost <= best_cost + m.plane_margin)
+                use_stereo = confident & ~plane_ok
+            depth_np, labels = _fuse(
+                stereo_m.cpu().numpy(),
+                use_stereo.cpu().numpy(),
+                plane_ok.cpu().numpy(),
+                plane_lo_np,
+                far_m,
+                m.fill_sigma_px,
+            )
+        else:
+            depth_np, labels = plane_lo_np.copy(), np.where(plane_lo_np < far_m, _FALLBACK_PLANE, _FAR)
+        counts += np.bincount(labels.ravel(), minlength=len(counts))
+        depth_np = cv2.medianBlur(depth_np.astype(np.float32), 3)  # removes isolated mismatches
+        inv_hi = _joint_bilateral_upsample(
+            1.0 / depth_np,
+            cache.colour[i],
+            np.asarray(frames[i], dtype=np.float32) / 255.0,
+            m.upsample == "joint_bilateral",
+        )
+        depth_hi = np.clip(1.0 / np.maximum(inv_hi, 1.0 / far_m), m.min_depth_m, far_m).astype(np.float32)
+        if not nbrs:
+            depth_hi = plane_hi
+        out[i] = depth_hi
+        if progress is not None:
+            progress(1)
+
+    total = max(1, n * h * w)
+    return {
+        "matching_resolution_px": [w, h],
+        "stereo_fraction": round(float(counts[_STEREO]) / total, 4),
+        "plane_fraction": round(float(counts[_PLANE]) / total, 4),
+        "filled_fraction": round(float(counts[_FILLED]) / total, 4),
+        "fallback_plane_fraction": round(float(counts[_FALLBACK_PLANE]) / total, 4),
+        "far_fallback_fraction": round(float(counts[_FAR]) / total, 4),
+    }
