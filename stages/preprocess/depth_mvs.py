@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
+import torch.nn.functional as nnf
 
 from drivesim.sim.geometry import invert, scale_intrinsics
 from drivesim.stages.preprocess.depth_plane import pixel_rays, plane_depth
@@ -43,7 +43,7 @@ def _box(x: torch.Tensor, size: int) -> torch.Tensor:
     """Mean over a size x size window, borders replicated; x is (B, C, H, W)."""
     # Running sums (cumsum differences) cost the same for any window size and beat avg_pool2d on CPU.
     pad = size // 2
-    y = F.pad(x, (pad + 1, pad, pad + 1, pad), mode="replicate")
+    y = nnf.pad(x, (pad + 1, pad, pad + 1, pad), mode="replicate")
     y = y.cumsum(-1)
     y = y[..., size:] - y[..., :-size]
     y = y.cumsum(-2)
@@ -114,7 +114,7 @@ def _sweep_costs(
     margin_x = 1.0 - (patch_px // 2) * 2.0 / (w - 1)
     margin_y = 1.0 - (patch_px // 2) * 2.0 / (h - 1)
     inside = in_front & (gx.abs() <= margin_x) & (gy.abs() <= margin_y)
-    warped = F.grid_sample(
+    warped = nnf.grid_sample(
         neighbour.expand(n_hyp, 1, h, w),
         torch.stack([gx, gy], dim=-1),
         mode="bilinear",
