@@ -17,7 +17,7 @@ from drivesim.pipeline.errors import InputError
 from drivesim.pipeline.hashing import sha256_json
 from drivesim.pipeline.progress import console, progress_bar
 from drivesim.pipeline.workspace import Workspace, artifact_key
-from drivesim.stages.ingest import trace as trace_schema
+from drivesim.stages.ingest.trace import validate_trace
 from drivesim.stages.preprocess import depth as depth_mod
 from drivesim.stages.preprocess import poses as poses_mod
 from drivesim.stages.preprocess import series as series_mod
@@ -65,9 +65,7 @@ class PreprocessResult:
 
 def open_trace(trace_dir: Path) -> TraceView:
     """Open the trace's frames (memory-mapped), stamps and calibration; InputError naming the file when malformed."""
-    validator = getattr(trace_schema, "validate_trace", None)
-    if validator is not None:
-        validator(trace_dir)
+    validate_trace(trace_dir)
     try:
         calibration = json.loads((trace_dir / "calibration.json").read_text())
         frames = np.load(trace_dir / "frames.npy", mmap_mode="r")
