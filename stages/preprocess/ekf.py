@@ -66,7 +66,7 @@ class SmoothedTrack:
     """Filter and smoother output at every event time.
 
     :param t_s: event times (s).
-    :param state: RTS-smoothed states (K, 6).
+    :param state: RTS-smoothed states (K, 6) (the filtered ones when smoothing is off).
     :param filtered: forward-filter posteriors (K, 6).
     :param fix_accepted: True where a position fix was used (False where gated out or absent).
     """
@@ -121,8 +121,10 @@ def _predict_into(
     F[IYAW, IW] = dt
 
 
-def run_filter_smoother(meas: Measurements, x0: np.ndarray, P0: np.ndarray, noise: CtrvNoise) -> SmoothedTrack:
-    """Run the EKF forward over every measurement event, then the RTS smoother backward.
+def run_filter_smoother(
+    meas: Measurements, x0: np.ndarray, P0: np.ndarray, noise: CtrvNoise, smooth: bool = True
+) -> SmoothedTrack:
+    """Run the EKF forward over every measurement event, then (when `smooth`) the RTS smoother backward.
 
     The filter predicts from one event time to the next and applies that event's measurements; priors, posteriors
     and Jacobians are kept for the smoother, whose gains are computed for all steps at once.
@@ -155,12 +157,13 @@ def run_filter_smoother(meas: Measurements, x0: np.ndarray, P0: np.ndarray, nois
     first_reject_t = math.nan
     Q = np.zeros((STATE_SIZE, STATE_SIZE))
     pred = np.empty(STATE_SIZE)
+    eye = np.eye(STATE_SIZE)
     for k in range(K):
         t = t_list[k]
         dt = t - t_prev
         t_prev = t
         F = Fs[k]
-        F[...] = np.eye(STATE_SIZE)
+        F[...] = eye
         if dt > 0.0:
             x0_, x1_, x2_, x3_, x4_, x5_ = x.tolist()
             _predict_into(x0_, x1_, x2_, x3_, x4_, x5_, dt, pred, F)
@@ -184,13 +187,13 @@ def run_filter_smoother(meas: Measurements, x0: np.ndarray, P0: np.ndarray, nois
             innov = w - (x[IW] + x[IB] if biased else x[IW])
             gain = Ph / s
             x += gain * innov
-            P = P - np.outer(gain, Ph)
+            P = P - gain[:, None] * Ph
         v = v_list[k]
         if v == v:
             Ph = P[:, IV].copy()
             gain = Ph / (Ph[IV] + vr_list[k])
             x += gain * (v - x[IV])
-            P = P - np.outer(gain, Ph)
+            P = P - gain[:, None] * Ph
         fx = fx_list[k]
         if fx == fx:
             R = fix_cov[k]
@@ -213,7 +216,7 @@ def run_filter_smoother(meas: Measurements, x0: np.ndarray, P0: np.ndarray, nois
         xs_post[k] = x
         Ps_post[k] = P
 
-    smoothed = rts_smooth(xs_post, Ps_post, xs_prior, Ps_prior, Fs)
+    smoothed = rts_smooth(xs_post, Ps_post, xs_prior, Ps_prior, Fs) if smooth else xs_post
     return SmoothedTrack(t_s=np.asarray(meas.t_s, dtype=float), state=smoothed, filtered=xs_post, fix_accepted=accepted)
 
 

@@ -342,8 +342,8 @@ def fuse_gps_imu(series: SensorSeries, frame_times_ns: np.ndarray, cfg: PoseConf
         gate_chi2=cfg.gps_gate_chi2,
         gate_reset_s=cfg.gps_gate_reset_s,
     )
-    track = ekf.run_filter_smoother(meas, x0, P0, noise)
-    states = track.state if cfg.smoothing else track.filtered
+    track = ekf.run_filter_smoother(meas, x0, P0, noise, smooth=cfg.smoothing)
+    states = track.state
 
     # Residual to the fixes that were used.
     is_fix = np.isfinite(meas.fix_xy_m[:, 0])
