@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from drivesim.sim.mesh import Material, Mesh
-from drivesim.sim.shading import Lighting, shade_blinn_phong
+from drivesim.sim.shading import Lighting, dot3, normalize3, shade_blinn_phong
 
 __all__ = ["Lighting", "PackedScene", "Rasterizer", "RenderResult", "pack_meshes", "render_meshes"]
 
@@ -61,21 +61,19 @@ class PackedScene:
     """Triangle soup of a mesh list, ready on a device. Vertices are stored relative to `origin_m` (float64, world)
     so that float32 keeps millimetre precision for worlds far from the ENU origin.
 
-    Per-triangle tensors (T triangles): `vertices_m` (T, 3, 3), `normals` (T, 3, 3) world-frame vertex normals,
-    `rgb` (T, 3, 3) vertex colour x diffuse colour, `uv` (T, 3, 2), `texture_index` (T,) int64 (-1 none),
-    `material_index` (T,) int64 into `materials` (M, 6): specular rgb, shininess, metalness, roughness, unlit,
-    `object_id` (T,) int32. Textures are one flat texel table `texels` (N, 3) float32 with `texture_info` (X, 3)
-    int64 rows (offset, width, height).
+    Per-triangle tensors (T triangles): `vertices_m` (T, 3, 3), also as `vertex_components` (3 xyz, 3 corners, T);
+    `vertex_attributes` (T, 3, 8) per corner: world-frame
+    normal (3), vertex colour x diffuse colour (3), uv (2); `material` (T, 7): specular rgb, shininess, metalness,
+    roughness, unlit (0/1); `texture_index` (T,) int64 (-1 none); `object_id` (T,) int32. Textures are one flat texel
+    table `texels` (N, 3) float32 with `texture_info` (X, 3) int64 rows (offset, width, height).
     """
 
     origin_m: np.ndarray
     vertices_m: torch.Tensor
-    normals: torch.Tensor
-    rgb: torch.Tensor
-    uv: torch.Tensor
+    vertex_components: torch.Tensor
+    vertex_attributes: torch.Tensor
+    material: torch.Tensor
     texture_index: torch.Tensor
-    material_index: torch.Tensor
-    materials: torch.Tensor
     object_id: torch.Tensor
     texels: torch.Tensor
     texture_info: torch.Tensor
@@ -90,70 +88,75 @@ class PackedScene:
         """Where the tensors live."""
         return self.vertices_m.device
 
+    @property
+    def textured(self) -> bool:
+        """Whether any triangle samples a texture."""
+        return self.texture_info.shape[0] > 0
 
-def _material_row(material: Material) -> list[float]:
-    return [
-        *[float(c) for c in material.specular_rgb],
-        float(material.shininess),
-        float(material.metalness),
-        float(material.roughness),
-        1.0 if material.unlit else 0.0,
-    ]
+
+def _material_row(material: Material) -> np.ndarray:
+    return np.array(
+        [
+            *material.specular_rgb,
+            material.shininess,
+            material.metalness,
+            material.roughness,
+            1.0 if material.unlit else 0.0,
+        ],
+        dtype=np.float32,
+    )
 
 
 def pack_meshes(meshes: list[Mesh], device: str | torch.device = "cpu") -> PackedScene:
     """Pack world-frame meshes into one `PackedScene` on `device` (do this once for static geometry)."""
-    vertices, normals, rgbs, uvs, tex_index, mat_index, obj_ids = [], [], [], [], [], [], []
-    materials: list[list[float]] = []
+    vertices, attributes, materials, tex_index, obj_ids = [], [], [], [], []
     texels: list[np.ndarray] = []
     texture_info: list[list[int]] = []
     texel_offset = 0
-    all_v = [m.vertices_m for m in meshes if len(m.faces)]
+    all_v = [np.asarray(m.vertices_m) for m in meshes if len(m.faces)]
     origin = np.mean(np.concatenate(all_v), axis=0).astype(np.float64) if all_v else np.zeros(3)
     for mesh in meshes:
         faces = np.asarray(mesh.faces, dtype=np.int64)
-        if len(faces) == 0:
+        n_faces = len(faces)
+        if n_faces == 0:
             continue
         v = (np.asarray(mesh.vertices_m, dtype=np.float64) - origin).astype(np.float32)[faces]
         vertices.append(v)
+        attr = np.zeros((n_faces, 3, 8), dtype=np.float32)
         if mesh.normals is not None:
-            normals.append(np.asarray(mesh.normals, dtype=np.float32)[faces])
+            attr[..., 0:3] = np.asarray(mesh.normals, dtype=np.float32)[faces]
         else:
             face_n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-            face_n /= np.maximum(np.linalg.norm(face_n, axis=1, keepdims=True), 1e-20)
-            normals.append(np.repeat(face_n[:, None, :], 3, axis=1))
+            attr[..., 0:3] = (face_n / np.maximum(np.linalg.norm(face_n, axis=1, keepdims=True), 1e-20))[:, None]
         diffuse = np.asarray(mesh.material.diffuse_rgb, dtype=np.float32)
-        if mesh.vertex_rgb is not None:
-            rgbs.append(np.asarray(mesh.vertex_rgb, dtype=np.float32)[faces] * diffuse)
-        else:
-            rgbs.append(np.broadcast_to(diffuse, (len(faces), 3, 3)))
+        attr[..., 3:6] = (
+            diffuse if mesh.vertex_rgb is None else np.asarray(mesh.vertex_rgb, np.float32)[faces] * diffuse
+        )
         if mesh.uv is not None and mesh.texture_rgb is not None:
-            uvs.append(np.asarray(mesh.uv, dtype=np.float32)[faces])
+            attr[..., 6:8] = np.asarray(mesh.uv, dtype=np.float32)[faces]
             tex = np.asarray(mesh.texture_rgb)
             texels.append(tex.reshape(-1, 3).astype(np.float32) / 255.0)
             texture_info.append([texel_offset, tex.shape[1], tex.shape[0]])
             texel_offset += tex.shape[0] * tex.shape[1]
-            tex_index.append(np.full(len(faces), len(texture_info) - 1, dtype=np.int64))
+            tex_index.append(np.full(n_faces, len(texture_info) - 1, dtype=np.int64))
         else:
-            uvs.append(np.zeros((len(faces), 3, 2), dtype=np.float32))
-            tex_index.append(np.full(len(faces), -1, dtype=np.int64))
-        materials.append(_material_row(mesh.material))
-        mat_index.append(np.full(len(faces), len(materials) - 1, dtype=np.int64))
-        obj_ids.append(np.full(len(faces), mesh.object_id, dtype=np.int32))
+            tex_index.append(np.full(n_faces, -1, dtype=np.int64))
+        attributes.append(attr)
+        materials.append(np.broadcast_to(_material_row(mesh.material), (n_faces, 7)))
+        obj_ids.append(np.full(n_faces, mesh.object_id, dtype=np.int32))
 
     def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype: type) -> torch.Tensor:
         arr = np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
         return torch.as_tensor(np.ascontiguousarray(arr, dtype=dtype), device=device)
 
+    vertices_t = cat(vertices, (0, 3, 3), np.float32)
     return PackedScene(
         origin_m=origin,
-        vertices_m=cat(vertices, (0, 3, 3), np.float32),
-        normals=cat(normals, (0, 3, 3), np.float32),
-        rgb=cat(rgbs, (0, 3, 3), np.float32),
-        uv=cat(uvs, (0, 3, 2), np.float32),
+        vertices_m=vertices_t,
+        vertex_components=vertices_t.permute(2, 1, 0).contiguous(),
+        vertex_attributes=cat(attributes, (0, 3, 8), np.float32),
+        material=cat(materials, (0, 7), np.float32),
         texture_index=cat(tex_index, (0,), np.int64),
-        material_index=cat(mat_index, (0,), np.int64),
-        materials=torch.tensor(materials if materials else np.zeros((0, 7)), dtype=torch.float32, device=device),
         object_id=cat(obj_ids, (0,), np.int32),
         texels=cat(texels, (1, 3), np.float32),
         texture_info=torch.tensor(texture_info if texture_info else np.zeros((0, 3)), dtype=torch.int64, device=device),
@@ -161,19 +164,16 @@ def pack_meshes(meshes: list[Mesh], device: str | torch.device = "cpu") -> Packe
 
 
 def _concat_scenes(scenes: list[PackedScene]) -> tuple[PackedScene, torch.Tensor]:
-    """One scene holding all triangles of `scenes` (same origin assumed already applied), and the scene index of each
-    triangle. Vertices keep their own scene's origin: callers transform each part before concatenation."""
-    material_offset = 0
+    """All triangles of `scenes` in one scene, and the scene index of each triangle. Vertices keep their own scene's
+    origin: callers transform each part to the camera frame before concatenating."""
     texel_offset = 0
     texture_offset = 0
-    mat_idx, tex_idx, tex_info = [], [], []
+    tex_idx, tex_info = [], []
     for s in scenes:
-        mat_idx.append(s.material_index + material_offset)
         tex_idx.append(torch.where(s.texture_index >= 0, s.texture_index + texture_offset, s.texture_index))
         info = s.texture_info.clone()
         info[:, 0] += texel_offset
         tex_info.append(info)
-        material_offset += s.materials.shape[0]
         texel_offset += s.texels.shape[0]
         texture_offset += s.texture_info.shape[0]
     owner = torch.cat(
@@ -182,12 +182,10 @@ def _concat_scenes(scenes: list[PackedScene]) -> tuple[PackedScene, torch.Tensor
     merged = PackedScene(
         origin_m=np.zeros(3),
         vertices_m=torch.cat([s.vertices_m for s in scenes]),
-        normals=torch.cat([s.normals for s in scenes]),
-        rgb=torch.cat([s.rgb for s in scenes]),
-        uv=torch.cat([s.uv for s in scenes]),
+        vertex_components=torch.cat([s.vertex_components for s in scenes], dim=2),
+        vertex_attributes=torch.cat([s.vertex_attributes for s in scenes]),
+        material=torch.cat([s.material for s in scenes]),
         texture_index=torch.cat(tex_idx),
-        material_index=torch.cat(mat_idx),
-        materials=torch.cat([s.materials for s in scenes]),
         object_id=torch.cat([s.object_id for s in scenes]),
         texels=torch.cat([s.texels for s in scenes]),
         texture_info=torch.cat(tex_info),
@@ -265,85 +263,110 @@ class Rasterizer:
             if len(meshes) != B:
                 raise ValueError(f"got {len(meshes)} per-camera mesh lists for {B} cameras")
             scenes = [self.pack(m) for m in meshes]
-            cam_vertices = [self._to_camera(s, T[b : b + 1])[0] for b, s in enumerate(scenes)]
+            cam_vertices = [self._to_camera(s, T[b : b + 1]) for b, s in enumerate(scenes)]
             scene, owner = _concat_scenes(scenes)
-            v_cam = torch.cat(cam_vertices)
-            tri_camera = owner
-            tri_source = torch.arange(scene.triangle_count, device=self.device)
+            v_cam = torch.cat(cam_vertices, dim=2)
         else:
-            scene = self.pack(meshes)
-            v_cam = self._to_camera(scene, T).reshape(-1, 3, 3)
-            T_count = scene.triangle_count
-            tri_camera = torch.arange(B, device=self.device).repeat_interleave(T_count)
-            tri_source = torch.arange(T_count, device=self.device).repeat(B)
+            scene, owner = self.pack(meshes), None
+            v_cam = self._to_camera(scene, T)
         K_t = torch.as_tensor(np.asarray(K, dtype=np.float64), device=self.device)
         R_cam_world = torch.as_tensor(T[:, :3, :3], dtype=torch.float32, device=self.device)
-        return self._rasterize(scene, v_cam, tri_camera, tri_source, B, K_t, R_cam_world, lighting, background_rgb)
+        return self._rasterize(scene, v_cam, owner, B, K_t, R_cam_world, lighting, background_rgb)
 
     def _to_camera(self, scene: PackedScene, T: np.ndarray) -> torch.Tensor:
-        """(B, T, 3, 3) camera-frame vertices of `scene` for poses T (B, 4, 4)."""
-        T_cam_scene = T @ _translation(scene.origin_m)
-        R = torch.as_tensor(T_cam_scene[:, :3, :3], dtype=torch.float32, device=self.device)
-        t = torch.as_tensor(T_cam_scene[:, :3, 3], dtype=torch.float32, device=self.device)
-        v = scene.vertices_m.reshape(-1, 3)
-        return (torch.einsum("bij,nj->bni", R, v) + t[:, None, :]).reshape(T.shape[0], -1, 3, 3)
+        """Camera-frame vertices of `scene` seen from poses T (B, 4, 4), component-major: (3 xyz, 3 corners, B * T)
+        with candidate n = camera * T + triangle (contiguous rows make the per-triangle setup fast)."""
+        T_cam_scene = torch.as_tensor((T @ _translation(scene.origin_m))[:, :3, :], dtype=torch.float32)
+        M = T_cam_scene.to(self.device)[:, :, :, None]  # (B, 3, 4, 1): broadcasts over (corner, B, T)
+        X, Y, Z = scene.vertex_components[:, :, None, :]  # each (3 corners, 1, T)
+        B, n_tri = T.shape[0], scene.triangle_count
+        out = torch.empty((3, 3, B, n_tri), dtype=torch.float32, device=self.device)
+        for c in range(3):
+            torch.mul(X, M[:, c, 0], out=out[c])
+            out[c].add_(M[:, c, 3]).addcmul_(Y, M[:, c, 1]).addcmul_(Z, M[:, c, 2])
+        return out.reshape(3, 3, B * n_tri)
 
     # ------------------------------------------------------------------ core
-    def _setup(
-        self, v_cam: torch.Tensor, K: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Per candidate triangle: keep mask, edge coefficients E (N, 3, 3) in pixel space (row i: w_i = E_i . [u,v,1]
-        scaled so that inside means all >= 0), |det| (N,), and the integer pixel bbox (N, 4) = x0, y0, x1, y1."""
-        W, H, near = self.width_px, self.height_px, self.near_m
-        P0, P1, P2 = v_cam[:, 0], v_cam[:, 1], v_cam[:, 2]
-        c = torch.stack([torch.cross(P1, P2, dim=-1), torch.cross(P2, P0, dim=-1), torch.cross(P0, P1, dim=-1)], 1)
-        det = (P0 * c[:, 0]).sum(-1)
-        K_inv = torch.linalg.inv(K).to(torch.float32)
-        # w_i(u, v) = c_i . (K^-1 p) = (K^-T c_i) . p
-        E = (c @ K_inv) * torch.sign(det)[:, None, None]
-        abs_det = det.abs()
+    def _setup(self, vc: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Per candidate triangle, from camera-frame vertices vc (3 xyz, 3 corners, N): the kept candidates' indices
+        (n,), their rows (n, 13) = bbox width, edge coefficients (9) re-based at the bbox corner, |det|, corner x0, y0,
+        and their inclusive pixel bboxes (n, 4) = x0, y0, x1, y1.
 
-        # Screen bbox of the triangle clipped at z = near: kept vertices and edge/plane intersections.
-        z = v_cam[..., 2]
+        Edge coefficients: w_i(u, v) = c_i . K^-1 [u, v, 1] with c_0 = P1 x P2, c_1 = P2 x P0, c_2 = P0 x P1, signed so
+        that inside means all w_i >= 0; then depth = |det| / sum(w) with det = P0 . (P1 x P2).
+        """
+        W, H, near = self.width_px, self.height_px, self.near_m
         fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
-        pts = [v_cam[:, i] for i in range(3)]
-        ok = [z[:, i] >= near for i in range(3)]
-        for i, j in ((0, 1), (1, 2), (2, 0)):
-            zi, zj = z[:, i], z[:, j]
-            crosses = (zi - near) * (zj - near) < 0
-            s = ((near - zi) / torch.where(crosses, zj - zi, torch.ones_like(zi))).clamp(0, 1)
-            pts.append(v_cam[:, i] + s[:, None] * (v_cam[:, j] - v_cam[:, i]))
-            ok.append(crosses)
-        pts_t = torch.stack(pts, 1)  # (N, 6, 3)
-        ok_t = torch.stack(ok, 1)
-        zc = pts_t[..., 2].clamp_min(near)
-        u = fx * pts_t[..., 0] / zc + cx
-        v = fy * pts_t[..., 1] / zc + cy
-        inf = torch.tensor(float("inf"), device=v_cam.device)
-        umin = torch.where(ok_t, u, inf).amin(1).clamp(-1, W)
-        umax = torch.where(ok_t, u, -inf).amax(1).clamp(-1, W)
-        vmin = torch.where(ok_t, v, inf).amin(1).clamp(-1, H)
-        vmax = torch.where(ok_t, v, -inf).amax(1).clamp(-1, H)
-        bbox = torch.stack([umin.ceil(), vmin.ceil(), umax.floor(), vmax.floor()], 1)
-        bbox[:, 0].clamp_(min=0)
-        bbox[:, 1].clamp_(min=0)
-        bbox[:, 2].clamp_(max=W - 1)
-        bbox[:, 3].clamp_(max=H - 1)
-        bbox = bbox.to(torch.int64)
-        keep = (
-            ok_t.any(1)
-            & (bbox[:, 2] >= bbox[:, 0])
-            & (bbox[:, 3] >= bbox[:, 1])
-            & (abs_det > 1e-12 * (P0.norm(dim=-1) + 1) ** 3)
+        N = vc.shape[2]
+        zs = vc[2]
+        n_front = (zs >= near).sum(0)
+        zc = zs.clamp_min(near)
+        u = (vc[0] / zc).mul_(fx).add_(cx)
+        v = (vc[1] / zc).mul_(fy).add_(cy)
+        lo = torch.stack(
+            [torch.minimum(torch.minimum(u[0], u[1]), u[2]), torch.minimum(torch.minimum(v[0], v[1]), v[2])]
         )
-        return keep, E, abs_det, bbox
+        hi = torch.stack(
+            [torch.maximum(torch.maximum(u[0], u[1]), u[2]), torch.maximum(torch.maximum(v[0], v[1]), v[2])]
+        )
+        crossing = ((n_front > 0) & (n_front < 3)).nonzero().squeeze(1)
+        if crossing.numel():
+            # Bbox of the polygon clipped at z = near: vertices in front plus edge/plane intersections.
+            p = vc[:, :, crossing].permute(2, 1, 0)  # (n, corner, xyz)
+            z = p[..., 2]
+            pts, ok = [p[:, i] for i in range(3)], [z[:, i] >= near for i in range(3)]
+            for i, j in ((0, 1), (1, 2), (2, 0)):
+                zi, zj = z[:, i], z[:, j]
+                cut = (zi - near) * (zj - near) < 0
+                s = ((near - zi) / torch.where(cut, zj - zi, torch.ones_like(zi))).clamp(0, 1)
+                pts.append(p[:, i] + s[:, None] * (p[:, j] - p[:, i]))
+                ok.append(cut)
+            pts_t, ok_t = torch.stack(pts, 1), torch.stack(ok, 1)
+            zp = pts_t[..., 2].clamp_min(near)
+            puv = torch.stack([fx * pts_t[..., 0] / zp + cx, fy * pts_t[..., 1] / zp + cy], -1)  # (n, 6, 2)
+            inf = torch.tensor(float("inf"), device=vc.device)
+            lo[:, crossing] = torch.where(ok_t[..., None], puv, inf).amin(1).T
+            hi[:, crossing] = torch.where(ok_t[..., None], puv, -inf).amax(1).T
+        lo = lo.clamp_(-1, W + H).ceil_().clamp_min_(0)
+        hi = hi.clamp_(-1, W + H).floor_()
+        hi[0].clamp_max_(W - 1)
+        hi[1].clamp_max_(H - 1)
+        keep = (n_front > 0) & (hi[0] >= lo[0]) & (hi[1] >= lo[1])
+        idx = keep.nonzero().squeeze(1)
+        if idx.numel() < N:
+            vc, lo, hi = vc[:, :, idx], lo[:, idx], hi[:, idx]
+        (x0, x1, x2), (y0, y1, y2), (z0, z1, z2) = vc
+
+        def cross(ay, az, ax, by, bz, bx):  # one component of a x b, the others by rotating the arguments
+            return torch.addcmul(ay * bz, az, by, value=-1.0)
+
+        cx0, cy0, cz0 = cross(y1, z1, x1, y2, z2, x2), cross(z1, x1, y1, z2, x2, y2), cross(x1, y1, z1, x2, y2, z2)
+        cx1, cy1, cz1 = cross(y2, z2, x2, y0, z0, x0), cross(z2, x2, y2, z0, x0, y0), cross(x2, y2, z2, x0, y0, z0)
+        cx2, cy2, cz2 = cross(y0, z0, x0, y1, z1, x1), cross(z0, x0, y0, z1, x1, y1), cross(x0, y0, z0, x1, y1, z1)
+        det = torch.addcmul(torch.addcmul(x0 * cx0, y0, cy0), z0, cz0)
+        sign = torch.sign(det)
+        abs_det = det.abs()
+        scale = (x0.abs() + y0.abs() + z0.abs() + x1.abs() + y1.abs() + z1.abs() + x2.abs() + y2.abs() + z2.abs()) / 3
+        good = abs_det > 1e-9 * scale**3  # triangles seen exactly edge-on (or degenerate) cover nothing
+        cols = [(hi[0] - lo[0] + 1)]
+        for ex, ey, ez in ((cx0, cy0, cz0), (cx1, cy1, cz1), (cx2, cy2, cz2)):
+            a = ex * (sign / fx)
+            b = ey * (sign / fy)
+            c = torch.addcmul(torch.addcmul(ez * sign, a, lo[0] - cx), b, lo[1] - cy)  # w at the bbox corner
+            cols += [a, b, c]
+        cols += [abs_det, lo[0], lo[1]]
+        rows = torch.stack(cols, 1)
+        bbox = torch.cat([lo, hi]).T.to(torch.int64)
+        if not bool(good.all()):
+            sel = good.nonzero().squeeze(1)
+            idx, rows, bbox = idx[sel], rows[sel], bbox[sel]
+        return idx, rows, bbox
 
     def _rasterize(
         self,
         scene: PackedScene,
-        v_cam: torch.Tensor,
-        tri_camera: torch.Tensor,
-        tri_source: torch.Tensor,
+        vc: torch.Tensor,
+        owner: torch.Tensor | None,
         B: int,
         K: torch.Tensor,
         R_cam_world: torch.Tensor,
@@ -351,15 +374,17 @@ class Rasterizer:
         background_rgb: tuple[float, float, float] | np.ndarray | None,
     ) -> RenderResult:
         W, H, dev = self.width_px, self.height_px, self.device
-        keep, E, abs_det, bbox = self._setup(v_cam, K)
-        idx = keep.nonzero().squeeze(1)
-        E, abs_det, bbox = E[idx], abs_det[idx], bbox[idx]
-        tri_camera, tri_source = tri_camera[idx], tri_source[idx]
+        idx, table, bbox = self._setup(vc, K)
+        if owner is None:  # shared scene: candidate n is triangle n % T seen by camera n // T
+            T_count = max(scene.triangle_count, 1)
+            tri_camera = idx // T_count
+            tri_source = idx - tri_camera * T_count
+        else:
+            tri_camera, tri_source = owner[idx], idx
+        counts = (bbox[:, 2] - bbox[:, 0] + 1) * (bbox[:, 3] - bbox[:, 1] + 1)
+        base_pix = tri_camera * (H * W) + bbox[:, 1] * W + bbox[:, 0]
 
         zbuf = torch.full((B * H * W,), _EMPTY_KEY, dtype=torch.int64, device=dev)
-        bw = bbox[:, 2] - bbox[:, 0] + 1
-        bh = bbox[:, 3] - bbox[:, 1] + 1
-        counts = bw * bh
         ends = counts.cumsum(0)
         n_tri = int(idx.shape[0])
         start = 0
@@ -367,52 +392,49 @@ class Rasterizer:
             base = int(ends[start - 1]) if start > 0 else 0
             stop = int(torch.searchsorted(ends, base + _PAIRS_PER_CHUNK, right=True))
             stop = min(max(stop, start + 1), n_tri)
-            self._raster_chunk(zbuf, E, abs_det, bbox, bw, counts, tri_camera, start, stop, base, int(ends[stop - 1]))
+            self._raster_chunk(zbuf, table, base_pix, counts, start, stop)
             start = stop
-
-        return self._resolve(zbuf, scene, E, tri_camera, tri_source, B, K, R_cam_world, lighting, background_rgb)
+        return self._resolve(zbuf, scene, table, tri_camera, tri_source, B, K, R_cam_world, lighting, background_rgb)
 
     def _raster_chunk(
         self,
         zbuf: torch.Tensor,
-        E: torch.Tensor,
-        abs_det: torch.Tensor,
-        bbox: torch.Tensor,
-        bw: torch.Tensor,
+        table: torch.Tensor,
+        base_pix: torch.Tensor,
         counts: torch.Tensor,
-        tri_camera: torch.Tensor,
         start: int,
         stop: int,
-        base: int,
-        end: int,
     ) -> None:
-        """Depth-test all (triangle, pixel) pairs of triangles [start, stop) into `zbuf`."""
-        W, H, dev = self.width_px, self.height_px, self.device
-        total = end - base
-        tri = torch.repeat_interleave(torch.arange(start, stop, device=dev), counts[start:stop], output_size=total)
-        local = torch.arange(base, end, device=dev) - (counts.cumsum(0) - counts)[tri]
-        bw_p = bw[tri]
-        y = local // bw_p
-        x = local - y * bw_p
-        x += bbox[tri, 0]
-        y += bbox[tri, 1]
-        xf = x.to(torch.float32)
-        yf = y.to(torch.float32)
-        e = E[tri]  # (P, 3, 3)
-        w = e[:, :, 0] * xf[:, None] + e[:, :, 1] * yf[:, None] + e[:, :, 2]
-        s = w.sum(1)
-        depth = abs_det[tri] / s
-        inside = (w.amin(1) >= 0) & (s > 0) & (depth >= self.near_m) & torch.isfinite(depth)
+        """Depth-test all (triangle, pixel-in-bbox) pairs of triangles [start, stop) into `zbuf`."""
+        dev = self.device
+        c = counts[start:stop]
+        total = int(c.sum())
+        first = (c.cumsum(0) - c).to(torch.float32)
+        tri = torch.repeat_interleave(torch.arange(stop - start, device=dev), c, output_size=total)
+        rows = table[start:stop].index_select(0, tri)
+        local = torch.arange(total, dtype=torch.float32, device=dev) - first.index_select(0, tri)
+        bw = rows[:, 0]
+        yo = torch.floor((local + 0.5) / bw)
+        xo = local - yo * bw
+        w0 = torch.addcmul(torch.addcmul(rows[:, 3], rows[:, 1], xo), rows[:, 2], yo)
+        w1 = torch.addcmul(torch.addcmul(rows[:, 6], rows[:, 4], xo), rows[:, 5], yo)
+        w2 = torch.addcmul(torch.addcmul(rows[:, 9], rows[:, 7], xo), rows[:, 8], yo)
+        s = w0 + w1 + w2
+        # all w_i >= 0 (inside), s > 0 (in front), depth = |det| / s >= near
+        inside = (torch.minimum(torch.minimum(w0, w1), w2) >= 0) & (s > 0) & (s * self.near_m <= rows[:, 10])
         sel = inside.nonzero().squeeze(1)
-        key = (depth[sel].view(torch.int32).to(torch.int64) << 32) | tri[sel]
-        pix = tri_camera[tri[sel]] * (H * W) + y[sel] * W + x[sel]
+        depth = rows[:, 10].index_select(0, sel) / s.index_select(0, sel)
+        gtri = tri.index_select(0, sel) + start
+        key = (depth.view(torch.int32).to(torch.int64) << 32) | gtri
+        offset = yo.index_select(0, sel) * self.width_px + xo.index_select(0, sel)
+        pix = base_pix.index_select(0, gtri) + offset.to(torch.int64)
         zbuf.scatter_reduce_(0, pix, key, reduce="amin")
 
     def _resolve(
         self,
         zbuf: torch.Tensor,
         scene: PackedScene,
-        E: torch.Tensor,
+        table: torch.Tensor,
         tri_camera: torch.Tensor,
         tri_source: torch.Tensor,
         B: int,
@@ -421,7 +443,7 @@ class Rasterizer:
         lighting: Lighting | list[Lighting] | None,
         background_rgb: tuple[float, float, float] | np.ndarray | None,
     ) -> RenderResult:
-        """Per covered pixel: winner's barycentrics, attributes and shading."""
+        """Per covered pixel: the winner's perspective-correct barycentrics, attributes and shading."""
         W, H, dev = self.width_px, self.height_px, self.device
         HW = H * W
         bg = (
@@ -434,52 +456,61 @@ class Rasterizer:
         object_id = torch.full((B * HW,), -1, dtype=torch.int32, device=dev)
         normal_out = torch.zeros((B * HW, 3), device=dev)
 
-        pix = (zbuf != _EMPTY_KEY).nonzero().squeeze(1)
-        key = zbuf[pix]
+        pix = (zbuf != _EMPTY_KEY).nonzero().squeeze(1)  # sorted, so each camera's pixels are one block
+        key = zbuf.index_select(0, pix)
         cand = key & _LOW32
         depth = (key >> 32).to(torch.int32).view(torch.float32)
-        cam = pix // HW
-        rem = pix - cam * HW
-        yf = (rem // W).to(torch.float32)
-        xf = (rem % W).to(torch.float32)
-        e = E[cand]
-        w = e[:, :, 0] * xf[:, None] + e[:, :, 1] * yf[:, None] + e[:, :, 2]
-        bary = (w / w.sum(1, keepdim=True)).clamp_(0.0, 1.0)
-        src = tri_source[cand]
+        row = pix // W  # = camera * H + y
+        xf = (pix - row * W).to(torch.float32)
+        yf = (row % H).to(torch.float32) if B > 1 else row.to(torch.float32)
+        e = table.index_select(0, cand)
+        xo = xf - e[:, 11]
+        yo = yf - e[:, 12]
+        w0 = torch.addcmul(torch.addcmul(e[:, 3], e[:, 1], xo), e[:, 2], yo)
+        w1 = torch.addcmul(torch.addcmul(e[:, 6], e[:, 4], xo), e[:, 5], yo)
+        w2 = torch.addcmul(torch.addcmul(e[:, 9], e[:, 7], xo), e[:, 8], yo)
+        inv_sum = 1.0 / (w0 + w1 + w2)
+        src = tri_source.index_select(0, cand)
+        a = scene.vertex_attributes.reshape(-1, 24).index_select(0, src)
+        attr = torch.addcmul(torch.addcmul(a[:, 0:8] * (w0 * inv_sum)[:, None], a[:, 8:16], (w1 * inv_sum)[:, None]),
+                             a[:, 16:24], (w2 * inv_sum)[:, None])  # fmt: skip
 
-        normal_world = (bary[:, :, None] * scene.normals[src]).sum(1)
-        normal_cam = torch.nn.functional.normalize(torch.einsum("pij,pj->pi", R_cam_world[cam], normal_world), dim=-1)
-        base = (bary[:, :, None] * scene.rgb[src]).sum(1)
-        tex_id = scene.texture_index[src]
-        textured = (tex_id >= 0).nonzero().squeeze(1)
-        if textured.numel():
-            uv = (bary[textured, :, None] * scene.uv[src[textured]]).sum(1)
-            base[textured] *= _sample_bilinear(scene.texels, scene.texture_info[tex_id[textured]], uv)
-
+        normal_world = attr[:, 0:3]
+        if B == 1:
+            normal_cam = normal_world @ R_cam_world[0].T
+        else:
+            bounds = torch.searchsorted(pix, torch.arange(B + 1, device=dev) * HW).tolist()
+            normal_cam = torch.empty_like(normal_world)
+            for b in range(B):
+                normal_cam[bounds[b] : bounds[b + 1]] = normal_world[bounds[b] : bounds[b + 1]] @ R_cam_world[b].T
         K_inv = torch.linalg.inv(K).to(torch.float32)
-        ray = torch.stack([xf, yf, torch.ones_like(xf)], 1) @ K_inv.T
-        to_viewer = torch.nn.functional.normalize(-ray, dim=-1)
-        mat = scene.materials[scene.material_index[src]]
-        amb, ldir, lrgb = _lighting_tensors(lighting, B, dev)
-        shaded = shade_blinn_phong(
-            base,
-            normal_cam,
-            to_viewer,
-            mat[:, 0:3],
-            mat[:, 3],
-            mat[:, 4],
-            mat[:, 5],
-            mat[:, 6] > 0.5,
-            amb[cam],
-            ldir[cam],
-            lrgb[cam],
-        )
-        normal_cam = torch.where((normal_cam * to_viewer).sum(-1, keepdim=True) < 0, -normal_cam, normal_cam)
+        ray = torch.addcmul(torch.addcmul(K_inv[:, 2], xf[:, None], K_inv[:, 0]), yf[:, None], K_inv[:, 1])
+        to_viewer = normalize3(-ray)
+        normal_cam = normalize3(normal_cam)
+        normal_cam = normal_cam * torch.where(dot3(normal_cam, to_viewer) < 0, -1.0, 1.0)[:, None]
 
-        rgb[pix] = shaded
-        depth_out[pix] = depth
-        object_id[pix] = scene.object_id[src]
-        normal_out[pix] = normal_cam
+        base = attr[:, 3:6].contiguous()
+        if scene.textured:
+            tex_id = scene.texture_index.index_select(0, src)
+            textured = (tex_id >= 0).nonzero().squeeze(1)
+            if textured.numel():
+                uv = attr.index_select(0, textured)[:, 6:8]
+                info = scene.texture_info.index_select(0, tex_id.index_select(0, textured))
+                base[textured] *= _sample_bilinear(scene.texels, info, uv)
+        mat = scene.material.index_select(0, src)
+        amb, ldir, lrgb = _lighting_tensors(lighting, B, dev)
+        if B > 1:
+            cam = row // H
+            amb, ldir, lrgb = amb[cam], ldir[cam], lrgb[cam]
+        else:
+            amb, ldir, lrgb = amb[0], ldir[0], lrgb[0]
+        shaded = shade_blinn_phong(
+            base, normal_cam, to_viewer, mat[:, 0:3], mat[:, 3], mat[:, 4], mat[:, 5], mat[:, 6] > 0.5, amb, ldir, lrgb
+        )
+        rgb.index_copy_(0, pix, shaded)
+        depth_out.index_copy_(0, pix, depth)
+        object_id.index_copy_(0, pix, scene.object_id.index_select(0, src))
+        normal_out.index_copy_(0, pix, normal_cam)
         return RenderResult(
             rgb=rgb.reshape(B, H, W, 3),
             depth_m=depth_out.reshape(B, H, W),
