@@ -181,6 +181,27 @@ def test_curvature_sign_and_straight_segments_on_an_s_curve():
     assert np.abs(k[(tf > 22) & (tf < 28)] + 1 / 25).max() < 0.1 / 25
 
 
+def test_standstill_keeps_position_heading_and_curvature_steady():
+    # 15 s on a 50 m arc at 10 m/s, brake to 0 in 3 s, stand 10 s (GPS noise goes on), pull away, 10 s more
+    def speed(t):
+        return np.interp(t, [0, 15, 18, 28, 31, 41], [10, 10, 0, 0, 10, 10])
+
+    truth = simulate_truth(41.0, speed, lambda t: speed(t) / 50.0)
+    series = sensors_from_truth(truth, np.random.default_rng(8))
+    tf, tf_ns = frame_times(truth)
+    fused = fuse_gps_imu(series, tf_ns, PoseConfig())
+    err = position_error(truth, tf, fused)
+    assert np.sqrt(np.mean(err**2)) < 0.4
+    stopped = (tf > 18.5) & (tf < 27.5)
+    assert np.ptp(fused.arc_length_m[stopped]) < 0.3  # GPS jitter does not make the parked car travel
+    assert np.degrees(np.ptp(np.unwrap(fused.yaw_rad[stopped]))) < 1.0
+    # the road's curvature where it stands (1/50 m), not yaw_rate/speed noise at v = 0
+    assert np.abs(fused.curvature_1pm[stopped] - 0.02).max() < 0.002
+    assert np.abs(fused.speed_mps[stopped]).max() < 0.1
+    moving = (tf > 2) & (tf < 13)
+    assert np.abs(fused.curvature_1pm[moving] - 0.02).max() < 0.002
+
+
 def test_gps_outage_of_five_seconds_is_bridged_by_imu_and_speed():
     truth = circle_truth(radius_m=60.0, speed_mps=12.0, duration_s=40.0)
     series = sensors_from_truth(truth, np.random.default_rng(3))

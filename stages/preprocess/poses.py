@@ -71,7 +71,9 @@ class PoseConfig(StageConfig):
     altitude_smoothing_s: float = Field(2.0, ge=0)
     """Gaussian smoothing of the altitude over time (s, sigma)."""
     curvature_min_speed_mps: float = Field(1.0, gt=0)
-    """Curvature is yaw_rate*v/(v^2+v0^2) with this v0 (m/s): below it, it fades to 0 instead of dividing noise."""
+    """Curvature regularisation speed v0 (m/s): curvature is fitted as yaw_rate = kappa*speed over the samples near
+    each point with a prior kappa = 0 worth a sample at v0/10 each, so stops take the road's curvature from their
+    neighbours and crawls cannot blow it up (unsmoothed: yaw_rate*v/(v^2+v0^2))."""
     curvature_smoothing_m: float = Field(2.0, ge=0)
     """Gaussian smoothing of the curvature along the arc length (m, sigma)."""
     sfm_scale_m: float | None = Field(None, gt=0)
@@ -150,21 +152,29 @@ def arc_length(x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
 def smooth_curvature(
     yaw_rate_radps: np.ndarray, speed_mps: np.ndarray, arc_length_m: np.ndarray, min_speed_mps: float, sigma_m: float
 ) -> np.ndarray:
-    """Curvature dyaw/ds = yaw_rate/speed, regularised below `min_speed_mps` and smoothed along the arc length."""
+    """Path curvature dyaw/ds at each sample, smoothed along the arc length (Gaussian, `sigma_m`).
+
+    Least squares of yaw_rate = kappa * speed over the samples near each arc length (a normalised convolution of
+    sum(w*v) by sum(v^2)): stopped samples carry no weight, so a parked car reports the curvature of the road where
+    it stands instead of yaw_rate/speed noise; where the whole neighbourhood crawls well below `min_speed_mps`, it
+    fades to 0.
+    """
     v = speed_mps
-    kappa = yaw_rate_radps * v / (v * v + min_speed_mps**2)
-    if sigma_m <= 0 or len(kappa) < 3 or arc_length_m[-1] - arc_length_m[0] < 1e-6:
-        return kappa
-    # Smooth on a uniform arc-length grid (stops collapse to one grid cell, so low speed cannot dominate).
+    if sigma_m <= 0 or len(v) < 3 or arc_length_m[-1] - arc_length_m[0] < 1e-6:
+        return yaw_rate_radps * v / (v * v + min_speed_mps**2)
     ds = min(0.1, sigma_m / 4.0)
-    grid = np.arange(arc_length_m[0], arc_length_m[-1] + ds, ds)
-    cell = np.clip(np.round((arc_length_m - arc_length_m[0]) / ds).astype(np.int64), 0, len(grid) - 1)
-    total = np.bincount(cell, weights=kappa, minlength=len(grid))
-    count = np.bincount(cell, minlength=len(grid)).astype(float)
-    filled = count > 0
-    on_grid = np.interp(grid, grid[filled], total[filled] / count[filled])
-    smoothed = gaussian_filter1d(on_grid, sigma_m / ds, mode="nearest")
-    return smoothed[cell]
+    n_cells = int(np.floor((arc_length_m[-1] - arc_length_m[0]) / ds)) + 1
+    cell = np.clip(np.round((arc_length_m - arc_length_m[0]) / ds).astype(np.int64), 0, n_cells - 1)
+    wv = np.bincount(cell, weights=yaw_rate_radps * v, minlength=n_cells)
+    vv = np.bincount(cell, weights=v * v, minlength=n_cells)
+    count = np.bincount(cell, minlength=n_cells).astype(float)
+    sigma_cells = sigma_m / ds
+    num = gaussian_filter1d(wv, sigma_cells, mode="nearest")
+    den = gaussian_filter1d(vv, sigma_cells, mode="nearest")
+    # a prior kappa = 0, weighted like one sample at a tenth of min_speed_mps per sample: it decides only where
+    # the whole neighbourhood is (nearly) stopped, and biases a 1 m/s crawl by 1 % when min_speed_mps = 1
+    den += (0.1 * min_speed_mps) ** 2 * gaussian_filter1d(count, sigma_cells, mode="nearest")
+    return (num / np.maximum(den, 1e-12))[cell]
 
 
 def _interp_yaw(t_query: np.ndarray, t: np.ndarray, yaw: np.ndarray) -> np.ndarray:
