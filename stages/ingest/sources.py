@@ -101,7 +101,15 @@ def _reader_errors() -> tuple[type[BaseException], ...]:
     from rosbags.rosbag1 import ReaderError as Reader1Error
     from rosbags.rosbag2 import ReaderError as Reader2Error
 
+    extra: tuple[type[BaseException], ...] = ()
+    try:  # rosbags reads sqlite3 storage with apsw when it is installed
+        import apsw
+
+        extra = (apsw.Error,)
+    except ImportError:
+        pass
     return (
+        *extra,
         AnyReaderError,
         Reader1Error,
         Reader2Error,
