@@ -217,6 +217,23 @@ def test_gps_outage_of_five_seconds_is_bridged_by_imu_and_speed():
     assert np.sqrt(np.mean(err**2)) < 0.5
 
 
+def test_frames_before_the_first_fix_and_after_the_last_sample():
+    truth = circle_truth(radius_m=60.0, speed_mps=10.0, duration_s=30.0)
+    series = sensors_from_truth(truth, np.random.default_rng(9))
+    g = series.gps
+    late = (g.t_ns - g.t_ns[0]) >= 3_000_000_000  # the receiver gets its first fix 3 s (30 m) into the drive
+    series.gps = GpsSeries(*(getattr(g, f)[late] for f in g.__dataclass_fields__))
+    tf, tf_ns = frame_times(truth)
+    tf_ns = np.concatenate([tf_ns, tf_ns[-1] + np.arange(1, 6) * 100_000_000])  # 0.5 s past every sensor
+    tf = np.concatenate([tf, tf[-1] + np.arange(1, 6) * 0.1])
+    truth = circle_truth(radius_m=60.0, speed_mps=10.0, duration_s=31.0)
+    fused = fuse_gps_imu(series, tf_ns, PoseConfig())
+    err = position_error(truth, tf, fused)
+    assert err[tf < 3.0].max() < 1.0, f"dead-reckoned back from the first fix: max {err[tf < 3.0].max():.2f} m"
+    assert err[tf > tf[-6]].max() < 1.0, "extrapolated past the last sample"
+    assert np.sqrt(np.mean(err**2)) < 0.4
+
+
 def test_bad_fixes_are_rejected():
     truth = circle_truth(radius_m=50.0, speed_mps=10.0, duration_s=40.0)
     rng = np.random.default_rng(4)

@@ -331,14 +331,26 @@ def fuse_gps_imu(series: SensorSeries, frame_times_ns: np.ndarray, cfg: PoseConf
     )
 
     # Initial state at the first event: position of the first good fix, heading from the first clear displacement.
+    # When IMU/speed samples start before the first fix, the state there is that fix's position with the distance
+    # the vehicle may have covered meanwhile as its uncertainty; the smoother then dead-reckons back from the fix.
     std0 = float(np.sqrt(max(fix_cov[0, 0, 0], fix_cov[0, 1, 1])))
     yaw0 = _initial_yaw(fix_t, enu[:, :2], std0, rate_t, rate_w)
+    lead_s = float(fix_t[0] - meas.t_s[0])
+    pos_var, yaw_var = std0**2 + 1.0, 0.5**2
+    if lead_s > 0:
+        before = st < fix_t[0]
+        v_max = float(np.abs(sv[before]).max()) if before.any() else 30.0
+        pos_var += (v_max * lead_s + 1.0) ** 2
+        inside = rate_t < fix_t[0]
+        if inside.sum() > 1:
+            yaw0 = float(wrap_angle(yaw0 - np.trapezoid(rate_w[inside], rate_t[inside])))
+        yaw_var += (0.02 * lead_s) ** 2
     x0 = np.array([enu[0, 0], enu[0, 1], yaw0, sv[0] if len(sv) else 0.0, 0.0, 0.0])
     P0 = np.diag(
         [
-            std0**2 + 1.0,
-            std0**2 + 1.0,
-            0.5**2,
+            pos_var,
+            pos_var,
+            yaw_var,
             (1.0 if len(sv) else 10.0) ** 2,
             0.2**2,
             (cfg.gyro_bias_init_std_radps if rate_biased else 0.0) ** 2 + 1e-12,
