@@ -245,6 +245,106 @@ def _initial_yaw(t_fix: np.ndarray, xy_fix: np.ndarray, std_m: float, t_w: np.nd
     return float(wrap_angle(chord - 0.5 * turned))
 
 
+Samples = tuple[np.ndarray, np.ndarray]  # (t_s, value)
+
+
+def _rate_and_speed_samples(series: SensorSeries, rel_s, cfg: PoseConfig) -> tuple[Samples, Samples, float, bool]:
+    """Yaw-rate samples (IMU about the vertical, else odometry) and speed samples (speed series, else odometry),
+    finite only; with the yaw-rate variance and whether it comes from a (biased) gyro."""
+    rates: Samples = (np.zeros(0), np.zeros(0))
+    biased, var = False, cfg.imu_yaw_rate_std_radps**2
+    if series.imu is not None and len(series.imu.t_ns):
+        imu = series.imu
+        rates, biased = (rel_s(imu.t_ns), _yaw_rate_up(imu.angular_velocity_radps, imu.orientation_xyzw)), True
+    elif series.odometry is not None and len(series.odometry.t_ns):
+        rates = (rel_s(series.odometry.t_ns), series.odometry.angular_velocity_radps[:, 2])
+        var = cfg.odometry_yaw_rate_std_radps**2
+    speeds: Samples = (np.zeros(0), np.zeros(0))
+    if series.speed is not None and len(series.speed.t_ns):
+        speeds = (rel_s(series.speed.t_ns), series.speed.speed_mps)
+    elif series.odometry is not None and len(series.odometry.t_ns):
+        speeds = (rel_s(series.odometry.t_ns), series.odometry.linear_velocity_mps[:, 0])
+    rates = tuple(a[np.isfinite(rates[1])] for a in rates)
+    speeds = tuple(a[np.isfinite(speeds[1])] for a in speeds)
+    return rates, speeds, var, biased
+
+
+def _measurement_events(
+    rates: Samples,
+    speeds: Samples,
+    rate_var: float,
+    rate_biased: bool,
+    fix_t: np.ndarray,
+    fix_xy: np.ndarray,
+    fix_cov: np.ndarray,
+    cfg: PoseConfig,
+) -> tuple[ekf.Measurements, np.ndarray, int]:
+    """All measurements as filter events in time order: yaw rate and speed averaged into shared bins of
+    1/imu_rate_hz (one event per bin), and one event per fix. Returns (events, the sorting order, bin count)."""
+    bin_s = 1.0 / cfg.imu_rate_hz
+    wb, wt, wv = _bin_mean(*rates, bin_s)
+    sb, st, sv = _bin_mean(*speeds, bin_s)
+    grid_bins = np.union1d(wb, sb)
+    G = len(grid_bins)
+    iw, is_ = np.searchsorted(grid_bins, wb), np.searchsorted(grid_bins, sb)
+    g_w, g_v = np.full(G, np.nan), np.full(G, np.nan)
+    g_w[iw], g_v[is_] = wv, sv
+    g_t, g_n = np.zeros(G), np.zeros(G)
+    np.add.at(g_t, iw, wt)
+    np.add.at(g_n, iw, 1)
+    np.add.at(g_t, is_, st)
+    np.add.at(g_n, is_, 1)
+    g_t = g_t / np.maximum(g_n, 1)
+
+    F = len(fix_t)
+    K = G + F
+    order = np.argsort(np.concatenate([g_t, fix_t]), kind="stable")
+    nan = np.full(F, np.nan)
+    meas = ekf.Measurements(
+        t_s=np.concatenate([g_t, fix_t])[order],
+        yaw_rate_radps=np.concatenate([g_w, nan])[order],
+        yaw_rate_var=np.full(K, rate_var),
+        yaw_rate_biased=np.full(K, rate_biased),
+        speed_mps=np.concatenate([g_v, nan])[order],
+        speed_var=np.full(K, cfg.speed_std_mps**2),
+        fix_xy_m=np.concatenate([np.full((G, 2), np.nan), fix_xy])[order],
+        fix_cov_m2=np.concatenate([np.tile(np.eye(2), (G, 1, 1)), fix_cov])[order],
+    )
+    return meas, order, G
+
+
+def _initial_state(
+    meas: ekf.Measurements,
+    rates: Samples,
+    speeds: Samples,
+    fix_t: np.ndarray,
+    fix_xy: np.ndarray,
+    fix_cov: np.ndarray,
+    rate_biased: bool,
+    cfg: PoseConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """State and covariance at the first event: the first fix's position, the heading of the first clear
+    displacement. When IMU/speed samples start before the first fix, the distance the vehicle may have covered
+    meanwhile widens the position prior, and the smoother dead-reckons back from the fix."""
+    std0 = float(np.sqrt(max(fix_cov[0, 0, 0], fix_cov[0, 1, 1])))
+    yaw0 = _initial_yaw(fix_t, fix_xy, std0, *rates)
+    lead_s = float(fix_t[0] - meas.t_s[0])
+    pos_var, yaw_var = std0**2 + 1.0, 0.5**2
+    if lead_s > 0:
+        before = speeds[0] < fix_t[0]
+        v_max = float(np.abs(speeds[1][before]).max()) if before.any() else 30.0
+        pos_var += (v_max * lead_s + 1.0) ** 2
+        inside = rates[0] < fix_t[0]
+        if inside.sum() > 1:
+            yaw0 = float(wrap_angle(yaw0 - np.trapezoid(rates[1][inside], rates[0][inside])))
+        yaw_var += (0.02 * lead_s) ** 2
+    has_speed = len(speeds[1]) > 0
+    x0 = np.array([fix_xy[0, 0], fix_xy[0, 1], yaw0, speeds[1][0] if has_speed else 0.0, 0.0, 0.0])
+    bias_var = (cfg.gyro_bias_init_std_radps if rate_biased else 0.0) ** 2 + 1e-12
+    P0 = np.diag([pos_var, pos_var, yaw_var, (1.0 if has_speed else 10.0) ** 2, 0.2**2, bias_var])
+    return x0, P0
+
+
 def fuse_gps_imu(series: SensorSeries, frame_times_ns: np.ndarray, cfg: PoseConfig) -> FusedPoses:
     """Fuse GPS fixes with IMU yaw rate and speed (wheel / odometry) by the CTRV EKF + RTS smoother.
 
@@ -268,94 +368,10 @@ def fuse_gps_imu(series: SensorSeries, frame_times_ns: np.ndarray, cfg: PoseConf
     def rel_s(t_ns: np.ndarray) -> np.ndarray:
         return (np.asarray(t_ns, dtype=np.int64) - t0_ns) * 1e-9
 
-    # Yaw-rate and speed samples, averaged on a common bin grid.
-    bin_s = 1.0 / cfg.imu_rate_hz
-    rate_t = rate_w = np.zeros(0)
-    rate_biased = False
-    rate_var = cfg.imu_yaw_rate_std_radps**2
-    if series.imu is not None and len(series.imu.t_ns):
-        rate_t = rel_s(series.imu.t_ns)
-        rate_w = _yaw_rate_up(series.imu.angular_velocity_radps, series.imu.orientation_xyzw)
-        rate_biased = True
-    elif series.odometry is not None and len(series.odometry.t_ns):
-        rate_t = rel_s(series.odometry.t_ns)
-        rate_w = series.odometry.angular_velocity_radps[:, 2]
-        rate_var = cfg.odometry_yaw_rate_std_radps**2
-    speed_t = speed_v = np.zeros(0)
-    if series.speed is not None and len(series.speed.t_ns):
-        speed_t, speed_v = rel_s(series.speed.t_ns), series.speed.speed_mps
-    elif series.odometry is not None and len(series.odometry.t_ns):
-        speed_t, speed_v = rel_s(series.odometry.t_ns), series.odometry.linear_velocity_mps[:, 0]
-    ok = np.isfinite(rate_w)
-    rate_t, rate_w = rate_t[ok], rate_w[ok]
-    ok = np.isfinite(speed_v)
-    speed_t, speed_v = speed_t[ok], speed_v[ok]
-
-    wb, wt, wv = _bin_mean(rate_t, rate_w, bin_s)
-    sb, st, sv = _bin_mean(speed_t, speed_v, bin_s)
-    grid_bins = np.union1d(wb, sb)
-    G = len(grid_bins)
-    g_t = np.zeros(G)
-    g_n = np.zeros(G)
-    g_w = np.full(G, np.nan)
-    g_v = np.full(G, np.nan)
-    iw = np.searchsorted(grid_bins, wb)
-    is_ = np.searchsorted(grid_bins, sb)
-    g_w[iw] = wv
-    g_v[is_] = sv
-    np.add.at(g_t, iw, wt)
-    np.add.at(g_n, iw, 1)
-    np.add.at(g_t, is_, st)
-    np.add.at(g_n, is_, 1)
-    g_t = g_t / np.maximum(g_n, 1)
-
+    rates, speeds, rate_var, rate_biased = _rate_and_speed_samples(series, rel_s, cfg)
     fix_t = rel_s(gps.t_ns[gidx])
-    F = len(fix_t)
-    t_all = np.concatenate([g_t, fix_t])
-    order = np.argsort(t_all, kind="stable")
-    K = G + F
-    nan = np.full(K, np.nan)
-    w_all = np.concatenate([g_w, nan[:F]])[order]
-    v_all = np.concatenate([g_v, nan[:F]])[order]
-    fix_xy = np.concatenate([np.full((G, 2), np.nan), enu[:, :2]])[order]
-    fix_cov_all = np.concatenate([np.tile(np.eye(2), (G, 1, 1)), fix_cov])[order]
-    meas = ekf.Measurements(
-        t_s=t_all[order],
-        yaw_rate_radps=w_all,
-        yaw_rate_var=np.full(K, rate_var),
-        yaw_rate_biased=np.full(K, rate_biased),
-        speed_mps=v_all,
-        speed_var=np.full(K, cfg.speed_std_mps**2),
-        fix_xy_m=fix_xy,
-        fix_cov_m2=fix_cov_all,
-    )
-
-    # Initial state at the first event: position of the first good fix, heading from the first clear displacement.
-    # When IMU/speed samples start before the first fix, the state there is that fix's position with the distance
-    # the vehicle may have covered meanwhile as its uncertainty; the smoother then dead-reckons back from the fix.
-    std0 = float(np.sqrt(max(fix_cov[0, 0, 0], fix_cov[0, 1, 1])))
-    yaw0 = _initial_yaw(fix_t, enu[:, :2], std0, rate_t, rate_w)
-    lead_s = float(fix_t[0] - meas.t_s[0])
-    pos_var, yaw_var = std0**2 + 1.0, 0.5**2
-    if lead_s > 0:
-        before = st < fix_t[0]
-        v_max = float(np.abs(sv[before]).max()) if before.any() else 30.0
-        pos_var += (v_max * lead_s + 1.0) ** 2
-        inside = rate_t < fix_t[0]
-        if inside.sum() > 1:
-            yaw0 = float(wrap_angle(yaw0 - np.trapezoid(rate_w[inside], rate_t[inside])))
-        yaw_var += (0.02 * lead_s) ** 2
-    x0 = np.array([enu[0, 0], enu[0, 1], yaw0, sv[0] if len(sv) else 0.0, 0.0, 0.0])
-    P0 = np.diag(
-        [
-            pos_var,
-            pos_var,
-            yaw_var,
-            (1.0 if len(sv) else 10.0) ** 2,
-            0.2**2,
-            (cfg.gyro_bias_init_std_radps if rate_biased else 0.0) ** 2 + 1e-12,
-        ]
-    )
+    meas, order, G = _measurement_events(rates, speeds, rate_var, rate_biased, fix_t, enu[:, :2], fix_cov, cfg)
+    x0, P0 = _initial_state(meas, rates, speeds, fix_t, enu[:, :2], fix_cov, rate_biased, cfg)
     noise = ekf.CtrvNoise(
         accel_std_mps2=cfg.accel_std_mps2,
         yaw_accel_std_radps2=cfg.yaw_accel_std_radps2,
