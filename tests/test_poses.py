@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from drivesim.pipeline.errors import InputError
+from drivesim.stages.preprocess import ekf
 from drivesim.sim.geometry import camera_mount, wrap_angle
 from drivesim.stages.preprocess.poses import (
     PoseConfig,
@@ -130,6 +131,27 @@ def circle_truth(radius_m: float = 40.0, speed_mps: float = 10.0, duration_s: fl
     return simulate_truth(
         duration_s, lambda t: np.full_like(t, speed_mps), lambda t: np.full_like(t, speed_mps / radius_m)
     )
+
+
+@pytest.mark.parametrize("yaw_rate_radps", [0.4, 1e-6, 0.0, -0.25])
+def test_ctrv_prediction_is_the_exact_arc_and_its_jacobian_matches_finite_differences(yaw_rate_radps):
+    state = np.array([3.0, -2.0, 0.7, 12.0, yaw_rate_radps, 0.01])
+    dt = 0.8
+    pred, F = ekf.ctrv_predict(state, dt)
+    w, yaw, v = yaw_rate_radps, 0.7, 12.0
+    if abs(w) > 1e-9:
+        x = 3.0 + v / w * (np.sin(yaw + w * dt) - np.sin(yaw))
+        y = -2.0 + v / w * (np.cos(yaw) - np.cos(yaw + w * dt))
+    else:
+        x, y = 3.0 + v * dt * np.cos(yaw), -2.0 + v * dt * np.sin(yaw)
+    np.testing.assert_allclose(pred[:3], [x, y, yaw + w * dt], atol=1e-9)
+    numeric = np.zeros((6, 6))
+    for j in range(6):
+        h = 1e-6
+        plus, _ = ekf.ctrv_predict(state + h * np.eye(6)[j], dt)
+        minus, _ = ekf.ctrv_predict(state - h * np.eye(6)[j], dt)
+        numeric[:, j] = (plus - minus) / (2 * h)
+    np.testing.assert_allclose(F, numeric, atol=1e-6)
 
 
 def test_rts_beats_gps_noise_on_a_circle_with_gyro_bias():
@@ -257,6 +279,21 @@ def test_bad_fixes_are_rejected():
     bad = len(set(no_fix) | set(jumps) | set(vague))
     assert fused.fixes_rejected >= bad
     assert fused.fixes_rejected < bad + 0.02 * n  # the gate rejects little else
+
+
+def test_a_lasting_gps_shift_is_followed_after_the_gate_reset():
+    truth = circle_truth(radius_m=80.0, speed_mps=10.0, duration_s=40.0)
+    series = sensors_from_truth(truth, np.random.default_rng(10))
+    g = series.gps
+    shifted = (g.t_ns - g.t_ns[0]) >= 15_000_000_000  # e.g. the receiver switches to a corrected solution
+    g.lat_deg[shifted] += 20.0 / 111_000.0
+    tf, tf_ns = frame_times(truth)
+    fused = fuse_gps_imu(series, tf_ns, PoseConfig(gps_gate_reset_s=5.0))
+    x, y, _ = truth.at(tf)
+    dx, dy, _ = enu_transformer(*ORIGIN).transform(fused.origin_lon_deg, fused.origin_lat_deg, fused.origin_alt_m)
+    to_shifted = np.hypot(fused.x_m + dx - x, fused.y_m + dy - (y + 20.0))
+    assert to_shifted[tf > 25.0].max() < 1.0  # it trusts the fixes again instead of dead-reckoning forever
+    assert 45 <= fused.fixes_rejected <= 60  # the 5 s of fixes (10 Hz) before the reset, and no more
 
 
 def test_gps_only_without_imu_or_speed_still_tracks():

@@ -202,9 +202,21 @@ def run_filter_smoother(
             det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
             i00, i01, i11 = S[1, 1] / det, -S[0, 1] / det, S[0, 0] / det
             d2 = r0 * (i00 * r0 + i01 * r1) + r1 * (i01 * r0 + i11 * r1)
-            if d2 > noise.gate_chi2 and first_reject_t != first_reject_t:
-                first_reject_t = t
-            if d2 <= noise.gate_chi2 or t - first_reject_t > noise.gate_reset_s:
+            accept = d2 <= noise.gate_chi2
+            if not accept:
+                if first_reject_t != first_reject_t:  # NaN: the first rejection of a run
+                    first_reject_t = t
+                elif t - first_reject_t > noise.gate_reset_s:
+                    # The filter, not the receiver, has drifted: widen the position prior by the innovation (as extra
+                    # process noise at this step, so the smoother sees it too) and take the fix.
+                    P[IX, IX] += r0 * r0
+                    P[IY, IY] += r1 * r1
+                    Ps_prior[k] = P
+                    S = P[:2, :2] + R
+                    det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
+                    i00, i01, i11 = S[1, 1] / det, -S[0, 1] / det, S[0, 0] / det
+                    accept = True
+            if accept:
                 PHt = P[:, :2]
                 gain = PHt @ np.array([[i00, i01], [i01, i11]])
                 x += gain @ np.array([r0, r1])
