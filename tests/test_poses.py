@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from drivesim.pipeline.errors import InputError
-from drivesim.stages.preprocess import ekf
 from drivesim.sim.geometry import camera_mount, wrap_angle
+from drivesim.stages.preprocess import ekf
 from drivesim.stages.preprocess.poses import (
     PoseConfig,
     camera_poses,
