@@ -90,6 +90,12 @@ def test_kitti_oxts_fusion_follows_the_rtk_track(kitti):
     assert np.all(fused.curvature_1pm < 0.002)  # it never turns left noticeably
     assert fused.curvature_1pm.min() < -0.001
     assert fused.z_m == pytest.approx(o["alt"] - o["alt"][0], abs=0.3)
+    # full 3D attitude: the fused heading with the IMU's roll and pitch
+    R_oxts = Rotation.from_euler("ZYX", np.column_stack([o["yaw"], o["pitch"], o["roll"]]))
+    angle_deg = np.degrees((R_oxts.inv() * Rotation.from_matrix(fused.T_world_vehicle[:, :3, :3])).magnitude())
+    assert angle_deg.max() < 1.0  # measured 0.54 deg (the heading); level poses would be 2.8 deg off
+    level = fuse_gps_imu(series, t_ns, PoseConfig(use_imu_tilt=False))
+    assert np.allclose(level.T_world_vehicle[:, 2, :3], [0, 0, 1])
 
 
 def read_husky(bag: Path) -> SensorSeries:

@@ -66,6 +66,9 @@ class PoseConfig(StageConfig):
     runs in seconds, and averaging loses nothing a 5-state vehicle model can use."""
     smoothing: bool = True
     """Run the RTS smoother after the filter (off: the causal filter estimate)."""
+    use_imu_tilt: bool = True
+    """Roll and pitch of T_world_vehicle from the IMU's orientation where it gives one (else level); the heading
+    always comes from the fusion."""
     use_altitude: bool = True
     """z from the smoothed GPS altitude (else 0)."""
     altitude_smoothing_s: float = Field(2.0, ge=0)
@@ -134,13 +137,38 @@ def enu_transformer(lat0_deg: float, lon0_deg: float, alt0_m: float) -> Transfor
 # Shared per-frame quantities
 
 
-def _poses_from_planar(x_m: np.ndarray, y_m: np.ndarray, z_m: np.ndarray, yaw_rad: np.ndarray) -> np.ndarray:
+def _poses_from_planar(
+    x_m: np.ndarray,
+    y_m: np.ndarray,
+    z_m: np.ndarray,
+    yaw_rad: np.ndarray,
+    pitch_rad: np.ndarray | None = None,
+    roll_rad: np.ndarray | None = None,
+) -> np.ndarray:
+    """T_world_vehicle = translation (x, y, z) @ Rz(yaw) Ry(pitch) Rx(roll) (level when pitch/roll are None)."""
     T = np.zeros((len(x_m), 4, 4))
-    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
-    T[:, 2, 2] = T[:, 3, 3] = 1.0
+    zeros = np.zeros(len(x_m))
+    angles = np.column_stack(
+        [yaw_rad, zeros if pitch_rad is None else pitch_rad, zeros if roll_rad is None else roll_rad]
+    )
+    T[:, :3, :3] = Rotation.from_euler("ZYX", angles).as_matrix()
+    T[:, 3, 3] = 1.0
     T[:, 0, 3], T[:, 1, 3], T[:, 2, 3] = x_m, y_m, z_m
     return T
+
+
+def _imu_tilt(series: SensorSeries, rel_s, t_query: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Vehicle pitch and roll (rad) at the query times from the IMU's orientation, or None when it has none."""
+    imu = series.imu
+    if imu is None:
+        return None
+    q = imu.orientation_xyzw
+    ok = np.all(np.isfinite(q), axis=1) & (np.linalg.norm(q, axis=1) > 0.5)
+    if ok.sum() < 2:
+        return None
+    _, pitch, roll = Rotation.from_quat(q[ok]).as_euler("ZYX").T
+    t = rel_s(imu.t_ns[ok])
+    return np.interp(t_query, t, pitch), wrap_angle(np.interp(t_query, t, np.unwrap(roll)))
 
 
 def arc_length(x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
@@ -400,6 +428,7 @@ def fuse_gps_imu(series: SensorSeries, frame_times_ns: np.ndarray, cfg: PoseConf
         z = np.interp(t_frames, zt, _smooth_in_time(zt, zu, cfg.altitude_smoothing_s))
     else:
         z = np.zeros_like(x)
+    tilt = _imu_tilt(series, rel_s, t_frames) if cfg.use_imu_tilt else None
     s = arc_length(x, y)
     kappa = smooth_curvature(w, v, s, cfg.curvature_min_speed_mps, cfg.curvature_smoothing_m)
     return FusedPoses(
@@ -411,7 +440,7 @@ def fuse_gps_imu(series: SensorSeries, frame_times_ns: np.ndarray, cfg: PoseConf
         speed_mps=v,
         curvature_1pm=kappa,
         arc_length_m=s,
-        T_world_vehicle=_poses_from_planar(x, y, z, yaw),
+        T_world_vehicle=_poses_from_planar(x, y, z, yaw, *(tilt if tilt is not None else (None, None))),
         source="gps_imu",
         origin_lat_deg=origin[0],
         origin_lon_deg=origin[1],
