@@ -87,18 +87,20 @@ def _shifted(valid: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
 
 
 def _fill_cracks(keys: torch.Tensor, radius: int = _FILL_RADIUS_PX) -> torch.Tensor:
-    """Fill empty pixels that have a warped pixel within `radius` on both sides along a row, column or diagonal."""
-    valid = keys != _EMPTY_KEY
-    enclosed = torch.zeros_like(valid)
-    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        side_a = torch.zeros_like(valid)
-        side_b = torch.zeros_like(valid)
-        for d in range(1, radius + 1):
-            side_a |= _shifted(valid, d * dy, d * dx)
-            side_b |= _shifted(valid, -d * dy, -d * dx)
-        enclosed |= side_a & side_b
-    fill = enclosed & ~valid
-    return torch.where(fill, _min_filter(keys, radius), keys)
+    """Fill empty pixels that have warped pixels on both sides along a row, column or diagonal, within 1 px first
+    (from the nearest surface in the 3x3 neighbourhood), then within `radius` px for the cracks still open."""
+    for r in range(1, radius + 1):
+        valid = keys != _EMPTY_KEY
+        enclosed = torch.zeros_like(valid)
+        for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            side_a = _shifted(valid, r * dy, r * dx)
+            side_b = _shifted(valid, -r * dy, -r * dx)
+            for d in range(1, r):
+                side_a |= _shifted(valid, d * dy, d * dx)
+                side_b |= _shifted(valid, -d * dy, -d * dx)
+            enclosed |= side_a & side_b
+        keys = torch.where(enclosed & ~valid, _min_filter(keys, r), keys)
+    return keys
 
 
 def forward_warp(
