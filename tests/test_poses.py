@@ -21,6 +21,7 @@ from drivesim.stages.preprocess.poses import (
 from drivesim.stages.preprocess.series import (
     GivenPoses,
     GpsSeries,
+    GroundTruthPoses,
     ImuSeries,
     OdometrySeries,
     SensorSeries,
@@ -373,6 +374,39 @@ def test_given_camera_poses_in_kitti_convention_become_z_up_vehicle_poses():
     assert fused.yaw_rad[0] == pytest.approx(0.0, abs=1e-9)
     np.testing.assert_allclose(camera_poses(fused.T_world_vehicle, T_vc), expected @ T_vc, atol=1e-9)
     assert np.abs(fused.speed_mps[5:-5] - 6.0).max() < 0.05
+
+
+def test_ground_truth_only_when_asked_and_then_exact():
+    truth = circle_truth(radius_m=30.0, speed_mps=6.0, duration_s=20.0)
+    odo = _odometry_from_truth(truth, hz=50.0)
+    T = np.tile(np.eye(4), (len(odo.t_ns), 1, 1))
+    yaw = 2 * np.arctan2(odo.orientation_xyzw[:, 2], odo.orientation_xyzw[:, 3])
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = np.cos(yaw), -np.sin(yaw), np.sin(yaw), np.cos(yaw)
+    T[:, :3, 3] = odo.position_m
+    series = sensors_from_truth(truth, np.random.default_rng(11))
+    series.ground_truth = GroundTruthPoses(odo.t_ns, T)
+    tf, tf_ns = frame_times(truth)
+    assert estimate_poses(series, tf_ns, PoseConfig()).source == "gps_imu"  # the honest path by default
+    gt = estimate_poses(series, tf_ns, PoseConfig(source="ground_truth"))
+    assert gt.source == "ground_truth"
+    x, y, yaw_true = truth.at(tf)
+    assert np.hypot(gt.x_m - x, gt.y_m - y).max() < 0.01
+    assert np.abs(wrap_angle(gt.yaw_rad - yaw_true)).max() < 1e-3
+    assert np.abs(gt.curvature_1pm[20:-20] - 1 / 30).max() < 0.02 / 30
+
+
+def test_sfm_metric_scale_from_path_length_or_speed():
+    from drivesim.stages.preprocess.sfm import metric_scale
+
+    t_ns = np.arange(11, dtype=np.int64) * 100_000_000  # 1 s
+    unit_path = np.column_stack([np.linspace(0, 2, 11), np.zeros(11), np.zeros(11)])  # 2 SfM units
+    assert metric_scale(t_ns, unit_path, None, 30.0) == pytest.approx(15.0)
+    speed = (np.arange(0, 21, dtype=np.int64) * 50_000_000, np.full(21, 12.0))  # 12 m/s for 1 s
+    assert metric_scale(t_ns, unit_path, speed, None) == pytest.approx(6.0)
+    with pytest.raises(InputError, match="sfm_scale_m"):
+        metric_scale(t_ns, unit_path, None, None)
+    with pytest.raises(InputError, match="does not move"):
+        metric_scale(t_ns, np.zeros((11, 3)), speed, None)
 
 
 def test_missing_every_source_is_one_clear_input_error():
