@@ -6,9 +6,9 @@ The reconstruction's world is re-anchored at the first vehicle pose (x forward, 
 
 from __future__ import annotations
 
-import logging
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -16,12 +16,13 @@ import numpy as np
 from drivesim.pipeline.errors import InputError
 from drivesim.sim.geometry import invert, scale_intrinsics
 
+if TYPE_CHECKING:  # poses imports this module lazily; a runtime import back would be circular
+    from drivesim.stages.preprocess.poses import FusedPoses, PoseConfig
+
 SCALE_HINT = (
     "SfM recovers the path only up to scale: set poses.sfm_scale_m (the camera's path length in metres) "
     "or record a speed series"
 )
-
-log = logging.getLogger(__name__)
 
 
 def _write_images(frames: np.ndarray, folder: Path, max_width_px: int) -> tuple[list[str], float]:
@@ -132,8 +133,8 @@ def sfm_poses(
     scale_m: float | None,
     T_vehicle_camera: np.ndarray,
     max_width_px: int = 640,
-    cfg=None,
-):
+    cfg: PoseConfig | None = None,
+) -> FusedPoses:
     """Per-frame vehicle poses from the images alone, in metres (source "sfm").
 
     :param speed: (t_ns, speed_mps) to scale the path, or None.
