@@ -63,7 +63,7 @@ class PoseConfig(StageConfig):
     """Noise of one averaged speed measurement (m/s)."""
     imu_rate_hz: float = Field(25.0, gt=0)
     """IMU and speed samples are averaged into bins at this rate before fusion (Hz): a 1-hour drive at 100 Hz
-    runs in seconds, and averaging loses nothing a 5-state vehicle model can use."""
+    runs in seconds, and averaging loses little the CTRV model can use at 25 Hz."""
     smoothing: bool = True
     """Run the RTS smoother after the filter (off: the causal filter estimate)."""
     use_imu_tilt: bool = True
@@ -99,6 +99,7 @@ class FusedPoses:
     :param source: which source produced them ("gps_imu", "odometry", "given", "sfm", "ground_truth").
     :param origin_lat_deg, origin_lon_deg, origin_alt_m: WGS84 of the world origin when GPS-referenced.
     :param residual_m: RMS distance of the fused track to the accepted GPS fixes (m), for GPS fusion.
+    :param fixes_used, fixes_rejected: GPS fixes fused / not fused (no fix, too vague, or gated out), for GPS fusion.
     """
 
     t_ns: np.ndarray
