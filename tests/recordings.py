@@ -104,8 +104,11 @@ def to_plain(msg: Any) -> Any:
     return msg
 
 
-def write_recording(path: Path, fmt: str, messages: Iterable[Msg]) -> Path:
-    """Write messages (in the order given) as a ROS1 bag, a rosbag2 folder (sqlite3 or mcap) or a plain .mcap file."""
+def write_recording(path: Path, fmt: str, messages: Iterable[Msg], mcap_compression: str = "zstd") -> Path:
+    """Write messages (in the order given) as a ROS1 bag, a rosbag2 folder (sqlite3 or mcap) or a plain .mcap file.
+
+    `mcap_compression` ("zstd", "lz4" or "none") applies to plain .mcap files.
+    """
     path = Path(path)
     if fmt == "ros1":
         from rosbags.rosbag1 import Writer
@@ -131,10 +134,11 @@ def write_recording(path: Path, fmt: str, messages: Iterable[Msg]) -> Path:
                 writer.write(conns[m.topic], m.t_ns, TS_ROS2.serialize_cdr(obj, m.msgtype))
         return path
     if fmt == "mcap":
+        from mcap.writer import CompressionType
         from mcap_ros2.writer import Writer
 
         with open(path, "wb") as f:
-            writer = Writer(f)
+            writer = Writer(f, compression=CompressionType[mcap_compression.upper()])
             schemas: dict[str, Any] = {}
             for m in messages:
                 if m.msgtype not in schemas:

@@ -175,10 +175,12 @@ class FrameProcessor:
 
     :param camera: the recorded camera.
     :param out_size: (width, height) of the stored frames.
+    :param interpolation: "area" or "linear" downscaling.
     """
 
-    def __init__(self, camera: CameraModel, out_size: tuple[int, int]) -> None:
+    def __init__(self, camera: CameraModel, out_size: tuple[int, int], interpolation: str = "area") -> None:
         self.camera = camera
+        self.interpolation = {"area": cv2.INTER_AREA, "linear": cv2.INTER_LINEAR}[interpolation]
         self.out_width, self.out_height = out_size
         self.sx = self.out_width / camera.width_px
         self.sy = self.out_height / camera.height_px
@@ -209,7 +211,7 @@ class FrameProcessor:
                 out[...] = rgb
                 return out
             return rgb
-        return cv2.resize(rgb, (self.out_width, self.out_height), dst=out, interpolation=cv2.INTER_AREA)
+        return cv2.resize(rgb, (self.out_width, self.out_height), dst=out, interpolation=self.interpolation)
 
     def reduce_factor_for(self, source_width_px: int) -> int:
         """The largest jpeg decode reduction (1, 2, 4, 8) that still yields at least the working width."""

@@ -7,9 +7,6 @@ KITTI images are already rectified, so frames are only resized. The raw drive's 
 
 from __future__ import annotations
 
-from collections import deque
-from collections.abc import Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -21,13 +18,19 @@ from drivesim.pipeline.progress import progress_bar
 from drivesim.sim.geometry import camera_mount, invert, se3
 from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.images import CameraModel, FrameProcessor, working_size
-from drivesim.stages.ingest.output import NpyStreamWriter, gps_series, imu_series, speed_series, write_json
+from drivesim.stages.ingest.output import (
+    NpyStreamWriter,
+    OrderedPipeline,
+    gps_series,
+    imu_series,
+    speed_series,
+    write_json,
+)
 from drivesim.stages.ingest.ros import IngestResult
 
 IMU_HEIGHT_M = 0.93
 KITTI_CAMERA_HEIGHT_M = 1.65
 _OXTS_FIELDS = 30
-_READ_AHEAD = 6
 
 
 def parse_calib_file(path: Path) -> dict[str, np.ndarray]:
@@ -80,39 +83,30 @@ def _read_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def _images_in_order(files: list[Path]) -> Iterator[np.ndarray]:
-    """Decoded images in file order, decoded a few ahead on worker threads (cv2 releases the GIL)."""
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        pending: deque[Future[np.ndarray]] = deque()
-        it = iter(files)
-        for f in it:
-            pending.append(pool.submit(_read_rgb, f))
-            if len(pending) >= _READ_AHEAD:
-                break
-        while pending:
-            img = pending.popleft().result()
-            nxt = next(it, None)
-            if nxt is not None:
-                pending.append(pool.submit(_read_rgb, nxt))
-            yield img
-
-
 def _write_frames(files: list[Path], processor: FrameProcessor, out_dir: Path, label: str) -> None:
     height, width = processor.out_height, processor.out_width
+    expected = (processor.camera.height_px, processor.camera.width_px)
+
+    def work(file: Path) -> np.ndarray:
+        rgb = _read_rgb(file)
+        if rgb.shape[:2] != expected:
+            raise InputError(f"image is {rgb.shape[1]}x{rgb.shape[0]}, the others {expected[1]}x{expected[0]}", file)
+        return processor.process(rgb)
+
     writer = NpyStreamWriter(out_dir / "frames.npy", (len(files), height, width, 3), np.uint8)
-    out = np.empty((height, width, 3), np.uint8)
+
+    def sink(frame: np.ndarray) -> None:
+        writer.write(frame)
+        progress.advance(task)
+
+    pipeline = OrderedPipeline(work, sink)
     try:
         with progress_bar(f"ingest {label}", total=len(files)) as (progress, task):
-            for i, rgb in enumerate(_images_in_order(files)):
-                if rgb.shape[:2] != (processor.camera.height_px, processor.camera.width_px):
-                    raise InputError(
-                        f"image is {rgb.shape[1]}x{rgb.shape[0]}, the others "
-                        f"{processor.camera.width_px}x{processor.camera.height_px}",
-                        files[i],
-                    )
-                writer.write(processor.process(rgb, out=out))
-                progress.advance(task)
+            for file in files:
+                pipeline.submit(file)
+            pipeline.finish()
     finally:
+        pipeline.close()
         writer.close()
 
 
@@ -256,7 +250,9 @@ def ingest_kitti_raw(drive: Path, cfg: IngestConfig, out_dir: Path) -> IngestRes
         extrinsics_source = "config"
         height_m = cfg.extrinsics.camera_height_m
     processor = FrameProcessor(
-        _pinhole(P, source_w, source_h), working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale)
+        _pinhole(P, source_w, source_h),
+        working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale),
+        cfg.image.interpolation,
     )
     _write_frames(files, processor, out_dir, cam_dir.name)
     np.save(out_dir / "frame_times_ns.npy", times)
@@ -313,7 +309,9 @@ def ingest_kitti_odometry(folder: Path, cfg: IngestConfig, out_dir: Path) -> Ing
 
     source_w, source_h = _image_size(files[0])
     processor = FrameProcessor(
-        _pinhole(P, source_w, source_h), working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale)
+        _pinhole(P, source_w, source_h),
+        working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale),
+        cfg.image.interpolation,
     )
     _write_frames(files, processor, out_dir, cam_dir.name)
     np.save(out_dir / "frame_times_ns.npy", times)

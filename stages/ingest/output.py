@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -155,3 +158,43 @@ def write_json(path: Path, value: dict[str, Any]) -> None:
         raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
     path.write_text(json.dumps(value, indent=2, default=default) + "\n")
+
+
+class OrderedPipeline:
+    """Runs `work(item)` on worker threads and hands the results to `sink` in submission order.
+
+    Frame decoding, undistortion and resizing are OpenCV calls that release the GIL, so they overlap with reading
+    the next messages; at most `max_in_flight` items are held, keeping memory bounded.
+
+    :param work: item -> result, run on a worker thread.
+    :param sink: result -> None, run on the caller's thread in order.
+    :param workers: worker threads.
+    :param max_in_flight: items submitted but not yet sunk.
+    """
+
+    def __init__(
+        self, work: Callable[[Any], Any], sink: Callable[[Any], None], workers: int = 2, max_in_flight: int = 6
+    ) -> None:
+        self._work = work
+        self._sink = sink
+        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="ingest")
+        self._pending: deque[Future[Any]] = deque()
+        self._max = max_in_flight
+
+    def submit(self, item: Any) -> None:
+        """Queue one item; sinks finished results first when too many are in flight."""
+        self._pending.append(self._pool.submit(self._work, item))
+        while len(self._pending) >= self._max or (self._pending and self._pending[0].done()):
+            self._sink(self._pending.popleft().result())
+
+    def finish(self) -> None:
+        """Sink every remaining result."""
+        while self._pending:
+            self._sink(self._pending.popleft().result())
+
+    def close(self) -> None:
+        """Stop the workers (pending work is cancelled; used on errors and Ctrl-C)."""
+        for future in self._pending:
+            future.cancel()
+        self._pending.clear()
+        self._pool.shutdown(wait=True, cancel_futures=True)

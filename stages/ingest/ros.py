@@ -32,6 +32,7 @@ from drivesim.stages.ingest.images import (
 from drivesim.stages.ingest.output import (
     GrowableArray,
     NpyStreamWriter,
+    OrderedPipeline,
     Series,
     gps_series,
     imu_series,
@@ -148,7 +149,9 @@ def _rotation_to_vehicle(tf: StaticTfTree, vehicle_frame: str | None, frame_id: 
     if vehicle_frame is None or not frame_id:
         return None
     T = tf.lookup(vehicle_frame, frame_id)
-    return None if T is None else T[:3, :3]
+    if T is None or np.allclose(T[:3, :3], np.eye(3), atol=1e-9):
+        return None
+    return T[:3, :3]
 
 
 def ingest_ros(path: Path, fmt: str, cfg: IngestConfig, out_dir: Path) -> IngestResult:
@@ -205,7 +208,7 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
         )
 
     out_size = working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale)
-    processor = FrameProcessor(model, out_size)
+    processor = FrameProcessor(model, out_size, cfg.image.interpolation)
     reduce = processor.reduce_factor_for(source_w) if cfg.image.reduced_jpeg_decode else 1
     decode = _CameraDecoder(camera.msgtype, reduce)
 
@@ -216,7 +219,6 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
     width, height = out_size
     frames = NpyStreamWriter(out_dir / "frames.npy", (n_frames, height, width, 3), np.uint8)
     frame_times = GrowableArray((), np.int64)
-    out_frame = np.empty((height, width, 3), np.uint8)
 
     gt_depth_topic = choice.roles.get("gt_depth")
     depth_writer = None
@@ -237,9 +239,8 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
                 path,
             )
         last_t[0] = t
-        frames.write(processor.process(decode(msg), out=out_frame))
         frame_times.append(t)
-        progress.advance(task)
+        pipeline.submit(msg)
 
     handlers[camera.name] = on_camera
 
@@ -273,23 +274,27 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
 
     if "imu" in choice.roles:
         imu = series["imu"] = imu_series()
-        imu_rotation: dict[str, np.ndarray | None] = {}
+        imu_rotation: dict[str, tuple[np.ndarray, Rotation] | None] = {}
 
         def on_imu(msg: Any, log_ns: int) -> None:
             frame_id = msg.header.frame_id.lstrip("/")
             if frame_id not in imu_rotation:
-                imu_rotation[frame_id] = _rotation_to_vehicle(tf, vehicle_frame, frame_id)
-            R = imu_rotation[frame_id]
+                R_vehicle_imu = _rotation_to_vehicle(tf, vehicle_frame, frame_id)
+                imu_rotation[frame_id] = (
+                    None if R_vehicle_imu is None else (R_vehicle_imu, Rotation.from_matrix(R_vehicle_imu.T))
+                )
+            rotation = imu_rotation[frame_id]  # None when the IMU frame is the vehicle frame (or unknown)
             w = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
             a = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
             q = msg.orientation
             has_orientation = float(_field(msg, "orientation_covariance")[0]) != -1.0
             quat = np.array([q.x, q.y, q.z, q.w]) if has_orientation else _NAN4
-            if R is not None:
+            if rotation is not None:
+                R, rot_imu_vehicle = rotation
                 w, a = R @ w, R @ a
                 if has_orientation and np.linalg.norm(quat) > 1e-9:
                     # orientation of the vehicle = orientation of the IMU composed with R_imu_vehicle
-                    quat = (Rotation.from_quat(quat) * Rotation.from_matrix(R.T)).as_quat()
+                    quat = (Rotation.from_quat(quat) * rot_imu_vehicle).as_quat()
             imu.append(
                 t_ns=stamp_ns(msg, log_ns), angular_velocity_radps=w, linear_acceleration_mps2=a, orientation_xyzw=quat
             )
@@ -338,11 +343,18 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
 
         handlers[choice.roles["gt_pose"].name] = on_gt_pose
 
+    def sink_frame(frame: np.ndarray) -> None:
+        frames.write(frame)
+        progress.advance(task)
+
+    pipeline = OrderedPipeline(lambda msg: processor.process(decode(msg)), sink_frame)
     try:
         with progress_bar(f"ingest {camera.name}", total=n_frames) as (progress, task):
             for topic, log_ns, msg in source.messages(list(handlers)):
                 handlers[topic](msg, log_ns)
+            pipeline.finish()
     finally:
+        pipeline.close()
         frames.close()
         if depth_writer is not None:
             depth_writer.close()
