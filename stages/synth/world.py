@@ -1,0 +1,397 @@
+"""The synthetic world: a procedural road scene from a seed, and the ground-truth renderer for any camera pose.
+
+    world = SynthWorld.from_seed(0)
+    rgb, depth_m = world.render(T_world_camera, world.camera.K, world.camera.width_px, world.camera.height_px)
+
+`world.road` is the centreline and `world.path` the right lane centre (the reference path a car drives); both are
+`RoadPath`s in the world's ENU frame (x east, y north, z up; the road starts at the origin heading east).
+Surfaces carry semantic object ids (`SEMANTIC_IDS`), readable with `render_full`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert
+from drivesim.sim.mesh import Material, Mesh
+from drivesim.sim.raster import Lighting, Rasterizer
+from drivesim.stages.synth import textures
+from drivesim.stages.synth.config import CameraConfig, SynthConfig, WorldConfig
+from drivesim.stages.synth.primitives import MeshBuffer, box, icosphere, prism, quad_faces
+from drivesim.stages.synth.road import RoadPath, build_centreline
+from drivesim.stages.synth.scenery import (
+    CURB_TOP_WIDTH_M,
+    Building,
+    Layout,
+    place_scenery,
+    road_half_width_m,
+    sidewalk_outer_m,
+)
+
+SEMANTIC_IDS = {"road": 0, "sidewalk": 1, "ground": 2, "building": 3, "vegetation": 4, "car": 5}
+ROAD_STATION_M = 1.5
+GROUND_TILE_M = 10.0
+FAR_TILE_M = 100.0
+FAR_EXTENT_M = 1500.0
+GROUND_Z_M = -0.03
+
+SUN_DIR_WORLD = np.array([0.45, -0.55, 0.70])  # towards the sun: south-east, about 44 degrees up
+SKY_ZENITH_RGB = np.array([0.33, 0.52, 0.80])
+SKY_HORIZON_RGB = np.array([0.78, 0.85, 0.92])
+HAZE_DISTANCE_M = 700.0
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """A pinhole camera on the vehicle: intrinsics, image size and mount (T_vehicle_camera: optical -> vehicle)."""
+
+    K: np.ndarray
+    width_px: int
+    height_px: int
+    T_vehicle_camera: np.ndarray
+
+    @property
+    def height_m(self) -> float:
+        """Optical centre above the ground (vehicle origin is on the ground)."""
+        return float(self.T_vehicle_camera[2, 3])
+
+    @classmethod
+    def from_config(cls, cfg: CameraConfig) -> CameraModel:
+        """The camera described by `cfg`."""
+        K = intrinsics_from_hfov(cfg.width_px, cfg.height_px, np.deg2rad(cfg.hfov_deg))
+        T = camera_mount(cfg.forward_m, 0.0, cfg.height_m, pitch_down_rad=np.deg2rad(cfg.pitch_down_deg))
+        return cls(K=K, width_px=cfg.width_px, height_px=cfg.height_px, T_vehicle_camera=T)
+
+
+class SynthWorld:
+    """A procedural road world, deterministic for a seed; renders ground-truth colour and depth from any pose.
+
+    :param seed: the world's seed.
+    :param config: road and scenery settings.
+    :param camera: the default camera (from `SynthConfig.camera`).
+    """
+
+    def __init__(self, seed: int, config: WorldConfig, camera: CameraModel) -> None:
+        self.seed = int(seed)
+        self.config = config
+        self.camera = camera
+        world_rng, texture_rng = (np.random.default_rng(s) for s in np.random.SeedSequence([self.seed, 1]).spawn(2))
+        self.road: RoadPath = build_centreline(config.road, world_rng)
+        self.path: RoadPath = self.road.offset(-0.5 * config.road.lane_width_m)
+        self.layout: Layout = place_scenery(self.road, config.road, config.scenery, world_rng)
+        self.meshes: list[Mesh] = _build_meshes(self.road, self.layout, config, texture_rng)
+        self._rasterizers: dict[tuple[int, int], Rasterizer] = {}
+
+    @classmethod
+    def from_seed(cls, seed: int, cfg: SynthConfig | WorldConfig | None = None) -> SynthWorld:
+        """The world of `seed` with the settings of `cfg` (defaults when None)."""
+        synth = cfg if isinstance(cfg, SynthConfig) else SynthConfig()
+        world_cfg = cfg if isinstance(cfg, WorldConfig) else synth.world
+        return cls(seed, world_cfg, CameraModel.from_config(synth.camera))
+
+    @classmethod
+    def from_sidecar(cls, path: Path | str) -> SynthWorld:
+        """Rebuild the world of a recording from its `<recording>.world.json` sidecar."""
+        data = json.loads(Path(path).read_text())
+        cfg = SynthConfig.model_validate(data["config"])
+        return cls(data["seed"], cfg.world, CameraModel.from_config(cfg.camera))
+
+    @property
+    def triangle_count(self) -> int:
+        """Triangles in the world."""
+        return sum(m.triangle_count for m in self.meshes)
+
+    def lighting(self, T_world_camera: np.ndarray) -> Lighting:
+        """Sun and sky light for a camera at `T_world_camera`."""
+        sun = SUN_DIR_WORLD / np.linalg.norm(SUN_DIR_WORLD)
+        return Lighting(
+            ambient_rgb=np.array([0.56, 0.58, 0.62]),
+            light_dir_cam=T_world_camera[:3, :3].T @ (-sun),
+            light_rgb=np.array([0.62, 0.58, 0.50]),
+        )
+
+    def _rasterizer(self, width_px: int, height_px: int) -> Rasterizer:
+        key = (int(width_px), int(height_px))
+        if key not in self._rasterizers:
+            self._rasterizers[key] = Rasterizer(width_px, height_px, "cpu")
+        return self._rasterizers[key]
+
+    def render_full(
+        self, T_world_camera: np.ndarray, K: np.ndarray, width_px: int, height_px: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Colour (H, W, 3) uint8, depth along the optical axis (H, W) float32 m (+inf = sky) and semantic object
+        ids (H, W) int32 (`SEMANTIC_IDS`, -1 = sky) seen by a camera at `T_world_camera` (optical frame -> world)."""
+        T_world_camera = np.asarray(T_world_camera, float)
+        result = self._rasterizer(width_px, height_px).render(
+            self.meshes, invert(T_world_camera), K, self.lighting(T_world_camera)
+        )
+        rgb = result.rgb[0].numpy()
+        depth = result.depth_m[0].numpy().astype(np.float32)
+        ids = result.object_id[0].numpy()
+        sky, horizon_mix = _sky(T_world_camera, K, width_px, height_px)
+        haze = (1.0 - np.exp(-np.nan_to_num(depth, posinf=1e9) / HAZE_DISTANCE_M))[..., None]
+        rgb = rgb * (1.0 - haze) + horizon_mix * haze
+        rgb = np.where(np.isinf(depth)[..., None], sky, rgb)
+        return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8), depth, ids
+
+    def render(
+        self, T_world_camera: np.ndarray, K: np.ndarray, width_px: int, height_px: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Ground-truth colour (H, W, 3) uint8 and depth (H, W) float32 metres along the optical axis (+inf = sky)
+        for a camera at `T_world_camera` (4x4, optical frame -> world) with intrinsics `K`."""
+        rgb, depth, _ = self.render_full(T_world_camera, K, width_px, height_px)
+        return rgb, depth
+
+
+def _sky(T_world_camera: np.ndarray, K: np.ndarray, width_px: int, height_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sky colour per pixel from the elevation of its ray (zenith blue to hazy horizon, hazy ground below), and the
+    horizon colour used for aerial haze."""
+    u, v = np.meshgrid(np.arange(width_px, dtype=np.float32), np.arange(height_px, dtype=np.float32))
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T.astype(np.float32)
+    d = rays @ T_world_camera[:3, :3].T.astype(np.float32)
+    elevation = d[..., 2] / np.linalg.norm(d, axis=-1)
+    t = np.clip(elevation, 0.0, 1.0) ** 0.6
+    sky = SKY_HORIZON_RGB * (1 - t[..., None]) + SKY_ZENITH_RGB * t[..., None]
+    below = elevation < 0
+    sky[below] = SKY_HORIZON_RGB * 0.85
+    return sky.astype(np.float32), SKY_HORIZON_RGB.astype(np.float32)
+
+
+# ---------------------------------------------------------------------------------------------------- meshes
+def _build_meshes(road: RoadPath, layout: Layout, cfg: WorldConfig, rng: np.random.Generator) -> list[Mesh]:
+    road_cfg = cfg.road
+    meshes = [
+        _road_mesh(road, road_cfg, rng),
+        *_sidewalk_meshes(road, road_cfg, rng),
+        *_ground_meshes(road, cfg, rng),
+        _building_mesh(layout, rng),
+        *_tree_meshes(layout, rng),
+        *_car_meshes(layout),
+    ]
+    return [m for m in meshes if m.triangle_count]
+
+
+def _stations(road: RoadPath, period_m: float) -> np.ndarray:
+    """Arc lengths of whole texture periods, each split into ROAD_STATION_M steps: (P, n+1)."""
+    n_periods = int(road.length_m // period_m)
+    steps = int(round(period_m / ROAD_STATION_M))
+    return np.arange(n_periods)[:, None] * period_m + np.linspace(0.0, period_m, steps + 1)[None, :]
+
+
+def _ribbon(
+    road: RoadPath, period_m: float, lat_left_m: float, lat_right_m: float, z_left_m: float, z_right_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A strip between two offsets of the centreline, one texture period per piece (so uv stay in [0, 1])."""
+    st = _stations(road, period_m)
+    P, n = st.shape
+    pts, _, normals = road.frames(st.ravel())
+    left = pts + lat_left_m * normals
+    right = pts + lat_right_m * normals
+    verts = np.empty((P * n * 2, 3))
+    verts[0::2, :2], verts[0::2, 2] = left, z_left_m
+    verts[1::2, :2], verts[1::2, 2] = right, z_right_m
+    v_along = np.tile(np.linspace(0.0, 1.0, n), P)
+    uv = np.empty((P * n * 2, 2))
+    uv[0::2] = np.column_stack([np.zeros(P * n), v_along])
+    uv[1::2] = np.column_stack([np.ones(P * n), v_along])
+    per = quad_faces(n - 1)
+    faces = np.concatenate([per + p * 2 * n for p in range(P)])
+    return verts, faces, uv
+
+
+def _road_mesh(road: RoadPath, road_cfg, rng: np.random.Generator) -> Mesh:
+    half = road_half_width_m(road_cfg)
+    tex = textures.asphalt_texture(rng, textures.RoadLayout(road_cfg.lane_width_m, half))
+    buf = MeshBuffer()
+    v, f, uv = _ribbon(road, textures.DASH_PERIOD_M, half, -half, 0.0, 0.0)
+    buf.add(v, f, uv=uv)
+    mat = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.05, 0.05, 0.05), shininess=16.0, roughness=0.8)
+    return buf.build(mat, SEMANTIC_IDS["road"], texture_rgb=tex)
+
+
+def _sidewalk_meshes(road: RoadPath, road_cfg, rng: np.random.Generator) -> list[Mesh]:
+    half = road_half_width_m(road_cfg)
+    h = road_cfg.curb_height_m
+    outer = sidewalk_outer_m(road_cfg)
+    period = 3.0
+    paving = textures.paving_texture(rng, road_cfg.sidewalk_width_m, period)
+    walk = MeshBuffer()
+    curb = MeshBuffer()
+    curb_rgb = np.array([0.72, 0.72, 0.70])
+    for side in (1.0, -1.0):
+        a, b = side * (half + CURB_TOP_WIDTH_M), side * outer
+        v, f, uv = _ribbon(road, period, max(a, b), min(a, b), h, h)
+        if side < 0:
+            uv[:, 0] = 1.0 - uv[:, 0]
+        walk.add(v, f, uv=uv)
+        # curb face (road -> curb top), curb top, and the outer face down to the ground
+        for lat0, lat1, z0, z1, shade in (
+            (side * half, side * half, 0.0, h, 0.85),
+            (side * half, side * (half + CURB_TOP_WIDTH_M), h, h, 1.0),
+            (side * outer, side * outer, h, GROUND_Z_M, 0.8),
+        ):
+            v, f, _ = _ribbon(road, period, lat0, lat1, z0, z1)
+            curb.add(v, f, rgb=curb_rgb * shade)
+    walk_mat = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.03, 0.03, 0.03), roughness=0.9)
+    curb_mat = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.03, 0.03, 0.03), roughness=0.9)
+    return [
+        walk.build(walk_mat, SEMANTIC_IDS["sidewalk"], texture_rgb=paving),
+        curb.build(curb_mat, SEMANTIC_IDS["sidewalk"], coloured=True),
+    ]
+
+
+def _ground_meshes(road: RoadPath, cfg: WorldConfig, rng: np.random.Generator) -> list[Mesh]:
+    """Textured lawn tiles around the road and coarse far tiles to the horizon.
+
+    The rasterizer pays for every triangle's screen area, hidden or not, so lawn is not laid under the pavement:
+    10 m tiles near the road are split into 2.5 m sub-tiles and those entirely under the road and sidewalks dropped.
+    """
+    margin = cfg.scenery.ground_margin_m
+    x0 = np.floor((road.x_m.min() - margin) / GROUND_TILE_M) * GROUND_TILE_M
+    x1 = np.ceil((road.x_m.max() + margin) / GROUND_TILE_M) * GROUND_TILE_M
+    y0 = np.floor((road.y_m.min() - margin) / GROUND_TILE_M) * GROUND_TILE_M
+    y1 = np.ceil((road.y_m.max() + margin) / GROUND_TILE_M) * GROUND_TILE_M
+    gx, gy = (a.ravel() for a in np.meshgrid(np.arange(x0, x1, GROUND_TILE_M), np.arange(y0, y1, GROUND_TILE_M)))
+    turns = rng.integers(0, 4, len(gx))  # each tile's texture turned by a multiple of 90 degrees: no visible tiling
+    tree = cKDTree(np.column_stack([road.x_m, road.y_m]))
+    paved_m = sidewalk_outer_m(cfg.road)
+    near = tree.query(np.column_stack([gx, gy]) + GROUND_TILE_M / 2)[0] < paved_m + GROUND_TILE_M
+    sub = GROUND_TILE_M / 4
+    offsets = np.stack(np.meshgrid(np.arange(4) * sub, np.arange(4) * sub), -1).reshape(-1, 2)
+    tiles = [(x, y, GROUND_TILE_M, x, y, t) for x, y, t in zip(gx[~near], gy[~near], turns[~near], strict=True)]
+    for x, y, t in zip(gx[near], gy[near], turns[near], strict=True):
+        corners = np.array([x, y]) + offsets
+        probe = corners[:, None, :] + np.array([[0, 0], [1, 0], [0, 1], [1, 1], [0.5, 0.5]]) * sub
+        hidden = tree.query(probe.reshape(-1, 2))[0].reshape(-1, 5).max(1) < paved_m - 0.05
+        tiles += [(cx, cy, sub, x, y, t) for (cx, cy), h in zip(corners, hidden, strict=True) if not h]
+    arr = np.array(tiles, float).reshape(-1, 6)
+    n = len(arr)
+    unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    verts = np.zeros((n, 4, 3))
+    verts[:, :, :2] = arr[:, None, :2] + unit[None] * arr[:, None, 2:3]
+    verts[:, :, 2] = GROUND_Z_M
+    # texture coordinates from the position inside the parent 10 m tile, turned by its multiple of 90 degrees
+    local = (verts[:, :, :2] - arr[:, None, 3:5]) / GROUND_TILE_M - 0.5
+    angle = arr[:, 5, None] * (np.pi / 2)
+    c, sn = np.cos(angle), np.sin(angle)
+    uv = np.stack([c * local[..., 0] - sn * local[..., 1], sn * local[..., 0] + c * local[..., 1]], -1) + 0.5
+    uv[..., 1] = 1.0 - uv[..., 1]
+    faces = (np.arange(n)[:, None, None] * 4 + np.array([[0, 1, 2], [0, 2, 3]])[None]).reshape(-1, 3)
+    lawn = MeshBuffer()
+    lawn.add(verts.reshape(-1, 3), faces, uv=np.clip(uv, 0.0, 1.0).reshape(-1, 2))
+    grass = textures.grass_texture(rng, GROUND_TILE_M)
+    mat = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.02, 0.02, 0.02), roughness=1.0)
+    meshes = [lawn.build(mat, SEMANTIC_IDS["ground"], texture_rgb=grass)]
+
+    far = MeshBuffer()
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    fx = np.arange(cx - FAR_EXTENT_M, cx + FAR_EXTENT_M, FAR_TILE_M)
+    fy = np.arange(cy - FAR_EXTENT_M, cy + FAR_EXTENT_M, FAR_TILE_M)
+    for a in fx:
+        for b in fy:
+            if a + FAR_TILE_M > x0 and a < x1 and b + FAR_TILE_M > y0 and b < y1:
+                continue  # inside the lawn
+            v = np.array([[a, b, GROUND_Z_M - 0.02], [a + FAR_TILE_M, b, GROUND_Z_M - 0.02]])
+            v = np.concatenate([v, v[::-1] + [0, FAR_TILE_M, 0]])
+            far.add(v, np.array([[0, 1, 2], [0, 2, 3]]))
+    far_mat = Material(diffuse_rgb=(0.36, 0.44, 0.27), specular_rgb=(0.0, 0.0, 0.0), roughness=1.0)
+    meshes.append(far.build(far_mat, SEMANTIC_IDS["ground"]))
+    return meshes
+
+
+def _building_mesh(layout: Layout, rng: np.random.Generator) -> Mesh:
+    """All buildings as one mesh over a facade atlas: each building has its own facade."""
+    images = []
+    for b in layout.buildings:
+        brng = np.random.default_rng(b.facade_seed)
+        images.append(textures.facade_texture(brng, max(b.length_m, b.depth_m), b.height_m))
+    if not images:
+        return MeshBuffer().build(Material(), SEMANTIC_IDS["building"])
+    atlas, rects = textures.pack_atlas(images, atlas_width_px=1024)
+    buf = MeshBuffer()
+    for i, b in enumerate(layout.buildings):
+        v, f = box(np.array([b.x_m, b.y_m]), b.yaw_rad, b.length_m, b.depth_m, GROUND_Z_M - 0.1, b.height_m)
+        u0, v0, u1, v1 = rects[i]
+        facade_w = max(b.length_m, b.depth_m)
+        uv = np.zeros((24, 2))
+        for side, wall_len in enumerate((b.depth_m, b.length_m, b.depth_m, b.length_m)):
+            ue = u0 + (u1 - u0) * wall_len / facade_w
+            uv[4 * side : 4 * side + 4] = [[u0, v1], [ue, v1], [ue, v0], [u0, v0]]
+        # Only the walls a street-level camera can see: no bottom, no back wall, no roof (every building is taller
+        # than a car's camera, so its roof projects behind its own front wall yet would cost rasterization time).
+        keep = [k for k in range(4) if k != _back_wall(b)]
+        buf.add(v, f[np.concatenate([[2 * k, 2 * k + 1] for k in keep])], uv=uv)
+    mat = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.06, 0.06, 0.06), shininess=24.0, roughness=0.7)
+    return buf.build(mat, SEMANTIC_IDS["building"], texture_rgb=atlas)
+
+
+def _back_wall(b: Building) -> int:
+    """Index (0 front +x, 1 left +y, 2 back, 3 right) of the building wall that faces away from the road: buildings
+    are placed with their x axis along the road, so it is the left wall on the left side, the right one else.
+    Leaving it out saves a quarter of the buildings' rasterization and is never seen from the road."""
+    return 1 if b.road_side > 0 else 3
+
+
+def _tree_meshes(layout: Layout, rng: np.random.Generator) -> list[Mesh]:
+    sphere_v, sphere_f = icosphere(1)
+    crowns = MeshBuffer()
+    trunks = MeshBuffer()
+    for t in layout.trees:
+        v, f, n = prism(
+            np.array([t.x_m, t.y_m, t.trunk_height_m / 2]), 0.14 + 0.03 * t.crown_radius_m, t.trunk_height_m + 0.6, 6
+        )
+        trunks.add(v, f, rgb=np.array([0.38, 0.28, 0.20]) * t.shade, normals=n)
+        bumps = 1.0 + 0.16 * rng.standard_normal(len(sphere_v))
+        scale = np.array([1.0, 1.0, rng.uniform(1.0, 1.35)]) * t.crown_radius_m
+        centre = np.array([t.x_m, t.y_m, t.trunk_height_m + 0.8 * scale[2]])
+        cv = sphere_v * bumps[:, None] * scale + centre
+        # darker underneath and inside, lighter on top
+        light = 0.7 + 0.35 * (sphere_v[:, 2] + 1) / 2 + 0.08 * rng.standard_normal(len(sphere_v))
+        base = np.array([0.24, 0.40, 0.15]) * t.shade * np.array([1.0, 1.0, rng.uniform(0.7, 1.2)])
+        crowns.add(cv, sphere_f, rgb=base[None, :] * light[:, None], normals=sphere_v)
+    leaf = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.02, 0.03, 0.02), shininess=8.0, roughness=0.9)
+    bark = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.0, 0.0, 0.0), roughness=1.0)
+    return [
+        crowns.build(leaf, SEMANTIC_IDS["vegetation"], smooth=True, coloured=True),
+        trunks.build(bark, SEMANTIC_IDS["vegetation"], smooth=True, coloured=True),
+    ]
+
+
+def _car_meshes(layout: Layout) -> list[Mesh]:
+    """Parked cars: a painted body box, a cabin with dark windows and a painted roof, four wheels."""
+    bodies = MeshBuffer()
+    wheels = MeshBuffer()
+    glass_rgb = np.array([0.10, 0.12, 0.15])
+    for car in layout.cars:
+        c, s = np.cos(car.yaw_rad), np.sin(car.yaw_rad)
+        centre = np.array([car.x_m, car.y_m])
+        fwd = np.array([c, s])
+        v, f = box(centre, car.yaw_rad, car.length_m, car.width_m, 0.32, 0.98)
+        bodies.add(v[:20], f[:10], rgb=np.array(car.rgb))
+        cabin_len = car.length_m * 0.5
+        cv, cf = box(centre - 0.05 * car.length_m * fwd, car.yaw_rad, cabin_len, car.width_m * 0.86, 0.98, 1.45)
+        # taper the cabin top inwards (windscreen and rear window slope)
+        top = cv[:, 2] > 1.2
+        local = (cv[:, :2] - centre) @ np.array([[c, -s], [s, c]])
+        local[top, 0] *= 0.72
+        local[top, 1] *= 0.9
+        cv[:, :2] = local @ np.array([[c, s], [-s, c]]) + centre
+        rgb = np.tile(glass_rgb, (24, 1))
+        rgb[16:20] = car.rgb  # roof
+        bodies.add(cv[:20], cf[:10], rgb=rgb[:20])
+        for ax in (0.34, -0.34):
+            for side in (0.5, -0.5):
+                p = centre + ax * car.length_m * fwd + side * (car.width_m - 0.2) * np.array([-s, c])
+                wv, wf, wn = prism(np.array([p[0], p[1], 0.32]), 0.32, 0.22, 10, axis="y", yaw_rad=car.yaw_rad)
+                wheels.add(wv, wf, rgb=np.array([0.06, 0.06, 0.06]), normals=wn)
+    paint = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.5, 0.5, 0.5), shininess=96.0, roughness=0.25)
+    rubber = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.05, 0.05, 0.05), roughness=0.9)
+    return [
+        bodies.build(paint, SEMANTIC_IDS["car"], coloured=True),
+        wheels.build(rubber, SEMANTIC_IDS["car"], smooth=True, coloured=True),
+    ]
