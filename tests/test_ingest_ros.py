@@ -206,7 +206,7 @@ def test_no_camera_is_refused_naming_what_was_found(tmp_path: Path, fmt: str) ->
 
 def test_camera_without_pose_source_is_refused_unless_allowed(tmp_path: Path) -> None:
     msgs = drive_messages(n_frames=2, with_gps=False)
-    with pytest.raises(InputError, match=r"no pose source: no NavSatFix or Odometry"):
+    with pytest.raises(InputError, match=r"no pose source: no NavSatFix, Odometry or /tf topic"):
         _ingest(tmp_path, msgs)
     _, info = _ingest(tmp_path, msgs, cfg=IngestConfig(require_pose_source=False))
     assert info.frame_count == 2
@@ -265,3 +265,36 @@ def test_garbage_and_missing_paths(tmp_path: Path) -> None:
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match=r"not a rosbag2 recording"):
         ingest_recording(tmp_path / "empty", IngestConfig(), tmp_path)
+
+
+def _tf_drive(moving_frame: str = "base_link") -> list[Msg]:
+    """A drive without GPS or odometry whose /tf moves `moving_frame` along x at 5 m/s turning at 0.2 rad/s."""
+    msgs = drive_messages(n_frames=5, with_gps=False, with_twist=False)
+    for i in range(25):
+        t = START_NS + i * 20_000_000 + 9
+        yaw = 0.2 * i * 0.02
+        T = np.eye(4)
+        T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        T[0, 3] = 5.0 * i * 0.02
+        msgs.append(Msg("/tf", "tf2_msgs/msg/TFMessage", t, tf_static_values(t, [("odom", moving_frame, T)])))
+    return sorted(msgs, key=lambda m: m.t_ns)
+
+
+def test_dynamic_tf_is_a_pose_source(tmp_path: Path) -> None:
+    result, info = _ingest(tmp_path, _tf_drive(), fmt="ros1")
+    odom = info.load_series("odometry")
+    assert len(odom["t_ns"]) == 25
+    # /tf moves base_link; the trace's vehicle frame is base_footprint, 0.4 m below it
+    np.testing.assert_allclose(odom["position_m"][10], [1.0, 0.0, -0.4], atol=1e-9)
+    # velocities are in the vehicle frame: 5 m/s along world x seen from a vehicle yawed by yaw
+    yaw = 0.2 * np.arange(25) * 0.02
+    v = odom["linear_velocity_mps"]
+    np.testing.assert_allclose(v[:-1, 0], 5.0 * np.cos(yaw[:-1]), atol=0.01)
+    np.testing.assert_allclose(v[:-1, 1], -5.0 * np.sin(yaw[:-1]), atol=0.01)
+    np.testing.assert_allclose(odom["angular_velocity_radps"][:, 2], 0.2, atol=1e-6)
+    assert result.summary["sensors"]["tf"]["topic"] == "/tf"
+
+
+def test_tf_that_never_moves_the_vehicle_is_no_pose_source(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match=r"/tf never moves base_footprint or base_link"):
+        _ingest(tmp_path, _tf_drive(moving_frame="some_other_frame"))

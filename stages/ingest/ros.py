@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from drivesim.pipeline.errors import InputError
 from drivesim.pipeline.progress import progress_bar
 from drivesim.stages.ingest.config import IngestConfig
-from drivesim.stages.ingest.extrinsics import StaticTfTree, pose_from_msg
+from drivesim.stages.ingest.extrinsics import StaticTfTree, pose_from_msg, transform_from_msg
 from drivesim.stages.ingest.images import (
     CameraModel,
     EncodingError,
@@ -170,9 +170,10 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
     choice = choose_topics(source.topics, cfg.topics, path)
     camera = choice.roles["camera"]
     notes.append(f"camera: {camera.name} ({choice.camera_reason})")
-    if cfg.require_pose_source and "gps" not in choice.roles and "odometry" not in choice.roles:
+    pose_topics = "gps" in choice.roles or "odometry" in choice.roles
+    if cfg.require_pose_source and not pose_topics and choice.tf is None:
         raise InputError(
-            f"camera {camera.name} has no pose source: no NavSatFix or Odometry topic "
+            f"camera {camera.name} has no pose source: no NavSatFix, Odometry or /tf topic "
             f"(found: {describe_topics(source.topics)}); set require_pose_source=false to rely on visual SfM",
             path,
         )
@@ -343,6 +344,25 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
 
         handlers[choice.roles["gt_pose"].name] = on_gt_pose
 
+    tf_poses: Series | None = None
+    if choice.tf is not None and "odometry" not in choice.roles:
+        tf_poses = Series({"T_parent_vehicle": ((4, 4), np.float64)})
+        vehicle_frames = set(cfg.extrinsics.vehicle_frames)
+        tf_child: list[str] = []  # the vehicle frame /tf moves (locked on the first one seen)
+
+        def on_tf(msg: Any, log_ns: int) -> None:
+            for transform in msg.transforms:
+                child = transform.child_frame_id.lstrip("/")
+                if child not in vehicle_frames or transform.header.frame_id.lstrip("/") in vehicle_frames:
+                    continue
+                if not tf_child:
+                    tf_child.append(child)
+                if child == tf_child[0]:
+                    T = transform_from_msg(transform.transform.translation, transform.transform.rotation)
+                    tf_poses.append(t_ns=stamp_ns(transform, log_ns), T_parent_vehicle=T)
+
+        handlers[choice.tf.name] = on_tf
+
     def sink_frame(frame: np.ndarray) -> None:
         frames.write(frame)
         progress.advance(task)
@@ -373,6 +393,17 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
         raise InputError(
             f"{gt_depth_topic.name}: {depth_writer.rows_written} depth images whose stamps do not match the "
             f"{n_frames} frames of {camera.name}",
+            path,
+        )
+
+    if tf_poses is not None and len(tf_poses) >= 2:
+        T_child_vehicle = tf.lookup(tf_child[0], vehicle_frame) if vehicle_frame else None
+        save_tf_odometry(out_dir / "odometry.npz", tf_poses, T_child_vehicle)
+        choice.roles["tf"] = choice.tf
+    elif cfg.require_pose_source and not pose_topics:
+        raise InputError(
+            f"camera {camera.name} has no pose source: no NavSatFix or Odometry topic, and /tf never moves "
+            f"{' or '.join(cfg.extrinsics.vehicle_frames)} relative to a world frame",
             path,
         )
 
@@ -411,6 +442,31 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
         "sensors": sensors,
     }
     return IngestResult(summary=summary, notes=notes)
+
+
+def save_tf_odometry(path: Path, tf_poses: Series, T_child_vehicle: np.ndarray | None) -> None:
+    """odometry.npz from /tf poses of the vehicle: velocities by forward differences in the vehicle frame."""
+    t_ns = tf_poses.columns["t_ns"].array()
+    T = tf_poses.columns["T_parent_vehicle"].array()
+    order = np.argsort(t_ns, kind="stable")
+    t_ns, T = t_ns[order], T[order]
+    keep = np.concatenate([[True], np.diff(t_ns) > 0])  # one pose per stamp
+    t_ns, T = t_ns[keep], T[keep]
+    if T_child_vehicle is not None:
+        T = T @ T_child_vehicle
+    R = T[:, :3, :3]
+    dt_s = np.diff(t_ns) / 1e9
+    v_world = np.diff(T[:, :3, 3], axis=0) / dt_s[:, None]
+    v_body = np.einsum("nji,nj->ni", R[:-1], v_world)
+    w_body = Rotation.from_matrix(np.einsum("nji,njk->nik", R[:-1], R[1:])).as_rotvec() / dt_s[:, None]
+    np.savez(
+        path,
+        t_ns=t_ns,
+        position_m=T[:, :3, 3],
+        orientation_xyzw=Rotation.from_matrix(R).as_quat(),
+        linear_velocity_mps=np.vstack([v_body, v_body[-1:]]),
+        angular_velocity_radps=np.vstack([w_body, w_body[-1:]]),
+    )
 
 
 def _sensors(choice: TopicChoice) -> dict[str, dict[str, Any]]:

@@ -31,6 +31,7 @@ class TopicChoice:
 
     roles: dict[str, TopicInfo] = field(default_factory=dict)
     tf_static: TopicInfo | None = None
+    tf: TopicInfo | None = None
     camera_reason: str = ""
 
 
@@ -123,4 +124,7 @@ def choose_topics(topics: dict[str, TopicInfo], wanted: TopicsConfig, path: Path
     tf_static = topics.get("/tf_static")
     if tf_static is not None and tf_static.msgtype == TF_TYPE:
         choice.tf_static = tf_static
+    tf = topics.get("/tf")
+    if tf is not None and tf.msgtype == TF_TYPE:
+        choice.tf = tf
     return choice
