@@ -3,34 +3,45 @@
 Frames: camera optical (x right, y down, z forward); vehicle: x forward, y left, z up (REP-103), origin on the
 ground below the rear axle where known (else below the IMU/GPS unit); times are int64 nanoseconds since the Unix
 epoch (or since the recording's start when the source has no absolute time, see `calibration.json:time_base`).
+Header stamps are used; a zero stamp falls back to the message's log time. KITTI raw stamps are the drive's clock
+as logged (local time, read as if UTC).
 
 Files (all arrays are .npy; N = frame count):
     frames.npy              uint8   (N, H, W, 3)  RGB, undistorted, at the working resolution; open with mmap_mode="r"
     frame_times_ns.npy      int64   (N,)          camera stamp of each frame, strictly increasing
     calibration.json        {
         "width_px": W, "height_px": H,            working resolution of frames.npy
-        "K": [[fx,0,cx],[0,fy,cy],[0,0,1]],       pinhole intrinsics at the working resolution (pixels)
+        "K": [[fx,0,cx],[0,fy,cy],[0,0,1]],       pinhole intrinsics at the working resolution (pixels, pixel-centre
+                                                  convention of sim.geometry.scale_intrinsics); after undistortion
+                                                  this is CameraInfo P[:3,:3] scaled
         "source_width_px", "source_height_px",    resolution of the recorded images
-        "distortion_model": "plumb_bob" | "equidistant" | "none",  what was removed
+        "distortion_model": "plumb_bob" | "rational_polynomial" | "equidistant" | "none",  what was removed
         "T_vehicle_camera": 4x4,                  camera optical frame -> vehicle frame (metres)
-        "camera_height_m": float | null,          camera optical centre above the ground
+        "camera_height_m": float | null,          camera optical centre above the ground (null: unknown; the
+                                                  z of T_vehicle_camera is then relative to base_link, not the ground)
         "extrinsics_source": "tf_static" | "kitti_calib" | "config" | "default",
         "time_base": "unix" | "relative"
     }
     sources.json            {"recording": str, "format": "ros1" | "rosbag2" | "mcap" | "kitti_raw" | "kitti_odometry",
                              "camera_topic": str, "sensors": {name: {"topic", "type", "message_count"}}}
-  Optional series (present when the recording has them; each an .npz of equal-length arrays):
+                            (the same `sensors` as the manifest summary; KITTI "topics" are folder names)
+  Optional series (present when the recording has them; each an .npz of equal-length arrays sorted by t_ns):
     gps.npz       t_ns int64 (M,); lat_deg, lon_deg, alt_m float64 (M,); status int8 (M,) (NavSatStatus:
                   -1 no fix, 0 fix, 1 SBAS, 2 GBAS); covariance_m2 float64 (M,3,3) ENU position covariance;
                   covariance_type uint8 (M,)
     imu.npz       t_ns (M,); angular_velocity_radps float64 (M,3) and linear_acceleration_mps2 (M,3) in the vehicle
-                  frame; orientation_xyzw float64 (M,4) (NaN when the source has none)
-    speed.npz     t_ns (M,); speed_mps float64 (M,) forward speed (wheel odometry / TwistStamped / OXTS vf)
+                  frame; orientation_xyzw float64 (M,4) of the vehicle in the IMU's world frame (NaN when the
+                  source has none)
+    speed.npz     t_ns (M,); speed_mps float64 (M,) forward speed (TwistStamped / Odometry twist / OXTS vf)
     odometry.npz  t_ns (M,); position_m float64 (M,3); orientation_xyzw (M,4); linear_velocity_mps (M,3) and
-                  angular_velocity_radps (M,3) in the child (vehicle) frame
+                  angular_velocity_radps (M,3) in the child (vehicle) frame. From nav_msgs/Odometry, or else from
+                  /tf poses of the vehicle frame (velocities then by forward differences)
     poses.npz     t_ns (M,); T_world_camera float64 (M,4,4): given camera poses (KITTI odometry ground truth)
     ground_truth.npz  (synthetic recordings only) t_ns (M,); T_world_vehicle float64 (M,4,4) in the synth world's
-                  ENU frame; depth at the frame times is in gt_depth.npy float32 (N,H,W) metres (inf = sky)
+                  ENU frame; depth at the frame times is in gt_depth.npy float32 (N,H,W) metres (inf = sky),
+                  resized to the working resolution by nearest neighbour
+
+`validate_trace(path)` checks all of this (without reading the frames) and returns a `TraceInfo`.
 """
 
 from __future__ import annotations
@@ -124,7 +135,7 @@ def _fail(path: Path, problem: str) -> InputError:
     return InputError(f"invalid trace: {problem}", path)
 
 
-def _npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
+def _npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype, int]:
     try:
         with open(path, "rb") as f:
             version = np.lib.format.read_magic(f)
@@ -132,9 +143,13 @@ def _npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
                 np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
             )
             shape, _, dtype = read_header(f)  # the header only: frames are never read here
+            data_offset = f.tell()
     except (OSError, ValueError) as e:
         raise _fail(path, f"unreadable .npy ({e})") from e
-    return shape, dtype
+    size = path.stat().st_size - data_offset
+    if size < int(np.prod(shape)) * dtype.itemsize:
+        raise _fail(path, "file shorter than its header says (truncated)")
+    return shape, dtype, data_offset
 
 
 def validate_trace(path: Path | str) -> TraceInfo:
@@ -162,13 +177,10 @@ def validate_trace(path: Path | str) -> TraceInfo:
     if T.shape != (4, 4) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-4):
         raise _fail(path / "calibration.json", "T_vehicle_camera must be a 4x4 rigid transform")
 
-    shape, dtype = _npy_header(path / "frames.npy")
+    shape, dtype, _ = _npy_header(path / "frames.npy")
     if dtype != np.uint8 or len(shape) != 4 or shape[1:] != (height, width, 3):
         raise _fail(path / "frames.npy", f"expected uint8 (N, {height}, {width}, 3), got {dtype} {shape}")
     n = shape[0]
-    expected_bytes = n * height * width * 3
-    if (path / "frames.npy").stat().st_size < expected_bytes:
-        raise _fail(path / "frames.npy", "file shorter than its header says (truncated)")
     times = np.load(path / "frame_times_ns.npy")
     if times.dtype != np.int64 or times.shape != (n,):
         raise _fail(path / "frame_times_ns.npy", f"expected int64 ({n},), got {times.dtype} {times.shape}")
@@ -194,7 +206,7 @@ def validate_trace(path: Path | str) -> TraceInfo:
 
     has_gt_depth = (path / "gt_depth.npy").is_file()
     if has_gt_depth:
-        d_shape, d_dtype = _npy_header(path / "gt_depth.npy")
+        d_shape, d_dtype, _ = _npy_header(path / "gt_depth.npy")
         if d_dtype != np.float32 or d_shape != (n, height, width):
             raise _fail(path / "gt_depth.npy", f"expected float32 ({n}, {height}, {width}), got {d_dtype} {d_shape}")
 
