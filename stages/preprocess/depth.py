@@ -51,6 +51,9 @@ class MvsConfig(StageConfig):
     fill_sigma_px: float = Field(3.0, ge=0.0)
     """Pixels with neither trusted stereo nor an agreeing plane take the inverse depth of trusted pixels around them,
     Gaussian-weighted with this sigma (matching pixels), where those surround them densely enough; 0 disables."""
+    sky_max_std: float = Field(0.012, ge=0.0)
+    """Sky: textureless pixels (grey window deviation below this, grey in [0, 1]) above the horizon connected to the
+    image top; they get max_depth_m."""
     upsample: Literal["joint_bilateral", "bilinear"] = "joint_bilateral"
     """How the matching-resolution depth returns to the working resolution: joint_bilateral follows colour edges."""
     device: Literal["cpu", "cuda", "auto"] = "cpu"

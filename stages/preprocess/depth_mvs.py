@@ -175,7 +175,32 @@ def _joint_bilateral_upsample(
 
 
 # Where each fused depth came from (counted for the summary).
-_STEREO, _PLANE, _FILLED, _FALLBACK_PLANE, _FAR = range(5)
+_STEREO, _PLANE, _FILLED, _COLUMN, _FALLBACK_PLANE, _FAR = range(6)
+_LABELS = ("stereo", "plane", "filled", "column", "fallback_plane", "far_fallback")
+
+
+def sky_mask(texture_std: np.ndarray, colour: np.ndarray, below_horizon: np.ndarray, max_std: float) -> np.ndarray:
+    """Pixels taken as sky: textureless (window deviation below `max_std`), sky-coloured (bright, blue at least as
+    strong as red: clear or overcast), above the horizon, and connected to the top of the image through such pixels
+    (a bare patch of facade is enclosed by texture, and a plain facade reaching the top is rarely blue)."""
+    skyish = (colour[..., 2] >= colour[..., 0]) & (colour.mean(axis=-1) > 0.35)
+    candidate = ((texture_std < max_std) & skyish & ~below_horizon).astype(np.uint8)
+    count, labels = cv2.connectedComponents(candidate, connectivity=4)
+    top = np.unique(labels[0][candidate[0] > 0])
+    return np.isin(labels, top) & (candidate > 0)
+
+
+def _nearest_in_column(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """For every pixel, the value of the nearest known pixel in its column (NaN where the column has none)."""
+    h, w = values.shape
+    rows = np.arange(h)[:, None].repeat(w, axis=1)
+    above = np.maximum.accumulate(np.where(known, rows, -1), axis=0)  # nearest known row at or above
+    below = np.minimum.accumulate(np.where(known, rows, h)[::-1], axis=0)[::-1]  # nearest known row at or below
+    use_below = (below < h) & ((above < 0) | (below - rows < rows - above))
+    source = np.where(use_below, below, above)
+    cols = np.arange(w)[None, :].repeat(h, axis=0)
+    out = values[np.clip(source, 0, h - 1), cols]
+    return np.where(source >= 0, out, np.nan) if (source < 0).any() else out
 
 
 def _fuse(
@@ -183,28 +208,45 @@ def _fuse(
     use_stereo: np.ndarray,
     plane_ok: np.ndarray,
     plane_m: np.ndarray,
+    sky: np.ndarray,
     far_m: float,
     fill_sigma_px: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fused depth (h, w) and the source label of each pixel.
 
-    Trusted stereo and agreeing plane pixels are kept; a pixel with neither takes the Gaussian-weighted mean inverse
-    depth of the trusted pixels around it (normalized convolution) when they surround it densely enough (textureless
-    patches on walls and the rims of objects), else the plane below the horizon and `far_m` above it.
+    Trusted stereo and agreeing plane pixels are kept. A pixel with neither takes, in order: the Gaussian-weighted
+    mean inverse depth of the trusted pixels around it when they surround it densely enough (textureless patches and
+    object rims); `far_m` if it is sky; the depth of the nearest trusted pixel in its column (a vertical surface -
+    facade, car side, tree trunk - has one optical depth down an image column when the camera is nearly level);
+    and last the plane below the horizon and `far_m` above it.
     """
     trusted = use_stereo | plane_ok
     depth = np.where(use_stereo, stereo_m, plane_m).astype(np.float32)
     labels = np.where(use_stereo, _STEREO, np.where(plane_ok, _PLANE, _FALLBACK_PLANE)).astype(np.int64)
-    below_horizon = plane_m < far_m
-    labels[~trusted & ~below_horizon] = _FAR
-    if fill_sigma_px > 0 and trusted.any() and not trusted.all():
+    labels[~trusted & (plane_m >= far_m)] = _FAR
+    if trusted.all() or not trusted.any():
+        return depth, labels
+    todo = ~trusted
+    if fill_sigma_px > 0:
         weight = trusted.astype(np.float32)
         support = cv2.GaussianBlur(weight, (0, 0), fill_sigma_px)
         inv = cv2.GaussianBlur(weight / depth, (0, 0), fill_sigma_px)
-        fill = ~trusted & (support >= 0.25)
+        fill = todo & (support >= 0.25) & ~sky
         depth[fill] = np.clip(support[fill] / inv[fill], 0.0, far_m)
         labels[fill] = _FILLED
-    return depth, labels
+        todo &= ~fill
+    depth[todo & sky] = far_m
+    labels[todo & sky] = _FAR
+    todo &= ~sky
+    known = trusted & (labels != _FAR)
+    column = _nearest_in_column(depth, known)
+    # Below the horizon, a column whose nearest evidence is the ground keeps the plane.
+    from_ground = _nearest_in_column((labels == _PLANE).astype(np.float32), known) > 0.5
+    take = todo & np.isfinite(column) & ~(from_ground & (plane_m < far_m))
+    depth[take] = column[take]
+    labels[take] = _COLUMN
+    # Nothing visible lies below the ground: no depth beyond the ground plane's.
+    return np.minimum(depth, plane_m), labels
 
 
 def mvs_depth(
@@ -236,7 +278,7 @@ def mvs_depth(
     hypotheses = torch.cat([sweep, plane_lo[None]], dim=0)  # the last one is the ground plane
     poses = np.asarray(T_world_camera, dtype=np.float64)
     cache = _FrameCache(frames, w, h, device)
-    counts = np.zeros(5, np.int64)
+    counts = np.zeros(len(_LABELS), np.int64)
 
     for i in range(n):
         nbrs = [i + o for o in m.neighbour_offsets if 0 <= i + o < n]
@@ -279,13 +321,18 @@ def mvs_depth(
                     & (parallax >= m.min_parallax_px)
                     & (best > 0)  # the nearest plane winning means the true depth may be nearer still
                 )
-                plane_ok = below_horizon & (plane_cost <= best_cost + m.plane_margin)
+                plane_ok = (
+                    below_horizon
+                    & (plane_cost <= best_cost + m.plane_margin)
+                    & (1.0 - 2.0 * plane_cost >= m.min_zncc)  # textureless ground is a guess, not evidence
+                )
                 use_stereo = confident & ~plane_ok
             depth_np, labels = _fuse(
                 stereo_m.cpu().numpy(),
                 use_stereo.cpu().numpy(),
                 plane_ok.cpu().numpy(),
                 plane_lo_np,
+                sky_mask(stats[1][0, 0].cpu().numpy(), cache.colour[i], plane_lo_np < far_m, m.sky_max_std),
                 far_m,
                 m.fill_sigma_px,
             )
@@ -309,9 +356,5 @@ def mvs_depth(
     total = max(1, n * h * w)
     return {
         "matching_resolution_px": [w, h],
-        "stereo_fraction": round(float(counts[_STEREO]) / total, 4),
-        "plane_fraction": round(float(counts[_PLANE]) / total, 4),
-        "filled_fraction": round(float(counts[_FILLED]) / total, 4),
-        "fallback_plane_fraction": round(float(counts[_FALLBACK_PLANE]) / total, 4),
-        "far_fallback_fraction": round(float(counts[_FAR]) / total, 4),
+        **{f"{name}_fraction": round(float(c) / total, 4) for name, c in zip(_LABELS, counts, strict=True)},
     }
