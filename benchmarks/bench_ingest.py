@@ -211,9 +211,9 @@ def main() -> None:
         f"Recordings: ROS2 .mcap (uncompressed chunks), camera {WIDTH}x{HEIGHT} at 10 Hz plus CameraInfo, NavSatFix,",
         "Imu 50 Hz, TwistStamped 20 Hz, /tf_static. Ingest stores 640x400 RGB frames, resized with cv2.INTER_AREA",
         "(default) or INTER_LINEAR (`--set image.interpolation=linear`). *bare* = read the camera messages with",
-        "mcap + mcap_ros2 and `np.frombuffer` / `cv2.imdecode`",
-        "(full size) them, nothing else. Peak RSS = VmHWM of the measuring subprocess. *hash* = the manifest's",
-        "sha256 of the outputs that `Workspace.write_artifact` adds after the stage.",
+        "mcap + mcap_ros2 and `np.frombuffer` / `cv2.imdecode` (full size) them, nothing else. Peak RSS = VmHWM of",
+        "the measuring subprocess. *hash* = the manifest's sha256 of the outputs that `Workspace.write_artifact`",
+        "adds after the stage (not included in ingest frames/s).",
         "",
         "| camera | resize | frames | recording MB | bare frames/s | ingest frames/s | ingest / bare | hash s "
         "| bare peak RSS MB | ingest peak RSS MB |",

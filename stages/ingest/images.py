@@ -39,9 +39,6 @@ SUPPORTED_ENCODINGS = (
     *(f"bayer_{p}16" for p in _BAYER_TO_RGB),
 )
 
-# Depth encodings: never a colour camera.
-DEPTH_ENCODINGS = ("32FC1", "16UC1_depth")
-
 _CHANNELS = {"rgb8": 3, "bgr8": 3, "8UC3": 3, "rgba8": 4, "bgra8": 4}
 
 
