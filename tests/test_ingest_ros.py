@@ -298,3 +298,11 @@ def test_dynamic_tf_is_a_pose_source(tmp_path: Path) -> None:
 def test_tf_that_never_moves_the_vehicle_is_no_pose_source(tmp_path: Path) -> None:
     with pytest.raises(InputError, match=r"/tf never moves base_footprint or base_link"):
         _ingest(tmp_path, _tf_drive(moving_frame="some_other_frame"))
+
+
+def test_camera_size_change_midway_is_refused(tmp_path: Path) -> None:
+    msgs = drive_messages(n_frames=4)
+    camera_msgs = [m for m in msgs if m.topic == "/camera/image_raw"]
+    camera_msgs[2].values.update(image_values(camera_msgs[2].t_ns, patch_image(32, 20)))
+    with pytest.raises(InputError, match=r"camera image size changed from 64x40 to 32x20"):
+        _ingest(tmp_path, msgs)

@@ -99,15 +99,24 @@ def camera_model_from_info(info: Any) -> CameraModel:
 class _CameraDecoder:
     """Turns one camera message into RGB at source (or reduced) size."""
 
-    def __init__(self, msgtype: str, reduce_factor: int) -> None:
+    def __init__(self, msgtype: str, reduce_factor: int, size: tuple[int, int]) -> None:
         self.compressed = msgtype.endswith("CompressedImage")
         self.reduce_factor = reduce_factor
+        self.width, self.height = size
 
     def __call__(self, msg: Any) -> np.ndarray:
         if self.compressed:
             if not compressed_format_ok(msg.format):
                 raise EncodingError(f"unsupported CompressedImage format {msg.format!r} (jpeg and png are)")
-            return decode_compressed(msg.data, self.reduce_factor)
+            rgb = decode_compressed(msg.data, self.reduce_factor)
+            width, height = rgb.shape[1] * self.reduce_factor, rgb.shape[0] * self.reduce_factor
+            if abs(width - self.width) >= self.reduce_factor or abs(height - self.height) >= self.reduce_factor:
+                raise EncodingError(f"camera image size changed from {self.width}x{self.height} to {width}x{height}")
+            return rgb
+        if (int(msg.width), int(msg.height)) != (self.width, self.height):
+            raise EncodingError(
+                f"camera image size changed from {self.width}x{self.height} to {msg.width}x{msg.height}"
+            )
         return decode_raw(
             msg.data, msg.encoding, int(msg.height), int(msg.width), int(msg.step), bool(msg.is_bigendian)
         )
@@ -211,7 +220,7 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
     out_size = working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale)
     processor = FrameProcessor(model, out_size, cfg.image.interpolation)
     reduce = processor.reduce_factor_for(source_w) if cfg.image.reduced_jpeg_decode else 1
-    decode = _CameraDecoder(camera.msgtype, reduce)
+    decode = _CameraDecoder(camera.msgtype, reduce, (source_w, source_h))
 
     camera_frame = (info.header.frame_id or first_image.header.frame_id or "").lstrip("/")
     T_vehicle_camera, height_m, extrinsics_source, vehicle_frame = _extrinsics(cfg, tf, camera_frame, notes)
