@@ -7,11 +7,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from recordings import Msg, drive_messages, image_values, patch_image, write_recording
+from recordings import Msg, drive_messages, image_values, patch_image, textured_image, write_recording
 
 from drivesim.pipeline.errors import InputError
 from drivesim.stages.ingest.config import IngestConfig
-from drivesim.stages.ingest.images import EncodingError, decode_raw
+from drivesim.stages.ingest.images import CameraModel, EncodingError, FrameProcessor, area_remap_tables, decode_raw
 from drivesim.stages.ingest.run import ingest_recording
 from drivesim.stages.ingest.trace import validate_trace
 
@@ -175,3 +175,22 @@ def test_camera_message_for_image_values_roundtrip() -> None:
     values = image_values(5, patch_image(8, 6, COLOUR), "bgr8")
     out = decode_raw(values["data"], "bgr8", 6, 8, values["step"])
     np.testing.assert_array_equal(out, patch_image(8, 6, COLOUR))
+
+
+@pytest.mark.parametrize(("src", "out"), [((960, 600), (640, 400)), ((800, 500), (640, 400))])
+def test_area_by_remap_matches_inter_area(src: tuple[int, int], out: tuple[int, int]) -> None:
+    assert area_remap_tables(src, out) is not None
+    img = textured_image(*src, frame=3)
+    K = np.array([[300.0, 0, src[0] / 2 - 0.5], [0, 300.0, src[1] / 2 - 0.5], [0, 0, 1]])
+    camera = CameraModel(K=K, D=np.zeros(5), model="none", P=K, R=np.eye(3), width_px=src[0], height_px=src[1])
+    ours = FrameProcessor(camera, out, "area").process(img).astype(int)
+    reference = cv2.resize(img, out, interpolation=cv2.INTER_AREA).astype(int)
+    assert np.abs(ours - reference).max() <= 5 and np.abs(ours - reference).mean() < 0.5
+    # and it is an average, not a point sample: linear interpolation differs much more on this texture
+    linear = cv2.resize(img, out, interpolation=cv2.INTER_LINEAR).astype(int)
+    assert np.abs(linear - reference).mean() > 3 * np.abs(ours - reference).mean()
+
+
+def test_area_remap_only_where_it_is_exact() -> None:
+    assert area_remap_tables((1242, 375), (640, 193)) is None  # footprints of 1.94 px span three pixels
+    assert area_remap_tables((1280, 800), (640, 400)) is None  # integer factor: cv2.INTER_AREA's fast path

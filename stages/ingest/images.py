@@ -167,6 +167,41 @@ class CameraModel:
         return self.model != "none" and bool(np.any(np.abs(self.D) > 0))
 
 
+def _two_tap_positions(n_src: int, n_out: int) -> np.ndarray | None:
+    """Sample positions at which bilinear interpolation equals area averaging along one axis, or None.
+
+    Area averaging gives output pixel j the mean of source interval [j s, (j+1) s), s = n_src / n_out. When that
+    interval touches at most two source pixels i and i+1 (as for s = 1.5, 960 -> 640), the mean is
+    w_i p_i + w_(i+1) p_(i+1), which is bilinear interpolation at i + w_(i+1).
+    """
+    s = n_src / n_out
+    if not 1.0 < s < 2.0:
+        return None
+    j = np.arange(n_out, dtype=np.float64)
+    start, end = j * s, (j + 1) * s
+    first = np.floor(start + 1e-9)
+    last = np.ceil(end - 1e-9) - 1
+    if np.any(last - first > 1):
+        return None
+    w_second = np.where(last > first, (end - (first + 1)) / s, 0.0)
+    return (first + w_second).astype(np.float32)
+
+
+def area_remap_tables(src_size: tuple[int, int], out_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
+    """cv2.remap tables doing INTER_AREA's averaging by bilinear sampling, for factors where that is exact.
+
+    cv2.INTER_AREA takes ~6 ms for 960x600 -> 640x400 on our 2-core machine; this remap takes ~2 ms and differs
+    from it by the remap's 1/32 weight quantisation (about one grey level). None when the factor does not allow it.
+    """
+    xs = _two_tap_positions(src_size[0], out_size[0])
+    ys = _two_tap_positions(src_size[1], out_size[1])
+    if xs is None or ys is None:
+        return None
+    map_x = np.broadcast_to(xs[None, :], (out_size[1], out_size[0])).astype(np.float32)
+    map_y = np.broadcast_to(ys[:, None], (out_size[1], out_size[0])).astype(np.float32)
+    return cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)
+
+
 class FrameProcessor:
     """Undistorts and resizes camera frames to the working resolution; the remap tables are computed once.
 
@@ -184,6 +219,7 @@ class FrameProcessor:
         K_new = camera.P if camera.distorted else camera.K
         self.K_out = scale_intrinsics(K_new, self.sx, self.sy)
         self._maps: tuple[np.ndarray, np.ndarray] | None = None
+        self._area_tables: dict[tuple[int, int], tuple[np.ndarray, np.ndarray] | None] = {}
         if camera.distorted:
             self._maps = self._undistort_maps(camera)
 
@@ -208,7 +244,15 @@ class FrameProcessor:
                 out[...] = rgb
                 return out
             return rgb
-        return cv2.resize(rgb, (self.out_width, self.out_height), dst=out, interpolation=self.interpolation)
+        size = (self.out_width, self.out_height)
+        if self.interpolation == cv2.INTER_AREA:
+            src = (rgb.shape[1], rgb.shape[0])
+            if src not in self._area_tables:
+                self._area_tables[src] = area_remap_tables(src, size)
+            tables = self._area_tables[src]
+            if tables is not None:
+                return cv2.remap(rgb, tables[0], tables[1], cv2.INTER_LINEAR, dst=out, borderMode=cv2.BORDER_REPLICATE)
+        return cv2.resize(rgb, size, dst=out, interpolation=self.interpolation)
 
     def reduce_factor_for(self, source_width_px: int) -> int:
         """The largest jpeg decode reduction (1, 2, 4, 8) that still yields at least the working width."""
