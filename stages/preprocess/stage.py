@@ -7,6 +7,7 @@ inside the artifact's temporary folder, so memory stays bounded by a few frames 
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -114,6 +115,7 @@ def run_preprocess(ws: Workspace, cfg: PreprocessConfig, force: bool = False) ->
         manifest = ws.read_manifest(ARTIFACT) or {}
         return PreprocessResult(path=ws.artifact_dir(ARTIFACT), skipped=True, summary=manifest.get("summary", {}))
 
+    started = time.perf_counter()
     trace = open_trace(trace_dir)
     selected = select_frames(trace.frames.shape[0], cfg)
     frame_index = np.arange(trace.frames.shape[0])[selected]
@@ -180,6 +182,7 @@ def run_preprocess(ws: Workspace, cfg: PreprocessConfig, force: bool = False) ->
             "height_px": int(h),
             **depth_stats,
             "depth_seconds_per_frame": depth_summary.get("seconds_per_frame"),
+            "seconds": round(time.perf_counter() - started, 3),
         }
     return PreprocessResult(path=ws.artifact_dir(ARTIFACT), skipped=False, summary=build.summary)
 

@@ -7,6 +7,7 @@ resolution chunk by chunk into .npy memmaps inside the artifact's temporary fold
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -86,6 +87,7 @@ def run_build_world(ws: Workspace, cfg: WorldConfig, force: bool = False) -> Wor
         manifest = ws.read_manifest(ARTIFACT) or {}
         return WorldResult(path=ws.artifact_dir(ARTIFACT), skipped=True, summary=manifest.get("summary", {}))
 
+    started = time.perf_counter()
     trace = open_trace(trace_dir)
     pre = load_preprocessed(pre_dir)
     frame_index = pre.poses["frame_index"]
@@ -180,6 +182,7 @@ def run_build_world(ws: Workspace, cfg: WorldConfig, force: bool = False) -> Wor
             "pointcloud_points": point_count,
             "pose_source": info["pose_source"],
             "depth_method": info["depth_method"],
+            "seconds": round(time.perf_counter() - started, 3),
         }
     return WorldResult(path=ws.artifact_dir(ARTIFACT), skipped=False, summary=build.summary)
 

@@ -8,6 +8,8 @@ import numpy as np
 
 from drivesim.stages.world.config import PointCloudConfig
 
+_MERGE_POINTS = 1_000_000
+
 
 def fuse_pointcloud(
     frames: np.ndarray,
@@ -29,6 +31,7 @@ def fuse_pointcloud(
     rays = pixels @ np.linalg.inv(np.asarray(K, dtype=np.float64)).T
     limit = min(cfg.max_depth_m, far_depth_m)
     merged = o3d.geometry.PointCloud()
+    pending = o3d.geometry.PointCloud()
     for i in range(0, n, cfg.frame_step):
         depth = np.asarray(depth_m[i, :: cfg.pixel_step, :: cfg.pixel_step], dtype=np.float64).reshape(-1)
         keep = np.isfinite(depth) & (depth > 0.0) & (depth < limit)
@@ -41,9 +44,14 @@ def fuse_pointcloud(
         cloud = o3d.geometry.PointCloud()
         cloud.points = o3d.utility.Vector3dVector(points_world)
         cloud.colors = o3d.utility.Vector3dVector(colours / 255.0)
-        # Merging frame by frame keeps memory bounded by one frame plus the merged cloud.
-        merged += cloud.voxel_down_sample(cfg.voxel_size_m)
-        merged = merged.voxel_down_sample(cfg.voxel_size_m)
+        pending += cloud.voxel_down_sample(cfg.voxel_size_m)
+        # Merging into the whole cloud only every ~1M points keeps memory bounded without re-voxelising the
+        # (growing) merged cloud after every frame, which made long drives quadratic.
+        if len(pending.points) > _MERGE_POINTS:
+            merged = (merged + pending).voxel_down_sample(cfg.voxel_size_m)
+            pending = o3d.geometry.PointCloud()
+    if len(pending.points):
+        merged = (merged + pending).voxel_down_sample(cfg.voxel_size_m)
     return np.asarray(merged.points), np.asarray(merged.colors)
 
 
