@@ -1,0 +1,56 @@
+"""The fidelity bench on a tiny synthetic drive: mvs must beat the ground plane, numbers in sane ranges."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from drivesim.stages.world.fidelity import ViewOffset, depth_metrics, image_metrics, run_fidelity
+
+
+def test_depth_metrics_values() -> None:
+    gt = np.array([[10.0, 20.0], [np.inf, 100.0]], np.float32)
+    est = np.array([[11.0, 20.0], [5.0, 5.0]], np.float32)
+    m = depth_metrics(est, gt, max_depth_m=80.0)  # sky and beyond max depth are ignored
+    assert m["pixels"] == 2
+    assert m["abs_rel"] == pytest.approx(0.05)
+    assert m["delta1"] == 1.0
+
+
+def test_image_metrics_over_filled_pixels_only() -> None:
+    rng = np.random.default_rng(0)
+    truth = rng.integers(0, 256, (40, 50, 3), dtype=np.uint8)
+    synth = truth.copy()
+    valid = np.ones((40, 50), bool)
+    valid[:, :10] = False
+    synth[:, :10] = 0  # unfilled pixels do not count against PSNR
+    m = image_metrics(synth, truth, valid)
+    assert m["psnr_db"] > 90.0
+    assert m["filled_fraction"] == pytest.approx(0.8)
+    noisy = np.clip(truth.astype(int) + rng.integers(-20, 21, truth.shape), 0, 255).astype(np.uint8)
+    assert 15.0 < image_metrics(noisy, truth, valid)["psnr_db"] < 30.0
+
+
+@pytest.mark.slow
+def test_fidelity_bench_mvs_beats_plane(tmp_path) -> None:
+    figure = tmp_path / "fidelity.png"
+    offsets = (ViewOffset(lateral_m=1.0), ViewOffset(yaw_deg=5.0))
+    result = run_fidelity(
+        seed=0, n_frames=9, width_px=192, height_px=120, offsets=offsets, n_view_frames=2, figure_path=figure
+    )
+    json.dumps(result.to_json())  # machine-readable
+    assert result.evaluated_frames == [3, 4, 5]
+    plane, mvs = result.depth["plane"], result.depth["mvs"]
+    assert 0.3 < plane["abs_rel"] < 3.0  # buildings and cars are far off the ground plane
+    assert mvs["abs_rel"] < 0.6 * plane["abs_rel"]
+    assert mvs["delta1"] > plane["delta1"]
+    lateral = {s: result.view("lat +1.0 m", s) for s in ("plane", "mvs", "ground_truth")}
+    assert lateral["mvs"]["psnr_db"] > lateral["plane"]["psnr_db"] + 1.0
+    assert lateral["ground_truth"]["psnr_db"] >= lateral["mvs"]["psnr_db"] - 0.5  # the upper bound
+    for row in result.views:
+        assert 10.0 < row["psnr_db"] < 50.0
+        assert 0.2 < row["ssim"] <= 1.0
+        assert 0.5 < row["filled_fraction"] <= 1.0
+    assert figure.stat().st_size > 10_000
