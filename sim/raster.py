@@ -18,7 +18,7 @@ How it works (DESIGN §4):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -33,6 +33,8 @@ _LOW32 = 0xFFFFFFFF
 # (triangle, pixel) pairs evaluated per chunk: bounds memory at about 100 bytes per pair.
 _PAIRS_PER_CHUNK = 1 << 22
 _PACK_CACHE_SIZE = 16
+_SMALL_AREA_PX = 64
+_TILE_PX = 8
 
 
 @dataclass
@@ -63,9 +65,10 @@ class PackedScene:
 
     Per-triangle tensors (T triangles): `vertices_m` (T, 3, 3), also as `vertex_components` (3 xyz, 3 corners, T);
     `vertex_attributes` (T, 3, 8) per corner: world-frame
-    normal (3), vertex colour x diffuse colour (3), uv (2); `material` (T, 7): specular rgb, shininess, metalness,
+    normal (3), vertex colour x diffuse colour (3), uv (2); `material` (7, T): specular rgb, shininess, metalness,
     roughness, unlit (0/1); `texture_index` (T,) int64 (-1 none); `object_id` (T,) int32. Textures are one flat texel
-    table `texels` (N, 3) float32 with `texture_info` (X, 3) int64 rows (offset, width, height).
+    table `texels` (N,) int32 (r | g << 8 | b << 16) with `texture_info` (3, X) int32 (offset, width, height).
+    Tables are channel-major: per-row 1-D gathers are the fast way to read them on CPU.
     """
 
     origin_m: np.ndarray
@@ -77,6 +80,7 @@ class PackedScene:
     object_id: torch.Tensor
     texels: torch.Tensor
     texture_info: torch.Tensor
+    _attribute_table: torch.Tensor | None = field(default=None, repr=False)
 
     @property
     def triangle_count(self) -> int:
@@ -89,9 +93,16 @@ class PackedScene:
         return self.vertices_m.device
 
     @property
+    def attribute_table(self) -> torch.Tensor:
+        """`vertex_attributes` as a (24, T) table (row 8 * corner + attribute), built once: per-row gathers are fast."""
+        if self._attribute_table is None:
+            self._attribute_table = self.vertex_attributes.reshape(-1, 24).T.contiguous()
+        return self._attribute_table
+
+    @property
     def textured(self) -> bool:
         """Whether any triangle samples a texture."""
-        return self.texture_info.shape[0] > 0
+        return self.texture_info.shape[1] > 0
 
 
 def _material_row(material: Material) -> np.ndarray:
@@ -135,14 +146,15 @@ def pack_meshes(meshes: list[Mesh], device: str | torch.device = "cpu") -> Packe
         if mesh.uv is not None and mesh.texture_rgb is not None:
             attr[..., 6:8] = np.asarray(mesh.uv, dtype=np.float32)[faces]
             tex = np.asarray(mesh.texture_rgb)
-            texels.append(tex.reshape(-1, 3).astype(np.float32) / 255.0)
+            rgb8 = tex.reshape(-1, 3).astype(np.int32)
+            texels.append(rgb8[:, 0] | (rgb8[:, 1] << 8) | (rgb8[:, 2] << 16))
             texture_info.append([texel_offset, tex.shape[1], tex.shape[0]])
             texel_offset += tex.shape[0] * tex.shape[1]
             tex_index.append(np.full(n_faces, len(texture_info) - 1, dtype=np.int64))
         else:
             tex_index.append(np.full(n_faces, -1, dtype=np.int64))
         attributes.append(attr)
-        materials.append(np.broadcast_to(_material_row(mesh.material), (n_faces, 7)))
+        materials.append(np.broadcast_to(_material_row(mesh.material)[:, None], (7, n_faces)))
         obj_ids.append(np.full(n_faces, mesh.object_id, dtype=np.int32))
 
     def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype: type) -> torch.Tensor:
@@ -155,11 +167,16 @@ def pack_meshes(meshes: list[Mesh], device: str | torch.device = "cpu") -> Packe
         vertices_m=vertices_t,
         vertex_components=vertices_t.permute(2, 1, 0).contiguous(),
         vertex_attributes=cat(attributes, (0, 3, 8), np.float32),
-        material=cat(materials, (0, 7), np.float32),
+        material=torch.as_tensor(
+            np.ascontiguousarray(np.concatenate(materials, axis=1) if materials else np.zeros((7, 0)), np.float32),
+            device=device,
+        ),
         texture_index=cat(tex_index, (0,), np.int64),
         object_id=cat(obj_ids, (0,), np.int32),
-        texels=cat(texels, (1, 3), np.float32),
-        texture_info=torch.tensor(texture_info if texture_info else np.zeros((0, 3)), dtype=torch.int64, device=device),
+        texels=cat(texels, (1,), np.int32),
+        texture_info=torch.tensor(
+            np.array(texture_info).T if texture_info else np.zeros((3, 0)), dtype=torch.int32, device=device
+        ),
     )
 
 
@@ -172,10 +189,10 @@ def _concat_scenes(scenes: list[PackedScene]) -> tuple[PackedScene, torch.Tensor
     for s in scenes:
         tex_idx.append(torch.where(s.texture_index >= 0, s.texture_index + texture_offset, s.texture_index))
         info = s.texture_info.clone()
-        info[:, 0] += texel_offset
+        info[0] += texel_offset
         tex_info.append(info)
         texel_offset += s.texels.shape[0]
-        texture_offset += s.texture_info.shape[0]
+        texture_offset += s.texture_info.shape[1]
     owner = torch.cat(
         [torch.full((s.triangle_count,), i, dtype=torch.int64, device=s.device) for i, s in enumerate(scenes)]
     )
@@ -184,13 +201,21 @@ def _concat_scenes(scenes: list[PackedScene]) -> tuple[PackedScene, torch.Tensor
         vertices_m=torch.cat([s.vertices_m for s in scenes]),
         vertex_components=torch.cat([s.vertex_components for s in scenes], dim=2),
         vertex_attributes=torch.cat([s.vertex_attributes for s in scenes]),
-        material=torch.cat([s.material for s in scenes]),
+        material=torch.cat([s.material for s in scenes], dim=1),
         texture_index=torch.cat(tex_idx),
         object_id=torch.cat([s.object_id for s in scenes]),
         texels=torch.cat([s.texels for s in scenes]),
-        texture_info=torch.cat(tex_info),
+        texture_info=torch.cat(tex_info, dim=1),
     )
     return merged, owner
+
+
+def _take(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """table[:, index] for a 2-D table, one 1-D gather per row: several times faster on CPU than a 2-D index_select."""
+    out = torch.empty((table.shape[0], index.numel()), dtype=table.dtype, device=table.device)
+    for i in range(table.shape[0]):
+        torch.index_select(table[i], 0, index, out=out[i])
+    return out
 
 
 def _as_poses(T_camera_world: np.ndarray | torch.Tensor) -> np.ndarray:
@@ -289,8 +314,8 @@ class Rasterizer:
     # ------------------------------------------------------------------ core
     def _setup(self, vc: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Per candidate triangle, from camera-frame vertices vc (3 xyz, 3 corners, N): the kept candidates' indices
-        (n,), their rows (n, 13) = bbox width, edge coefficients (9) re-based at the bbox corner, |det|, corner x0, y0,
-        and their inclusive pixel bboxes (n, 4) = x0, y0, x1, y1.
+        (n,), a column table (13, n) = bbox width, edge coefficients (9) re-based at the bbox corner, |det|, corner
+        x0, y0, and their inclusive pixel bboxes (n, 4) = x0, y0, x1, y1.
 
         Edge coefficients: w_i(u, v) = c_i . K^-1 [u, v, 1] with c_0 = P1 x P2, c_1 = P2 x P0, c_2 = P0 x P1, signed so
         that inside means all w_i >= 0; then depth = |det| / sum(w) with det = P0 . (P1 x P2).
@@ -334,7 +359,7 @@ class Rasterizer:
         keep = (n_front > 0) & (hi[0] >= lo[0]) & (hi[1] >= lo[1])
         idx = keep.nonzero().squeeze(1)
         if idx.numel() < N:
-            vc, lo, hi = vc[:, :, idx], lo[:, idx], hi[:, idx]
+            vc, lo, hi = _take(vc.reshape(9, N), idx).reshape(3, 3, -1), _take(lo, idx), _take(hi, idx)
         (x0, x1, x2), (y0, y1, y2), (z0, z1, z2) = vc
 
         def cross(ay, az, ax, by, bz, bx):  # one component of a x b, the others by rotating the arguments
@@ -355,12 +380,12 @@ class Rasterizer:
             c = torch.addcmul(torch.addcmul(ez * sign, a, lo[0] - cx), b, lo[1] - cy)  # w at the bbox corner
             cols += [a, b, c]
         cols += [abs_det, lo[0], lo[1]]
-        rows = torch.stack(cols, 1)
+        table = torch.stack(cols, 0)
         bbox = torch.cat([lo, hi]).T.to(torch.int64)
         if not bool(good.all()):
             sel = good.nonzero().squeeze(1)
-            idx, rows, bbox = idx[sel], rows[sel], bbox[sel]
-        return idx, rows, bbox
+            idx, table, bbox = idx[sel], _take(table, sel), bbox[sel]
+        return idx, table, bbox
 
     def _rasterize(
         self,
@@ -374,61 +399,144 @@ class Rasterizer:
         background_rgb: tuple[float, float, float] | np.ndarray | None,
     ) -> RenderResult:
         W, H, dev = self.width_px, self.height_px, self.device
-        idx, table, bbox = self._setup(vc, K)
+        idx, cols, bbox = self._setup(vc, K)
         if owner is None:  # shared scene: candidate n is triangle n % T seen by camera n // T
             T_count = max(scene.triangle_count, 1)
             tri_camera = idx // T_count
             tri_source = idx - tri_camera * T_count
         else:
             tri_camera, tri_source = owner[idx], idx
-        counts = (bbox[:, 2] - bbox[:, 0] + 1) * (bbox[:, 3] - bbox[:, 1] + 1)
+        bw = bbox[:, 2] - bbox[:, 0] + 1
+        bh = bbox[:, 3] - bbox[:, 1] + 1
         base_pix = tri_camera * (H * W) + bbox[:, 1] * W + bbox[:, 0]
-
         zbuf = torch.full((B * H * W,), _EMPTY_KEY, dtype=torch.int64, device=dev)
+
+        # Small triangles (most of a vehicle mesh) are expanded into their exact (triangle, pixel) pairs; larger ones
+        # are covered by 8 x 8 tiles, culled per tile and evaluated as dense blocks without per-pixel gathers.
+        area = bw * bh
+        small = area <= _SMALL_AREA_PX
+        members = small.nonzero().squeeze(1)
+        if members.numel():
+            rows = _take(cols, members).T.contiguous()
+            self._raster_pairs(zbuf, rows, base_pix.index_select(0, members), area.index_select(0, members), members)
+        members = (~small).nonzero().squeeze(1)
+        if members.numel():
+            self._raster_tiles(zbuf, cols, bw, bh, base_pix, members, _TILE_PX, _TILE_PX)
+        return self._resolve(zbuf, scene, cols, tri_camera, tri_source, B, K, R_cam_world, lighting, background_rgb)
+
+    def _raster_pairs(
+        self, zbuf: torch.Tensor, rows: torch.Tensor, base_pix: torch.Tensor, counts: torch.Tensor, ids: torch.Tensor
+    ) -> None:
+        """Depth-test every (triangle, pixel-in-bbox) pair of small triangles: rows (m, 13) of the column table,
+        their first pixel index, bbox areas and triangle ids (what the z-buffer key stores)."""
         ends = counts.cumsum(0)
-        n_tri = int(idx.shape[0])
-        start = 0
-        while start < n_tri:
+        n, start = int(counts.numel()), 0
+        while start < n:
             base = int(ends[start - 1]) if start > 0 else 0
             stop = int(torch.searchsorted(ends, base + _PAIRS_PER_CHUNK, right=True))
-            stop = min(max(stop, start + 1), n_tri)
-            self._raster_chunk(zbuf, table, base_pix, counts, start, stop)
+            stop = min(max(stop, start + 1), n)
+            self._raster_pair_chunk(zbuf, rows[start:stop], base_pix[start:stop], counts[start:stop], ids[start:stop])
             start = stop
-        return self._resolve(zbuf, scene, table, tri_camera, tri_source, B, K, R_cam_world, lighting, background_rgb)
 
-    def _raster_chunk(
-        self,
-        zbuf: torch.Tensor,
-        table: torch.Tensor,
-        base_pix: torch.Tensor,
-        counts: torch.Tensor,
-        start: int,
-        stop: int,
+    def _raster_pair_chunk(
+        self, zbuf: torch.Tensor, rows: torch.Tensor, base_pix: torch.Tensor, counts: torch.Tensor, ids: torch.Tensor
     ) -> None:
-        """Depth-test all (triangle, pixel-in-bbox) pairs of triangles [start, stop) into `zbuf`."""
         dev = self.device
-        c = counts[start:stop]
-        total = int(c.sum())
-        first = (c.cumsum(0) - c).to(torch.float32)
-        tri = torch.repeat_interleave(torch.arange(stop - start, device=dev), c, output_size=total)
-        rows = table[start:stop].index_select(0, tri)
+        total = int(counts.sum())
+        first = (counts.cumsum(0) - counts).to(torch.float32)
+        tri = torch.repeat_interleave(torch.arange(counts.numel(), device=dev), counts, output_size=total)
+        r = rows.index_select(0, tri)  # rows of a small table: cheap, cache-resident gathers
         local = torch.arange(total, dtype=torch.float32, device=dev) - first.index_select(0, tri)
-        bw = rows[:, 0]
+        bw = r[:, 0]
         yo = torch.floor((local + 0.5) / bw)
         xo = local - yo * bw
-        w0 = torch.addcmul(torch.addcmul(rows[:, 3], rows[:, 1], xo), rows[:, 2], yo)
-        w1 = torch.addcmul(torch.addcmul(rows[:, 6], rows[:, 4], xo), rows[:, 5], yo)
-        w2 = torch.addcmul(torch.addcmul(rows[:, 9], rows[:, 7], xo), rows[:, 8], yo)
-        s = w0 + w1 + w2
-        # all w_i >= 0 (inside), s > 0 (in front), depth = |det| / s >= near
-        inside = (torch.minimum(torch.minimum(w0, w1), w2) >= 0) & (s > 0) & (s * self.near_m <= rows[:, 10])
+        w0 = torch.addcmul(torch.addcmul(r[:, 3], r[:, 1], xo), r[:, 2], yo)
+        w1 = torch.addcmul(torch.addcmul(r[:, 6], r[:, 4], xo), r[:, 5], yo)
+        w2 = torch.addcmul(torch.addcmul(r[:, 9], r[:, 7], xo), r[:, 8], yo)
+        ssum = w0 + w1 + w2
+        # all w_i >= 0 (inside), sum > 0 (in front), depth = |det| / sum >= near
+        inside = (torch.minimum(torch.minimum(w0, w1), w2) >= 0) & (ssum > 0) & (ssum * self.near_m <= r[:, 10])
         sel = inside.nonzero().squeeze(1)
-        depth = rows[:, 10].index_select(0, sel) / s.index_select(0, sel)
-        gtri = tri.index_select(0, sel) + start
-        key = (depth.view(torch.int32).to(torch.int64) << 32) | gtri
+        depth = r[:, 10].index_select(0, sel) / ssum.index_select(0, sel)
+        local_tri = tri.index_select(0, sel)
+        key = (depth.view(torch.int32).to(torch.int64) << 32) | ids.index_select(0, local_tri)
         offset = yo.index_select(0, sel) * self.width_px + xo.index_select(0, sel)
-        pix = base_pix.index_select(0, gtri) + offset.to(torch.int64)
+        pix = base_pix.index_select(0, local_tri) + offset.to(torch.int64)
         zbuf.scatter_reduce_(0, pix, key, reduce="amin")
+
+    def _raster_tiles(
+        self,
+        zbuf: torch.Tensor,
+        cols: torch.Tensor,
+        bw: torch.Tensor,
+        bh: torch.Tensor,
+        base_pix: torch.Tensor,
+        members: torch.Tensor,
+        tile_w: int,
+        tile_h: int,
+    ) -> None:
+        """Depth-test triangles `members`, covering each bbox with tile_w x tile_h tiles evaluated as dense blocks."""
+        dev, W = self.device, self.width_px
+        ntx = (bw.index_select(0, members) + tile_w - 1) // tile_w
+        nty = (bh.index_select(0, members) + tile_h - 1) // tile_h
+        n_tiles = ntx * nty
+        total = int(n_tiles.sum())
+        if total == members.numel():  # one tile per triangle
+            tri = members
+            ox = oy = None
+        else:
+            owner = torch.repeat_interleave(torch.arange(members.numel(), device=dev), n_tiles, output_size=total)
+            local = torch.arange(total, device=dev) - (n_tiles.cumsum(0) - n_tiles).index_select(0, owner)
+            ntx_t = ntx.index_select(0, owner)
+            ty = local // ntx_t
+            ox, oy = (local - ty * ntx_t) * tile_w, ty * tile_h
+            tri = members.index_select(0, owner)
+        g = _take(cols, tri)  # (13, tiles)
+        coef = g[1:10].clone()  # a0 b0 c0 a1 b1 c1 a2 b2 c2 at the tile origin
+        rw, rh = bw.index_select(0, tri), bh.index_select(0, tri)  # pixels of the bbox from the tile origin on
+        pix0 = base_pix.index_select(0, tri)
+        if ox is not None:
+            oxf, oyf = ox.to(torch.float32), oy.to(torch.float32)
+            for i in range(3):
+                coef[3 * i + 2] += coef[3 * i] * oxf + coef[3 * i + 1] * oyf
+            # Drop tiles entirely outside one edge (the edge function's maximum over the tile is negative).
+            keep = torch.ones_like(oxf, dtype=torch.bool)
+            for i in range(3):
+                a, b, c = coef[3 * i], coef[3 * i + 1], coef[3 * i + 2]
+                keep &= c + a.clamp_min(0) * (tile_w - 1) + b.clamp_min(0) * (tile_h - 1) >= 0
+            sel = keep.nonzero().squeeze(1)
+            coef, g, tri = _take(coef, sel), _take(g, sel), tri.index_select(0, sel)
+            ox, oy = ox.index_select(0, sel), oy.index_select(0, sel)
+            rw, rh = rw.index_select(0, sel) - ox, rh.index_select(0, sel) - oy
+            pix0 = pix0.index_select(0, sel) + oy * W + ox
+        # Pixel-in-tile-major layout (tile_h * tile_w, tiles): broadcasting keeps the long axis innermost, where
+        # torch's CPU kernels vectorise.
+        per_chunk = max(1, _PAIRS_PER_CHUNK // (tile_w * tile_h))
+        yi, xi = torch.meshgrid(
+            torch.arange(tile_h, device=dev), torch.arange(tile_w, device=dev), indexing="ij"
+        )  # fmt: skip
+        xi, yi = xi.reshape(-1, 1), yi.reshape(-1, 1)
+        xs, ys = xi.to(torch.float32), yi.to(torch.float32)
+        offsets = yi * W + xi
+        for s in range(0, tri.numel(), per_chunk):
+            e = slice(s, s + per_chunk)
+            c = coef[:, e]
+            w0 = torch.addcmul(torch.addcmul(c[2], c[0], xs), c[1], ys)
+            w1 = torch.addcmul(torch.addcmul(c[5], c[3], xs), c[4], ys)
+            w2 = torch.addcmul(torch.addcmul(c[8], c[6], xs), c[7], ys)
+            ssum = w0 + w1 + w2
+            abs_det = g[10, e]
+            inside = torch.minimum(torch.minimum(w0, w1), w2) >= 0
+            inside &= ssum > 0
+            inside &= ssum * self.near_m <= abs_det  # depth = |det| / sum(w) >= near
+            inside &= (xi < rw[e]) & (yi < rh[e])
+            depth = abs_det / ssum
+            key = (depth.view(torch.int32).to(torch.int64) << 32) | tri[e]
+            # Outside pairs get the empty key; torch.where is several times slower than this on CPU.
+            keep = inside.to(torch.int64)
+            key = ((key & -keep) | ((keep - 1) & _EMPTY_KEY)).reshape(-1)
+            pix = (pix0[e] + offsets).reshape(-1)
+            zbuf.scatter_reduce_(0, pix.clamp_(max=zbuf.numel() - 1), key, reduce="amin")
 
     def _resolve(
         self,
@@ -443,7 +551,8 @@ class Rasterizer:
         lighting: Lighting | list[Lighting] | None,
         background_rgb: tuple[float, float, float] | np.ndarray | None,
     ) -> RenderResult:
-        """Per covered pixel: the winner's perspective-correct barycentrics, attributes and shading."""
+        """Per covered pixel: the winner's perspective-correct barycentrics, attributes and shading. Vectors are kept
+        channel-major, (3, P), so that every op runs over long contiguous rows."""
         W, H, dev = self.width_px, self.height_px, self.device
         HW = H * W
         bg = (
@@ -451,10 +560,10 @@ class Rasterizer:
             if background_rgb is None
             else torch.as_tensor(np.asarray(background_rgb), dtype=torch.float32)
         )
-        rgb = bg.to(dev).expand(B * HW, 3).clone()
+        rgb = bg.to(dev)[:, None].expand(3, B * HW).clone()
         depth_out = torch.full((B * HW,), float("inf"), device=dev)
         object_id = torch.full((B * HW,), -1, dtype=torch.int32, device=dev)
-        normal_out = torch.zeros((B * HW, 3), device=dev)
+        normal_out = torch.zeros((3, B * HW), device=dev)
 
         pix = (zbuf != _EMPTY_KEY).nonzero().squeeze(1)  # sorted, so each camera's pixels are one block
         key = zbuf.index_select(0, pix)
@@ -463,59 +572,65 @@ class Rasterizer:
         row = pix // W  # = camera * H + y
         xf = (pix - row * W).to(torch.float32)
         yf = (row % H).to(torch.float32) if B > 1 else row.to(torch.float32)
-        e = table.index_select(0, cand)
-        xo = xf - e[:, 11]
-        yo = yf - e[:, 12]
-        w0 = torch.addcmul(torch.addcmul(e[:, 3], e[:, 1], xo), e[:, 2], yo)
-        w1 = torch.addcmul(torch.addcmul(e[:, 6], e[:, 4], xo), e[:, 5], yo)
-        w2 = torch.addcmul(torch.addcmul(e[:, 9], e[:, 7], xo), e[:, 8], yo)
+        e = _take(table, cand)
+        xo = xf - e[11]
+        yo = yf - e[12]
+        w0 = torch.addcmul(torch.addcmul(e[3], e[1], xo), e[2], yo)
+        w1 = torch.addcmul(torch.addcmul(e[6], e[4], xo), e[5], yo)
+        w2 = torch.addcmul(torch.addcmul(e[9], e[7], xo), e[8], yo)
         inv_sum = 1.0 / (w0 + w1 + w2)
         src = tri_source.index_select(0, cand)
-        a = scene.vertex_attributes.reshape(-1, 24).index_select(0, src)
-        attr = torch.addcmul(torch.addcmul(a[:, 0:8] * (w0 * inv_sum)[:, None], a[:, 8:16], (w1 * inv_sum)[:, None]),
-                             a[:, 16:24], (w2 * inv_sum)[:, None])  # fmt: skip
+        a = _take(scene.attribute_table, src)  # (24, P): corner-major, 8 attributes per corner
+        attr = torch.addcmul(torch.addcmul(a[0:8] * (w0 * inv_sum), a[8:16], w1 * inv_sum), a[16:24], w2 * inv_sum)
 
-        normal_world = attr[:, 0:3]
+        normal_world = attr[0:3]
         if B == 1:
-            normal_cam = normal_world @ R_cam_world[0].T
+            normal_cam = R_cam_world[0] @ normal_world
         else:
             bounds = torch.searchsorted(pix, torch.arange(B + 1, device=dev) * HW).tolist()
             normal_cam = torch.empty_like(normal_world)
             for b in range(B):
-                normal_cam[bounds[b] : bounds[b + 1]] = normal_world[bounds[b] : bounds[b + 1]] @ R_cam_world[b].T
+                normal_cam[:, bounds[b] : bounds[b + 1]] = R_cam_world[b] @ normal_world[:, bounds[b] : bounds[b + 1]]
         K_inv = torch.linalg.inv(K).to(torch.float32)
-        ray = torch.addcmul(torch.addcmul(K_inv[:, 2], xf[:, None], K_inv[:, 0]), yf[:, None], K_inv[:, 1])
+        ray = torch.addcmul(torch.addcmul(K_inv[:, 2:3], K_inv[:, 0:1], xf), K_inv[:, 1:2], yf)
         to_viewer = normalize3(-ray)
         normal_cam = normalize3(normal_cam)
-        normal_cam = normal_cam * torch.where(dot3(normal_cam, to_viewer) < 0, -1.0, 1.0)[:, None]
+        facing = (dot3(normal_cam, to_viewer) >= 0).to(torch.float32).mul_(2.0).sub_(1.0)  # +1 or -1: two-sided
+        normal_cam *= facing
 
-        base = attr[:, 3:6].contiguous()
+        base = attr[3:6]
         if scene.textured:
             tex_id = scene.texture_index.index_select(0, src)
             textured = (tex_id >= 0).nonzero().squeeze(1)
-            if textured.numel():
-                uv = attr.index_select(0, textured)[:, 6:8]
-                info = scene.texture_info.index_select(0, tex_id.index_select(0, textured))
-                base[textured] *= _sample_bilinear(scene.texels, info, uv)
-        mat = scene.material.index_select(0, src)
+            if textured.numel() == tex_id.numel():
+                base = base * _sample_bilinear(scene.texels, _take(scene.texture_info, tex_id), attr[6], attr[7])
+            elif textured.numel():
+                info = _take(scene.texture_info, tex_id.index_select(0, textured))
+                uv = _take(attr[6:8], textured)
+                texture = _sample_bilinear(scene.texels, info, uv[0], uv[1])
+                base = base.clone()
+                for c in range(3):
+                    base[c].index_copy_(0, textured, base[c].index_select(0, textured) * texture[c])
+        mat = _take(scene.material, src)
         amb, ldir, lrgb = _lighting_tensors(lighting, B, dev)
         if B > 1:
             cam = row // H
-            amb, ldir, lrgb = amb[cam], ldir[cam], lrgb[cam]
+            amb, ldir, lrgb = _take(amb.T, cam), _take(ldir.T, cam), _take(lrgb.T, cam)
         else:
-            amb, ldir, lrgb = amb[0], ldir[0], lrgb[0]
+            amb, ldir, lrgb = amb[0, :, None], ldir[0, :, None], lrgb[0, :, None]
         shaded = shade_blinn_phong(
-            base, normal_cam, to_viewer, mat[:, 0:3], mat[:, 3], mat[:, 4], mat[:, 5], mat[:, 6] > 0.5, amb, ldir, lrgb
+            base, normal_cam, to_viewer, mat[0:3], mat[3], mat[4], mat[5], mat[6], amb, ldir, lrgb
         )
-        rgb.index_copy_(0, pix, shaded)
+        for c in range(3):
+            rgb[c].index_copy_(0, pix, shaded[c])
+            normal_out[c].index_copy_(0, pix, normal_cam[c])
         depth_out.index_copy_(0, pix, depth)
         object_id.index_copy_(0, pix, scene.object_id.index_select(0, src))
-        normal_out.index_copy_(0, pix, normal_cam)
         return RenderResult(
-            rgb=rgb.reshape(B, H, W, 3),
+            rgb=rgb.T.reshape(B, H, W, 3).contiguous(),
             depth_m=depth_out.reshape(B, H, W),
             object_id=object_id.reshape(B, H, W),
-            normal_cam=normal_out.reshape(B, H, W, 3),
+            normal_cam=normal_out.T.reshape(B, H, W, 3).contiguous(),
         )
 
 
@@ -536,26 +651,33 @@ def _lighting_tensors(
     return stack("ambient_rgb"), ldir, stack("light_rgb")
 
 
-def _sample_bilinear(texels: torch.Tensor, info: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """Bilinear texture lookup with clamp-to-edge; texel centres at ((i + 0.5) / width, (j + 0.5) / height)."""
-    offset, tw, th = info[:, 0], info[:, 1], info[:, 2]
-    x = uv[:, 0] * tw - 0.5
-    y = uv[:, 1] * th - 0.5
+def _sample_bilinear(texels: torch.Tensor, info: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Bilinear texture lookup with clamp-to-edge (OpenGL's GL_LINEAR, texel centres at ((i + 0.5) / width, ...)).
+
+    :param texels: (N,) int32 packed RGB8 texel table. :param info: (3, P) int32 offset, width, height of each pixel's
+    texture. :param u, v: (P,) texture coordinates. :returns: (3, P) colour in [0, 1].
+    """
+    offset, tw, th = info[0], info[1], info[2]
+    x = u * tw - 0.5
+    y = v * th - 0.5
     x0 = x.floor()
     y0 = y.floor()
-    fx = (x - x0)[:, None]
-    fy = (y - y0)[:, None]
-    x0 = x0.to(torch.int64)
-    y0 = y0.to(torch.int64)
+    fx = x - x0
+    fy = y - y0
+    x0 = x0.to(torch.int32)
+    y0 = y0.to(torch.int32)
+    w_max, h_max = tw - 1, th - 1
+    xa, xb = torch.minimum(x0.clamp_min(0), w_max), torch.minimum((x0 + 1).clamp_min(0), w_max)
+    ya = torch.addcmul(offset, torch.minimum(y0.clamp_min(0), h_max), tw)
+    yb = torch.addcmul(offset, torch.minimum((y0 + 1).clamp_min(0), h_max), tw)
 
-    def fetch(xi: torch.Tensor, yi: torch.Tensor) -> torch.Tensor:
-        xi = torch.minimum(xi.clamp_min(0), tw - 1)
-        yi = torch.minimum(yi.clamp_min(0), th - 1)
-        return texels[offset + yi * tw + xi]
+    def fetch(index: torch.Tensor) -> torch.Tensor:  # (3, P) float in [0, 255]
+        packed = texels.index_select(0, index)
+        return torch.stack([packed & 255, (packed >> 8) & 255, packed >> 16]).to(torch.float32)
 
-    top = fetch(x0, y0) * (1 - fx) + fetch(x0 + 1, y0) * fx
-    bottom = fetch(x0, y0 + 1) * (1 - fx) + fetch(x0 + 1, y0 + 1) * fx
-    return top * (1 - fy) + bottom * fy
+    top = torch.lerp(fetch(ya + xa), fetch(ya + xb), fx)
+    bottom = torch.lerp(fetch(yb + xa), fetch(yb + xb), fx)
+    return torch.lerp(top, bottom, fy).mul_(1.0 / 255.0)
 
 
 def render_meshes(

@@ -42,18 +42,16 @@ def specular_exponent(shininess: torch.Tensor, roughness: torch.Tensor) -> torch
 
 
 def dot3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Row-wise dot product of (P, 3) tensors (or a (P, 3) tensor and a (3,) vector), shape (P,).
+    """Column-wise dot product of channel-major (3, P) vectors (either may be (3, 1)), shape (P,).
 
     Written out per component: torch's reductions over a length-3 axis cost far more than three fused multiply-adds.
     """
-    if b.dim() == 1:
-        return a @ b
-    return torch.addcmul(torch.addcmul(a[:, 0] * b[:, 0], a[:, 1], b[:, 1]), a[:, 2], b[:, 2])
+    return torch.addcmul(torch.addcmul(a[0] * b[0], a[1], b[1]), a[2], b[2])
 
 
 def normalize3(a: torch.Tensor) -> torch.Tensor:
-    """Unit-length rows of a (P, 3) tensor (zero rows stay zero)."""
-    return a * torch.rsqrt(dot3(a, a).clamp_min(1e-30))[:, None]
+    """Unit-length columns of a channel-major (3, P) tensor (zero columns stay zero)."""
+    return a * torch.rsqrt(dot3(a, a).clamp_min(1e-30))
 
 
 def shade_blinn_phong(
@@ -69,21 +67,20 @@ def shade_blinn_phong(
     light_dir_cam: torch.Tensor,
     light_rgb: torch.Tensor,
 ) -> torch.Tensor:
-    """Shaded colour (P, 3) of P surface points (module docstring has the formula).
+    """Shaded colour of P surface points, channel-major (3, P) (module docstring has the formula).
 
-    :param base_rgb: (P, 3) albedo. :param normal_cam: (P, 3) unit normals, already facing the viewer.
-    :param to_viewer_cam: (P, 3) unit vectors from the point towards the camera.
-    :param specular_rgb: (P, 3). :param shininess, metalness, roughness: (P,). :param unlit: (P,) bool.
-    :param ambient_rgb, light_dir_cam, light_rgb: (3,) for one camera, or (P, 3) gathered per pixel.
+    :param base_rgb: (3, P) albedo. :param normal_cam: (3, P) unit normals, already facing the viewer.
+    :param to_viewer_cam: (3, P) unit vectors from the point towards the camera.
+    :param specular_rgb: (3, P). :param shininess, metalness, roughness: (P,). :param unlit: (P,) 1 = unlit, 0 = lit.
+    :param ambient_rgb, light_dir_cam, light_rgb: (3, 1) for one camera, or (3, P) per pixel.
     """
     to_light = -light_dir_cam
     half = normalize3(to_viewer_cam + to_light)
     n_dot_l = dot3(normal_cam, to_light).clamp_min_(0.0)
     n_dot_h = dot3(normal_cam, half).clamp_min_(0.0)
-    metal = metalness[:, None]
-    diffuse_weight = 1.0 - metal
-    f0 = torch.addcmul(diffuse_weight * specular_rgb, metal, base_rgb)
+    diffuse_weight = 1.0 - metalness
+    f0 = torch.addcmul(diffuse_weight * specular_rgb, metalness, base_rgb)
     highlight = n_dot_h.pow_(specular_exponent(shininess, roughness)).mul_(n_dot_l > 0)
-    light = torch.addcmul(f0 * highlight[:, None], diffuse_weight * base_rgb, n_dot_l[:, None])
+    light = torch.addcmul(f0 * highlight, diffuse_weight * base_rgb, n_dot_l)
     lit = torch.addcmul(ambient_rgb * base_rgb, light_rgb, light)
-    return torch.where(unlit[:, None], base_rgb, lit).clamp_(0.0, 1.0)
+    return torch.lerp(lit, base_rgb, unlit).clamp_(0.0, 1.0)
