@@ -132,7 +132,7 @@ def place_scenery(road: RoadPath, road_cfg: RoadConfig, cfg: SceneryConfig, rng:
             s_end = min(s_block + BLOCK_LENGTH_M, road.length_m)
             if built:
                 _place_buildings(road, side, s_block, s_end, outer, cfg, occ, rng, layout)
-                _place_trees(road, side, s_block, s_end, outer - 0.9, outer - 0.7, 12.0, occ, rng, layout, 0.5)
+                _place_trees(road, side, s_block, s_end, outer - 0.9, outer - 0.7, 11.0, occ, rng, layout, 0.7)
             else:
                 _place_trees(
                     road, side, s_block, s_end, outer + 1.5, outer + 14.0, cfg.tree_spacing_m, occ, rng, layout

@@ -44,6 +44,9 @@ SUN_DIR_WORLD = np.array([0.45, -0.55, 0.70])  # towards the sun: south-east, ab
 SKY_ZENITH_RGB = np.array([0.33, 0.52, 0.80])
 SKY_HORIZON_RGB = np.array([0.78, 0.85, 0.92])
 HAZE_DISTANCE_M = 700.0
+CLOUD_HEIGHT_M = 1500.0
+CLOUD_TILE_M = 16000.0
+CLOUD_RGB = np.array([0.96, 0.96, 0.97])
 
 
 @dataclass(frozen=True)
@@ -80,12 +83,17 @@ class SynthWorld:
         self.seed = int(seed)
         self.config = config
         self.camera = camera
-        world_rng, texture_rng = (np.random.default_rng(s) for s in np.random.SeedSequence([self.seed, 1]).spawn(2))
+        world_rng, texture_rng, sky_rng = (
+            np.random.default_rng(s) for s in np.random.SeedSequence([self.seed, 1]).spawn(3)
+        )
         self.road: RoadPath = build_centreline(config.road, world_rng)
         self.path: RoadPath = self.road.offset(-0.5 * config.road.lane_width_m)
         self.layout: Layout = place_scenery(self.road, config.road, config.scenery, world_rng)
         self.meshes: list[Mesh] = _build_meshes(self.road, self.layout, config, texture_rng)
+        self._clouds = _cloud_cover(sky_rng)
         self._rasterizers: dict[tuple[int, int], Rasterizer] = {}
+        self._rays_key: tuple | None = None
+        self._rays = np.zeros((0, 0, 3), np.float32)
 
     @classmethod
     def from_seed(cls, seed: int, cfg: SynthConfig | WorldConfig | None = None) -> SynthWorld:
@@ -115,6 +123,15 @@ class SynthWorld:
             light_rgb=np.array([0.62, 0.58, 0.50]),
         )
 
+    def _pixel_rays(self, K: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
+        """(H, W, 3) rays K^-1 [u, v, 1] in the optical frame (cached per camera)."""
+        key = (np.asarray(K, float).tobytes(), int(width_px), int(height_px))
+        if self._rays_key != key:
+            u, v = np.meshgrid(np.arange(width_px, dtype=np.float32), np.arange(height_px, dtype=np.float32))
+            self._rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T.astype(np.float32)
+            self._rays_key = key
+        return self._rays
+
     def _rasterizer(self, width_px: int, height_px: int) -> Rasterizer:
         key = (int(width_px), int(height_px))
         if key not in self._rasterizers:
@@ -133,10 +150,12 @@ class SynthWorld:
         rgb = result.rgb[0].numpy()
         depth = result.depth_m[0].numpy().astype(np.float32)
         ids = result.object_id[0].numpy()
-        sky, horizon_mix = _sky(T_world_camera, K, width_px, height_px)
-        haze = (1.0 - np.exp(-np.nan_to_num(depth, posinf=1e9) / HAZE_DISTANCE_M))[..., None]
-        rgb = rgb * (1.0 - haze) + horizon_mix * haze
-        rgb = np.where(np.isinf(depth)[..., None], sky, rgb)
+        sky = np.isinf(depth)
+        haze = (1.0 - np.exp(-np.where(sky, 0.0, depth) / HAZE_DISTANCE_M))[..., None]
+        rgb = rgb * (1.0 - haze) + SKY_HORIZON_RGB.astype(np.float32) * haze
+        if sky.any():
+            rays = self._pixel_rays(K, width_px, height_px)[sky]
+            rgb[sky] = _sky_colour(rays @ T_world_camera[:3, :3].T.astype(np.float32), self._clouds)
         return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8), depth, ids
 
     def render(
@@ -148,18 +167,29 @@ class SynthWorld:
         return rgb, depth
 
 
-def _sky(T_world_camera: np.ndarray, K: np.ndarray, width_px: int, height_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sky colour per pixel from the elevation of its ray (zenith blue to hazy horizon, hazy ground below), and the
-    horizon colour used for aerial haze."""
-    u, v = np.meshgrid(np.arange(width_px, dtype=np.float32), np.arange(height_px, dtype=np.float32))
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T.astype(np.float32)
-    d = rays @ T_world_camera[:3, :3].T.astype(np.float32)
-    elevation = d[..., 2] / np.linalg.norm(d, axis=-1)
+def _cloud_cover(rng: np.random.Generator) -> np.ndarray:
+    """(N, N) cloud opacity in [0, 1] on a periodic tile of the cloud layer (CLOUD_TILE_M across)."""
+    n = 512
+    c = textures.periodic_noise(rng, n, n, 14.0) + 0.45 * textures.periodic_noise(rng, n, n, 3.0)
+    return np.clip((c - 0.55) * 0.9, 0.0, 1.0).astype(np.float32)
+
+
+def _sky_colour(directions: np.ndarray, clouds: np.ndarray) -> np.ndarray:
+    """Sky colour (N, 3) for world-frame ray directions (N, 3): a blue gradient from the hazy horizon to the zenith,
+    clouds on a layer CLOUD_HEIGHT_M up fading out toward the horizon, and hazy ground below the horizon."""
+    d = directions / np.linalg.norm(directions, axis=-1, keepdims=True)
+    elevation = d[:, 2]
     t = np.clip(elevation, 0.0, 1.0) ** 0.6
-    sky = SKY_HORIZON_RGB * (1 - t[..., None]) + SKY_ZENITH_RGB * t[..., None]
-    below = elevation < 0
-    sky[below] = SKY_HORIZON_RGB * 0.85
-    return sky.astype(np.float32), SKY_HORIZON_RGB.astype(np.float32)
+    rgb = SKY_HORIZON_RGB * (1 - t[:, None]) + SKY_ZENITH_RGB * t[:, None]
+    up = elevation > 0.01
+    if up.any():
+        n = clouds.shape[0]
+        hit = d[up, :2] * (CLOUD_HEIGHT_M / d[up, 2:3])
+        ij = np.floor(hit / CLOUD_TILE_M * n).astype(np.int64) % n
+        cover = clouds[ij[:, 1], ij[:, 0]] * np.clip((elevation[up] - 0.03) / 0.25, 0.0, 1.0)
+        rgb[up] = rgb[up] * (1 - cover[:, None]) + CLOUD_RGB * cover[:, None]
+    rgb[elevation < 0] = SKY_HORIZON_RGB * 0.85
+    return rgb.astype(np.float32)
 
 
 # ---------------------------------------------------------------------------------------------------- meshes
@@ -384,6 +414,11 @@ def _car_meshes(layout: Layout) -> list[Mesh]:
         rgb = np.tile(glass_rgb, (24, 1))
         rgb[16:20] = car.rgb  # roof
         bodies.add(cv[:20], cf[:10], rgb=rgb[:20])
+        for end, light_rgb in ((0.5, (0.95, 0.93, 0.80)), (-0.5, (0.75, 0.05, 0.04))):
+            for side in (0.33, -0.33):
+                p = centre + (end * car.length_m + np.sign(end) * 0.02) * fwd + side * car.width_m * np.array([-s, c])
+                lv, lf = box(p, car.yaw_rad, 0.06, 0.34, 0.72, 0.86)
+                bodies.add(lv[:20], lf[:10], rgb=np.array(light_rgb))
         for ax in (0.34, -0.34):
             for side in (0.5, -0.5):
                 p = centre + ax * car.length_m * fwd + side * (car.width_m - 0.2) * np.array([-s, c])
