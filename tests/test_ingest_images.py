@@ -194,3 +194,22 @@ def test_area_by_remap_matches_inter_area(src: tuple[int, int], out: tuple[int, 
 def test_area_remap_only_where_it_is_exact() -> None:
     assert area_remap_tables((1242, 375), (640, 193)) is None  # footprints of 1.94 px span three pixels
     assert area_remap_tables((1280, 800), (640, 400)) is None  # integer factor: cv2.INTER_AREA's fast path
+
+
+def test_keep_original_stores_undistorted_frames_at_the_recorded_size(tmp_path: Path) -> None:
+    w, h = 128, 80
+    K = np.array([[90.0, 0, 63.5], [0, 90.0, 39.5], [0, 0, 1]])
+    D = [-0.3, 0.1, 0.0, 0.0, 0.0]
+    msgs = drive_messages(n_frames=3, width=w, height=h, K=K, D=D, image_fn=lambda i: patch_image(w, h, frame=i))
+    cfg = IngestConfig.model_validate({"image": {"width_px": 64, "keep_original": True}})
+    _, info = _ingest(tmp_path, msgs, cfg)
+    originals = np.load(info.path / "frames_original.npy", mmap_mode="r")
+    assert originals.shape == (3, h, w, 3) and info.frames().shape == (3, 40, 64, 3)
+    np.testing.assert_allclose(info.calibration["K_source"], K)
+    # the originals are undistorted: equal to cv2.undistort of the recorded image
+    expected = cv2.undistort(patch_image(w, h, frame=1), K, np.array(D))
+    assert np.abs(originals[1].astype(int) - expected.astype(int)).mean() < 1.0
+    # and the working frames are the originals downscaled
+    np.testing.assert_allclose(
+        info.frames()[1], cv2.resize(originals[1], (64, 40), interpolation=cv2.INTER_AREA), atol=1
+    )

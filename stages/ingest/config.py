@@ -21,6 +21,8 @@ class ImageConfig(StageConfig):
     interpolation: Literal["area", "linear"] = "area"
     """Downscaling filter: "area" (cv2.INTER_AREA, averages every source pixel: no aliasing) or "linear"
     (cv2.INTER_LINEAR: 3-5x faster for non-integer factors such as 960->640, slight aliasing)."""
+    keep_original: bool = False
+    """Also store the undistorted frames at the recorded resolution (frames_original.npy; intrinsics K_source)."""
     reduced_jpeg_decode: bool = True
     """Decode jpeg frames at 1/2, 1/4 or 1/8 size when that still covers the working width (faster)."""
 

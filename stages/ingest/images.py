@@ -216,8 +216,8 @@ class FrameProcessor:
         self.out_width, self.out_height = out_size
         self.sx = self.out_width / camera.width_px
         self.sy = self.out_height / camera.height_px
-        K_new = camera.P if camera.distorted else camera.K
-        self.K_out = scale_intrinsics(K_new, self.sx, self.sy)
+        self.K_source = camera.P if camera.distorted else camera.K
+        self.K_out = scale_intrinsics(self.K_source, self.sx, self.sy)
         self._maps: tuple[np.ndarray, np.ndarray] | None = None
         self._area_tables: dict[tuple[int, int], tuple[np.ndarray, np.ndarray] | None] = {}
         if camera.distorted:
@@ -232,19 +232,23 @@ class FrameProcessor:
             )
         return cv2.initUndistortRectifyMap(camera.K, camera.D, camera.R, camera.P, size, cv2.CV_16SC2)
 
-    def process(self, rgb: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """The frame undistorted and at the working resolution (written into `out` when given)."""
-        if self._maps is not None:
-            if rgb.shape[1] != self.camera.width_px or rgb.shape[0] != self.camera.height_px:
-                # A reduced-size decode: back to the calibrated size so the remap tables apply.
-                rgb = cv2.resize(rgb, (self.camera.width_px, self.camera.height_px), interpolation=cv2.INTER_LINEAR)
-            rgb = cv2.remap(rgb, self._maps[0], self._maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    def undistort(self, rgb: np.ndarray) -> np.ndarray:
+        """The frame undistorted at the recorded resolution (intrinsics `K_source`)."""
+        if self._maps is None:
+            return rgb
+        if rgb.shape[1] != self.camera.width_px or rgb.shape[0] != self.camera.height_px:
+            # A reduced-size decode: back to the calibrated size so the remap tables apply.
+            rgb = cv2.resize(rgb, (self.camera.width_px, self.camera.height_px), interpolation=cv2.INTER_LINEAR)
+        return cv2.remap(rgb, self._maps[0], self._maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+
+    def resize(self, rgb: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """An undistorted frame at the working resolution (written into `out` when given)."""
+        size = (self.out_width, self.out_height)
         if rgb.shape[1] == self.out_width and rgb.shape[0] == self.out_height:
             if out is not None:
                 out[...] = rgb
                 return out
             return rgb
-        size = (self.out_width, self.out_height)
         if self.interpolation == cv2.INTER_AREA:
             src = (rgb.shape[1], rgb.shape[0])
             if src not in self._area_tables:
@@ -253,6 +257,15 @@ class FrameProcessor:
             if tables is not None:
                 return cv2.remap(rgb, tables[0], tables[1], cv2.INTER_LINEAR, dst=out, borderMode=cv2.BORDER_REPLICATE)
         return cv2.resize(rgb, size, dst=out, interpolation=self.interpolation)
+
+    def process(self, rgb: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """The frame undistorted and at the working resolution (written into `out` when given)."""
+        return self.resize(self.undistort(rgb), out)
+
+    def process_keeping_original(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(working-resolution frame, undistorted frame at the recorded resolution)."""
+        full = self.undistort(rgb)
+        return self.resize(full), full
 
     def reduce_factor_for(self, source_width_px: int) -> int:
         """The largest jpeg decode reduction (1, 2, 4, 8) that still yields at least the working width."""

@@ -19,7 +19,7 @@ from drivesim.sim.geometry import camera_mount, invert, se3
 from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.images import CameraModel, FrameProcessor, working_size
 from drivesim.stages.ingest.output import (
-    NpyStreamWriter,
+    FrameStore,
     OrderedPipeline,
     gps_series,
     imu_series,
@@ -83,20 +83,20 @@ def _read_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def _write_frames(files: list[Path], processor: FrameProcessor, out_dir: Path, label: str) -> None:
-    height, width = processor.out_height, processor.out_width
+def _write_frames(files: list[Path], processor: FrameProcessor, out_dir: Path, label: str, keep: bool) -> None:
     expected = (processor.camera.height_px, processor.camera.width_px)
 
-    def work(file: Path) -> np.ndarray:
+    def work(file: Path) -> tuple[np.ndarray, np.ndarray | None]:
         rgb = _read_rgb(file)
         if rgb.shape[:2] != expected:
             raise InputError(f"image is {rgb.shape[1]}x{rgb.shape[0]}, the others {expected[1]}x{expected[0]}", file)
-        return processor.process(rgb)
+        return (processor.resize(rgb), rgb if keep else None)
 
-    writer = NpyStreamWriter(out_dir / "frames.npy", (len(files), height, width, 3), np.uint8)
+    original_size = (processor.camera.width_px, processor.camera.height_px) if keep else None
+    store = FrameStore(out_dir, len(files), (processor.out_width, processor.out_height), original_size)
 
-    def sink(frame: np.ndarray) -> None:
-        writer.write(frame)
+    def sink(frames: tuple[np.ndarray, np.ndarray | None]) -> None:
+        store.write(frames)
         progress.advance(task)
 
     pipeline = OrderedPipeline(work, sink)
@@ -107,7 +107,7 @@ def _write_frames(files: list[Path], processor: FrameProcessor, out_dir: Path, l
             pipeline.finish()
     finally:
         pipeline.close()
-        writer.close()
+        store.close()
 
 
 def _image_files(folder: Path) -> list[Path]:
@@ -254,7 +254,7 @@ def ingest_kitti_raw(drive: Path, cfg: IngestConfig, out_dir: Path) -> IngestRes
         working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale),
         cfg.image.interpolation,
     )
-    _write_frames(files, processor, out_dir, cam_dir.name)
+    _write_frames(files, processor, out_dir, cam_dir.name, cfg.image.keep_original)
     np.save(out_dir / "frame_times_ns.npy", times)
     counts = _save_oxts(out_dir, oxts_times, oxts)
     sensors = {
@@ -313,7 +313,7 @@ def ingest_kitti_odometry(folder: Path, cfg: IngestConfig, out_dir: Path) -> Ing
         working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale),
         cfg.image.interpolation,
     )
-    _write_frames(files, processor, out_dir, cam_dir.name)
+    _write_frames(files, processor, out_dir, cam_dir.name, cfg.image.keep_original)
     np.save(out_dir / "frame_times_ns.npy", times)
     sensors = {"camera": {"topic": cam_dir.name, "type": "png", "message_count": len(files)}}
     if poses is not None:
@@ -354,6 +354,7 @@ def _finish(
             "width_px": processor.out_width,
             "height_px": processor.out_height,
             "K": processor.K_out,
+            "K_source": processor.K_source,
             "source_width_px": source_size[0],
             "source_height_px": source_size[1],
             "distortion_model": "none",

@@ -198,3 +198,34 @@ class OrderedPipeline:
             future.cancel()
         self._pending.clear()
         self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+class FrameStore:
+    """frames.npy (working resolution) and, when asked, frames_original.npy (recorded resolution), row by row.
+
+    :param out_dir: the trace folder.
+    :param n_frames: frame count.
+    :param size: (width, height) of frames.npy.
+    :param original_size: (width, height) of frames_original.npy, or None to not keep originals.
+    """
+
+    def __init__(
+        self, out_dir: Path, n_frames: int, size: tuple[int, int], original_size: tuple[int, int] | None
+    ) -> None:
+        self.frames = NpyStreamWriter(out_dir / "frames.npy", (n_frames, size[1], size[0], 3), np.uint8)
+        self.originals = None
+        if original_size is not None:
+            shape = (n_frames, original_size[1], original_size[0], 3)
+            self.originals = NpyStreamWriter(out_dir / "frames_original.npy", shape, np.uint8)
+
+    def write(self, frames: tuple[np.ndarray, np.ndarray | None]) -> None:
+        """Append (working frame, original frame or None)."""
+        self.frames.write(frames[0])
+        if self.originals is not None:
+            self.originals.write(frames[1])
+
+    def close(self) -> None:
+        """Close the files."""
+        self.frames.close()
+        if self.originals is not None:
+            self.originals.close()

@@ -30,6 +30,7 @@ from drivesim.stages.ingest.images import (
     working_size,
 )
 from drivesim.stages.ingest.output import (
+    FrameStore,
     GrowableArray,
     NpyStreamWriter,
     OrderedPipeline,
@@ -43,7 +44,6 @@ from drivesim.stages.ingest.output import (
 from drivesim.stages.ingest.sources import MessageSource, open_source
 from drivesim.stages.ingest.topics import TopicChoice, choose_topics, describe_topics
 
-_NAN3 = np.full(3, np.nan)
 _NAN4 = np.full(4, np.nan)
 
 
@@ -219,7 +219,8 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
 
     out_size = working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale)
     processor = FrameProcessor(model, out_size, cfg.image.interpolation)
-    reduce = processor.reduce_factor_for(source_w) if cfg.image.reduced_jpeg_decode else 1
+    reduce_ok = cfg.image.reduced_jpeg_decode and not cfg.image.keep_original
+    reduce = processor.reduce_factor_for(source_w) if reduce_ok else 1
     decode = _CameraDecoder(camera.msgtype, reduce, (source_w, source_h))
 
     camera_frame = (info.header.frame_id or first_image.header.frame_id or "").lstrip("/")
@@ -227,7 +228,8 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
 
     n_frames = camera.message_count
     width, height = out_size
-    frames = NpyStreamWriter(out_dir / "frames.npy", (n_frames, height, width, 3), np.uint8)
+    keep = cfg.image.keep_original
+    frames = FrameStore(out_dir, n_frames, out_size, (source_w, source_h) if keep else None)
     frame_times = GrowableArray((), np.int64)
 
     gt_depth_topic = choice.roles.get("gt_depth")
@@ -372,11 +374,15 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
 
         handlers[choice.tf.name] = on_tf
 
-    def sink_frame(frame: np.ndarray) -> None:
+    def sink_frame(frame: tuple[np.ndarray, np.ndarray | None]) -> None:
         frames.write(frame)
         progress.advance(task)
 
-    pipeline = OrderedPipeline(lambda msg: processor.process(decode(msg)), sink_frame)
+    def work(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
+        rgb = decode(msg)
+        return processor.process_keeping_original(rgb) if keep else (processor.process(rgb), None)
+
+    pipeline = OrderedPipeline(work, sink_frame)
     try:
         with progress_bar(f"ingest {camera.name}", total=n_frames) as (progress, task):
             for topic, log_ns, msg in source.messages(list(handlers)):
@@ -428,6 +434,7 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
             "width_px": width,
             "height_px": height,
             "K": processor.K_out,
+            "K_source": processor.K_source,
             "source_width_px": source_w,
             "source_height_px": source_h,
             "distortion_model": model.model if model.distorted else "none",

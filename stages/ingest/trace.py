@@ -14,6 +14,7 @@ Files (all arrays are .npy; N = frame count):
         "K": [[fx,0,cx],[0,fy,cy],[0,0,1]],       pinhole intrinsics at the working resolution (pixels, pixel-centre
                                                   convention of sim.geometry.scale_intrinsics); after undistortion
                                                   this is CameraInfo P[:3,:3] scaled
+        "K_source": 3x3,                          the same intrinsics at the recorded resolution
         "source_width_px", "source_height_px",    resolution of the recorded images
         "distortion_model": "plumb_bob" | "rational_polynomial" | "equidistant" | "none",  what was removed
         "T_vehicle_camera": 4x4,                  camera optical frame -> vehicle frame (metres)
@@ -25,6 +26,8 @@ Files (all arrays are .npy; N = frame count):
     sources.json            {"recording": str, "format": "ros1" | "rosbag2" | "mcap" | "kitti_raw" | "kitti_odometry",
                              "camera_topic": str, "sensors": {name: {"topic", "type", "message_count"}}}
                             (the same `sensors` as the manifest summary; KITTI "topics" are folder names)
+    frames_original.npy     uint8   (N, Hs, Ws, 3) only with image.keep_original: undistorted frames at the
+                            recorded resolution (intrinsics K_source)
   Optional series (present when the recording has them; each an .npz of equal-length arrays sorted by t_ns):
     gps.npz       t_ns int64 (M,); lat_deg, lon_deg, alt_m float64 (M,); status int8 (M,) (NavSatStatus:
                   -1 no fix, 0 fix, 1 SBAS, 2 GBAS); covariance_m2 float64 (M,3,3) ENU position covariance;
@@ -203,6 +206,12 @@ def validate_trace(path: Path | str) -> TraceInfo:
                 if arr.shape != (m, *row_shape) or arr.dtype.kind != kind:
                     raise _fail(file, f"{col} is {arr.dtype} {arr.shape}, expected ({m}, {row_shape}) of kind {kind}")
         series.append(name)
+
+    if (path / "frames_original.npy").is_file():
+        o_shape, o_dtype, _ = _npy_header(path / "frames_original.npy")
+        source = (int(calibration["source_height_px"]), int(calibration["source_width_px"]), 3)
+        if o_dtype != np.uint8 or o_shape != (n, *source):
+            raise _fail(path / "frames_original.npy", f"expected uint8 ({n}, {source}), got {o_dtype} {o_shape}")
 
     has_gt_depth = (path / "gt_depth.npy").is_file()
     if has_gt_depth:
