@@ -65,9 +65,11 @@ def test_mono_encodings_give_grey_rgb(tmp_path: Path, encoding: str) -> None:
     np.testing.assert_allclose(centre, [grey] * 3, atol=1.0)
 
 
-@pytest.mark.parametrize(("fmt", "tolerance"), [("png", 0), ("jpeg", 8)])
-def test_compressed_images(tmp_path: Path, fmt: str, tolerance: int) -> None:
-    result, info = _ingest(tmp_path, drive_messages(n_frames=4, compressed=fmt))
+@pytest.mark.parametrize(
+    ("fmt", "tolerance", "container"), [("png", 0, "mcap"), ("jpeg", 8, "mcap"), ("jpeg", 8, "ros1")]
+)
+def test_compressed_images(tmp_path: Path, fmt: str, tolerance: int, container: str) -> None:
+    result, info = _ingest(tmp_path, drive_messages(n_frames=4, compressed=fmt), fmt=container)
     assert result.summary["sensors"]["camera"]["type"] == "sensor_msgs/msg/CompressedImage"
     frames = np.asarray(info.frames())
     assert frames.shape == (4, H, W, 3)
