@@ -485,11 +485,16 @@ def save_tf_odometry(path: Path, tf_poses: Series, T_child_vehicle: np.ndarray |
     )
 
 
+_SENSOR_ORDER = ("camera", "camera_info", "gps", "imu", "twist", "odometry", "tf", "tf_static", "gt_depth", "gt_pose")
+
+
 def _sensors(choice: TopicChoice) -> dict[str, dict[str, Any]]:
-    sensors = {
-        role: {"topic": t.name, "type": t.msgtype, "message_count": t.message_count} for role, t in choice.roles.items()
-    }
+    """{role: {topic, type, message_count}} in a fixed order, camera first."""
+    topics = dict(choice.roles)
     if choice.tf_static is not None:
-        t = choice.tf_static
-        sensors["tf_static"] = {"topic": t.name, "type": t.msgtype, "message_count": t.message_count}
-    return sensors
+        topics["tf_static"] = choice.tf_static
+    return {
+        role: {"topic": topics[role].name, "type": topics[role].msgtype, "message_count": topics[role].message_count}
+        for role in _SENSOR_ORDER
+        if role in topics
+    }
