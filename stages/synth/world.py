@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 from scipy.spatial import cKDTree
 
 from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert
@@ -147,16 +148,19 @@ class SynthWorld:
         result = self._rasterizer(width_px, height_px).render(
             self.meshes, invert(T_world_camera), K, self.lighting(T_world_camera)
         )
-        rgb = result.rgb[0].numpy()
-        depth = result.depth_m[0].numpy().astype(np.float32)
-        ids = result.object_id[0].numpy()
-        sky = np.isinf(depth)
-        haze = (1.0 - np.exp(-np.where(sky, 0.0, depth) / HAZE_DISTANCE_M))[..., None]
-        rgb = rgb * (1.0 - haze) + SKY_HORIZON_RGB.astype(np.float32) * haze
-        if sky.any():
-            rays = self._pixel_rays(K, width_px, height_px)[sky]
-            rgb[sky] = _sky_colour(rays @ T_world_camera[:3, :3].T.astype(np.float32), self._clouds)
-        return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8), depth, ids
+        rgb = result.rgb[0]
+        depth = result.depth_m[0]
+        sky = torch.isinf(depth)
+        # aerial perspective: blend toward the horizon colour with distance (in place, in torch: this runs per frame)
+        haze = -torch.expm1(-depth.masked_fill(sky, 0.0) / HAZE_DISTANCE_M)
+        rgb.lerp_(torch.as_tensor(SKY_HORIZON_RGB, dtype=rgb.dtype).expand_as(rgb), haze[..., None].expand_as(rgb))
+        rgb = rgb.clamp_(0.0, 1.0).mul_(255.0).add_(0.5).to(torch.uint8).numpy()
+        sky_np = sky.numpy()
+        if sky_np.any():
+            rays = self._pixel_rays(K, width_px, height_px)[sky_np]
+            colour = _sky_colour(rays @ T_world_camera[:3, :3].T.astype(np.float32), self._clouds)
+            rgb[sky_np] = (colour * 255.0 + 0.5).astype(np.uint8)
+        return rgb, depth.numpy().astype(np.float32, copy=False), result.object_id[0].numpy()
 
     def render(
         self, T_world_camera: np.ndarray, K: np.ndarray, width_px: int, height_px: int
