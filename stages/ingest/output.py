@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -10,6 +11,8 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
+
+_NUMBER_LIST = re.compile(r"\[\s*((?:-?[\d.eE+-]+|null)(?:,\s*(?:-?[\d.eE+-]+|null))*)\s*\]")
 
 
 class NpyStreamWriter:
@@ -157,7 +160,10 @@ def write_json(path: Path, value: dict[str, Any]) -> None:
             return obj.item()
         raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
-    path.write_text(json.dumps(value, indent=2, default=default) + "\n")
+    text = json.dumps(value, indent=2, default=default)
+    # matrix rows on one line each: [[fx, 0, cx], ...] stays readable
+    text = _NUMBER_LIST.sub(lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
+    path.write_text(text + "\n")
 
 
 class OrderedPipeline:
