@@ -9,23 +9,30 @@ surface around them; larger disocclusions stay empty (`valid` False).
 
 Only the requested region of interest of the destination image is rendered: source pixels landing outside it (plus a
 2 px margin that hole filling reads) are dropped before the scatter, so the cost scales with what the policy sees.
+What depends on the source frame alone (its back-projected points, packed colours) is computed once and cached, keyed
+on the tensors' storage and version counters (an in-place change of the frame invalidates the entry), so warping one
+recorded frame to many agents' poses pays for it once.
 Conventions: pixel centres at integer coordinates (see geometry.scale_intrinsics), depth = z along the optical axis.
 """
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+from torch.nn.functional import pad
 
 __all__ = ["WarpResult", "forward_warp"]
 
-_EMPTY_KEY = torch.iinfo(torch.int64).max
+_INF_BITS = 0x7F800000  # float32 +inf
+# Empty z-buffer entry: larger than every real key, and its high half decodes to a depth of +inf.
+_EMPTY_KEY = (_INF_BITS << 32) | 0xFFFFFFFF
 _LOW32 = 0xFFFFFFFF
 _FILL_RADIUS_PX = 2
 _NEAR_M = 1e-3
-_GRID_CACHE: dict[tuple[int, int, str], torch.Tensor] = {}
+_SOURCE_CACHE_SIZE = 8
 
 
 @dataclass
@@ -42,19 +49,66 @@ class WarpResult:
     valid: torch.Tensor
 
 
-def _pixel_grid(height_px: int, width_px: int, device: torch.device) -> torch.Tensor:
-    """(3, H*W) homogeneous pixel centres [u, v, 1], cached per size and device."""
-    key = (height_px, width_px, str(device))
-    grid = _GRID_CACHE.get(key)
-    if grid is None:
-        v, u = torch.meshgrid(
-            torch.arange(height_px, dtype=torch.float32, device=device),
-            torch.arange(width_px, dtype=torch.float32, device=device),
-            indexing="ij",
-        )
-        grid = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(height_px * width_px, device=device)])
-        _GRID_CACHE[key] = grid
-    return grid
+@dataclass
+class _Source:
+    """Per-source-frame constants: points (B, 3, HW) in the source camera (z K^-1 p; the ray K^-1 p for sky),
+    `finite` (B, 1, HW) 1.0 for finite depth else 0.0, `near` (B, HW) the smallest destination z a point may have to
+    be drawn (+inf for pixels without depth), `sky_depth` (B, HW) 0 or +inf added to the destination z, and the
+    colour table (B * HW,) int32 packed RGB8 for uint8 sources or (3, B * HW) channel-major otherwise."""
+
+    points: torch.Tensor
+    finite: torch.Tensor
+    near: torch.Tensor
+    sky_depth: torch.Tensor
+    colour: torch.Tensor
+
+
+_SOURCE_CACHE: OrderedDict[tuple, _Source] = OrderedDict()
+
+
+def _prepare_source(rgb: torch.Tensor, depth_m: torch.Tensor, K_src: torch.Tensor) -> _Source:
+    key = (
+        depth_m.data_ptr(),
+        depth_m._version,
+        tuple(depth_m.shape),
+        rgb.data_ptr(),
+        rgb._version,
+        rgb.dtype,
+        tuple(K_src.flatten().tolist()),
+    )
+    cached = _SOURCE_CACHE.get(key)
+    if cached is not None:
+        _SOURCE_CACHE.move_to_end(key)
+        return cached
+    B, H, W = depth_m.shape
+    dev = depth_m.device
+    v, u = torch.meshgrid(
+        torch.arange(H, dtype=torch.float64, device=dev),
+        torch.arange(W, dtype=torch.float64, device=dev),
+        indexing="ij",
+    )
+    pixels = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(H * W, dtype=torch.float64, device=dev)])
+    rays = (torch.linalg.inv(K_src) @ pixels).to(torch.float32)  # (3, HW), z = 1
+    z = depth_m.reshape(B, 1, H * W).to(torch.float32)
+    finite = torch.isfinite(z)
+    has_depth = finite & (z > 0)
+    sky = torch.isposinf(z)
+    scale = torch.nan_to_num(z, nan=0.0, posinf=1.0, neginf=0.0)
+    near = torch.full((B, H * W), torch.inf, device=dev)
+    near[has_depth[:, 0]] = _NEAR_M
+    near[sky[:, 0]] = 0.0
+    sky_depth = torch.zeros((B, H * W), device=dev)
+    sky_depth[sky[:, 0]] = torch.inf
+    if rgb.dtype == torch.uint8:
+        c = rgb.reshape(B * H * W, 3).to(torch.int32)
+        colour = c[:, 0] | (c[:, 1] << 8) | (c[:, 2] << 16)
+    else:
+        colour = rgb.reshape(B * H * W, 3).T.contiguous()
+    source = _Source(rays * scale, finite.to(torch.float32), near, sky_depth, colour)
+    _SOURCE_CACHE[key] = source
+    if len(_SOURCE_CACHE) > _SOURCE_CACHE_SIZE:
+        _SOURCE_CACHE.popitem(last=False)
+    return source
 
 
 def _as_tensor(x: np.ndarray | torch.Tensor, device: torch.device) -> torch.Tensor:
@@ -63,43 +117,35 @@ def _as_tensor(x: np.ndarray | torch.Tensor, device: torch.device) -> torch.Tens
     return torch.as_tensor(np.asarray(x, dtype=np.float64), device=device)
 
 
-def _min_filter(keys: torch.Tensor, radius: int) -> torch.Tensor:
-    """Separable (2r+1)^2 minimum of a (B, h, w) int64 image (outside the image counts as empty)."""
-    out = keys.clone()
-    for d in range(1, radius + 1):
-        out[:, :, d:] = torch.minimum(out[:, :, d:], keys[:, :, :-d])
-        out[:, :, :-d] = torch.minimum(out[:, :, :-d], keys[:, :, d:])
-    rows = out.clone()
-    for d in range(1, radius + 1):
-        out[:, d:, :] = torch.minimum(out[:, d:, :], rows[:, :-d, :])
-        out[:, :-d, :] = torch.minimum(out[:, :-d, :], rows[:, d:, :])
-    return out
-
-
-def _shifted(valid: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
-    """valid[y + dy, x + dx] (False outside)."""
-    B, h, w = valid.shape
-    out = torch.zeros_like(valid)
-    ys, yd = (slice(dy, h), slice(0, h - dy)) if dy >= 0 else (slice(0, h + dy), slice(-dy, h))
-    xs, xd = (slice(dx, w), slice(0, w - dx)) if dx >= 0 else (slice(0, w + dx), slice(-dx, w))
-    out[:, yd, xd] = valid[:, ys, xs]
-    return out
-
-
 def _fill_cracks(keys: torch.Tensor, radius: int = _FILL_RADIUS_PX) -> torch.Tensor:
     """Fill empty pixels that have warped pixels on both sides along a row, column or diagonal, within 1 px first
     (from the nearest surface in the 3x3 neighbourhood), then within `radius` px for the cracks still open."""
+    B, h, w = keys.shape
     for r in range(1, radius + 1):
         valid = keys != _EMPTY_KEY
+        padded = pad(valid, (r, r, r, r))  # False outside the image
+
+        def at(dy: int, dx: int, image: torch.Tensor = padded, r: int = r) -> torch.Tensor:
+            return image[:, r + dy : r + dy + h, r + dx : r + dx + w]
+
         enclosed = torch.zeros_like(valid)
         for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
-            side_a = _shifted(valid, r * dy, r * dx)
-            side_b = _shifted(valid, -r * dy, -r * dx)
-            for d in range(1, r):
-                side_a |= _shifted(valid, d * dy, d * dx)
-                side_b |= _shifted(valid, -d * dy, -d * dx)
+            side_a, side_b = at(dy, dx), at(-dy, -dx)
+            for d in range(2, r + 1):
+                side_a, side_b = side_a | at(d * dy, d * dx), side_b | at(-d * dy, -d * dx)
             enclosed |= side_a & side_b
-        keys = torch.where(enclosed & ~valid, _min_filter(keys, r), keys)
+        fill = enclosed & ~valid
+        if not bool(fill.any()):
+            continue
+        # Nearest surface in the (2r+1)^2 neighbourhood: a separable minimum over shifted views.
+        kp = pad(keys, (r, r, r, r), value=_EMPTY_KEY)
+        rows = kp[:, :, 0:w]
+        for d in range(1, 2 * r + 1):
+            rows = torch.minimum(rows, kp[:, :, d : d + w])
+        best = rows[:, 0:h]
+        for d in range(1, 2 * r + 1):
+            best = torch.minimum(best, rows[:, d : d + h])
+        keys = torch.where(fill, best, keys)
     return keys
 
 
@@ -143,40 +189,52 @@ def forward_warp(
     ex1, ey1 = min(x0 + w + margin, out_width_px), min(y0 + h + margin, out_height_px)
     ew, eh = ex1 - ex0, ey1 - ey0
 
-    K_s = _as_tensor(K_src, device)
+    source = _prepare_source(rgb, depth_m, _as_tensor(K_src, device))
     K_d = _as_tensor(K_dst, device)
-    # q = K_dst (R z K_src^-1 p + t) = z (A p) + K_dst t, with A = K_dst R K_src^-1 folding the cached rays.
-    A = (K_d @ T[:, :3, :3] @ torch.linalg.inv(K_s)).to(torch.float32)
+    # q = K_dst (R P + t finite): finite points move with the camera, points at infinity only turn.
+    M = (K_d @ T[:, :3, :3]).to(torch.float32)
     c = (K_d @ T[:, :3, 3:]).to(torch.float32)  # (B, 3, 1)
-    q = A @ _pixel_grid(H, W, device)  # (B, 3, HW)
-    z = depth_m.reshape(B, 1, H * W).to(torch.float32)
-    finite = torch.isfinite(z)
-    q = q * torch.where(finite, z, 1.0) + c * finite
-    qz = q[:, 2]
-    in_front = torch.where(finite[:, 0], (qz > _NEAR_M) & (z[:, 0] > 0), qz > 0)
-    qz_safe = torch.where(in_front, qz, 1.0)
-    u = torch.floor(q[:, 0] / qz_safe + 0.5) - ex0
-    v = torch.floor(q[:, 1] / qz_safe + 0.5) - ey0
+    P, fin = source.points, source.finite[:, 0]
+    # Written out per row (not bmm) so that a frame warps bit-identically alone or in a batch.
+    q = [
+        torch.addcmul(torch.addcmul(torch.addcmul(c[:, i] * fin, M[:, i, 0:1], P[:, 0]), M[:, i, 1:2], P[:, 1]),
+                      M[:, i, 2:3], P[:, 2])
+        for i in range(3)
+    ]  # fmt: skip
+    qz = q[2]
+    in_front = qz > source.near
+    inv_z = 1.0 / qz
+    u = torch.floor(torch.addcmul(torch.full_like(qz, 0.5 - ex0), q[0], inv_z))
+    v = torch.floor(torch.addcmul(torch.full_like(qz, 0.5 - ey0), q[1], inv_z))
     inside = in_front & (u >= 0) & (u < ew) & (v >= 0) & (v < eh)
-    b_idx, src = inside.nonzero(as_tuple=True)
-    depth = torch.where(finite[:, 0], qz, torch.inf)[b_idx, src]
-    key = (depth.view(torch.int32).to(torch.int64) << 32) | src
-    pix = (b_idx * eh + v[b_idx, src].to(torch.int64)) * ew + u[b_idx, src].to(torch.int64)
+    flat = inside.reshape(-1).nonzero().squeeze(1)  # b * HW + source pixel
+    depth = (qz + source.sky_depth).reshape(-1).index_select(0, flat)
+    b_idx = flat // (H * W) if B > 1 else torch.zeros_like(flat)
+    key = (depth.view(torch.int32).to(torch.int64) << 32) | (flat - b_idx * (H * W))
+    pix = (b_idx * eh + v.reshape(-1).index_select(0, flat).to(torch.int64)) * ew
+    pix += u.reshape(-1).index_select(0, flat).to(torch.int64)
     keys = torch.full((B * eh * ew,), _EMPTY_KEY, dtype=torch.int64, device=device)
     keys.scatter_reduce_(0, pix, key, reduce="amin")
     keys = keys.reshape(B, eh, ew)
     if fill_holes:
         keys = _fill_cracks(keys)
-    keys = keys[:, y0 - ey0 : y0 - ey0 + h, x0 - ex0 : x0 - ex0 + w]
+    keys = keys[:, y0 - ey0 : y0 - ey0 + h, x0 - ex0 : x0 - ex0 + w].reshape(B, h * w)
 
     valid = keys != _EMPTY_KEY
-    safe = torch.where(valid, keys, 0)
-    src_index = safe & _LOW32
-    depth_out = torch.where(valid, (safe >> 32).to(torch.int32).view(torch.float32), torch.inf)
-    flat = (torch.arange(B, device=device)[:, None, None] * (H * W) + src_index).reshape(-1)
-    out_rgb = rgb.reshape(B * H * W, 3)[flat].reshape(B, h, w, 3)
-    out_rgb = torch.where(valid[..., None], out_rgb, torch.zeros((), dtype=out_rgb.dtype, device=device))
-    result = WarpResult(rgb=out_rgb, depth_m=depth_out, valid=valid)
+    depth_out = (keys >> 32).to(torch.int32).view(torch.float32)  # +inf where empty, by the choice of _EMPTY_KEY
+    src_index = (keys & _LOW32).clamp_(max=H * W - 1)
+    if B > 1:
+        src_index += torch.arange(B, device=device)[:, None] * (H * W)
+    src_index = src_index.reshape(-1)
+    if rgb.dtype == torch.uint8:
+        packed = source.colour.index_select(0, src_index) * valid.reshape(-1)
+        out_rgb = torch.stack([packed & 255, (packed >> 8) & 255, packed >> 16], -1).to(torch.uint8)
+    else:
+        out_rgb = torch.stack([row.index_select(0, src_index) for row in source.colour], -1)
+        out_rgb *= valid.reshape(-1, 1)
+    result = WarpResult(
+        rgb=out_rgb.reshape(B, h, w, 3), depth_m=depth_out.reshape(B, h, w), valid=valid.reshape(B, h, w)
+    )
     if squeeze:
-        result = WarpResult(rgb=out_rgb[0], depth_m=depth_out[0], valid=valid[0])
+        result = WarpResult(rgb=result.rgb[0], depth_m=result.depth_m[0], valid=result.valid[0])
     return result
