@@ -7,7 +7,8 @@ the camera model, and the reference path (the recorded trajectory is the lane ce
 Files (N = frame count, h x w = simulation resolution; arrays are .npy opened with mmap_mode="r"):
     frames.npy      uint8   (N, h, w, 3)  RGB frames resized with cv2.INTER_AREA
     depth_m.npy     float32 (N, h, w)     metric depth along the optical axis; min-pooled (or nearest) from the
-                                          preprocessed depth so thin near objects survive; inf = sky / no depth
+                                          preprocessed depth so thin near objects survive; sky / no estimate
+                                          = world.json far_depth_m
     camera.json     {"width_px": w, "height_px": h, "K": 3x3 at (w, h), "T_vehicle_camera": 4x4,
                      "camera_height_m": float | null, "source_width_px", "source_height_px"}
     path.npz        per frame, float64 unless noted:
@@ -16,7 +17,7 @@ Files (N = frame count, h x w = simulation resolution; arrays are .npy opened wi
                     arc_length_m (N,); T_world_vehicle (N,4,4); T_world_camera (N,4,4)
     world.json      {"format": 1, "frame_count": N, "road_width_m", "lane_width_m", "path_length_m",
                      "curvature_min_1pm", "curvature_max_1pm", "pose_source", "origin_lat_deg",
-                     "origin_lon_deg", "origin_alt_m", "depth_method"}
+                     "origin_lon_deg", "origin_alt_m", "depth_method", "far_depth_m"}
     pointcloud.ply  fused coloured point cloud of the drive (for people; the simulator does not read it)
     birdseye.png    the path from above coloured by curvature (for people)
 

@@ -48,6 +48,7 @@ def test_build_world_loads_in_the_simulator(ws: Workspace) -> None:
     np.testing.assert_allclose(world.frames[:, :, :, 0].mean(axis=(1, 2)), np.arange(FRAME_COUNT) * 10, atol=0.6)
     assert world.path_length_m == pytest.approx(SPEED_MPS * (FRAME_COUNT - 1) * 0.1, abs=1e-6)
     assert world.lane_width_m == 3.5 and world.road_width_m == 7.0
+    assert world.info["far_depth_m"] == 80.0 and world.depth_m.max() == pytest.approx(80.0)
 
     # K at the sim resolution still maps a world point to the same place in the image (half the pixels)
     trace_K = np.asarray(json.loads((ws.artifact_dir("trace") / "calibration.json").read_text())["K"])

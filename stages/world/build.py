@@ -148,6 +148,7 @@ def run_build_world(ws: Workspace, cfg: WorldConfig, force: bool = False) -> Wor
             "origin_lon_deg": pre.origin.get("origin_lon_deg"),
             "origin_alt_m": pre.origin.get("origin_alt_m"),
             "depth_method": pre.origin.get("depth_method"),
+            "far_depth_m": pre.origin.get("max_depth_m"),
         }
         (build.dir / "world.json").write_text(json.dumps(info, indent=2) + "\n")
 
