@@ -319,6 +319,25 @@ def depth_values(t_ns: int, depth_m: np.ndarray) -> dict:
     }
 
 
+def pointcloud_values(t_ns: int, points: np.ndarray, frame_id: str = "lidar") -> dict:
+    """sensor_msgs/PointCloud2 values: float32 x, y, z, intensity (points (M, 4)), one row, 16-byte points."""
+    fields = [
+        {"name": n, "offset": 4 * i, "datatype": 7, "count": 1} for i, n in enumerate(("x", "y", "z", "intensity"))
+    ]
+    data = np.ascontiguousarray(points, dtype="<f4").tobytes()
+    return {
+        "header": header(t_ns, frame_id),
+        "height": 1,
+        "width": len(points),
+        "fields": fields,
+        "is_bigendian": False,
+        "point_step": 16,
+        "row_step": 16 * len(points),
+        "data": data,
+        "is_dense": False,
+    }
+
+
 # ---------------------------------------------------------------- images and drives
 
 

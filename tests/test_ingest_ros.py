@@ -306,3 +306,30 @@ def test_camera_size_change_midway_is_refused(tmp_path: Path) -> None:
     camera_msgs[2].values.update(image_values(camera_msgs[2].t_ns, patch_image(32, 20)))
     with pytest.raises(InputError, match=r"camera image size changed from 64x40 to 32x20"):
         _ingest(tmp_path, msgs)
+
+
+def test_pointcloud_scans_are_stored_in_the_vehicle_frame(tmp_path: Path) -> None:
+    from recordings import pointcloud_values
+
+    T_link_lidar = np.eye(4)
+    T_link_lidar[:3, 3] = [0.5, 0.0, 1.8]  # lidar on the roof, axes as the vehicle's
+    msgs = [m for m in drive_messages(n_frames=3) if m.topic != "/tf_static"]
+    edges = [
+        ("base_footprint", "base_link", T_FOOTPRINT_LINK),
+        ("base_link", "camera_optical", T_LINK_CAMERA),
+        ("base_link", "lidar", T_link_lidar),
+    ]
+    msgs.append(Msg("/tf_static", "tf2_msgs/msg/TFMessage", START_NS, tf_static_values(START_NS, edges)))
+    for i in range(3):
+        t = START_NS + i * 100_000_000 + 6
+        pts = np.array([[10.0, 1.0, -2.2, 5.0], [np.nan, 0, 0, 1.0], [3.0 + i, -1.0, 0.0, 7.0]], np.float32)
+        msgs.append(Msg("/velodyne_points", "sensor_msgs/msg/PointCloud2", t, pointcloud_values(t, pts)))
+    result, info = _ingest(tmp_path, sorted(msgs, key=lambda m: m.t_ns), fmt="ros1")
+    scans = info.load_series("lidar_scans")
+    np.testing.assert_array_equal(scans["count"], [2, 2, 2])  # the NaN point is dropped
+    np.testing.assert_array_equal(scans["start"], [0, 2, 4])
+    points = np.asarray(info.lidar_points())
+    # lidar (10, 1, -2.2) -> base_link (10.5, 1, -0.4) -> base_footprint (10.5, 1, 0): a point on the ground
+    np.testing.assert_allclose(points[0], [10.5, 1.0, 0.0, 5.0], atol=1e-5)
+    np.testing.assert_allclose(points[5], [5.5, -1.0, 2.2, 7.0], atol=1e-5)
+    assert result.summary["sensors"]["lidar"]["message_count"] == 3

@@ -8,7 +8,7 @@ from pydantic import Field
 
 from drivesim.pipeline.config import StageConfig
 
-TOPIC_ROLES = ("camera", "camera_info", "gps", "imu", "twist", "odometry", "gt_depth", "gt_pose")
+TOPIC_ROLES = ("camera", "camera_info", "gps", "imu", "twist", "odometry", "lidar", "gt_depth", "gt_pose")
 
 
 class ImageConfig(StageConfig):
@@ -42,6 +42,8 @@ class TopicsConfig(StageConfig):
     """TwistStamped topic giving the forward speed."""
     odometry: str | None = None
     """nav_msgs/Odometry topic."""
+    lidar: str | None = None
+    """sensor_msgs/PointCloud2 topic (stored as lidar_points.npy in the vehicle frame)."""
     gt_depth: str | None = None
     """Ground-truth depth image topic of synthetic recordings (default /ground_truth/depth)."""
     gt_pose: str | None = None

@@ -41,6 +41,7 @@ from drivesim.stages.ingest.output import (
     speed_series,
     write_json,
 )
+from drivesim.stages.ingest.pointcloud import LidarWriter, PointCloudError, cloud_points
 from drivesim.stages.ingest.sources import MessageSource, open_source
 from drivesim.stages.ingest.topics import TopicChoice, choose_topics, describe_topics
 
@@ -168,7 +169,7 @@ def ingest_ros(path: Path, fmt: str, cfg: IngestConfig, out_dir: Path) -> Ingest
     source = open_source(path, fmt)
     try:
         return _ingest(source, path, fmt, cfg, out_dir)
-    except EncodingError as e:
+    except (EncodingError, PointCloudError) as e:
         raise InputError(str(e), path) from None
     finally:
         source.close()
@@ -355,6 +356,21 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
 
         handlers[choice.roles["gt_pose"].name] = on_gt_pose
 
+    lidar: LidarWriter | None = None
+    if "lidar" in choice.roles:
+
+        def on_lidar(msg: Any, log_ns: int) -> None:
+            nonlocal lidar
+            frame_id = msg.header.frame_id.lstrip("/")
+            if lidar is None:
+                T = tf.lookup(vehicle_frame, frame_id) if vehicle_frame and frame_id else None
+                if T is None:
+                    notes.append(f"lidar frame {frame_id!r} not in /tf_static: points taken as in the vehicle frame")
+                lidar = LidarWriter(out_dir, T)
+            lidar.add(stamp_ns(msg, log_ns), cloud_points(msg))
+
+        handlers[choice.roles["lidar"].name] = on_lidar
+
     tf_poses: Series | None = None
     if choice.tf is not None and "odometry" not in choice.roles:
         tf_poses = Series({"T_parent_vehicle": ((4, 4), np.float64)})
@@ -388,6 +404,12 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
             for topic, log_ns, msg in source.messages(list(handlers)):
                 handlers[topic](msg, log_ns)
             pipeline.finish()
+        if lidar is not None:
+            lidar.close()
+    except BaseException:
+        if lidar is not None:
+            lidar.abort()
+        raise
     finally:
         pipeline.close()
         frames.close()
@@ -485,7 +507,9 @@ def save_tf_odometry(path: Path, tf_poses: Series, T_child_vehicle: np.ndarray |
     )
 
 
-_SENSOR_ORDER = ("camera", "camera_info", "gps", "imu", "twist", "odometry", "tf", "tf_static", "gt_depth", "gt_pose")
+_SENSOR_ORDER = (
+    "camera", "camera_info", "gps", "imu", "twist", "odometry", "lidar", "tf", "tf_static", "gt_depth", "gt_pose"
+)  # fmt: skip
 
 
 def _sensors(choice: TopicChoice) -> dict[str, dict[str, Any]]:

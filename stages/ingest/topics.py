@@ -20,6 +20,7 @@ ROLE_TYPES: dict[str, tuple[str, ...]] = {
     "odometry": ("nav_msgs/msg/Odometry",),
     "gt_depth": ("sensor_msgs/msg/Image",),
     "gt_pose": ("geometry_msgs/msg/PoseStamped",),
+    "lidar": ("sensor_msgs/msg/PointCloud2",),
 }
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 DEFAULT_GT_TOPICS = {"gt_depth": "/ground_truth/depth", "gt_pose": "/ground_truth/pose"}
@@ -113,7 +114,7 @@ def choose_topics(topics: dict[str, TopicInfo], wanted: TopicsConfig, path: Path
         elif len(infos) == 1:
             choice.roles["camera_info"] = infos[0]
 
-    for role in ("gps", "imu", "twist", "odometry"):
+    for role in ("gps", "imu", "twist", "odometry", "lidar"):
         if role in choice.roles:
             continue
         candidates = sorted((t for t in topics.values() if t.msgtype in ROLE_TYPES[role]), key=lambda t: t.name)

@@ -39,6 +39,10 @@ Files (all arrays are .npy; N = frame count):
     odometry.npz  t_ns (M,); position_m float64 (M,3); orientation_xyzw (M,4); linear_velocity_mps (M,3) and
                   angular_velocity_radps (M,3) in the child (vehicle) frame. From nav_msgs/Odometry, or else from
                   /tf poses of the vehicle frame (velocities then by forward differences)
+    lidar_points.npy  float32 (P, 4): x, y, z (m, vehicle frame) and intensity (NaN when absent) of every
+                  PointCloud2 scan, concatenated in log-time order (NaN/inf points dropped); open with mmap_mode="r"
+    lidar_scans.npz   t_ns int64 (S,); start int64 (S,), count int64 (S,): scan s is
+                  lidar_points[start[s] : start[s] + count[s]]
     poses.npz     t_ns (M,); T_world_camera float64 (M,4,4): given camera poses (KITTI odometry ground truth)
     ground_truth.npz  (synthetic recordings only) t_ns (M,); T_world_vehicle float64 (M,4,4) in the synth world's
                   ENU frame; depth at the frame times is in gt_depth.npy float32 (N,H,W) metres (inf = sky),
@@ -123,11 +127,15 @@ class TraceInfo:
         return np.load(self.path / "frame_times_ns.npy")
 
     def load_series(self, name: str) -> dict[str, np.ndarray] | None:
-        """The arrays of series `name` (gps, imu, speed, odometry, poses, ground_truth), or None when absent."""
+        """The arrays of series `name` (gps, imu, speed, odometry, poses, ground_truth, lidar_scans), or None."""
         if name not in self.series:
             return None
         with np.load(self.path / f"{name}.npz") as data:
             return {k: data[k] for k in data.files}
+
+    def lidar_points(self) -> np.ndarray | None:
+        """lidar_points.npy memory-mapped read-only, float32 (P, 4), or None (scan rows: load_series("lidar_scans"))."""
+        return np.load(self.path / "lidar_points.npy", mmap_mode="r") if "lidar_scans" in self.series else None
 
     def gt_depth(self) -> np.ndarray | None:
         """gt_depth.npy memory-mapped read-only, float32 (N, H, W) metres, or None."""
@@ -212,6 +220,16 @@ def validate_trace(path: Path | str) -> TraceInfo:
         source = (int(calibration["source_height_px"]), int(calibration["source_width_px"]), 3)
         if o_dtype != np.uint8 or o_shape != (n, *source):
             raise _fail(path / "frames_original.npy", f"expected uint8 ({n}, {source}), got {o_dtype} {o_shape}")
+
+    if (path / "lidar_points.npy").is_file() or (path / "lidar_scans.npz").is_file():
+        if not (path / "lidar_scans.npz").is_file():
+            raise _fail(path / "lidar_scans.npz", "missing file (lidar_points.npy needs it)")
+        p_shape, p_dtype, _ = _npy_header(path / "lidar_points.npy")
+        with np.load(path / "lidar_scans.npz") as scans:
+            end = int((scans["start"] + scans["count"]).max()) if len(scans["t_ns"]) else 0
+        if p_dtype != np.float32 or len(p_shape) != 2 or p_shape[1] != 4 or end > p_shape[0]:
+            raise _fail(path / "lidar_points.npy", f"expected float32 (>= {end}, 4), got {p_dtype} {p_shape}")
+        series.append("lidar_scans")
 
     has_gt_depth = (path / "gt_depth.npy").is_file()
     if has_gt_depth:
