@@ -26,7 +26,7 @@ import torch
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.shading import Lighting, dot3, normalize3, shade_blinn_phong
 
-__all__ = ["Lighting", "PackedScene", "Rasterizer", "RenderResult", "pack_meshes", "render_meshes"]
+__all__ = ["Lighting", "PackedScene", "Rasterizer", "RenderResult", "merge_scenes", "pack_meshes", "render_meshes"]
 
 _EMPTY_KEY = torch.iinfo(torch.int64).max
 _LOW32 = 0xFFFFFFFF
@@ -104,6 +104,28 @@ class PackedScene:
         """Whether any triangle samples a texture."""
         return self.texture_info.shape[1] > 0
 
+    def transformed(self, T_world_object: np.ndarray, object_id: int | None = None) -> PackedScene:
+        """This scene moved by a rigid 4x4 transform (and optionally relabelled `object_id`), in torch: the fast way
+        to place a packed vehicle at a new pose every step (textures, materials and colours are shared, not copied).
+        """
+        T = np.asarray(T_world_object, dtype=np.float64)
+        R = torch.as_tensor(T[:3, :3], dtype=torch.float32, device=self.device)
+        vertices = (self.vertices_m.reshape(-1, 3) @ R.T).reshape(-1, 3, 3)
+        attributes = self.vertex_attributes.clone()
+        attributes[..., 0:3] = attributes[..., 0:3] @ R.T
+        ids = self.object_id if object_id is None else torch.full_like(self.object_id, int(object_id))
+        return PackedScene(
+            origin_m=T[:3, :3] @ self.origin_m + T[:3, 3],
+            vertices_m=vertices,
+            vertex_components=vertices.permute(2, 1, 0).contiguous(),
+            vertex_attributes=attributes,
+            material=self.material,
+            texture_index=self.texture_index,
+            object_id=ids,
+            texels=self.texels,
+            texture_info=self.texture_info,
+        )
+
 
 def _material_row(material: Material) -> np.ndarray:
     return np.array(
@@ -180,6 +202,20 @@ def pack_meshes(meshes: list[Mesh], device: str | torch.device = "cpu") -> Packe
     )
 
 
+def merge_scenes(scenes: list[PackedScene]) -> PackedScene:
+    """One PackedScene with the triangles of all `scenes` (e.g. several placed vehicles seen by one camera)."""
+    if len(scenes) == 1:
+        return scenes[0]
+    origin = scenes[0].origin_m
+    merged, _ = _concat_scenes(scenes)
+    shifts = [torch.as_tensor(s.origin_m - origin, dtype=torch.float32, device=s.device) for s in scenes]
+    vertices = torch.cat([s.vertices_m + shift for s, shift in zip(scenes, shifts, strict=True)])
+    merged.origin_m = origin
+    merged.vertices_m = vertices
+    merged.vertex_components = vertices.permute(2, 1, 0).contiguous()
+    return merged
+
+
 def _concat_scenes(scenes: list[PackedScene]) -> tuple[PackedScene, torch.Tensor]:
     """All triangles of `scenes` in one scene, and the scene index of each triangle. Vertices keep their own scene's
     origin: callers transform each part to the camera frame before concatenating."""
@@ -250,10 +286,12 @@ class Rasterizer:
         self._pack_cache: list[tuple[list[Mesh], PackedScene]] = []
 
     # ------------------------------------------------------------------ packing
-    def pack(self, meshes: list[Mesh] | PackedScene) -> PackedScene:
+    def pack(self, meshes: list[Mesh | PackedScene] | PackedScene) -> PackedScene:
         """The packed form of `meshes`, from a small identity-keyed cache (meshes are treated as immutable)."""
         if isinstance(meshes, PackedScene):
             return meshes
+        if any(isinstance(m, PackedScene) for m in meshes):
+            return merge_scenes([m if isinstance(m, PackedScene) else self.pack([m]) for m in meshes])
         for cached_meshes, packed in self._pack_cache:
             if len(cached_meshes) == len(meshes) and all(a is b for a, b in zip(cached_meshes, meshes, strict=True)):
                 return packed
@@ -275,7 +313,8 @@ class Rasterizer:
         """Render meshes from B cameras.
 
         :param meshes: world-frame meshes seen by every camera (list[Mesh] or a PackedScene), or one list per camera
-            (list[list[Mesh]] / list[PackedScene] of length B) so one call renders B different scenes.
+            (list[list[Mesh | PackedScene]] / list[PackedScene] of length B) so one call renders B different scenes.
+            Moving objects: pack them once in their own frame and place them with `PackedScene.transformed`.
         :param T_camera_world: (4, 4) or (B, 4, 4) world -> camera optical frame.
         :param K: (3, 3) intrinsics shared by all cameras, pixel centres at integer coordinates.
         :param lighting: one Lighting for all cameras, one per camera, or None for the default.

@@ -209,3 +209,19 @@ def test_cuda_matches_cpu():
     assert (cpu.object_id == gpu.object_id.cpu()).float().mean() > 0.999
     same = (cpu.object_id == gpu.object_id.cpu()) & cpu.mask
     assert (cpu.depth_m[same] - gpu.depth_m.cpu()[same]).abs().max() < 1e-3
+
+
+def test_placed_packed_vehicles_match_transformed_meshes():
+    """The agent fast path: pack a car once in its own frame, place copies with PackedScene.transformed."""
+    car = pack_meshes(car_meshes())
+    poses = [g.pose_2d(8.0, 1.0, 0.3), g.pose_2d(15.0, -3.0, -0.2)]
+    rast = Rasterizer(W, H)
+    T = camera_at()
+    placed = rast.render([[car.transformed(P, object_id=i) for i, P in enumerate(poses)], []], np.stack([T, T]), K)
+    direct = rast.render([m.transformed(P) for i, P in enumerate(poses) for m in car_meshes(object_id=i)], T, K)
+    assert set(placed.object_id[0].unique().tolist()) == {-1, 0, 1}
+    assert (placed.object_id[0] == direct.object_id[0]).float().mean() > 0.999
+    both = placed.mask[0] & direct.mask[0]
+    assert (placed.depth_m[0][both] - direct.depth_m[0][both]).abs().max() < 0.02
+    assert (placed.rgb[0][both] - direct.rgb[0][both]).abs().mean() < 1e-3
+    assert not placed.mask[1].any(), "an empty per-camera scene draws nothing"
