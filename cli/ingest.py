@@ -41,9 +41,17 @@ def topic_overrides(topic: list[str] | None) -> list[str]:
 
 
 def ingest_command(
-    path: Annotated[Path, typer.Argument(help="ROS1 .bag, rosbag2 folder, .mcap file or KITTI raw drive folder.")],
+    path: Annotated[
+        Path,
+        typer.Argument(help="ROS1 .bag, rosbag2 folder, .mcap file, KITTI raw drive (..._sync) or odometry folder."),
+    ],
     topic: Annotated[
-        list[str] | None, typer.Option("--topic", help="Pick a topic by role, e.g. --topic camera=/cam/image_raw.")
+        list[str] | None,
+        typer.Option(
+            "--topic",
+            help=f"Pick a topic by role ({', '.join(TOPIC_ROLES)}), e.g. --topic camera=/cam/image_raw; "
+            "for KITTI folders camera=image_02.",
+        ),
     ] = None,
     config: ConfigOption = None,
     set_: SetOption = None,
