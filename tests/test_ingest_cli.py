@@ -68,8 +68,8 @@ def test_topic_option(tmp_path: Path, monkeypatch, capsys) -> None:
     assert code == 0 and "chosen with --topic camera" in out
     manifest = json.loads((ws / "trace" / "manifest.json").read_text())
     assert manifest["config"]["topics"]["camera"] == "/camera/image_raw"
-    code, _, err = _run(monkeypatch, capsys, tmp_path / "ws2", "ingest", str(rec), "--topic", "lidar=/x")
-    _assert_refused(code, err, tmp_path / "ws2", "unknown role 'lidar'", "roles: camera, camera_info")
+    code, _, err = _run(monkeypatch, capsys, tmp_path / "ws2", "ingest", str(rec), "--topic", "radar=/x")
+    _assert_refused(code, err, tmp_path / "ws2", "unknown role 'radar'", "roles: camera, camera_info")
 
 
 def test_no_pose_source_is_exit_2_without_trace(tmp_path: Path, monkeypatch, capsys) -> None:
