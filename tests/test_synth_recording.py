@@ -219,3 +219,15 @@ def test_default_resolution_drive(tmp_path):
     assert depth[599, 480] == pytest.approx(expected, rel=0.01)
     img = msgs[0].ros_msg
     assert (img.width, img.height, len(img.data)) == (960, 600, 960 * 600 * 3)
+
+
+def test_road_grows_with_the_drive_and_too_long_a_drive_is_a_config_error():
+    from drivesim.pipeline.errors import ConfigError
+    from drivesim.stages.synth.synthesize import resolve_config
+
+    short = SynthConfig()
+    assert resolve_config(short).world.road.length_m == short.world.road.length_m
+    long = resolve_config(SynthConfig.model_validate({"drive": {"duration_s": 120.0}}))
+    assert long.world.road.length_m > 12.0 * 120.0  # the fastest speed over the whole drive fits
+    with pytest.raises(ConfigError, match="duration_s"):
+        resolve_config(SynthConfig.model_validate({"drive": {"duration_s": 3000.0}}))

@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 import torch
 
-from drivesim.pipeline.errors import InputError
+from drivesim.pipeline.errors import ConfigError, InputError
 from drivesim.stages.synth import recording as rec
-from drivesim.stages.synth.config import SynthConfig
+from drivesim.stages.synth.config import RoadConfig, SynthConfig
 from drivesim.stages.synth.drive import Trajectory, required_path_length_m
 from drivesim.stages.synth.sensors import gps_series, imu_series, sample_times_s, wheel_series
 from drivesim.stages.synth.world import SynthWorld
@@ -65,6 +65,12 @@ def resolve_config(cfg: SynthConfig) -> SynthConfig:
     needed_m = required_path_length_m(cfg.drive) * 1.1 + 30.0
     if needed_m <= cfg.world.road.length_m:
         return cfg
+    limit_m = RoadConfig.model_fields["length_m"].metadata[-1].le
+    if needed_m > limit_m:
+        raise ConfigError(
+            f"a {cfg.drive.duration_s:g} s drive at {cfg.drive.speed_mps:g} m/s needs {needed_m:.0f} m of road; "
+            f"the synthetic road is at most {limit_m:.0f} m: shorten drive.duration_s"
+        )
     data = cfg.model_dump()
     data["world"]["road"]["length_m"] = float(np.ceil(needed_m))
     return SynthConfig.model_validate(data)
