@@ -117,8 +117,9 @@ def test_husky_bag_is_refused_by_the_cli(tmp_path: Path, monkeypatch, capsys) ->
 @pytest.mark.slow
 def test_ctrl_c_leaves_no_artifact_and_the_next_run_succeeds(tmp_path: Path) -> None:
     w, h = 640, 400
-    msgs = drive_messages(n_frames=250, width=w, height=h, image_fn=lambda i: textured_image(w, h, i), with_imu=False)
-    rec = write_recording(tmp_path / "big.mcap", "mcap", msgs)
+    pool = [textured_image(w, h, i) for i in range(8)]
+    msgs = drive_messages(n_frames=250, width=w, height=h, image_fn=lambda i: pool[i % 8], with_imu=False)
+    rec = write_recording(tmp_path / "big.mcap", "mcap", msgs, mcap_compression="none")
     ws = tmp_path / "ws"
     cmd = [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), "ingest", str(rec)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
