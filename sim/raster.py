@@ -710,13 +710,14 @@ def _sample_bilinear(texels: torch.Tensor, info: torch.Tensor, u: torch.Tensor, 
     ya = torch.addcmul(offset, torch.minimum(y0.clamp_min(0), h_max), tw)
     yb = torch.addcmul(offset, torch.minimum((y0 + 1).clamp_min(0), h_max), tw)
 
-    def fetch(index: torch.Tensor) -> torch.Tensor:  # (3, P) float in [0, 255]
+    def fetch(index: torch.Tensor) -> torch.Tensor:  # (4, P) float in [0, 255]: r, g, b and an unused byte
+        # Byte order: r is the low byte, first in memory on little-endian machines (x86, ARM, CUDA devices).
         packed = texels.index_select(0, index)
-        return torch.stack([packed & 255, (packed >> 8) & 255, packed >> 16]).to(torch.float32)
+        return packed.view(torch.uint8).reshape(-1, 4).T.to(torch.float32)
 
     top = torch.lerp(fetch(ya + xa), fetch(ya + xb), fx)
     bottom = torch.lerp(fetch(yb + xa), fetch(yb + xb), fx)
-    return torch.lerp(top, bottom, fy).mul_(1.0 / 255.0)
+    return torch.lerp(top[0:3], bottom[0:3], fy).mul_(1.0 / 255.0)
 
 
 def render_meshes(
