@@ -32,7 +32,7 @@ from gl_reference import GLRenderer, car_meshes, create_context  # noqa: E402
 from drivesim.sim import geometry as g  # noqa: E402
 from drivesim.sim import warp as warp_module  # noqa: E402
 from drivesim.sim.mesh import Material, Mesh  # noqa: E402
-from drivesim.sim.raster import Rasterizer  # noqa: E402
+from drivesim.sim.raster import Rasterizer, pack_meshes  # noqa: E402
 from drivesim.sim.warp import forward_warp  # noqa: E402
 
 CAR_POSES = [(8, 0.8, 0.6), (14, -3, 0.1), (20, 3.5, -0.2), (11, -6, 1.2), (25, 0, 0), (30, -3.5, 0), (17, 6, 0.4),
@@ -146,6 +146,38 @@ def bench_raster(rows: list[str], runs: int, quick: bool, ctx) -> None:
             ref.release()
         rows.append(f"| raster | {name} | {tris:,} | {h}x{w} | {ours[0]:.1f} | {ours[1]:.1f} | {gl[0]} | {gl[1]} |")
         print(rows[-1], flush=True)
+    bench_agents(rows, runs, ctx, H, W, K, T)
+
+
+def bench_agents(rows: list[str], runs: int, ctx, H: int, W: int, K: np.ndarray, T: np.ndarray, B: int = 8) -> None:
+    """The agent pass of B environments in one call: each camera sees one vehicle at its own pose (a car packed once,
+    placed with PackedScene.transformed every step), against B OpenGL renders of one vehicle."""
+    car = pack_meshes(car_meshes())
+    rng = np.random.default_rng(0)
+    poses = [g.pose_2d(rng.uniform(6, 15), rng.uniform(-2, 2), rng.uniform(-0.3, 0.3)) for _ in range(B)]
+    rast = Rasterizer(W, H)
+    Ts = np.stack([T] * B)
+
+    def ours():
+        return rast.render([[car.transformed(P, object_id=1)] for P in poses], Ts, K)
+
+    med, p90 = timed_ms(ours, runs)
+    gl = ("n/a", "n/a")
+    if ctx is not None:
+        ref = GLRenderer(ctx, W, H)
+        placed = [[m.transformed(P) for m in car_meshes()] for P in poses]  # static buffers: GL's best case
+
+        def theirs():
+            return [ref.render(meshes, T, K) for meshes in placed]
+
+        gl_med, gl_p90 = timed_ms(theirs, runs)
+        gl = (f"{gl_med:.1f}", f"{gl_p90:.1f}")
+        ref.release()
+    name = f"{B} cameras x 1 vehicle (batched, poses updated per call)"
+    rows.append(
+        f"| raster | {name} | {B} x {car.triangle_count:,} | {B}x{H}x{W} | {med:.1f} | {p90:.1f} | {gl[0]} | {gl[1]} |"
+    )
+    print(rows[-1], flush=True)
 
 
 def bench_warp(rows: list[str], runs: int) -> None:
