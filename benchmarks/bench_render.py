@@ -85,10 +85,10 @@ def stand_in_world(seed: int = 0) -> list[Mesh]:
 def _box_building(
     x0: float, y0: float, side: int, length_m: float, depth_m: float, height_m: float, rng, object_id: int
 ) -> Mesh:
-    """An axis-aligned box with each face subdivided into a 24 x 24 grid (facade detail)."""
+    """An axis-aligned box with each face subdivided into a 16 x 16 grid (facade detail)."""
     lo = np.array([x0, y0 if side > 0 else y0 - depth_m, 0.0])
     hi = lo + [length_m, depth_m, height_m]
-    t = np.linspace(0, 1, 25)
+    t = np.linspace(0, 1, 17)
     gu, gv = np.meshgrid(t, t, indexing="xy")
     verts, faces, count = [], [], 0
     for axis in range(3):
