@@ -156,8 +156,10 @@ def write_results(rows: list[dict], resolution: str, quick: bool) -> None:
         f"Input: a synthetic drive, trace at {resolution}; world at 320 px wide (default config). "
         "Each figure is one CLI run in its own process. wall s: the whole process (interpreter start and imports "
         "included); stage s: the stage's own time from its manifest summary. s per 1000 frames: the marginal stage "
-        "cost between the two frame counts x 1000; fixed s: the per-run part it leaves out (PNGs, pose-fusion set-up). "
-        "Peak RSS: the child's ru_maxrss (memmapped output pages it touched included).",
+        "cost between the two frame counts x 1000; fixed s: the per-run part it leaves out (PNGs, pose-fusion "
+        "set-up; 0 when noise makes it negative). "
+        "Peak RSS: the child's ru_maxrss (memmapped output pages it touched included; the CLI alone imports torch, "
+        "~300 MB).",
         "" if not quick else "**--quick smoke run: too few frames to be representative.**",
         "",
         "| stage | depth method | frames | wall s | stage s | s per 1000 frames | fixed s | depth s/frame "
@@ -169,7 +171,7 @@ def write_results(rows: list[dict], resolution: str, quick: bool) -> None:
         lines.append(
             f"| {r['stage']} | {r['method']} | {r['small']} / {r['large']} | {r['wall_small']:.1f} / "
             f"{r['wall_large']:.1f} | {r['s_small']:.1f} / {r['s_large']:.1f} "
-            f"| {r['s_per_1000']:.0f} | {r['fixed_s']:.1f} | {depth} | {r['rss_mb']:.0f} |"
+            f"| {r['s_per_1000']:.0f} | {max(r['fixed_s'], 0.0):.1f} | {depth} | {r['rss_mb']:.0f} |"
         )
     lines.append("")
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
