@@ -178,3 +178,10 @@ def test_cli_bad_override_is_one_line_and_exit_2(tmp_path: Path) -> None:
     assert result.returncode == 2
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "depth.method" in lines[0]
+
+
+def test_lidar_depth_without_point_cloud_fails_before_pose_fusion(ws: Workspace, monkeypatch) -> None:
+    calls = install_fake_poses(monkeypatch)
+    with pytest.raises(InputError, match="no point cloud"):
+        stage.run_preprocess(ws, load_config(PreprocessConfig, overrides=["depth.method=lidar"]))
+    assert calls == [] and ws.read_manifest("preprocessed") is None

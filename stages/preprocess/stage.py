@@ -117,6 +117,10 @@ def run_preprocess(ws: Workspace, cfg: PreprocessConfig, force: bool = False) ->
 
     started = time.perf_counter()
     trace = open_trace(trace_dir)
+    if cfg.depth.method == "lidar":
+        # Checked before the pose fusion so the user learns it at once: the trace schema has no point-cloud series
+        # yet, so there is nothing to project.
+        raise InputError("depth.method=lidar but the trace has no point cloud; use plane or mvs", trace_dir)
     selected = select_frames(trace.frames.shape[0], cfg)
     frame_index = np.arange(trace.frames.shape[0])[selected]
     frames = trace.frames[selected]
