@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import resource
 import shutil
@@ -102,6 +103,7 @@ def _child_bare(recording: Path, kind: str) -> dict:
 
     factory = DecoderFactory()
     frames = 0
+    cpu0 = _cpu_s()
     t0 = time.perf_counter()
     with open(recording, "rb") as f:
         reader = make_reader(f)
@@ -112,7 +114,7 @@ def _child_bare(recording: Path, kind: str) -> dict:
             else:
                 img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR)
             frames += int(img.shape[0] > 0)
-    return {"frames": frames, "wall_s": time.perf_counter() - t0}
+    return {"frames": frames, "wall_s": time.perf_counter() - t0, "cpu_s": _cpu_s() - cpu0}
 
 
 def _child_ingest(recording: Path, interpolation: str) -> dict:
@@ -122,17 +124,25 @@ def _child_ingest(recording: Path, interpolation: str) -> dict:
 
     out = Path(tempfile.mkdtemp(prefix="bench-trace-", dir=recording.parent))
     try:
-        t0 = time.perf_counter()
         cfg = IngestConfig.model_validate({"image": {"interpolation": interpolation}})
+        cpu0 = _cpu_s()
+        t0 = time.perf_counter()
         result = ingest_recording(recording, cfg, out)
         wall_s = time.perf_counter() - t0
+        cpu_s = _cpu_s() - cpu0
         t1 = time.perf_counter()
         for file in out.iterdir():  # what Workspace.write_artifact adds: the manifest's output hashes
             sha256_file(file)
         hash_s = time.perf_counter() - t1
     finally:
         shutil.rmtree(out, ignore_errors=True)
-    return {"frames": result.summary["frame_count"], "wall_s": wall_s, "hash_s": hash_s}
+    return {"frames": result.summary["frame_count"], "wall_s": wall_s, "cpu_s": cpu_s, "hash_s": hash_s}
+
+
+def _cpu_s() -> float:
+    """User + system CPU seconds of this process, all threads (less sensitive to a busy machine than wall time)."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
 
 
 def _peak_rss_mb() -> float:
@@ -213,24 +223,38 @@ def main() -> None:
         "(default) or INTER_LINEAR (`--set image.interpolation=linear`). *bare* = read the camera messages with",
         "mcap + mcap_ros2 and `np.frombuffer` / `cv2.imdecode` (full size) them, nothing else. Peak RSS = VmHWM of",
         "the measuring subprocess. *hash* = the manifest's sha256 of the outputs that `Workspace.write_artifact`",
-        "adds after the stage (not included in ingest frames/s).",
+        "adds after the stage (not included in ingest frames/s). CPU ms/frame = user + system time of all threads:",
+        "ingest decodes and resizes on two worker threads, so on an idle 2-core machine its wall time approaches",
+        "half its CPU time; on a busy one (the load average is printed below) frames/s understates it.",
         "",
-        "| camera | resize | frames | recording MB | bare frames/s | ingest frames/s | ingest / bare | hash s "
-        "| bare peak RSS MB | ingest peak RSS MB |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| camera | resize | frames | recording MB | bare frames/s | ingest frames/s | ingest / bare "
+        "| bare CPU ms/frame | ingest CPU ms/frame | hash s | bare peak RSS MB | ingest peak RSS MB |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for kind, interpolation, frames, size_mb, bare, ingest in rows:
         name = "Image bgr8" if kind == "raw" else "CompressedImage jpeg"
         ingest_fps = ingest["frames"] / ingest["wall_s"]
+        ingest_cpu = 1e3 * ingest["cpu_s"] / ingest["frames"]
         if bare is not None:
             bare_fps = bare["frames"] / bare["wall_s"]
-            bare_cols = (f"{bare_fps:.0f}", f"{ingest_fps / bare_fps:.2f}", f"{bare['peak_rss_mb']:.0f}")
+            bare_cpu = 1e3 * bare["cpu_s"] / bare["frames"]
+            bare_cols = (
+                f"{bare_fps:.0f}",
+                f"{ingest_fps / bare_fps:.2f}",
+                f"{bare_cpu:.1f}",
+                f"{bare['peak_rss_mb']:.0f}",
+            )
         else:
-            bare_cols = ("–", "–", "–")
+            bare_cols = ("–", "–", "–", "–")
         lines.append(
             f"| {name} | {interpolation} | {frames} | {size_mb:.0f} | {bare_cols[0]} | {ingest_fps:.0f} | "
-            f"{bare_cols[1]} | {ingest['hash_s']:.1f} | {bare_cols[2]} | {ingest['peak_rss_mb']:.0f} |"
+            f"{bare_cols[1]} | {bare_cols[2]} | {ingest_cpu:.1f} | {ingest['hash_s']:.1f} | {bare_cols[3]} | "
+            f"{ingest['peak_rss_mb']:.0f} |"
         )
+    lines += [
+        "",
+        f"Load average (1, 5, 15 min) at the end of the run: {', '.join(f'{x:.1f}' for x in os.getloadavg())}.",
+    ]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
