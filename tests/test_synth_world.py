@@ -128,3 +128,17 @@ def test_world_rebuilds_from_a_sidecar(tmp_path, world, small_cfg):
     assert rebuilt.triangle_count == world.triangle_count
     assert np.array_equal(rebuilt.path.x_m, world.path.x_m)
     assert rebuilt.camera.width_px == W
+
+
+def test_view_distance_culls_far_surfaces_only(world, small_cfg):
+    near_cfg = small_cfg.model_copy(deep=True)
+    near_cfg.world.scenery.view_distance_m = 60.0
+    near_world = SynthWorld.from_seed(0, near_cfg)
+    cam = world.camera
+    T = camera_pose(world, 40.0)
+    _, depth_all = world.render(T, cam.K, W, H)
+    _, depth_near = near_world.render(T, cam.K, W, H)
+    close = depth_all < 30.0
+    assert np.allclose(depth_near[close], depth_all[close], rtol=1e-4)
+    assert np.isinf(depth_near).sum() > np.isinf(depth_all).sum()
+    assert np.nanmax(np.where(np.isinf(depth_near), np.nan, depth_near)) < 60.0 + 2 * 90.0

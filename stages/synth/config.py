@@ -49,8 +49,8 @@ class SceneryConfig(StageConfig):
     """Mean spacing of trees along each side of the road (m)."""
     parked_car_probability: float = Field(0.3, ge=0.0, le=1.0)
     """Chance that a parking bay (6 m) holds a parked car."""
-    view_distance_m: float = Field(180.0, gt=20.0, le=2000.0)
-    """Objects farther than this from the camera are not drawn (m)."""
+    view_distance_m: float = Field(400.0, gt=20.0, le=5000.0)
+    """Surfaces in 40 m cells wholly farther than this from the camera are not drawn (m); lower it to render faster."""
     ground_margin_m: float = Field(160.0, gt=10.0)
     """How far the textured ground extends beyond the road's bounding box (m)."""
 

@@ -10,6 +10,7 @@ Surfaces carry semantic object ids (`SEMANTIC_IDS`), readable with `render_full`
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -91,6 +92,7 @@ class SynthWorld:
         self.path: RoadPath = self.road.offset(-0.5 * config.road.lane_width_m)
         self.layout: Layout = place_scenery(self.road, config.road, config.scenery, world_rng)
         self.meshes: list[Mesh] = _build_meshes(self.road, self.layout, config, texture_rng)
+        self._culling = _CellCulling(self.meshes)
         self._clouds = _cloud_cover(sky_rng)
         self._rasterizers: dict[tuple[int, int], Rasterizer] = {}
         self._rays_key: tuple | None = None
@@ -145,8 +147,9 @@ class SynthWorld:
         """Colour (H, W, 3) uint8, depth along the optical axis (H, W) float32 m (+inf = sky) and semantic object
         ids (H, W) int32 (`SEMANTIC_IDS`, -1 = sky) seen by a camera at `T_world_camera` (optical frame -> world)."""
         T_world_camera = np.asarray(T_world_camera, float)
+        meshes = self._culling.visible(T_world_camera[:2, 3], self.config.scenery.view_distance_m)
         result = self._rasterizer(width_px, height_px).render(
-            self.meshes, invert(T_world_camera), K, self.lighting(T_world_camera)
+            meshes, invert(T_world_camera), K, self.lighting(T_world_camera)
         )
         rgb = result.rgb[0]
         depth = result.depth_m[0]
@@ -169,6 +172,56 @@ class SynthWorld:
         for a camera at `T_world_camera` (4x4, optical frame -> world) with intrinsics `K`."""
         rgb, depth, _ = self.render_full(T_world_camera, K, width_px, height_px)
         return rgb, depth
+
+
+class _CellCulling:
+    """The meshes cut down to the 40 m cells within the view distance of a camera.
+
+    Faces keep their mesh (one texture, one material per kind) and only the face list shrinks; the last few cut-down
+    lists are kept so that consecutive frames seeing the same cells hand the rasterizer the same (cached) meshes.
+    """
+
+    CELL_M = 40.0
+    KEEP = 4
+
+    def __init__(self, meshes: list[Mesh]) -> None:
+        self.meshes = meshes
+        self.face_cells: list[np.ndarray] = []
+        cells: dict[int, list[np.ndarray]] = {}
+        for mesh in meshes:
+            centroid = mesh.vertices_m[mesh.faces].mean(axis=1)[:, :2]
+            ij = np.floor(centroid / self.CELL_M).astype(np.int64)
+            key = ij[:, 0] * 1_000_003 + ij[:, 1]
+            self.face_cells.append(key)
+            for k in np.unique(key):
+                cells.setdefault(int(k), []).append(mesh.vertices_m[mesh.faces[key == k]].reshape(-1, 3)[:, :2])
+        self.cell_keys = np.array(sorted(cells), dtype=np.int64)
+        self.cell_centre = np.zeros((len(self.cell_keys), 2))
+        self.cell_radius = np.zeros(len(self.cell_keys))
+        for i, k in enumerate(self.cell_keys):
+            pts = np.concatenate(cells[int(k)])
+            lo, hi = pts.min(0), pts.max(0)
+            self.cell_centre[i] = (lo + hi) / 2
+            self.cell_radius[i] = np.linalg.norm(hi - lo) / 2
+        self._recent: list[tuple[bytes, list[Mesh]]] = []
+
+    def visible(self, camera_xy_m: np.ndarray, view_distance_m: float) -> list[Mesh]:
+        """The meshes with only the faces in cells that come within `view_distance_m` of the camera."""
+        near = np.linalg.norm(self.cell_centre - camera_xy_m, axis=1) - self.cell_radius < view_distance_m
+        if near.all():
+            return self.meshes
+        signature = near.tobytes()
+        for sig, meshes in self._recent:
+            if sig == signature:
+                return meshes
+        keys = self.cell_keys[near]
+        meshes = []
+        for mesh, face_cells in zip(self.meshes, self.face_cells, strict=True):
+            faces = mesh.faces[np.isin(face_cells, keys)]
+            if len(faces):
+                meshes.append(dataclasses.replace(mesh, faces=faces))
+        self._recent = [*self._recent[-(self.KEEP - 1) :], (signature, meshes)]
+        return meshes
 
 
 def _cloud_cover(rng: np.random.Generator) -> np.ndarray:
