@@ -9,9 +9,14 @@ How it works (DESIGN §4):
   inside when all w_i >= 0, its depth is 1 / sum(w) and w / sum(w) are its perspective-correct barycentrics. This
   needs no clipping: triangles crossing the near plane or passing behind the camera (huge ground triangles) are
   drawn exactly; only their screen bounding box is computed from the polygon clipped at z = near.
-- Every (triangle, pixel-in-bounding-box) pair is evaluated at once (chunked), and the nearest one wins through
-  `scatter_reduce(amin)` of a packed int64 key: float32 depth bits (monotonic for positive floats) << 32 |
-  triangle index. One gather pass then recomputes barycentrics of the winner per pixel and shades it.
+- Small triangles (bbox up to 64 px: most of a vehicle mesh) are expanded into their exact (triangle, pixel) pairs;
+  larger ones into 8 x 8 pixel tiles, culled per tile against the edge functions and evaluated as dense blocks.
+  All pairs are evaluated at once (chunked) and the nearest one wins through `scatter_reduce(amin)` of a packed
+  int64 key: float32 depth bits (monotonic for positive floats) << 32 | triangle index. One gather pass then
+  recomputes the winner's barycentrics per pixel, interpolates its attributes and shades it (`shading.py`).
+- CPU speed notes (torch 2.x): 1-D `index_select` per table row beats 2-D gathers several times over, so per-triangle
+  tables are channel-major; `torch.where` and length-3 reductions are slow and avoided in the hot paths; broadcasts
+  keep the long axis innermost.
 - Static geometry is packed once into a `PackedScene` (per-triangle vertex attributes on the device); the rasterizer
   caches the packing of the mesh lists it is given, so rendering the same world from many poses does not re-pack.
 """
@@ -401,12 +406,12 @@ class Rasterizer:
             vc, lo, hi = _take(vc.reshape(9, N), idx).reshape(3, 3, -1), _take(lo, idx), _take(hi, idx)
         (x0, x1, x2), (y0, y1, y2), (z0, z1, z2) = vc
 
-        def cross(ay, az, ax, by, bz, bx):  # one component of a x b, the others by rotating the arguments
-            return torch.addcmul(ay * bz, az, by, value=-1.0)
+        def cross(a1: torch.Tensor, a2: torch.Tensor, b1: torch.Tensor, b2: torch.Tensor) -> torch.Tensor:
+            return torch.addcmul(a1 * b2, a2, b1, value=-1.0)  # a1 b2 - a2 b1: one component of a cross product
 
-        cx0, cy0, cz0 = cross(y1, z1, x1, y2, z2, x2), cross(z1, x1, y1, z2, x2, y2), cross(x1, y1, z1, x2, y2, z2)
-        cx1, cy1, cz1 = cross(y2, z2, x2, y0, z0, x0), cross(z2, x2, y2, z0, x0, y0), cross(x2, y2, z2, x0, y0, z0)
-        cx2, cy2, cz2 = cross(y0, z0, x0, y1, z1, x1), cross(z0, x0, y0, z1, x1, y1), cross(x0, y0, z0, x1, y1, z1)
+        cx0, cy0, cz0 = cross(y1, z1, y2, z2), cross(z1, x1, z2, x2), cross(x1, y1, x2, y2)  # P1 x P2
+        cx1, cy1, cz1 = cross(y2, z2, y0, z0), cross(z2, x2, z0, x0), cross(x2, y2, x0, y0)  # P2 x P0
+        cx2, cy2, cz2 = cross(y0, z0, y1, z1), cross(z0, x0, z1, x1), cross(x0, y0, x1, y1)  # P0 x P1
         det = torch.addcmul(torch.addcmul(x0 * cx0, y0, cy0), z0, cz0)
         sign = torch.sign(det)
         abs_det = det.abs()

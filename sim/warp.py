@@ -8,7 +8,9 @@ Small cracks (1-2 px, with warped pixels on both sides along a row, column or di
 surface around them; larger disocclusions stay empty (`valid` False).
 
 Only the requested region of interest of the destination image is rendered: source pixels landing outside it (plus a
-2 px margin that hole filling reads) are dropped before the scatter, so the cost scales with what the policy sees.
+2 px margin that hole filling reads) are dropped before the scatter, and only a source rectangle that provably holds
+every pixel that can land in it is transformed at all (`_source_window`), so the cost scales with what the policy
+sees.
 What depends on the source frame alone (its back-projected points, packed colours) is computed once and cached, keyed
 on the tensors' storage and version counters (an in-place change of the frame invalidates the entry), so warping one
 recorded frame to many agents' poses pays for it once.
@@ -53,14 +55,16 @@ class WarpResult:
 class _Source:
     """Per-source-frame constants: points (B, 3, HW) in the source camera (z K^-1 p; the ray K^-1 p for sky),
     `finite` (B, 1, HW) 1.0 for finite depth else 0.0, `near` (B, HW) the smallest destination z a point may have to
-    be drawn (+inf for pixels without depth), `sky_depth` (B, HW) 0 or +inf added to the destination z, and the
-    colour table (B * HW,) int32 packed RGB8 for uint8 sources or (3, B * HW) channel-major otherwise."""
+    be drawn (+inf for pixels without depth), `sky_depth` (B, HW) 0 or +inf added to the destination z, the
+    colour table (B * HW,) int32 packed RGB8 for uint8 sources or (3, B * HW) channel-major otherwise, and the
+    smallest finite depth (inf when there is none)."""
 
     points: torch.Tensor
     finite: torch.Tensor
     near: torch.Tensor
     sky_depth: torch.Tensor
     colour: torch.Tensor
+    min_depth_m: float
 
 
 _SOURCE_CACHE: OrderedDict[tuple, _Source] = OrderedDict()
@@ -104,11 +108,54 @@ def _prepare_source(rgb: torch.Tensor, depth_m: torch.Tensor, K_src: torch.Tenso
         colour = c[:, 0] | (c[:, 1] << 8) | (c[:, 2] << 16)
     else:
         colour = rgb.reshape(B * H * W, 3).T.contiguous()
-    source = _Source(rays * scale, finite.to(torch.float32), near, sky_depth, colour)
+    min_depth = float(z[has_depth].min()) if bool(has_depth.any()) else float("inf")
+    source = _Source(rays * scale, finite.to(torch.float32), near, sky_depth, colour, min_depth)
     _SOURCE_CACHE[key] = source
     if len(_SOURCE_CACHE) > _SOURCE_CACHE_SIZE:
         _SOURCE_CACHE.popitem(last=False)
     return source
+
+
+def _source_window(
+    min_depth_m: float,
+    K_src: np.ndarray,
+    src_size: tuple[int, int],
+    T_dst_src: np.ndarray,
+    K_dst: np.ndarray,
+    region: tuple[int, int, int, int],
+) -> tuple[int, int, int, int] | None:
+    """A source pixel rectangle (x0, y0, x1, y1), end exclusive, holding every source pixel that can land in the
+    destination `region` (x0, y0, x1, y1), or None when no useful bound exists (then all pixels are warped).
+
+    Destination depths are bounded below by d_lo = min_depth * min(r3 . K_src^-1 p) + t_z over the source image (r3
+    the last row of R_dst_src; the minimum of that linear function is at an image corner). The region's frustum from
+    d_lo to infinity is convex and, when all its vertices (and directions) lie in front of the source camera, projects
+    into the convex hull of their projections.
+    """
+    H, W = src_size
+    rx0, ry0, rx1, ry1 = region
+    corners_src = np.array([[-0.5, -0.5, 1], [W - 0.5, -0.5, 1], [-0.5, H - 0.5, 1], [W - 0.5, H - 0.5, 1]])
+    K_src_inv, K_dst_inv = np.linalg.inv(K_src), np.linalg.inv(K_dst)
+    corners_dst = np.array([[rx0 - 1.5, ry0 - 1.5, 1], [rx1 + 0.5, ry0 - 1.5, 1], [rx0 - 1.5, ry1 + 0.5, 1],
+                            [rx1 + 0.5, ry1 + 0.5, 1]]) @ K_dst_inv.T  # fmt: skip
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
+    for T in T_dst_src:
+        R, t = T[:3, :3], T[:3, 3]
+        m = (corners_src @ K_src_inv.T @ R[2]).min()
+        d_lo = min_depth_m * m + t[2] if np.isfinite(min_depth_m) else np.inf
+        if m <= 0 or d_lo < 0.1:
+            return None
+        directions = corners_dst @ R  # R^T r: destination rays in the source frame
+        points = (d_lo * corners_dst - t) @ R if np.isfinite(d_lo) else directions
+        both = np.concatenate([points, directions])
+        if (both[:, 2] <= 1e-6).any():
+            return None
+        uv = both @ K_src.T
+        uv = uv[:, :2] / uv[:, 2:3]
+        lo, hi = np.minimum(lo, uv.min(0)), np.maximum(hi, uv.max(0))
+    x0, y0 = max(int(np.floor(lo[0])) - 2, 0), max(int(np.floor(lo[1])) - 2, 0)
+    x1, y1 = min(int(np.ceil(hi[0])) + 3, W), min(int(np.ceil(hi[1])) + 3, H)
+    return (x0, y0, max(x1, x0), max(y1, y0))
 
 
 def _as_tensor(x: np.ndarray | torch.Tensor, device: torch.device) -> torch.Tensor:
@@ -189,12 +236,29 @@ def forward_warp(
     ex1, ey1 = min(x0 + w + margin, out_width_px), min(y0 + h + margin, out_height_px)
     ew, eh = ex1 - ex0, ey1 - ey0
 
-    source = _prepare_source(rgb, depth_m, _as_tensor(K_src, device))
+    K_s = _as_tensor(K_src, device)
+    source = _prepare_source(rgb, depth_m, K_s)
     K_d = _as_tensor(K_dst, device)
     # q = K_dst (R P + t finite): finite points move with the camera, points at infinity only turn.
     M = (K_d @ T[:, :3, :3]).to(torch.float32)
     c = (K_d @ T[:, :3, 3:]).to(torch.float32)  # (B, 3, 1)
-    P, fin = source.points, source.finite[:, 0]
+    P, fin, near, sky_depth = source.points, source.finite[:, 0], source.near, source.sky_depth
+    window_pixels = None
+    window = None
+    if (ew, eh) != (out_width_px, out_height_px):
+        window = _source_window(
+            source.min_depth_m, K_s.cpu().numpy(), (H, W), T.cpu().numpy(), K_d.cpu().numpy(), (ex0, ey0, ex1, ey1)
+        )
+    if window is not None and (window[2] - window[0]) * (window[3] - window[1]) < H * W:
+        # Only the source pixels that can land in the region: a rectangle of the source frame.
+        sx0, sy0, sx1, sy1 = window
+        P = P.reshape(B, 3, H, W)[:, :, sy0:sy1, sx0:sx1].reshape(B, 3, -1)
+        fin = fin.reshape(B, H, W)[:, sy0:sy1, sx0:sx1].reshape(B, -1)
+        near = near.reshape(B, H, W)[:, sy0:sy1, sx0:sx1].reshape(B, -1)
+        sky_depth = sky_depth.reshape(B, H, W)[:, sy0:sy1, sx0:sx1].reshape(B, -1)
+        window_pixels = (
+            torch.arange(sy0, sy1, device=device)[:, None] * W + torch.arange(sx0, sx1, device=device)
+        ).reshape(-1)
     # Written out per row (not bmm) so that a frame warps bit-identically alone or in a batch.
     q = [
         torch.addcmul(torch.addcmul(torch.addcmul(c[:, i] * fin, M[:, i, 0:1], P[:, 0]), M[:, i, 1:2], P[:, 1]),
@@ -202,15 +266,19 @@ def forward_warp(
         for i in range(3)
     ]  # fmt: skip
     qz = q[2]
-    in_front = qz > source.near
+    in_front = qz > near
     inv_z = 1.0 / qz
     u = torch.floor(torch.addcmul(torch.full_like(qz, 0.5 - ex0), q[0], inv_z))
     v = torch.floor(torch.addcmul(torch.full_like(qz, 0.5 - ey0), q[1], inv_z))
     inside = in_front & (u >= 0) & (u < ew) & (v >= 0) & (v < eh)
-    flat = inside.reshape(-1).nonzero().squeeze(1)  # b * HW + source pixel
-    depth = (qz + source.sky_depth).reshape(-1).index_select(0, flat)
-    b_idx = flat // (H * W) if B > 1 else torch.zeros_like(flat)
-    key = (depth.view(torch.int32).to(torch.int64) << 32) | (flat - b_idx * (H * W))
+    n_src = qz.shape[1]
+    flat = inside.reshape(-1).nonzero().squeeze(1)  # b * n_src + source pixel (of the window)
+    depth = (qz + sky_depth).reshape(-1).index_select(0, flat)
+    b_idx = flat // n_src if B > 1 else torch.zeros_like(flat)
+    pixel = flat - b_idx * n_src
+    if window_pixels is not None:
+        pixel = window_pixels.index_select(0, pixel)
+    key = (depth.view(torch.int32).to(torch.int64) << 32) | pixel
     pix = (b_idx * eh + v.reshape(-1).index_select(0, flat).to(torch.int64)) * ew
     pix += u.reshape(-1).index_select(0, flat).to(torch.int64)
     keys = torch.full((B * eh * ew,), _EMPTY_KEY, dtype=torch.int64, device=device)

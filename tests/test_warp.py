@@ -8,6 +8,7 @@ import torch
 from gl_reference import checker_texture
 
 from drivesim.sim import geometry as g
+from drivesim.sim import warp as warp_module
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.raster import Lighting, Rasterizer
 from drivesim.sim.warp import forward_warp
@@ -174,3 +175,25 @@ def test_batch_matches_single():
     for b in range(2):
         one = forward_warp(rgb[b : b + 1], depth[b : b + 1], K, T[b], K, W, H, roi=(40, 60, 200, 80))
         assert torch.equal(both.rgb[b], one.rgb[0]) and torch.equal(both.depth_m[b], one.depth_m[0])
+
+
+@pytest.mark.parametrize(
+    "T_dst_src",
+    [
+        g.se3(g.rot_y(0.03), [0.3, 0.0, -1.0]),
+        g.se3(g.rot_y(-0.2) @ g.rot_x(0.05), [-0.8, 0.1, 0.5]),
+        g.se3(g.rot_y(0.1), [0.0, 0.0, 2.5]),  # backwards: a wider window
+        g.se3(g.rot_y(0.1), [0.0, 0.0, -3.0]),  # 3 m forward, past the nearest point: no bound, all pixels warped
+    ],
+)
+def test_source_window_only_skips_pixels_that_cannot_land(T_dst_src, monkeypatch):
+    """For a region of interest only a rectangle of the source is transformed; it must not lose any pixel."""
+    meshes = plane_world()
+    rgb_src, depth_src = render_from(g.pose_2d(0.0, 0.0, 0.0), meshes)
+    roi = (80, 100, 160, 64)
+    windowed = forward_warp(rgb_src, depth_src, K, T_dst_src, K, W, H, roi=roi)
+    monkeypatch.setattr(warp_module, "_source_window", lambda *args: None)
+    everything = forward_warp(rgb_src, depth_src, K, T_dst_src, K, W, H, roi=roi)
+    assert everything.valid.float().mean() > 0.5
+    assert torch.equal(windowed.rgb, everything.rgb)
+    assert torch.equal(windowed.depth_m, everything.depth_m)
