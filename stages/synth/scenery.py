@@ -194,7 +194,7 @@ def _place_trees(
             yaw = float(p["yaw_rad"])
             x = float(p["x_m"]) - np.sin(yaw) * lateral
             y = float(p["y_m"]) + np.cos(yaw) * lateral
-            if occ.try_take(x, y, 0.0, 1.0, 1.0, lat_min - 0.2):
+            if occ.try_take(x, y, 0.0, 1.0, 1.0, lat_min - 0.6):
                 layout.trees.append(_random_tree(x, y, rng))
         station += spacing * rng.uniform(0.6, 1.4)
 
