@@ -40,17 +40,19 @@ CAR_POSES = [(8, 0.8, 0.6), (14, -3, 0.1), (20, 3.5, -0.2), (11, -6, 1.2), (25, 
 T_VEHICLE_CAMERA = g.camera_mount(0.0, 0.0, 1.5, pitch_down_rad=0.05)
 
 
-def timed_ms(fn: Callable[[], object], runs: int, warmup: int = 5) -> tuple[float, float]:
-    """Median and 90th percentile wall time of fn() in ms."""
+def timed_ms(fn: Callable[[], object], runs: int, warmup: int = 5) -> tuple[float, float, float]:
+    """Median and 90th percentile wall time of fn() in ms, and the median CPU time of this process in ms (all its
+    threads; robust to other load on the machine, unlike wall time)."""
     for _ in range(warmup):
         fn()
-    times = []
+    times, cpu = [], []
     for _ in range(runs):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
         times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
     ms = np.array(times) * 1e3
-    return float(np.median(ms)), float(np.percentile(ms, 90))
+    return float(np.median(ms)), float(np.percentile(ms, 90)), float(np.median(cpu) * 1e3)
 
 
 def vehicle_scene(n_cars: int) -> list[Mesh]:
@@ -138,13 +140,15 @@ def bench_raster(rows: list[str], runs: int, quick: bool, ctx) -> None:
         args = (meshes, T_cw, K, light)
         rast = Rasterizer(w, h)
         ours = timed_ms(lambda rast=rast, args=args: rast.render(*args), runs)
-        gl = ("n/a", "n/a")
+        gl = ("n/a", "n/a", "n/a")
         if ctx is not None:
             ref = GLRenderer(ctx, w, h)
-            med, p90 = timed_ms(lambda ref=ref, args=args: ref.render(*args), runs)
-            gl = (f"{med:.1f}", f"{p90:.1f}")
+            gl = tuple(f"{x:.1f}" for x in timed_ms(lambda ref=ref, args=args: ref.render(*args), runs))
             ref.release()
-        rows.append(f"| raster | {name} | {tris:,} | {h}x{w} | {ours[0]:.1f} | {ours[1]:.1f} | {gl[0]} | {gl[1]} |")
+        rows.append(
+            f"| raster | {name} | {tris:,} | {h}x{w} | {ours[0]:.1f} | {ours[1]:.1f} | {ours[2]:.1f} "
+            f"| {gl[0]} | {gl[1]} | {gl[2]} |"
+        )
         print(rows[-1], flush=True)
     bench_agents(rows, runs, ctx, H, W, K, T)
 
@@ -161,8 +165,8 @@ def bench_agents(rows: list[str], runs: int, ctx, H: int, W: int, K: np.ndarray,
     def ours():
         return rast.render([[car.transformed(P, object_id=1)] for P in poses], Ts, K)
 
-    med, p90 = timed_ms(ours, runs)
-    gl = ("n/a", "n/a")
+    med, p90, cpu = timed_ms(ours, runs)
+    gl = ("n/a", "n/a", "n/a")
     if ctx is not None:
         ref = GLRenderer(ctx, W, H)
         placed = [[m.transformed(P) for m in car_meshes()] for P in poses]  # static buffers: GL's best case
@@ -170,12 +174,12 @@ def bench_agents(rows: list[str], runs: int, ctx, H: int, W: int, K: np.ndarray,
         def theirs():
             return [ref.render(meshes, T, K) for meshes in placed]
 
-        gl_med, gl_p90 = timed_ms(theirs, runs)
-        gl = (f"{gl_med:.1f}", f"{gl_p90:.1f}")
+        gl = tuple(f"{x:.1f}" for x in timed_ms(theirs, runs))
         ref.release()
     name = f"{B} cameras x 1 vehicle (batched, poses updated per call)"
     rows.append(
-        f"| raster | {name} | {B} x {car.triangle_count:,} | {B}x{H}x{W} | {med:.1f} | {p90:.1f} | {gl[0]} | {gl[1]} |"
+        f"| raster | {name} | {B} x {car.triangle_count:,} | {B}x{H}x{W} | {med:.1f} | {p90:.1f} | {cpu:.1f} "
+        f"| {gl[0]} | {gl[1]} | {gl[2]} |"
     )
     print(rows[-1], flush=True)
 
@@ -201,9 +205,9 @@ def bench_warp(rows: list[str], runs: int) -> None:
                         warp_module._SOURCE_CACHE.clear()
                     return forward_warp(rgb, depth, K_src, T_dst_src, K_out, W, H, roi=region)
 
-                med, p90 = timed_ms(run, runs)
+                med, p90, cpu = timed_ms(run, runs)
                 case = f"{label} from {sh}x{sw}" + (", new source frame" if cold else ", source cached")
-                rows.append(f"| warp | {case} | | {label.split()[-1]} | {med:.2f} | {p90:.2f} | | |")
+                rows.append(f"| warp | {case} | | {label.split()[-1]} | {med:.2f} | {p90:.2f} | {cpu:.2f} | | | |")
                 print(rows[-1], flush=True)
 
 
@@ -236,11 +240,13 @@ def main() -> None:
             f"Machine: 2-core CPU, no GPU. Date: {dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M} UTC. "
             f"Command: `{command}`. torch {torch.__version__}, {args.threads} thread(s); "
             f"OpenGL reference: moderngl on EGL, {gl_info} (default thread count), timed including the read-back of "
-            f"colour and depth. ms per frame, median and p90 over {runs} runs after 5 warm-up runs.",
+            f"colour and depth. ms per frame, median and p90 of wall time over {runs} runs after 5 warm-up runs; "
+            "CPU ms: median CPU time of the process (all threads: llvmpipe uses several), which other load on a shared "
+            "machine inflates much less than wall time.",
             "",
-            "| what | scene | triangles | output (HxW) | torch median ms | torch p90 ms | OpenGL median ms "
-            "| OpenGL p90 ms |",
-            "|---|---|---:|---|---:|---:|---:|---:|",
+            "| what | scene | triangles | output (HxW) | torch median ms | torch p90 ms | torch CPU ms "
+            "| OpenGL median ms | OpenGL p90 ms | OpenGL CPU ms |",
+            "|---|---|---:|---|---:|---:|---:|---:|---:|---:|",
             *rows,
             "",
             "Warp: T = 0.3 m sideways, 1 m forward, 1.7 degrees of yaw; ROI (x0, y0, w, h) = (80, 100, 160, 64) of the "

@@ -54,20 +54,40 @@ class WarpResult:
 @dataclass
 class _Source:
     """Per-source-frame constants: points (B, 3, HW) in the source camera (z K^-1 p; the ray K^-1 p for sky),
-    `finite` (B, 1, HW) 1.0 for finite depth else 0.0, `near` (B, HW) the smallest destination z a point may have to
-    be drawn (+inf for pixels without depth), `sky_depth` (B, HW) 0 or +inf added to the destination z, the
-    colour table (B * HW,) int32 packed RGB8 for uint8 sources or (3, B * HW) channel-major otherwise, and the
-    smallest finite depth (inf when there is none)."""
+    `finite` (B, 1, HW) 1.0 for pixels with a finite depth else 0.0, `near` (B, HW) the smallest destination z a
+    point may have to be drawn (never reached for pixels without depth), `sky` (B, HW) bool, the colour table
+    (B * HW,) int32 packed RGB8 for uint8 sources or (3, B * HW) channel-major otherwise, and the smallest finite
+    depth (inf when there is none)."""
 
     points: torch.Tensor
     finite: torch.Tensor
     near: torch.Tensor
-    sky_depth: torch.Tensor
+    sky: torch.Tensor
     colour: torch.Tensor
     min_depth_m: float
 
 
 _SOURCE_CACHE: OrderedDict[tuple, _Source] = OrderedDict()
+_RAYS_CACHE: OrderedDict[tuple, torch.Tensor] = OrderedDict()
+_NEVER = 3.0e38  # a z no point reaches (finite, so that 0 * _NEVER stays 0)
+
+
+def _rays(height_px: int, width_px: int, K: torch.Tensor) -> torch.Tensor:
+    """(3, H*W) float32 rays K^-1 [u, v, 1] of every pixel centre, cached per image size, intrinsics and device."""
+    key = (height_px, width_px, str(K.device), tuple(K.flatten().tolist()))
+    rays = _RAYS_CACHE.get(key)
+    if rays is None:
+        v, u = torch.meshgrid(
+            torch.arange(height_px, dtype=torch.float64, device=K.device),
+            torch.arange(width_px, dtype=torch.float64, device=K.device),
+            indexing="ij",
+        )
+        pixels = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones_like(u).reshape(-1)])
+        rays = (torch.linalg.inv(K) @ pixels).to(torch.float32)
+        _RAYS_CACHE[key] = rays
+        if len(_RAYS_CACHE) > _SOURCE_CACHE_SIZE:
+            _RAYS_CACHE.popitem(last=False)
+    return rays
 
 
 def _prepare_source(rgb: torch.Tensor, depth_m: torch.Tensor, K_src: torch.Tensor) -> _Source:
@@ -86,30 +106,22 @@ def _prepare_source(rgb: torch.Tensor, depth_m: torch.Tensor, K_src: torch.Tenso
         return cached
     B, H, W = depth_m.shape
     dev = depth_m.device
-    v, u = torch.meshgrid(
-        torch.arange(H, dtype=torch.float64, device=dev),
-        torch.arange(W, dtype=torch.float64, device=dev),
-        indexing="ij",
-    )
-    pixels = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(H * W, dtype=torch.float64, device=dev)])
-    rays = (torch.linalg.inv(K_src) @ pixels).to(torch.float32)  # (3, HW), z = 1
+    rays = _rays(H, W, K_src)
     z = depth_m.reshape(B, 1, H * W).to(torch.float32)
-    finite = torch.isfinite(z)
-    has_depth = finite & (z > 0)
+    has_depth = (z > 0) & torch.isfinite(z)  # NaN compares False
     sky = torch.isposinf(z)
-    scale = torch.nan_to_num(z, nan=0.0, posinf=1.0, neginf=0.0)
-    near = torch.full((B, H * W), torch.inf, device=dev)
-    near[has_depth[:, 0]] = _NEAR_M
-    near[sky[:, 0]] = 0.0
-    sky_depth = torch.zeros((B, H * W), device=dev)
-    sky_depth[sky[:, 0]] = torch.inf
-    if rgb.dtype == torch.uint8:
-        c = rgb.reshape(B * H * W, 3).to(torch.int32)
-        colour = c[:, 0] | (c[:, 1] << 8) | (c[:, 2] << 16)
+    depth_f, sky_f = has_depth.to(torch.float32), sky.to(torch.float32)
+    # Smallest destination z to draw: _NEAR_M for points, 0 for sky, never (a huge finite value) for no data.
+    near = (depth_f * _NEAR_M).add_((1.0 - depth_f - sky_f) * _NEVER)[:, 0]
+    if rgb.dtype == torch.uint8:  # RGB8 + a zero byte, read as one int32 per pixel
+        rgba = torch.cat([rgb.reshape(B * H * W, 3), torch.zeros((B * H * W, 1), dtype=torch.uint8, device=dev)], 1)
+        colour = rgba.view(torch.int32).reshape(-1)
     else:
         colour = rgb.reshape(B * H * W, 3).T.contiguous()
-    min_depth = float(z[has_depth].min()) if bool(has_depth.any()) else float("inf")
-    source = _Source(rays * scale, finite.to(torch.float32), near, sky_depth, colour, min_depth)
+    min_depth = float(torch.nan_to_num(z, nan=0.0, posinf=0.0, neginf=0.0).add_((1.0 - depth_f) * _NEVER).min())
+    min_depth = min_depth if min_depth < 0.5 * _NEVER else float("inf")
+    scale = torch.nan_to_num(z, nan=0.0, posinf=1.0, neginf=0.0)
+    source = _Source(rays * scale, depth_f, near, sky[:, 0], colour, min_depth)
     _SOURCE_CACHE[key] = source
     if len(_SOURCE_CACHE) > _SOURCE_CACHE_SIZE:
         _SOURCE_CACHE.popitem(last=False)
@@ -242,7 +254,7 @@ def forward_warp(
     # q = K_dst (R P + t finite): finite points move with the camera, points at infinity only turn.
     M = (K_d @ T[:, :3, :3]).to(torch.float32)
     c = (K_d @ T[:, :3, 3:]).to(torch.float32)  # (B, 3, 1)
-    P, fin, near, sky_depth = source.points, source.finite[:, 0], source.near, source.sky_depth
+    P, fin, near, sky = source.points, source.finite[:, 0], source.near, source.sky
     window_pixels = None
     window = None
     if (ew, eh) != (out_width_px, out_height_px):
@@ -255,7 +267,7 @@ def forward_warp(
         P = P.reshape(B, 3, H, W)[:, :, sy0:sy1, sx0:sx1].reshape(B, 3, -1)
         fin = fin.reshape(B, H, W)[:, sy0:sy1, sx0:sx1].reshape(B, -1)
         near = near.reshape(B, H, W)[:, sy0:sy1, sx0:sx1].reshape(B, -1)
-        sky_depth = sky_depth.reshape(B, H, W)[:, sy0:sy1, sx0:sx1].reshape(B, -1)
+        sky = sky.reshape(B, H, W)[:, sy0:sy1, sx0:sx1].reshape(B, -1)
         window_pixels = (
             torch.arange(sy0, sy1, device=device)[:, None] * W + torch.arange(sx0, sx1, device=device)
         ).reshape(-1)
@@ -273,7 +285,8 @@ def forward_warp(
     inside = in_front & (u >= 0) & (u < ew) & (v >= 0) & (v < eh)
     n_src = qz.shape[1]
     flat = inside.reshape(-1).nonzero().squeeze(1)  # b * n_src + source pixel (of the window)
-    depth = (qz + sky_depth).reshape(-1).index_select(0, flat)
+    depth = qz.reshape(-1).index_select(0, flat)
+    depth.masked_fill_(sky.reshape(-1).index_select(0, flat), torch.inf)  # points at infinity
     b_idx = flat // n_src if B > 1 else torch.zeros_like(flat)
     pixel = flat - b_idx * n_src
     if window_pixels is not None:
@@ -296,7 +309,7 @@ def forward_warp(
     src_index = src_index.reshape(-1)
     if rgb.dtype == torch.uint8:
         packed = source.colour.index_select(0, src_index) * valid.reshape(-1)
-        out_rgb = torch.stack([packed & 255, (packed >> 8) & 255, packed >> 16], -1).to(torch.uint8)
+        out_rgb = packed.view(torch.uint8).reshape(-1, 4)[:, :3].contiguous()  # bytes as packed: any endianness
     else:
         out_rgb = torch.stack([row.index_select(0, src_index) for row in source.colour], -1)
         out_rgb *= valid.reshape(-1, 1)
