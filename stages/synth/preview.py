@@ -9,7 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.patches import Circle, FancyArrow, Polygon, Rectangle  # noqa: E402
+from matplotlib.patches import Circle, FancyArrow, Patch, Polygon, Rectangle  # noqa: E402
 
 from drivesim.stages.synth import textures  # noqa: E402
 from drivesim.stages.synth.drive import Trajectory  # noqa: E402
@@ -167,7 +167,15 @@ def write_map(
         fontsize=10,
         bbox={"facecolor": "white", "alpha": 0.7, "edgecolor": "none", "pad": 1},
     )
-    ax.legend(loc="upper left", fontsize=9, framealpha=0.85)
+    handles, _ = ax.get_legend_handles_labels()
+    handles += [
+        Patch(facecolor=(0.75, 0.7, 0.64), edgecolor="#4a4038", label="buildings"),
+        Patch(facecolor="#2f5e24", label="trees"),
+        Patch(facecolor=(0.55, 0.06, 0.06), edgecolor="black", label="parked cars"),
+        Patch(facecolor=ASPHALT, label="road (two lanes + parking)"),
+        Patch(facecolor=PAVING, label="sidewalks"),
+    ]
+    ax.legend(handles=handles, loc="upper left", fontsize=9, framealpha=0.85)
     ax.set_title(
         f"synthetic world, seed {world.seed}: {world.road.length_m:.0f} m of road, "
         f"{len(world.layout.buildings)} buildings, {len(world.layout.trees)} trees, "
