@@ -12,12 +12,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from drivesim.pipeline.errors import InputError
 from drivesim.pipeline.progress import progress_bar
 from drivesim.stages.ingest.config import IngestConfig
-from drivesim.stages.ingest.extrinsics import StaticTfTree, pose_from_msg, transform_from_msg
+from drivesim.stages.ingest.extrinsics import StaticTfTree
 from drivesim.stages.ingest.images import (
     CameraModel,
     EncodingError,
@@ -29,23 +28,20 @@ from drivesim.stages.ingest.images import (
     resize_depth,
     working_size,
 )
-from drivesim.stages.ingest.output import (
-    FrameStore,
-    GrowableArray,
-    NpyStreamWriter,
-    OrderedPipeline,
-    Series,
-    gps_series,
-    imu_series,
-    odometry_series,
-    speed_series,
-    write_json,
-)
+from drivesim.stages.ingest.output import FrameStore, GrowableArray, NpyStreamWriter, OrderedPipeline, write_json
 from drivesim.stages.ingest.pointcloud import LidarWriter, PointCloudError, cloud_points
+from drivesim.stages.ingest.series import (
+    GpsRecorder,
+    GroundTruthPoseRecorder,
+    ImuRecorder,
+    OdometryRecorder,
+    SpeedRecorder,
+    TfPoseRecorder,
+    field_of,
+    stamp_ns,
+)
 from drivesim.stages.ingest.sources import MessageSource, open_source
 from drivesim.stages.ingest.topics import TopicChoice, choose_topics, describe_topics
-
-_NAN4 = np.full(4, np.nan)
 
 
 @dataclass
@@ -56,21 +52,6 @@ class IngestResult:
     notes: list[str] = field(default_factory=list)
 
 
-def _field(msg: Any, *names: str) -> Any:
-    """A message field under its ROS2 or ROS1 name (CameraInfo `k` vs `K`)."""
-    for name in names:
-        if hasattr(msg, name):
-            return getattr(msg, name)
-    raise AttributeError(names[0])
-
-
-def stamp_ns(msg: Any, log_time_ns: int) -> int:
-    """The header stamp in ns, or the log time when the stamp is zero (drivers that do not fill it)."""
-    stamp = msg.header.stamp
-    t = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-    return t if t > 0 else int(log_time_ns)
-
-
 def _first(source: MessageSource, topic: str) -> Any | None:
     for _, _, msg in source.messages([topic]):
         return msg
@@ -79,10 +60,10 @@ def _first(source: MessageSource, topic: str) -> Any | None:
 
 def camera_model_from_info(info: Any) -> CameraModel:
     """The camera model a CameraInfo message describes (ROS1 or ROS2 field names)."""
-    K = np.asarray(_field(info, "k", "K"), dtype=float).reshape(3, 3)
-    D = np.asarray(_field(info, "d", "D"), dtype=float).ravel()
-    R = np.asarray(_field(info, "r", "R"), dtype=float).reshape(3, 3)
-    P = np.asarray(_field(info, "p", "P"), dtype=float).reshape(3, 4)[:, :3]
+    K = np.asarray(field_of(info, "k", "K"), dtype=float).reshape(3, 3)
+    D = np.asarray(field_of(info, "d", "D"), dtype=float).ravel()
+    R = np.asarray(field_of(info, "r", "R"), dtype=float).reshape(3, 3)
+    P = np.asarray(field_of(info, "p", "P"), dtype=float).reshape(3, 4)[:, :3]
     if not np.any(R):
         R = np.eye(3)
     if not np.any(P) or P[0, 0] <= 0:
@@ -153,15 +134,6 @@ def _extrinsics(
 
     height_m = cfg.extrinsics.camera_height_m
     return camera_mount(0.0, 0.0, height_m or 0.0), height_m, "default", None
-
-
-def _rotation_to_vehicle(tf: StaticTfTree, vehicle_frame: str | None, frame_id: str) -> np.ndarray | None:
-    if vehicle_frame is None or not frame_id:
-        return None
-    T = tf.lookup(vehicle_frame, frame_id)
-    if T is None or np.allclose(T[:3, :3], np.eye(3), atol=1e-9):
-        return None
-    return T[:3, :3]
 
 
 def ingest_ros(path: Path, fmt: str, cfg: IngestConfig, out_dir: Path) -> IngestResult:
@@ -239,7 +211,6 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
     if gt_depth_topic is not None:
         depth_writer = NpyStreamWriter(out_dir / "gt_depth.npy", (n_frames, height, width), np.float32)
 
-    series: dict[str, Series] = {}
     handlers: dict[str, Any] = {}
     last_t = [-1]
 
@@ -268,93 +239,25 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
 
         handlers[gt_depth_topic.name] = on_depth
 
+    recorders: list[Any] = []
+
+    def record(role: str, recorder: Any) -> None:
+        handlers[choice.roles[role].name] = recorder
+        recorders.append(recorder)
+
     if "gps" in choice.roles:
-        gps = series["gps"] = gps_series()
-
-        def on_gps(msg: Any, log_ns: int) -> None:
-            cov = np.asarray(msg.position_covariance, dtype=float).reshape(3, 3)
-            gps.append(
-                t_ns=stamp_ns(msg, log_ns),
-                lat_deg=msg.latitude,
-                lon_deg=msg.longitude,
-                alt_m=msg.altitude,
-                status=msg.status.status,
-                covariance_m2=cov,
-                covariance_type=msg.position_covariance_type,
-            )
-
-        handlers[choice.roles["gps"].name] = on_gps
-
+        record("gps", GpsRecorder())
     if "imu" in choice.roles:
-        imu = series["imu"] = imu_series()
-        imu_rotation: dict[str, tuple[np.ndarray, Rotation] | None] = {}
-
-        def on_imu(msg: Any, log_ns: int) -> None:
-            frame_id = msg.header.frame_id.lstrip("/")
-            if frame_id not in imu_rotation:
-                R_vehicle_imu = _rotation_to_vehicle(tf, vehicle_frame, frame_id)
-                imu_rotation[frame_id] = (
-                    None if R_vehicle_imu is None else (R_vehicle_imu, Rotation.from_matrix(R_vehicle_imu.T))
-                )
-            rotation = imu_rotation[frame_id]  # None when the IMU frame is the vehicle frame (or unknown)
-            w = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
-            a = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
-            q = msg.orientation
-            has_orientation = float(_field(msg, "orientation_covariance")[0]) != -1.0
-            quat = np.array([q.x, q.y, q.z, q.w]) if has_orientation else _NAN4
-            if rotation is not None:
-                R, rot_imu_vehicle = rotation
-                w, a = R @ w, R @ a
-                if has_orientation and np.linalg.norm(quat) > 1e-9:
-                    # orientation of the vehicle = orientation of the IMU composed with R_imu_vehicle
-                    quat = (Rotation.from_quat(quat) * rot_imu_vehicle).as_quat()
-            imu.append(
-                t_ns=stamp_ns(msg, log_ns), angular_velocity_radps=w, linear_acceleration_mps2=a, orientation_xyzw=quat
-            )
-
-        handlers[choice.roles["imu"].name] = on_imu
-
-    speed = None
-    if "twist" in choice.roles or "odometry" in choice.roles:
-        speed = series["speed"] = speed_series()
+        record("imu", ImuRecorder(tf, vehicle_frame))
+    speed = SpeedRecorder() if "twist" in choice.roles or "odometry" in choice.roles else None
     if "twist" in choice.roles:
-
-        def on_twist(msg: Any, log_ns: int) -> None:
-            twist = msg.twist.twist if hasattr(msg.twist, "twist") else msg.twist
-            speed.append(t_ns=stamp_ns(msg, log_ns), speed_mps=twist.linear.x)
-
-        handlers[choice.roles["twist"].name] = on_twist
-
+        record("twist", speed)
+    elif speed is not None:
+        recorders.append(speed)
     if "odometry" in choice.roles:
-        odom = series["odometry"] = odometry_series()
-        speed_from_odometry = "twist" not in choice.roles
-
-        def on_odometry(msg: Any, log_ns: int) -> None:
-            t = stamp_ns(msg, log_ns)
-            p, q = msg.pose.pose.position, msg.pose.pose.orientation
-            v, w = msg.twist.twist.linear, msg.twist.twist.angular
-            odom.append(
-                t_ns=t,
-                position_m=(p.x, p.y, p.z),
-                orientation_xyzw=(q.x, q.y, q.z, q.w),
-                linear_velocity_mps=(v.x, v.y, v.z),
-                angular_velocity_radps=(w.x, w.y, w.z),
-            )
-            if speed_from_odometry:
-                speed.append(t_ns=t, speed_mps=v.x)
-
-        handlers[choice.roles["odometry"].name] = on_odometry
-
-    gt_poses: Series | None = None
+        record("odometry", OdometryRecorder(speed if "twist" not in choice.roles else None))
     if "gt_pose" in choice.roles:
-        gt_poses = Series({"T_world_vehicle": ((4, 4), np.float64)})
-
-        def on_gt_pose(msg: Any, log_ns: int) -> None:
-            gt_poses.append(
-                t_ns=stamp_ns(msg, log_ns), T_world_vehicle=pose_from_msg(msg.pose.position, msg.pose.orientation)
-            )
-
-        handlers[choice.roles["gt_pose"].name] = on_gt_pose
+        record("gt_pose", GroundTruthPoseRecorder())
 
     lidar: LidarWriter | None = None
     if "lidar" in choice.roles:
@@ -371,24 +274,10 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
 
         handlers[choice.roles["lidar"].name] = on_lidar
 
-    tf_poses: Series | None = None
+    tf_poses: TfPoseRecorder | None = None
     if choice.tf is not None and "odometry" not in choice.roles:
-        tf_poses = Series({"T_parent_vehicle": ((4, 4), np.float64)})
-        vehicle_frames = set(cfg.extrinsics.vehicle_frames)
-        tf_child: list[str] = []  # the vehicle frame /tf moves (locked on the first one seen)
-
-        def on_tf(msg: Any, log_ns: int) -> None:
-            for transform in msg.transforms:
-                child = transform.child_frame_id.lstrip("/")
-                if child not in vehicle_frames or transform.header.frame_id.lstrip("/") in vehicle_frames:
-                    continue
-                if not tf_child:
-                    tf_child.append(child)
-                if child == tf_child[0]:
-                    T = transform_from_msg(transform.transform.translation, transform.transform.rotation)
-                    tf_poses.append(t_ns=stamp_ns(transform, log_ns), T_parent_vehicle=T)
-
-        handlers[choice.tf.name] = on_tf
+        tf_poses = TfPoseRecorder(cfg.extrinsics.vehicle_frames)
+        handlers[choice.tf.name] = tf_poses
 
     def sink_frame(frame: tuple[np.ndarray, np.ndarray | None]) -> None:
         frames.write(frame)
@@ -433,9 +322,8 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
             path,
         )
 
-    if tf_poses is not None and len(tf_poses) >= 2:
-        T_child_vehicle = tf.lookup(tf_child[0], vehicle_frame) if vehicle_frame else None
-        save_tf_odometry(out_dir / "odometry.npz", tf_poses, T_child_vehicle)
+    if tf_poses is not None and tf_poses.has_poses():
+        tf_poses.save(out_dir, tf, vehicle_frame)
         choice.roles["tf"] = choice.tf
     elif cfg.require_pose_source and not pose_topics:
         raise InputError(
@@ -443,12 +331,8 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
             f"{' or '.join(cfg.extrinsics.vehicle_frames)} relative to a world frame",
             path,
         )
-
-    for name, s in series.items():
-        if len(s):
-            s.save(out_dir / f"{name}.npz")
-    if gt_poses is not None and len(gt_poses):
-        gt_poses.save(out_dir / "ground_truth.npz")
+    for recorder in recorders:
+        recorder.save(out_dir)
 
     write_json(
         out_dir / "calibration.json",
@@ -480,31 +364,6 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
         "sensors": sensors,
     }
     return IngestResult(summary=summary, notes=notes)
-
-
-def save_tf_odometry(path: Path, tf_poses: Series, T_child_vehicle: np.ndarray | None) -> None:
-    """odometry.npz from /tf poses of the vehicle: velocities by forward differences in the vehicle frame."""
-    t_ns = tf_poses.columns["t_ns"].array()
-    T = tf_poses.columns["T_parent_vehicle"].array()
-    order = np.argsort(t_ns, kind="stable")
-    t_ns, T = t_ns[order], T[order]
-    keep = np.concatenate([[True], np.diff(t_ns) > 0])  # one pose per stamp
-    t_ns, T = t_ns[keep], T[keep]
-    if T_child_vehicle is not None:
-        T = T @ T_child_vehicle
-    R = T[:, :3, :3]
-    dt_s = np.diff(t_ns) / 1e9
-    v_world = np.diff(T[:, :3, 3], axis=0) / dt_s[:, None]
-    v_body = np.einsum("nji,nj->ni", R[:-1], v_world)
-    w_body = Rotation.from_matrix(np.einsum("nji,njk->nik", R[:-1], R[1:])).as_rotvec() / dt_s[:, None]
-    np.savez(
-        path,
-        t_ns=t_ns,
-        position_m=T[:, :3, 3],
-        orientation_xyzw=Rotation.from_matrix(R).as_quat(),
-        linear_velocity_mps=np.vstack([v_body, v_body[-1:]]),
-        angular_velocity_radps=np.vstack([w_body, w_body[-1:]]),
-    )
 
 
 _SENSOR_ORDER = (
