@@ -197,3 +197,14 @@ def test_source_window_only_skips_pixels_that_cannot_land(T_dst_src, monkeypatch
     assert everything.valid.float().mean() > 0.5
     assert torch.equal(windowed.rgb, everything.rgb)
     assert torch.equal(windowed.depth_m, everything.depth_m)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_matches_cpu():
+    rgb_src, depth_src = render_from(g.pose_2d(0.0, 0.0, 0.0), plane_world())
+    T = g.se3(g.rot_y(0.03), [0.3, 0.0, -1.0])
+    cpu = forward_warp(rgb_src, depth_src, K, T, K, W, H, roi=(80, 100, 160, 64))
+    gpu = forward_warp(rgb_src.cuda(), depth_src.cuda(), K, T, K, W, H, roi=(80, 100, 160, 64))
+    assert (cpu.valid == gpu.valid.cpu()).float().mean() > 0.999
+    both = cpu.valid & gpu.valid.cpu()
+    assert (cpu.depth_m[both] - gpu.depth_m.cpu()[both]).abs().max() < 1e-3
