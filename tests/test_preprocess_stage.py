@@ -17,6 +17,8 @@ from test_preprocess_stage_fakes import (
     SPEED_MPS,
     T_VEHICLE_CAMERA,
     WIDTH_PX,
+    K,
+    add_lidar_wall,
     install_fake_poses,
     make_trace,
 )
@@ -178,6 +180,24 @@ def test_cli_bad_override_is_one_line_and_exit_2(tmp_path: Path) -> None:
     assert result.returncode == 2
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "depth.method" in lines[0]
+
+
+def test_lidar_scans_are_motion_compensated_to_the_frame_time(ws: Workspace, monkeypatch) -> None:
+    # scans 50 ms after frames 0..9 of a car at 10 m/s: uncompensated, the wall would be ~0.5 m too near
+    wall_x_m = 25.0
+    add_lidar_wall(ws.artifact_dir("trace"), scan_offset_s=0.05, scan_count=10, wall_x_m=wall_x_m)
+    install_fake_poses(monkeypatch)
+    cfg = load_config(PreprocessConfig, overrides=["depth.method=lidar", "depth.lidar.fallback=plane"])
+    pre = load_preprocessed(stage.run_preprocess(ws, cfg).path)
+    u, v = WIDTH_PX // 2, HEIGHT_PX // 2 - 6  # a pixel just above the horizon: it sees the wall, not the ground
+    ray_camera = np.linalg.inv(K) @ np.array([u, v, 1.0])
+    for i in (2, 6, 10):
+        T = pre.poses["T_world_camera"][i]
+        ray_world = T[:3, :3] @ ray_camera
+        expected_m = (wall_x_m - T[0, 3]) / ray_world[0]  # optical depth where the ray meets x = wall_x_m
+        assert float(pre.depth_m[i, v, u]) == pytest.approx(expected_m, abs=0.15), i
+    # frame 11 is 150 ms from the last scan: no scan is used and the plane fallback (far above the horizon) fills it
+    assert float(pre.depth_m[11, v, u]) == pytest.approx(80.0)
 
 
 def test_lidar_depth_without_point_cloud_fails_before_pose_fusion(ws: Workspace, monkeypatch) -> None:

@@ -51,6 +51,30 @@ def make_trace(ws: Workspace, frame_count: int = FRAME_COUNT) -> Path:
     return ws.artifact_dir("trace")
 
 
+def arc_pose(t_s: float) -> np.ndarray:
+    """T_world_vehicle on the arc `t_s` seconds after the first frame."""
+    yaw = SPEED_MPS * t_s / RADIUS_M
+    return pose_2d(RADIUS_M * np.sin(yaw), RADIUS_M * (1.0 - np.cos(yaw)), yaw)
+
+
+def add_lidar_wall(trace_dir: Path, scan_offset_s: float, scan_count: int, wall_x_m: float) -> None:
+    """Lidar scans of a wall (the world plane x = wall_x_m) taken `scan_offset_s` after each of the first frames."""
+    t0_ns = int(np.load(trace_dir / "frame_times_ns.npy")[0])
+    wy, wz = np.meshgrid(np.arange(-10.0, 15.0, 0.05), np.arange(0.0, 4.0, 0.05))
+    wall = np.stack([np.full(wy.size, wall_x_m), wy.ravel(), wz.ravel(), np.ones(wy.size)], axis=1)
+    scans, times = [], []
+    for i in range(scan_count):
+        t_s = i * FRAME_PERIOD_NS * 1e-9 + scan_offset_s
+        scans.append((np.linalg.inv(arc_pose(t_s)) @ wall.T).T)
+        times.append(t0_ns + round(t_s * 1e9))
+    points = np.concatenate(scans).astype(np.float32)
+    points[:, 3] = np.nan  # no intensity
+    np.save(trace_dir / "lidar_points.npy", points)
+    counts = np.array([len(scan) for scan in scans], dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    np.savez(trace_dir / "lidar_scans.npz", t_ns=np.array(times, dtype=np.int64), start=starts, count=counts)
+
+
 def arc_poses(frame_times_ns: np.ndarray) -> types.SimpleNamespace:
     """FusedPoses of a car driving a left-hand arc of RADIUS_M at SPEED_MPS, starting at the origin heading east."""
     t_s = (np.asarray(frame_times_ns) - frame_times_ns[0]) * 1e-9
