@@ -43,12 +43,12 @@ FAR_EXTENT_M = 1500.0
 GROUND_Z_M = -0.03
 
 SUN_DIR_WORLD = np.array([0.45, -0.55, 0.70])  # towards the sun: south-east, about 44 degrees up
-SKY_ZENITH_RGB = np.array([0.33, 0.52, 0.80])
-SKY_HORIZON_RGB = np.array([0.78, 0.85, 0.92])
+SKY_ZENITH_RGB = np.array([0.33, 0.52, 0.80], np.float32)
+SKY_HORIZON_RGB = np.array([0.78, 0.85, 0.92], np.float32)
 HAZE_DISTANCE_M = 700.0
 CLOUD_HEIGHT_M = 1500.0
 CLOUD_TILE_M = 16000.0
-CLOUD_RGB = np.array([0.96, 0.96, 0.97])
+CLOUD_RGB = np.array([0.96, 0.96, 0.97], np.float32)
 
 
 @dataclass(frozen=True)
@@ -243,7 +243,7 @@ def _sky_colour(directions: np.ndarray, clouds: np.ndarray) -> np.ndarray:
         n = clouds.shape[0]
         hit = d[up, :2] * (CLOUD_HEIGHT_M / d[up, 2:3])
         ij = np.floor(hit / CLOUD_TILE_M * n).astype(np.int64) % n
-        cover = clouds[ij[:, 1], ij[:, 0]] * np.clip((elevation[up] - 0.03) / 0.25, 0.0, 1.0)
+        cover = clouds[ij[:, 1], ij[:, 0]] * np.clip((elevation[up] - np.float32(0.03)) * np.float32(4.0), 0.0, 1.0)
         rgb[up] = rgb[up] * (1 - cover[:, None]) + CLOUD_RGB * cover[:, None]
     rgb[elevation < 0] = SKY_HORIZON_RGB * 0.85
     return rgb.astype(np.float32)
