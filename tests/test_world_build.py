@@ -132,3 +132,6 @@ def test_min_pooling_keeps_a_thin_near_pole_that_nearest_loses() -> None:
     stack = np.stack([depth, np.full_like(depth, np.nan)])
     out = resize_depth(stack, 32, 20, "min")
     assert out.shape == (2, 20, 32) and out[0].min() == 3.0 and np.isinf(out[1]).all()
+    # upscaling (a sim image wider than the trace) repeats source pixels
+    up = resize_depth(np.array([[1.0, 2.0], [3.0, 4.0]], np.float32), 4, 4, "min")
+    np.testing.assert_array_equal(up, [[1, 1, 2, 2], [1, 1, 2, 2], [3, 3, 4, 4], [3, 3, 4, 4]])

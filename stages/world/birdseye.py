@@ -72,7 +72,7 @@ def write_birdseye(
     )
     colorbar = fig.colorbar(lines, ax=ax, shrink=0.85)
     colorbar.set_label("curvature (1/m), + = left turn")
-    ax.legend(loc="upper left", framealpha=0.9)
+    ax.legend(loc="best", framealpha=0.9)
     ax.set_title(title, fontsize=10)
     fig.savefig(path, dpi=120)
     plt.close(fig)
