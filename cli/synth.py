@@ -28,7 +28,10 @@ def synth_command(
         typer.Option("--output", "-o", help="Recording to write (default <workspace>/recordings/synth-seed<N>.mcap)."),
     ] = None,
     preview: Annotated[
-        bool, typer.Option("--preview", help="Also write <output>.preview.png (frames) and <output>.map.png (map).")
+        bool,
+        typer.Option(
+            "--preview", help="Also write <name>.preview.png (frames) and <name>.map.png (map) beside <name>.mcap."
+        ),
     ] = False,
     config: ConfigOption = None,
     set_: SetOption = None,
