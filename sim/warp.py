@@ -95,8 +95,10 @@ def _prepare_source(rgb: torch.Tensor, depth_m: torch.Tensor, K_src: torch.Tenso
         depth_m.data_ptr(),
         depth_m._version,
         tuple(depth_m.shape),
+        depth_m.stride(),
         rgb.data_ptr(),
         rgb._version,
+        rgb.stride(),
         rgb.dtype,
         tuple(K_src.flatten().tolist()),
     )
@@ -242,6 +244,8 @@ def forward_warp(
     if T.shape != (B, 4, 4):
         raise ValueError(f"T_dst_src must be (4, 4) or ({B}, 4, 4), got {tuple(T.shape)}")
     x0, y0, w, h = roi if roi is not None else (0, 0, out_width_px, out_height_px)
+    if w <= 0 or h <= 0 or x0 < 0 or y0 < 0 or x0 + w > out_width_px or y0 + h > out_height_px:
+        raise ValueError(f"roi {roi} is not inside the {out_width_px}x{out_height_px} destination image")
     margin = _FILL_RADIUS_PX if fill_holes else 0
     # Rendered region: the ROI plus the margin hole filling reads, clipped to the full destination image.
     ex0, ey0 = max(x0 - margin, 0), max(y0 - margin, 0)

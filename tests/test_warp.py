@@ -208,3 +208,10 @@ def test_cuda_matches_cpu():
     assert (cpu.valid == gpu.valid.cpu()).float().mean() > 0.999
     both = cpu.valid & gpu.valid.cpu()
     assert (cpu.depth_m[both] - gpu.depth_m.cpu()[both]).abs().max() < 1e-3
+
+
+def test_roi_outside_the_image_is_an_error():
+    rgb = torch.zeros(1, H, W, 3, dtype=torch.uint8)
+    depth = torch.ones(1, H, W)
+    with pytest.raises(ValueError, match="roi"):
+        forward_warp(rgb, depth, K, np.eye(4), K, W, H, roi=(300, 0, 64, 32))
