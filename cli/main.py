@@ -58,7 +58,10 @@ app.add_typer(bench.bench_app, name="bench", help="Measure the simulator against
 def main() -> None:
     """Entry point: run the app; user errors become one line on stderr and exit code 2."""
     try:
-        app(standalone_mode=False)
+        code = app(standalone_mode=False)
+        # Outside standalone mode click returns (not raises) the exit code of an aborted command (Ctrl-C).
+        if isinstance(code, int) and code != 0:
+            sys.exit(code)
     except DrivesimError as e:
         err_console.print(f"[bold red]error:[/] {e.one_line()}", highlight=False, soft_wrap=True)
         sys.exit(e.exit_code)
