@@ -27,13 +27,14 @@ from drivesim.pipeline.errors import ConfigError, InputError
 class MvsConfig(StageConfig):
     """Plane-sweep stereo settings (method `mvs`)."""
 
-    neighbour_offsets: list[int] = Field(default_factory=lambda: [-3, -2, -1, 1, 2, 3])
-    """Frames matched against each frame, as index offsets (0 not allowed); missing ones at the ends are skipped."""
-    num_hypotheses: int = Field(48, ge=4, le=512)
+    neighbour_offsets: list[int] = Field(default_factory=lambda: [-3, -1, 1, 3])
+    """Frames matched against each frame, as index offsets (0 not allowed); at the ends of the drive an offset past
+    the end takes the last frame on that side."""
+    num_hypotheses: int = Field(32, ge=4, le=512)
     """Fronto-parallel depth planes swept, spaced evenly in inverse depth between min_depth_m and max_depth_m."""
     min_depth_m: float = Field(2.0, gt=0.0)
     """Nearest depth swept (m)."""
-    patch_size_px: int = Field(5, ge=3, le=15)
+    patch_size_px: int = Field(13, ge=3, le=31)
     """Side of the square window of the ZNCC matching cost, in matching-resolution pixels (odd)."""
     matching_width_px: int = Field(320, ge=32)
     """Width of the images the sweep runs on (matching resolution); frames wider than this are downscaled."""

@@ -183,24 +183,26 @@ def sky_mask(texture_std: np.ndarray, colour: np.ndarray, below_horizon: np.ndar
     """Pixels taken as sky: textureless (window deviation below `max_std`), sky-coloured (bright, blue at least as
     strong as red: clear or overcast), above the horizon, and connected to the top of the image through such pixels
     (a bare patch of facade is enclosed by texture, and a plain facade reaching the top is rarely blue)."""
-    skyish = (colour[..., 2] >= colour[..., 0]) & (colour.mean(axis=-1) > 0.35)
+    skyish = (colour[..., 2] > colour[..., 0] + 0.04) & (colour.mean(axis=-1) > 0.35)
     candidate = ((texture_std < max_std) & skyish & ~below_horizon).astype(np.uint8)
     count, labels = cv2.connectedComponents(candidate, connectivity=4)
     top = np.unique(labels[0][candidate[0] > 0])
     return np.isin(labels, top) & (candidate > 0)
 
 
-def _nearest_in_column(values: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """For every pixel, the value of the nearest known pixel in its column (NaN where the column has none)."""
+def _nearest_in_column(values: np.ndarray, known: np.ndarray, above_only: bool = False) -> np.ndarray:
+    """For every pixel, the value of the nearest known pixel in its column (or the nearest above it); NaN if none."""
     h, w = values.shape
     rows = np.arange(h)[:, None].repeat(w, axis=1)
     above = np.maximum.accumulate(np.where(known, rows, -1), axis=0)  # nearest known row at or above
-    below = np.minimum.accumulate(np.where(known, rows, h)[::-1], axis=0)[::-1]  # nearest known row at or below
-    use_below = (below < h) & ((above < 0) | (below - rows < rows - above))
-    source = np.where(use_below, below, above)
-    cols = np.arange(w)[None, :].repeat(h, axis=0)
-    out = values[np.clip(source, 0, h - 1), cols]
-    return np.where(source >= 0, out, np.nan) if (source < 0).any() else out
+    if above_only:
+        source = above
+    else:
+        below = np.minimum.accumulate(np.where(known, rows, h)[::-1], axis=0)[::-1]  # nearest known row at or below
+        use_below = (below < h) & ((above < 0) | (below - rows < rows - above))
+        source = np.where(use_below, below, above)
+    picked = values[np.clip(source, 0, h - 1), np.arange(w)[None, :]]
+    return np.where(source >= 0, picked, np.nan)
 
 
 def _fuse(
@@ -238,13 +240,17 @@ def _fuse(
     depth[todo & sky] = far_m
     labels[todo & sky] = _FAR
     todo &= ~sky
-    known = trusted & (labels != _FAR)
-    column = _nearest_in_column(depth, known)
-    # Below the horizon, a column whose nearest evidence is the ground keeps the plane.
-    from_ground = _nearest_in_column((labels == _PLANE).astype(np.float32), known) > 0.5
-    take = todo & np.isfinite(column) & ~(from_ground & (plane_m < far_m))
+    # Above the horizon: the nearest evidence up or down the column. Below it: the nearest stereo evidence above,
+    # if nearer than the ground there (a vertical surface reaches down to where it stands; below that is ground).
+    evidence = (labels == _STEREO) | (labels == _FILLED)
+    above_horizon = plane_m >= far_m
+    column = _nearest_in_column(depth, evidence | (trusted & ~above_horizon))
+    take = todo & above_horizon & np.isfinite(column)
+    over = _nearest_in_column(depth, evidence, above_only=True)
+    take_below = todo & ~above_horizon & (over < plane_m)
     depth[take] = column[take]
-    labels[take] = _COLUMN
+    depth[take_below] = over[take_below]
+    labels[take | take_below] = _COLUMN
     # Nothing visible lies below the ground: no depth beyond the ground plane's.
     return np.minimum(depth, plane_m), labels
 
@@ -281,7 +287,8 @@ def mvs_depth(
     counts = np.zeros(len(_LABELS), np.int64)
 
     for i in range(n):
-        nbrs = [i + o for o in m.neighbour_offsets if 0 <= i + o < n]
+        # Near the ends of the drive an offset past the end takes the last frame on that side instead.
+        nbrs = sorted({min(max(i + o, 0), n - 1) for o in m.neighbour_offsets} - {i})
         cache.keep_only({i, *nbrs})
         ref = cache.get(i)
         if nbrs:
@@ -314,7 +321,15 @@ def mvs_depth(
                 index = torch.arange(m.num_hypotheses, device=device)[:, None, None]
                 away = (index - best[None]).abs() > 2
                 second = torch.where(away, sweep_cost, torch.ones_like(sweep_cost)).min(dim=0).values
-                parallax = torch.stack([_parallax_px(stereo_m, T, K_t, rays) for T in rel]).max(dim=0).values
+                # Parallax from the widest baseline on each side (the others have less).
+                widest = {min(nbrs), max(nbrs)}
+                parallax = (
+                    torch.stack(
+                        [_parallax_px(stereo_m, T, K_t, rays) for j, T in zip(nbrs, rel, strict=True) if j in widest]
+                    )
+                    .max(dim=0)
+                    .values
+                )
                 confident = (
                     (1.0 - 2.0 * best_cost >= m.min_zncc)
                     & (second - best_cost >= m.min_distinctness)
