@@ -126,6 +126,7 @@ def bench_raster(rows: list[str], runs: int, quick: bool, ctx) -> None:
     K = g.intrinsics_from_hfov(W, H, np.deg2rad(70.0))
     T = g.invert(T_VEHICLE_CAMERA)
     scenes = [(f"{n} vehicle{'s' if n > 1 else ''}", vehicle_scene(n), T, None, H, W, K) for n in (1, 3, 8)]
+    scenes.append(("8 vehicles, torch culling back faces (OpenGL: both sides)", vehicle_scene(8), T, None, H, W, K))
     if not quick:
         Hb, Wb = 600, 960
         Kb = g.intrinsics_from_hfov(Wb, Hb, np.deg2rad(70.0))
@@ -138,7 +139,7 @@ def bench_raster(rows: list[str], runs: int, quick: bool, ctx) -> None:
     for name, meshes, T_cw, light, h, w, K in scenes:
         tris = sum(m.triangle_count for m in meshes)
         args = (meshes, T_cw, K, light)
-        rast = Rasterizer(w, h)
+        rast = Rasterizer(w, h, cull_back_faces="culling" in name)
         ours = timed_ms(lambda rast=rast, args=args: rast.render(*args), runs)
         gl = ("n/a", "n/a", "n/a")
         if ctx is not None:

@@ -285,13 +285,24 @@ class Rasterizer:
     :param width_px: image width. :param height_px: image height.
     :param device: torch device for all tensors ("cpu", "cuda").
     :param near_m: nearest drawn depth; surfaces closer than this are cut (exactly, not whole triangles).
+    :param cull_back_faces: skip triangles seen from behind. Only for closed meshes with faces
+        counter-clockwise seen from outside (the `Mesh` convention), such as vehicles: about halves their cost.
+        Off by default: open surfaces (ground, facades) are drawn from both sides.
     """
 
-    def __init__(self, width_px: int, height_px: int, device: str | torch.device = "cpu", near_m: float = 0.05):
+    def __init__(
+        self,
+        width_px: int,
+        height_px: int,
+        device: str | torch.device = "cpu",
+        near_m: float = 0.05,
+        cull_back_faces: bool = False,
+    ):
         self.width_px = int(width_px)
         self.height_px = int(height_px)
         self.device = torch.device(device)
         self.near_m = float(near_m)
+        self.cull_back_faces = bool(cull_back_faces)
         self._pack_cache: list[tuple[list[Mesh], PackedScene]] = []
 
     # ------------------------------------------------------------------ packing
@@ -421,6 +432,9 @@ class Rasterizer:
         abs_det = det.abs()
         scale = (x0.abs() + y0.abs() + z0.abs() + x1.abs() + y1.abs() + z1.abs() + x2.abs() + y2.abs() + z2.abs()) / 3
         good = abs_det > 1e-9 * scale**3  # triangles seen exactly edge-on (or degenerate) cover nothing
+        if self.cull_back_faces:
+            # det = P0 . (P1 x P2) = -(face normal . (camera - P0)): negative when the front (CCW) side faces us.
+            good &= det < 0
         cols = [(hi[0] - lo[0] + 1)]
         for ex, ey, ez in ((cx0, cy0, cz0), (cx1, cy1, cz1), (cx2, cy2, cz2)):
             a = ex * (sign / fx)

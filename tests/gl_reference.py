@@ -258,14 +258,15 @@ def _cylinder_y(
         normals.append(side_n)
     i = np.arange(segments)
     j = (i + 1) % segments
-    faces.append(np.stack([i, j, segments + j], 1))
-    faces.append(np.stack([i, segments + j, segments + i], 1))
+    faces.append(np.stack([i, segments + j, j], 1))  # counter-clockwise seen from outside
+    faces.append(np.stack([i, segments + i, segments + j], 1))
     base = 2 * segments
     for k, y in enumerate((-0.5 * width_m, 0.5 * width_m)):
         off = base + k * (segments + 1)
         verts.append(np.vstack([ring + [0, y, 0], [[0, y, 0]]]))
         normals.append(np.tile([0.0, np.sign(y), 0.0], (segments + 1, 1)))
-        faces.append(np.stack([off + i, off + j, np.full(segments, off + segments)], 1))
+        cap = np.stack([off + i, off + j, np.full(segments, off + segments)], 1)
+        faces.append(cap if k == 0 else cap[:, ::-1])
     return np.concatenate(verts) + centre_m, np.concatenate(faces), np.concatenate(normals)
 
 

@@ -225,3 +225,19 @@ def test_placed_packed_vehicles_match_transformed_meshes():
     assert (placed.depth_m[0][both] - direct.depth_m[0][both]).abs().max() < 0.02
     assert (placed.rgb[0][both] - direct.rgb[0][both]).abs().mean() < 1e-3
     assert not placed.mask[1].any(), "an empty per-camera scene draws nothing"
+
+
+def test_back_face_culling_keeps_closed_meshes_intact():
+    """Vehicles are closed and wound counter-clockwise from outside: culling back faces changes nothing visible."""
+    meshes = [m.transformed(g.pose_2d(x, y, yaw)) for x, y, yaw in ((7, 1, 0.5), (12, -2, 2.0), (20, 3, -1.2))
+              for m in car_meshes()]  # fmt: skip
+    both_sides = Rasterizer(W, H).render(meshes, camera_at(), K)
+    culled = Rasterizer(W, H, cull_back_faces=True).render(meshes, camera_at(), K)
+    assert both_sides.mask.sum() > 3000
+    assert (culled.object_id == both_sides.object_id).float().mean() > 0.9995
+    same = culled.mask & both_sides.mask
+    assert (culled.depth_m[same] - both_sides.depth_m[same]).abs().max() < 1e-4
+    # A lone ground plane seen from below disappears: its front side faces up.
+    from_below = g.invert(g.se3(g.rot_x(np.pi), [0.0, 0.0, -2.0]) @ g.camera_mount(0.0, 0.0, 0.0))
+    assert Rasterizer(W, H).render([ground_plane()], from_below, K).mask.any()
+    assert not Rasterizer(W, H, cull_back_faces=True).render([ground_plane()], from_below, K).mask.any()
