@@ -23,7 +23,7 @@ How it works (DESIGN §4):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -69,41 +69,43 @@ class PackedScene:
     """Triangle soup of a mesh list, ready on a device. Vertices are stored relative to `origin_m` (float64, world)
     so that float32 keeps millimetre precision for worlds far from the ENU origin.
 
-    Per-triangle tensors (T triangles): `vertices_m` (T, 3, 3), also as `vertex_components` (3 xyz, 3 corners, T);
-    `vertex_attributes` (T, 3, 8) per corner: world-frame
-    normal (3), vertex colour x diffuse colour (3), uv (2); `material` (7, T): specular rgb, shininess, metalness,
-    roughness, unlit (0/1); `texture_index` (T,) int64 (-1 none); `object_id` (T,) int32. Textures are one flat texel
-    table `texels` (N,) int32 (r | g << 8 | b << 16) with `texture_info` (3, X) int32 (offset, width, height).
-    Tables are channel-major: per-row 1-D gathers are the fast way to read them on CPU.
+    Per-triangle tensors (T triangles), channel-major (per-row 1-D gathers are the fast way to read tables on CPU):
+    `vertex_components` (3 xyz, 3 corners, T) positions; `attribute_table` (24, T), row 8 * corner + k for the
+    attributes k: world-frame normal (3), vertex colour x diffuse colour (3), uv (2); `material` (7, T): specular
+    rgb, shininess, metalness, roughness, unlit (0/1); `texture_index` (T,) int64 (-1 none); `object_id` (T,) int32.
+    Textures are one flat texel table `texels` (N,) int32 (RGB8 + a zero byte, as laid out in memory) with
+    `texture_info` (3, X) int32 (offset, width, height). `vertices_m` and `vertex_attributes` are (T, 3, 3) and
+    (T, 3, 8) views of the same data.
     """
 
     origin_m: np.ndarray
-    vertices_m: torch.Tensor
     vertex_components: torch.Tensor
-    vertex_attributes: torch.Tensor
+    attribute_table: torch.Tensor
     material: torch.Tensor
     texture_index: torch.Tensor
     object_id: torch.Tensor
     texels: torch.Tensor
     texture_info: torch.Tensor
-    _attribute_table: torch.Tensor | None = field(default=None, repr=False)
 
     @property
     def triangle_count(self) -> int:
         """Number of triangles."""
-        return int(self.vertices_m.shape[0])
+        return int(self.vertex_components.shape[2])
 
     @property
     def device(self) -> torch.device:
         """Where the tensors live."""
-        return self.vertices_m.device
+        return self.vertex_components.device
 
     @property
-    def attribute_table(self) -> torch.Tensor:
-        """`vertex_attributes` as a (24, T) table (row 8 * corner + attribute), built once: per-row gathers are fast."""
-        if self._attribute_table is None:
-            self._attribute_table = self.vertex_attributes.reshape(-1, 24).T.contiguous()
-        return self._attribute_table
+    def vertices_m(self) -> torch.Tensor:
+        """(T, 3, 3) vertex positions relative to `origin_m` (a view)."""
+        return self.vertex_components.permute(2, 1, 0)
+
+    @property
+    def vertex_attributes(self) -> torch.Tensor:
+        """(T, 3, 8) per-corner attributes (a view of `attribute_table`)."""
+        return self.attribute_table.T.reshape(-1, 3, 8)
 
     @property
     def textured(self) -> bool:
@@ -116,15 +118,17 @@ class PackedScene:
         """
         T = np.asarray(T_world_object, dtype=np.float64)
         R = torch.as_tensor(T[:3, :3], dtype=torch.float32, device=self.device)
-        vertices = (self.vertices_m.reshape(-1, 3) @ R.T).reshape(-1, 3, 3)
-        attributes = self.vertex_attributes.clone()
-        attributes[..., 0:3] = attributes[..., 0:3] @ R.T
+        n = self.triangle_count
+        components = (R @ self.vertex_components.reshape(3, 3 * n)).reshape(3, 3, n)
+        table = self.attribute_table.clone()
+        for corner in range(3):
+            rows = slice(8 * corner, 8 * corner + 3)
+            table[rows] = R @ self.attribute_table[rows]
         ids = self.object_id if object_id is None else torch.full_like(self.object_id, int(object_id))
         return PackedScene(
             origin_m=T[:3, :3] @ self.origin_m + T[:3, 3],
-            vertices_m=vertices,
-            vertex_components=vertices.permute(2, 1, 0).contiguous(),
-            vertex_attributes=attributes,
+            vertex_components=components,
+            attribute_table=table,
             material=self.material,
             texture_index=self.texture_index,
             object_id=ids,
@@ -189,12 +193,10 @@ def pack_meshes(meshes: list[Mesh], device: str | torch.device = "cpu") -> Packe
         arr = np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
         return torch.as_tensor(np.ascontiguousarray(arr, dtype=dtype), device=device)
 
-    vertices_t = cat(vertices, (0, 3, 3), np.float32)
     return PackedScene(
         origin_m=origin,
-        vertices_m=vertices_t,
-        vertex_components=vertices_t.permute(2, 1, 0).contiguous(),
-        vertex_attributes=cat(attributes, (0, 3, 8), np.float32),
+        vertex_components=cat(vertices, (0, 3, 3), np.float32).permute(2, 1, 0).contiguous(),
+        attribute_table=cat(attributes, (0, 3, 8), np.float32).reshape(-1, 24).T.contiguous(),
         material=torch.as_tensor(
             np.ascontiguousarray(np.concatenate(materials, axis=1) if materials else np.zeros((7, 0)), np.float32),
             device=device,
@@ -215,10 +217,10 @@ def merge_scenes(scenes: list[PackedScene]) -> PackedScene:
     origin = scenes[0].origin_m
     merged, _ = _concat_scenes(scenes)
     shifts = [torch.as_tensor(s.origin_m - origin, dtype=torch.float32, device=s.device) for s in scenes]
-    vertices = torch.cat([s.vertices_m + shift for s, shift in zip(scenes, shifts, strict=True)])
     merged.origin_m = origin
-    merged.vertices_m = vertices
-    merged.vertex_components = vertices.permute(2, 1, 0).contiguous()
+    merged.vertex_components = torch.cat(
+        [s.vertex_components + shift[:, None, None] for s, shift in zip(scenes, shifts, strict=True)], dim=2
+    )
     return merged
 
 
@@ -240,9 +242,8 @@ def _concat_scenes(scenes: list[PackedScene]) -> tuple[PackedScene, torch.Tensor
     )
     merged = PackedScene(
         origin_m=np.zeros(3),
-        vertices_m=torch.cat([s.vertices_m for s in scenes]),
         vertex_components=torch.cat([s.vertex_components for s in scenes], dim=2),
-        vertex_attributes=torch.cat([s.vertex_attributes for s in scenes]),
+        attribute_table=torch.cat([s.attribute_table for s in scenes], dim=1),
         material=torch.cat([s.material for s in scenes], dim=1),
         texture_index=torch.cat(tex_idx),
         object_id=torch.cat([s.object_id for s in scenes]),
