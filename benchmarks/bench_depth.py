@@ -39,6 +39,15 @@ def _render(folder: Path, n_frames: int, seed: int) -> None:
     )
 
 
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory (MB)."""
+    # VmHWM belongs to this process's own address space; ru_maxrss would carry the parent's peak across exec.
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def _worker(folder: Path, method: str, overrides: list[str]) -> None:
     """Run one method on the rendered drive; print a JSON line with its timing and peak RSS."""
     from drivesim.pipeline.config import load_config
@@ -52,7 +61,7 @@ def _worker(folder: Path, method: str, overrides: list[str]) -> None:
     summary = estimate_depth(frames, cam["K"], cam["T_world_camera"], cam["T_vehicle_camera"], None, cfg, out)
     seconds = time.perf_counter() - start
     out.flush()
-    peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: kilobytes
+    peak_rss_mb = _peak_rss_mb()
     print(json.dumps({"seconds": seconds, "peak_rss_mb": peak_rss_mb, "summary": summary}))
 
 

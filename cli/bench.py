@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Annotated
 
@@ -44,6 +45,33 @@ def fidelity_table(result: FidelityResult) -> tuple[Table, Table]:
     return depth, views
 
 
+def fidelity_markdown(result: FidelityResult, command: str) -> str:
+    """The results as a markdown report (machine, date, command, tables)."""
+    lines = [
+        "# Depth and view-synthesis fidelity against ground truth",
+        "",
+        "- machine: 2-core CPU, no GPU",
+        f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
+        f"- command: `{command}`",
+        f"- synthetic drive: seed {result.seed}, {result.frames} frames at {result.width_px}x{result.height_px}; depth "
+        f"over frames {result.evaluated_frames[0]}-{result.evaluated_frames[-1]} (all neighbours present); views "
+        "synthesized from the recorded frame with its depth by forward warp (paper eq. 2), compared with the "
+        "ground-truth render over the pixels the warp fills",
+        "",
+        "| depth method | AbsRel | δ<1.25 | seconds |",
+        "|---|---:|---:|---:|",
+    ]
+    for method, m in result.depth.items():
+        lines.append(f"| {method} | {m['abs_rel']:.3f} | {m['delta1']:.3f} | {result.depth_seconds[method]:.1f} |")
+    lines += ["", "| novel view | depth | PSNR (dB) | SSIM | filled |", "|---|---|---:|---:|---:|"]
+    for offset in dict.fromkeys(row["offset"] for row in result.views):
+        for source in DEPTH_SOURCES:
+            r = result.view(offset, source)
+            label = "ground truth (upper bound)" if source == "ground_truth" else source
+            lines.append(f"| {offset} | {label} | {r['psnr_db']:.2f} | {r['ssim']:.3f} | {r['filled_fraction']:.3f} |")
+    return "\n".join(lines) + "\n"
+
+
 @bench_app.command("fidelity")
 def fidelity_command(
     as_json: Annotated[bool, typer.Option("--json", help="Print the results as JSON instead of tables.")] = False,
@@ -56,6 +84,9 @@ def fidelity_command(
     ] = 4,
     figure: Annotated[
         Path | None, typer.Option("--figure", help="Side-by-side PNG (default <workspace>/bench/fidelity.png).")
+    ] = None,
+    markdown: Annotated[
+        Path | None, typer.Option("--markdown", help="Also write the results as a markdown report to this file.")
     ] = None,
     config: ConfigOption = None,
     set_: SetOption = None,
@@ -85,6 +116,11 @@ def fidelity_command(
             figure_path=figure_path,
             progress=on_progress,
         )
+    if markdown is not None:
+        command = f"drivesim bench fidelity --seed {seed} --frames {frames} --width {width_px} --height {height_px}"
+        command += f" --view-frames {view_frames}" + "".join(f" --set {o}" for o in set_ or [])
+        markdown.parent.mkdir(parents=True, exist_ok=True)
+        markdown.write_text(fidelity_markdown(result, command))
     if as_json:
         print(json.dumps({**result.to_json(), "figure": str(figure_path)}, indent=2))
         return
