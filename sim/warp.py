@@ -11,9 +11,10 @@ Only the requested region of interest of the destination image is rendered: sour
 2 px margin that hole filling reads) are dropped before the scatter, and only a source rectangle that provably holds
 every pixel that can land in it is transformed at all (`_source_window`), so the cost scales with what the policy
 sees.
-What depends on the source frame alone (its back-projected points, packed colours) is computed once and cached, keyed
-on the tensors' storage and version counters (an in-place change of the frame invalidates the entry), so warping one
-recorded frame to many agents' poses pays for it once.
+What depends on the camera model alone (the rays K^-1 p) is cached per intrinsics and size; what depends on the source
+frame (its back-projected points, packed colours) is cached per source tensor object and version counter, so warping
+one recorded frame to many agents' poses pays for it once. An in-place torch change of a frame invalidates its entry;
+writing into the numpy array under a `torch.from_numpy` tensor does not (pass a new tensor for a new frame).
 Conventions: pixel centres at integer coordinates (see geometry.scale_intrinsics), depth = z along the optical axis.
 """
 
@@ -67,7 +68,7 @@ class _Source:
     min_depth_m: float
 
 
-_SOURCE_CACHE: OrderedDict[tuple, _Source] = OrderedDict()
+_SOURCE_CACHE: OrderedDict[tuple, tuple[torch.Tensor, torch.Tensor, _Source]] = OrderedDict()
 _RAYS_CACHE: OrderedDict[tuple, torch.Tensor] = OrderedDict()
 _NEVER = 3.0e38  # a z no point reaches (finite, so that 0 * _NEVER stays 0)
 
@@ -90,22 +91,17 @@ def _rays(height_px: int, width_px: int, K: torch.Tensor) -> torch.Tensor:
     return rays
 
 
-def _prepare_source(rgb: torch.Tensor, depth_m: torch.Tensor, K_src: torch.Tensor) -> _Source:
-    key = (
-        depth_m.data_ptr(),
-        depth_m._version,
-        tuple(depth_m.shape),
-        depth_m.stride(),
-        rgb.data_ptr(),
-        rgb._version,
-        rgb.stride(),
-        rgb.dtype,
-        tuple(K_src.flatten().tolist()),
-    )
+def _prepare_source(
+    rgb: torch.Tensor, depth_m: torch.Tensor, K_src: torch.Tensor, caller_tensors: tuple[torch.Tensor, torch.Tensor]
+) -> _Source:
+    """The per-frame constants of (B, H, W) frames, cached per tensor objects the caller passed (`caller_tensors`,
+    held by the cache so their ids stay unique) and their version counters (bumped by any in-place torch change)."""
+    rgb_in, depth_in = caller_tensors
+    key = (id(depth_in), depth_in._version, id(rgb_in), rgb_in._version, tuple(K_src.flatten().tolist()))
     cached = _SOURCE_CACHE.get(key)
     if cached is not None:
         _SOURCE_CACHE.move_to_end(key)
-        return cached
+        return cached[2]
     B, H, W = depth_m.shape
     dev = depth_m.device
     rays = _rays(H, W, K_src)
@@ -124,7 +120,7 @@ def _prepare_source(rgb: torch.Tensor, depth_m: torch.Tensor, K_src: torch.Tenso
     min_depth = min_depth if min_depth < 0.5 * _NEVER else float("inf")
     scale = torch.nan_to_num(z, nan=0.0, posinf=1.0, neginf=0.0)
     source = _Source(rays * scale, depth_f, near, sky[:, 0], colour, min_depth)
-    _SOURCE_CACHE[key] = source
+    _SOURCE_CACHE[key] = (rgb_in, depth_in, source)
     if len(_SOURCE_CACHE) > _SOURCE_CACHE_SIZE:
         _SOURCE_CACHE.popitem(last=False)
     return source
@@ -233,6 +229,7 @@ def forward_warp(
     :param fill_holes: fill 1-2 px cracks (never large disocclusions).
     :returns: WarpResult of size (B, h, w) of the region.
     """
+    caller_tensors = (rgb, depth_m)
     squeeze = depth_m.dim() == 2
     if squeeze:
         rgb, depth_m = rgb[None], depth_m[None]
@@ -253,7 +250,7 @@ def forward_warp(
     ew, eh = ex1 - ex0, ey1 - ey0
 
     K_s = _as_tensor(K_src, device)
-    source = _prepare_source(rgb, depth_m, K_s)
+    source = _prepare_source(rgb, depth_m, K_s, caller_tensors)
     K_d = _as_tensor(K_dst, device)
     # q = K_dst (R P + t finite): finite points move with the camera, points at infinity only turn.
     M = (K_d @ T[:, :3, :3]).to(torch.float32)

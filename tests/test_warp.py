@@ -215,3 +215,17 @@ def test_roi_outside_the_image_is_an_error():
     depth = torch.ones(1, H, W)
     with pytest.raises(ValueError, match="roi"):
         forward_warp(rgb, depth, K, np.eye(4), K, W, H, roi=(300, 0, 64, 32))
+
+
+def test_source_cache_never_serves_a_stale_frame():
+    """Frames reuse memory (a freed array's address comes back, a buffer is refilled): results must follow content."""
+    rng = np.random.default_rng(3)
+    T = g.se3(g.rot_y(0.02), [0.2, 0.0, -0.5])
+    buffer = torch.zeros(1, H, W, 3, dtype=torch.uint8)
+    depth = torch.full((1, H, W), 8.0)
+    for _ in range(3):
+        frame = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+        fresh = forward_warp(torch.from_numpy(frame.copy())[None], depth.clone(), K, T, K, W, H, roi=(96, 80, 128, 64))
+        buffer.copy_(torch.from_numpy(frame)[None])  # in place: bumps the version counter
+        reused = forward_warp(buffer, depth, K, T, K, W, H, roi=(96, 80, 128, 64))
+        assert torch.equal(fresh.rgb, reused.rgb)
