@@ -34,6 +34,8 @@ from drivesim.sim.shading import Lighting, dot3, normalize3, shade_blinn_phong
 __all__ = ["Lighting", "PackedScene", "Rasterizer", "RenderResult", "merge_scenes", "pack_meshes", "render_meshes"]
 
 _EMPTY_KEY = torch.iinfo(torch.int64).max
+# Keys from here up carry an infinite depth: pairs outside their triangle get one, so nothing masks their keys.
+_UNCOVERED_KEY = 0x7F800000 << 32
 _LOW32 = 0xFFFFFFFF
 # (triangle, pixel) pairs evaluated per chunk: bounds memory at about 100 bytes per pair.
 _PAIRS_PER_CHUNK = 1 << 22
@@ -472,7 +474,8 @@ class Rasterizer:
         bw = bbox[:, 2] - bbox[:, 0] + 1
         bh = bbox[:, 3] - bbox[:, 1] + 1
         base_pix = tri_camera * (H * W) + bbox[:, 1] * W + bbox[:, 0]
-        zbuf = torch.full((B * H * W,), _EMPTY_KEY, dtype=torch.int64, device=dev)
+        # Slack after the image: padded tile pixels past the last row land there instead of being clamped.
+        zbuf = torch.full((B * H * W + _TILE_PX * (W + 1),), _EMPTY_KEY, dtype=torch.int64, device=dev)
 
         # Small triangles (most of a vehicle mesh) are expanded into their exact (triangle, pixel) pairs; larger ones
         # are covered by 8 x 8 tiles, culled per tile and evaluated as dense blocks without per-pixel gathers.
@@ -589,17 +592,14 @@ class Rasterizer:
             w2 = torch.addcmul(torch.addcmul(c[8], c[6], xs), c[7], ys)
             ssum = w0 + w1 + w2
             abs_det = g[10, e]
-            inside = torch.minimum(torch.minimum(w0, w1), w2) >= 0
-            inside &= ssum > 0
-            inside &= ssum * self.near_m <= abs_det  # depth = |det| / sum(w) >= near
+            room = torch.addcmul(abs_det, ssum, torch.tensor(-self.near_m))  # |det| - near sum(w) >= 0: depth >= near
+            # Inside the triangle (all w_i >= 0), beyond the near plane and inside the bbox.
+            inside = torch.minimum(torch.minimum(w0, w1), torch.minimum(w2, room)) >= 0
             inside &= (xi < rw[e]) & (yi < rh[e])
-            depth = abs_det / ssum
-            key = (depth.view(torch.int32).to(torch.int64) << 32) | tri[e]
-            # Outside pairs get the empty key; torch.where is several times slower than this on CPU.
-            keep = inside.to(torch.int64)
-            key = ((key & -keep) | ((keep - 1) & _EMPTY_KEY)).reshape(-1)
-            pix = (pix0[e] + offsets).reshape(-1)
-            zbuf.scatter_reduce_(0, pix.clamp_(max=zbuf.numel() - 1), key, reduce="amin")
+            # Pairs outside get depth |det| / 0 = +inf, a key at or above _UNCOVERED_KEY: cheaper than masking keys.
+            depth = abs_det / (ssum * inside)
+            key = ((depth.view(torch.int32).to(torch.int64) << 32) | tri[e]).reshape(-1)
+            zbuf.scatter_reduce_(0, (pix0[e] + offsets).reshape(-1), key, reduce="amin")
 
     def _resolve(
         self,
@@ -628,7 +628,7 @@ class Rasterizer:
         object_id = torch.full((B * HW,), -1, dtype=torch.int32, device=dev)
         normal_out = torch.zeros((3, B * HW), device=dev)
 
-        pix = (zbuf != _EMPTY_KEY).nonzero().squeeze(1)  # sorted, so each camera's pixels are one block
+        pix = (zbuf[: B * HW] < _UNCOVERED_KEY).nonzero().squeeze(1)  # sorted: each camera's pixels are one block
         key = zbuf.index_select(0, pix)
         cand = key & _LOW32
         depth = (key >> 32).to(torch.int32).view(torch.float32)
