@@ -31,7 +31,17 @@ import torch
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.shading import Lighting, dot3, normalize3, shade_blinn_phong
 
-__all__ = ["Lighting", "PackedScene", "Rasterizer", "RenderResult", "merge_scenes", "pack_meshes", "render_meshes"]
+__all__ = [
+    "Lighting",
+    "PackedScene",
+    "Rasterizer",
+    "RenderResult",
+    "composite",
+    "merge_scenes",
+    "pack_meshes",
+    "render_meshes",
+    "roi_intrinsics",
+]
 
 _EMPTY_KEY = torch.iinfo(torch.int64).max
 # Keys from here up carry an infinite depth: pairs outside their triangle get one, so nothing masks their keys.
@@ -744,6 +754,35 @@ def _sample_bilinear(texels: torch.Tensor, info: torch.Tensor, u: torch.Tensor, 
     top = torch.lerp(fetch(ya + xa), fetch(ya + xb), fx)
     bottom = torch.lerp(fetch(yb + xa), fetch(yb + xb), fx)
     return torch.lerp(top[0:3], bottom[0:3], fy).mul_(1.0 / 255.0)
+
+
+def roi_intrinsics(K: np.ndarray, roi: tuple[int, int, int, int]) -> np.ndarray:
+    """Intrinsics of the (x0, y0, w, h) region of an image as an image of its own: render a region of interest with
+    `Rasterizer(w, h).render(..., roi_intrinsics(K, roi))`; it matches `forward_warp(..., roi=roi)` pixel for pixel."""
+    x0, y0, _, _ = roi
+    K_roi = np.array(K, dtype=np.float64, copy=True)
+    K_roi[0, 2] -= x0
+    K_roi[1, 2] -= y0
+    return K_roi
+
+
+def composite(
+    rgb: torch.Tensor, depth_m: torch.Tensor, render: RenderResult
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rendered meshes (vehicles) inserted into a view (a warped frame) with a per-pixel depth test, so occlusion
+    works both ways (DESIGN §4 step 4).
+
+    :param rgb: (B, H, W, 3) uint8 or float [0, 1] view. :param depth_m: (B, H, W) its depth (+inf: sky or empty).
+    :param render: the same cameras' RenderResult.
+    :returns: composited rgb (dtype of `rgb`), depth (B, H, W), and the (B, H, W) bool mask of pixels where the
+        rendered meshes are in front (for harmonization and the collision reward).
+    """
+    front = render.depth_m < depth_m
+    mesh_rgb = render.rgb
+    if rgb.dtype == torch.uint8:
+        mesh_rgb = (mesh_rgb * 255.0 + 0.5).to(torch.uint8)
+    out_rgb = torch.where(front[..., None], mesh_rgb.to(rgb.dtype), rgb)
+    return out_rgb, torch.minimum(render.depth_m, depth_m), front
 
 
 def render_meshes(

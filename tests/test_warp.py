@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from gl_reference import checker_texture
+from gl_reference import car_meshes, checker_texture
 
 from drivesim.sim import geometry as g
 from drivesim.sim import warp as warp_module
 from drivesim.sim.mesh import Material, Mesh
-from drivesim.sim.raster import Lighting, Rasterizer
+from drivesim.sim.raster import Lighting, Rasterizer, composite, roi_intrinsics
 from drivesim.sim.warp import forward_warp
 
 H, W = 200, 320
@@ -229,3 +229,31 @@ def test_source_cache_never_serves_a_stale_frame():
         buffer.copy_(torch.from_numpy(frame)[None])  # in place: bumps the version counter
         reused = forward_warp(buffer, depth, K, T, K, W, H, roi=(96, 80, 128, 64))
         assert torch.equal(fresh.rgb, reused.rgb)
+
+
+def test_vehicle_composited_into_warped_roi_with_occlusion():
+    """The step of DESIGN §4.4: warp the frame into the policy's ROI, rasterize vehicles at the same ROI, composite
+    by depth. A car before the wall covers it; a car behind the wall stays hidden."""
+    meshes = plane_world()
+    rgb_src, depth_src = render_from(g.pose_2d(0.0, 0.0, 0.0), meshes)
+    rgb_u8 = (rgb_src * 255).to(torch.uint8)
+    roi = (60, 60, 200, 80)
+    view = forward_warp(rgb_u8, depth_src, K, np.eye(4), K, W, H, roi=roi)
+    T_camera_world = g.invert(T_VEHICLE_CAMERA)
+    K_roi = roi_intrinsics(K, roi)
+    rast = Rasterizer(roi[2], roi[3])
+    full = Rasterizer(W, H)
+    for x_m, visible in ((12.0, True), (30.0, False)):
+        car = [m.transformed(g.pose_2d(x_m, 0.0, 0.3)) for m in car_meshes(object_id=7)]
+        cars = rast.render(car, T_camera_world, K_roi)
+        crop = full.render(car, T_camera_world, K).object_id[:, 60:140, 60:260]
+        assert (cars.object_id == crop).float().mean() > 0.999  # the ROI render is the crop of the full render
+        rgb, depth, front = composite(view.rgb, view.depth_m, cars)
+        assert rgb.dtype == torch.uint8
+        if visible:
+            assert front.sum() > 500 and torch.equal(front, cars.mask)
+            assert torch.equal(depth[front], cars.depth_m[front])
+            assert torch.equal(rgb[~front], view.rgb[~front])
+        else:
+            assert cars.mask.sum() > 50 and not front.any()  # drawn by the rasterizer, hidden by the wall
+            assert torch.equal(rgb, view.rgb)
