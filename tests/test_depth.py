@@ -230,3 +230,32 @@ def test_bad_shapes_are_input_errors() -> None:
         estimate_depth(
             frames, K, np.eye(4)[None], T_VEHICLE_CAMERA, 1.6, DepthConfig(), np.zeros((2, 10, 12), np.float32)
         )
+
+
+def test_sky_mask_takes_only_blue_textureless_regions_touching_the_top() -> None:
+    from drivesim.stages.preprocess.depth_mvs import sky_mask
+
+    h, w = 20, 30
+    colour = np.zeros((h, w, 3), np.float32)
+    colour[:] = [0.5, 0.7, 0.95]  # sky blue everywhere ...
+    colour[:, 20:] = [0.8, 0.7, 0.6]  # ... but a plain beige facade on the right reaching the top
+    std = np.full((h, w), 0.001, np.float32)
+    std[8, :] = 0.2  # a textured line (a roof edge) cutting the left part at row 8
+    below_horizon = np.zeros((h, w), bool)
+    below_horizon[15:] = True
+    sky = sky_mask(std, colour, below_horizon, max_std=0.012)
+    assert sky[:8, :20].all()  # blue, textureless, connected to the top
+    assert not sky[:, 20:].any()  # not sky-coloured
+    assert not sky[9:, :].any()  # cut off from the top by texture, or below the horizon
+
+
+def test_nearest_in_column_picks_the_closest_known_row() -> None:
+    from drivesim.stages.preprocess.depth_mvs import _nearest_in_column
+
+    values = np.array([[1.0, 5.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [3.0, 0.0]])
+    known = np.array([[True, True], [False, False], [False, False], [False, False], [True, False]])
+    near = _nearest_in_column(values, known)
+    np.testing.assert_array_equal(near[:, 0], [1.0, 1.0, 1.0, 3.0, 3.0])
+    np.testing.assert_array_equal(near[:, 1], [5.0] * 5)
+    above = _nearest_in_column(values, known & (np.arange(5)[:, None] > 0), above_only=True)
+    assert np.isnan(above[3, 0]) and above[4, 0] == 3.0 and np.isnan(above[:, 1]).all()

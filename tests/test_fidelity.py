@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from drivesim.pipeline.errors import ConfigError
 from drivesim.stages.world.fidelity import ViewOffset, depth_metrics, image_metrics, run_fidelity
 
 
@@ -54,3 +55,23 @@ def test_fidelity_bench_mvs_beats_plane(tmp_path) -> None:
         assert 0.2 < row["ssim"] <= 1.0
         assert 0.5 < row["filled_fraction"] <= 1.0
     assert figure.stat().st_size > 10_000
+
+
+@pytest.mark.slow
+def test_bench_fidelity_cli_json(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from drivesim.cli.main import app
+
+    figure = tmp_path / "f.png"
+    report = tmp_path / "fidelity.md"
+    args = ["-w", str(tmp_path), "bench", "fidelity", "--json", "--frames", "8", "--width", "128", "--height", "80"]
+    args += ["--view-frames", "1", "--figure", str(figure), "--markdown", str(report), "--set", "mvs.num_hypotheses=16"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout[result.stdout.index("{") :])
+    assert set(data["depth"]) == {"plane", "mvs"}
+    assert len(data["views"]) == 5 * 3  # five offsets, three depth sources
+    assert figure.is_file() and "| lat +1.0 m | mvs |" in report.read_text()
+    bad = CliRunner().invoke(app, ["-w", str(tmp_path), "bench", "fidelity", "--set", "mvs.bogus=1"])
+    assert isinstance(bad.exception, ConfigError) and "mvs.bogus" in str(bad.exception)

@@ -40,9 +40,9 @@ class MvsConfig(StageConfig):
     """Width of the images the sweep runs on (matching resolution); frames wider than this are downscaled."""
     best_k: int = Field(2, ge=1)
     """The cost of a hypothesis is the mean of the best k neighbours' costs (robust to occlusion at the borders)."""
-    min_zncc: float = Field(0.6, ge=-1.0, le=1.0)
+    min_zncc: float = Field(0.7, ge=-1.0, le=1.0)
     """Stereo is trusted only where the best aggregated ZNCC score is at least this."""
-    min_distinctness: float = Field(0.05, ge=0.0)
+    min_distinctness: float = Field(0.02, ge=0.0)
     """Stereo is trusted only where the second-best cost minimum (away from the best) is this much worse."""
     min_parallax_px: float = Field(0.5, ge=0.0)
     """Stereo is trusted only where a 25 % depth change moves the pixel at least this far (matching pixels) in the
