@@ -259,3 +259,17 @@ def test_nearest_in_column_picks_the_closest_known_row() -> None:
     np.testing.assert_array_equal(near[:, 1], [5.0] * 5)
     above = _nearest_in_column(values, known & (np.arange(5)[:, None] > 0), above_only=True)
     assert np.isnan(above[3, 0]) and above[4, 0] == 3.0 and np.isnan(above[:, 1]).all()
+
+
+def test_mvs_on_a_stationary_vehicle_keeps_the_plane(street_drive) -> None:
+    frames, gt, poses = street_drive
+    still = np.repeat(frames[3:4], 4, axis=0)
+    still_poses = np.repeat(poses[3:4], 4, axis=0)
+    plane = np.zeros(still.shape[:3], np.float32)
+    mvs = np.zeros(still.shape[:3], np.float32)
+    estimate_depth(still, K, still_poses, T_VEHICLE_CAMERA, CAMERA_HEIGHT_M, DepthConfig(), plane)
+    summary = estimate_depth(still, K, still_poses, T_VEHICLE_CAMERA, CAMERA_HEIGHT_M, DepthConfig(method="mvs"), mvs)
+    assert summary["stereo_fraction"] == 0.0  # no baseline, no parallax: nothing to triangulate
+    below = plane < 80.0
+    assert np.mean(np.isclose(mvs[below], plane[below], rtol=0.05)) > 0.95
+    assert np.all(np.isfinite(mvs)) and mvs.max() <= 80.0
