@@ -607,7 +607,8 @@ class Rasterizer:
             inside = torch.minimum(torch.minimum(w0, w1), torch.minimum(w2, room)) >= 0
             inside &= (xi < rw[e]) & (yi < rh[e])
             # Pairs outside get depth |det| / 0 = +inf, a key at or above _UNCOVERED_KEY: cheaper than masking keys.
-            depth = abs_det / (ssum * inside)
+            # abs(): sum(w) is negative outside (or -0.0), and |det| / -0.0 = -inf would sort first.
+            depth = abs_det / (ssum * inside).abs_()
             key = ((depth.view(torch.int32).to(torch.int64) << 32) | tri[e]).reshape(-1)
             zbuf.scatter_reduce_(0, (pix0[e] + offsets).reshape(-1), key, reduce="amin")
 

@@ -51,6 +51,7 @@ def test_car_scene_matches_opengl(gl_context):
     ref = GLRenderer(gl_context, W, H).render(meshes, T, K)
     out = Rasterizer(W, H).render(meshes, T, K)
     object_id, depth, rgb = out.object_id[0].numpy(), out.depth_m[0].numpy(), out.rgb[0].numpy()
+    assert np.array_equal(np.isfinite(depth), object_id >= 0) and (depth > 0).all()
     for obj in (0, 5, 100):
         ours, theirs = object_id == obj, ref["object_id"] == obj
         assert theirs.sum() > 400, f"object {obj} barely visible: the test scene is wrong"
@@ -106,6 +107,7 @@ def test_surface_cut_at_near_plane():
     out = rast.render([wall], np.eye(4), K)  # camera frame = world frame; the floor y = 1 m below the camera
     depth = out.depth_m[0].numpy()
     assert out.mask[0].sum() > 0.3 * H * W
+    assert np.array_equal(np.isfinite(depth), out.mask[0].numpy()) and (depth > 0).all()
     assert depth[np.isfinite(depth)].min() >= 0.5 - 1e-4
     assert depth[np.isfinite(depth)].max() <= 8.0 + 1e-3
 
@@ -266,3 +268,21 @@ def test_textured_ground_through_the_camera_matches_opengl(gl_context):
     rgb_err = np.abs(out.rgb[0].numpy() - ref["rgb"])[same]
     assert np.median(rgb_err) <= 2e-3
     assert np.percentile(rgb_err, 99) <= 0.05
+
+
+def test_random_big_triangles_around_the_camera_match_opengl(gl_context):
+    """Large triangles in every orientation, many crossing the near plane or passing behind the camera: the cases
+    where screen-space tricks go wrong. Coverage must match OpenGL, and depth is finite exactly where drawn."""
+    rng = np.random.default_rng(7)
+    meshes = [
+        Mesh(rng.uniform(-20.0, 20.0, (3, 3)).astype(np.float32), np.array([[0, 1, 2]]), object_id=i) for i in range(40)
+    ]
+    T = np.eye(4)  # world = camera frame
+    ref = GLRenderer(gl_context, W, H).render(meshes, T, K)
+    out = Rasterizer(W, H).render(meshes, T, K)
+    object_id, depth = out.object_id[0].numpy(), out.depth_m[0].numpy()
+    assert np.array_equal(np.isfinite(depth), object_id >= 0) and (depth > 0).all()
+    assert (ref["object_id"] >= 0).mean() > 0.5
+    assert (object_id == ref["object_id"]).mean() > 0.995
+    same = (object_id == ref["object_id"]) & (object_id >= 0)
+    assert np.median(np.abs(depth[same] - ref["depth_m"][same])) < 1e-3
