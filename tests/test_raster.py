@@ -168,6 +168,11 @@ def test_per_camera_scenes_and_lighting():
     """One call renders B different scenes (one per agent) with their own lighting."""
     cars_a = [m.transformed(g.pose_2d(8.0, 0.0, 0.0)) for m in car_meshes(object_id=1)]
     cars_b = [m.transformed(g.pose_2d(12.0, 2.0, 0.5)) for m in car_meshes(object_id=2, body_rgb=(0.1, 0.2, 0.8))]
+    # Textured signs in both scenes: texture tables are concatenated, their offsets must follow.
+    sign = textured_quad(object_id=3).transformed(g.se3(g.rot_z(-np.pi / 2 + 0.3), [6.0, -2.5, 1.2]))
+    other_texture = (255 - checker_texture(32, 4)).astype(np.uint8)
+    sign_b = textured_quad(object_id=4, texture=other_texture).transformed(g.se3(g.rot_z(-np.pi / 2), [9.0, 3.0, 1.5]))
+    cars_a, cars_b = [*cars_a, sign], [sign_b, *cars_b]
     lights = [Lighting(), Lighting(ambient_rgb=np.array([0.6, 0.5, 0.4]))]
     rast = Rasterizer(W, H)
     T = np.stack([camera_at(), camera_at(0.0, 0.5)])
@@ -177,8 +182,8 @@ def test_per_camera_scenes_and_lighting():
         assert torch.equal(batch.object_id[b], single.object_id[0])
         assert torch.equal(batch.depth_m[b], single.depth_m[0])
         torch.testing.assert_close(batch.rgb[b], single.rgb[0])
-    assert set(batch.object_id[0].unique().tolist()) == {-1, 1}
-    assert set(batch.object_id[1].unique().tolist()) == {-1, 2}
+    assert set(batch.object_id[0].unique().tolist()) == {-1, 1, 3}
+    assert set(batch.object_id[1].unique().tolist()) == {-1, 2, 4}
 
 
 def test_packed_scene_is_cached_and_reusable():
