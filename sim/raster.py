@@ -47,8 +47,8 @@ _EMPTY_KEY = torch.iinfo(torch.int64).max
 # Keys from here up carry an infinite depth: pairs outside their triangle get one, so nothing masks their keys.
 _UNCOVERED_KEY = 0x7F800000 << 32
 _LOW32 = 0xFFFFFFFF
-# (triangle, pixel) pairs evaluated per chunk: bounds memory at about 100 bytes per pair.
-_PAIRS_PER_CHUNK = 1 << 22
+# (triangle, pixel) pairs evaluated per chunk: bounds the working memory (about 100 bytes per pair) to ~100 MB.
+_PAIRS_PER_CHUNK = 1 << 20
 _PACK_CACHE_SIZE = 16
 _SMALL_AREA_PX = 64
 _ONE_CALL_GATHER = 1 << 16
