@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import resource
 import subprocess
@@ -81,6 +82,7 @@ def main() -> None:
     from drivesim.stages.world.fidelity import depth_metrics
 
     n_frames = 8 if args.quick else args.frames
+    load_1min = os.getloadavg()[0]
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-depth-") as tmp:
         folder = Path(tmp)
@@ -112,7 +114,8 @@ def main() -> None:
         "# Per-frame depth: speed, memory, accuracy",
         "",
         f"- machine: 2-core CPU, no GPU ({platform.processor() or platform.machine()}, torch CPU)",
-        f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
+        f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}; load average at the start {load_1min:.1f} "
+        "(timings on a shared machine vary up to 3x with its load)",
         f"- command: `{command}`",
         f"- input: synthetic drive (seed {args.seed}), {n_frames} frames at {WIDTH_PX}x{HEIGHT_PX}, 10 Hz, ~10 m/s; "
         "accuracy over frames with all neighbours, pixels with ground truth < 80 m",
