@@ -130,7 +130,9 @@ def main() -> None:
         )
     mvs_summary = rows[-1][4]
     fractions = ", ".join(
-        f"{k.removesuffix('_fraction')} {v:.2f}" for k, v in mvs_summary.items() if k.endswith("_fraction")
+        f"{k.removesuffix('_fraction')} {v:.2f}"
+        for k, v in mvs_summary.items()
+        if k.endswith("_fraction") and k != "far_fraction"
     )
     lines += [
         "",
