@@ -12,7 +12,6 @@ from drivesim.cli.common import ConfigOption, SetOption, console, workspace
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.progress import progress_bar
 from drivesim.stages.synth.config import SynthConfig
-from drivesim.stages.synth.synthesize import synthesize
 
 
 def synth_command(
@@ -44,6 +43,8 @@ def synth_command(
     cfg = load_config(SynthConfig, preset="synth", config_file=config, overrides=overrides)
     if output is None:
         output = workspace().root / "recordings" / f"synth-seed{cfg.seed}.mcap"
+
+    from drivesim.stages.synth.synthesize import synthesize  # imports torch: only when rendering
 
     frames = int(cfg.drive.duration_s * cfg.camera.rate_hz + 0.999999)
     with progress_bar(f"rendering {cfg.camera.width_px}x{cfg.camera.height_px}", total=frames) as (progress, task):
