@@ -10,9 +10,12 @@ reduced matching resolution:
 3. aggregate over neighbours as the mean of the best k costs (a point occluded or out of view in some neighbours
    still matches in the others);
 4. winner-take-all with parabolic sub-sample refinement in inverse depth;
-5. fuse: keep the ground plane where its cost is within a margin of the best; keep stereo where it is confident
-   (good ZNCC, a distinct minimum, and enough parallax: near the focus of expansion of a forward drive a depth
-   change barely moves a pixel); elsewhere fall back to the plane below the horizon and to max_depth_m above it;
+5. fuse: keep the ground plane where it matches (textured, cost within a margin of the best); keep stereo where it is
+   confident (good ZNCC, a distinct minimum, and enough parallax: near the focus of expansion of a forward drive a
+   depth change barely moves a pixel); fill the rest from trusted pixels around (normalized convolution), give the
+   sky (textureless, sky-coloured, touching the top) max_depth_m, carry evidence along image columns (vertical
+   surfaces), and last fall back to the plane below the horizon and max_depth_m above it; nothing deeper than the
+   ground plane;
 6. upsample to the working resolution with a 4-tap joint bilateral filter guided by the full-resolution colour.
 
 Frames stream through a small cache of matching-resolution grey images (the reference plus its neighbours), so
@@ -33,7 +36,7 @@ from drivesim.sim.geometry import invert, scale_intrinsics
 from drivesim.stages.preprocess.depth_plane import pixel_rays, plane_depth
 
 if TYPE_CHECKING:
-    from drivesim.stages.preprocess.depth import DepthConfig
+    from drivesim.stages.preprocess.depth import DepthConfig, MvsConfig
 
 _EPS_VAR = 1e-4  # grey levels are in [0, 1]; variance below ~(1 % grey)^2 means no texture to match
 _RANGE_SIGMA = 12.0 / 255.0  # colour difference (0-1 scale) at which the upsampling weight falls to exp(-1/2)
@@ -255,6 +258,71 @@ def _fuse(
     return np.minimum(depth, plane_m), labels
 
 
+def _stereo_evidence(
+    i: int,
+    nbrs: list[int],
+    poses: np.ndarray,
+    cache: _FrameCache,
+    K_t: torch.Tensor,
+    rays: torch.Tensor,
+    hypotheses: torch.Tensor,
+    inv_depths: torch.Tensor,
+    below_horizon: torch.Tensor,
+    far_m: float,
+    m: MvsConfig,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Sweep frame i against its neighbours: (stereo depth m, trusted stereo mask, trusted plane mask, window
+    deviation of the grey image), each (h, w) at matching resolution."""
+    ref = cache.get(i)
+    T_ref = poses[i]
+    rel = [invert(poses[j]) @ T_ref for j in nbrs]
+    stats = _window_stats(ref, m.patch_size_px)
+    costs = torch.stack(
+        [
+            _sweep_costs(ref, stats, cache.get(j), T, K_t, rays, hypotheses, m.patch_size_px)
+            for j, T in zip(nbrs, rel, strict=True)
+        ]
+    )
+    k = min(m.best_k, len(nbrs))
+    agg = torch.topk(costs, k, dim=0, largest=False).values.mean(dim=0)  # (P, h, w)
+    sweep_cost, plane_cost = agg[:-1], agg[-1]
+    best_cost, best = sweep_cost.min(dim=0)
+    # Parabolic refinement of the minimum in hypothesis index (inverse depth is linear in it).
+    lo_i = (best - 1).clamp_min(0)
+    hi_i = (best + 1).clamp_max(m.num_hypotheses - 1)
+    c_lo = sweep_cost.gather(0, lo_i[None])[0]
+    c_hi = sweep_cost.gather(0, hi_i[None])[0]
+    curvature = c_lo - 2.0 * best_cost + c_hi
+    interior = (best > 0) & (best < m.num_hypotheses - 1) & (curvature > 1e-6)
+    shift = torch.where(interior, (c_lo - c_hi) / (2.0 * curvature.clamp_min(1e-6)), 0.0).clamp(-0.5, 0.5)
+    step = inv_depths[1] - inv_depths[0]
+    inv_best = (inv_depths[best] + shift * step).clamp(1.0 / far_m, 1.0 / m.min_depth_m)
+    stereo_m = 1.0 / inv_best
+    # Distinctness: the best cost away from the winner's immediate neighbourhood.
+    index = torch.arange(m.num_hypotheses, device=best.device)[:, None, None]
+    away = (index - best[None]).abs() > 2
+    second = torch.where(away, sweep_cost, torch.ones_like(sweep_cost)).min(dim=0).values
+    # Parallax from the widest baseline on each side (the others have less).
+    widest = {min(nbrs), max(nbrs)}
+    parallax = (
+        torch.stack([_parallax_px(stereo_m, T, K_t, rays) for j, T in zip(nbrs, rel, strict=True) if j in widest])
+        .max(dim=0)
+        .values
+    )
+    confident = (
+        (1.0 - 2.0 * best_cost >= m.min_zncc)
+        & (second - best_cost >= m.min_distinctness)
+        & (parallax >= m.min_parallax_px)
+        & (best > 0)  # the nearest plane winning means the true depth may be nearer still
+    )
+    plane_ok = (
+        below_horizon
+        & (plane_cost <= best_cost + m.plane_margin)
+        & (1.0 - 2.0 * plane_cost >= m.min_zncc)  # textureless ground is a guess, not evidence
+    )
+    return stereo_m, confident & ~plane_ok, plane_ok, stats[1][0, 0]
+
+
 def mvs_depth(
     frames: np.ndarray,
     K: np.ndarray,
@@ -290,64 +358,18 @@ def mvs_depth(
         # Near the ends of the drive an offset past the end takes the last frame on that side instead.
         nbrs = sorted({min(max(i + o, 0), n - 1) for o in m.neighbour_offsets} - {i})
         cache.keep_only({i, *nbrs})
-        ref = cache.get(i)
+        cache.get(i)  # also caches the reference's colour (sky mask, upsampling)
         if nbrs:
             with torch.no_grad():
-                T_ref = poses[i]
-                rel = [invert(poses[j]) @ T_ref for j in nbrs]
-                stats = _window_stats(ref, m.patch_size_px)
-                costs = torch.stack(
-                    [
-                        _sweep_costs(ref, stats, cache.get(j), T, K_t, rays, hypotheses, m.patch_size_px)
-                        for j, T in zip(nbrs, rel, strict=True)
-                    ]
+                stereo_m, use_stereo, plane_ok, texture_std = _stereo_evidence(
+                    i, nbrs, poses, cache, K_t, rays, hypotheses, inv_depths, below_horizon, far_m, m
                 )
-                k = min(m.best_k, len(nbrs))
-                agg = torch.topk(costs, k, dim=0, largest=False).values.mean(dim=0)  # (P, h, w)
-                sweep_cost, plane_cost = agg[:-1], agg[-1]
-                best_cost, best = sweep_cost.min(dim=0)
-                # Parabolic refinement of the minimum in hypothesis index (inverse depth is linear in it).
-                lo_i = (best - 1).clamp_min(0)
-                hi_i = (best + 1).clamp_max(m.num_hypotheses - 1)
-                c_lo = sweep_cost.gather(0, lo_i[None])[0]
-                c_hi = sweep_cost.gather(0, hi_i[None])[0]
-                curvature = c_lo - 2.0 * best_cost + c_hi
-                interior = (best > 0) & (best < m.num_hypotheses - 1) & (curvature > 1e-6)
-                shift = torch.where(interior, (c_lo - c_hi) / (2.0 * curvature.clamp_min(1e-6)), 0.0).clamp(-0.5, 0.5)
-                step = inv_depths[1] - inv_depths[0]
-                inv_best = (inv_depths[best] + shift * step).clamp(1.0 / far_m, 1.0 / m.min_depth_m)
-                stereo_m = 1.0 / inv_best
-                # Distinctness: the best cost away from the winner's immediate neighbourhood.
-                index = torch.arange(m.num_hypotheses, device=device)[:, None, None]
-                away = (index - best[None]).abs() > 2
-                second = torch.where(away, sweep_cost, torch.ones_like(sweep_cost)).min(dim=0).values
-                # Parallax from the widest baseline on each side (the others have less).
-                widest = {min(nbrs), max(nbrs)}
-                parallax = (
-                    torch.stack(
-                        [_parallax_px(stereo_m, T, K_t, rays) for j, T in zip(nbrs, rel, strict=True) if j in widest]
-                    )
-                    .max(dim=0)
-                    .values
-                )
-                confident = (
-                    (1.0 - 2.0 * best_cost >= m.min_zncc)
-                    & (second - best_cost >= m.min_distinctness)
-                    & (parallax >= m.min_parallax_px)
-                    & (best > 0)  # the nearest plane winning means the true depth may be nearer still
-                )
-                plane_ok = (
-                    below_horizon
-                    & (plane_cost <= best_cost + m.plane_margin)
-                    & (1.0 - 2.0 * plane_cost >= m.min_zncc)  # textureless ground is a guess, not evidence
-                )
-                use_stereo = confident & ~plane_ok
             depth_np, labels = _fuse(
                 stereo_m.cpu().numpy(),
                 use_stereo.cpu().numpy(),
                 plane_ok.cpu().numpy(),
                 plane_lo_np,
-                sky_mask(stats[1][0, 0].cpu().numpy(), cache.colour[i], plane_lo_np < far_m, m.sky_max_std),
+                sky_mask(texture_std.cpu().numpy(), cache.colour[i], plane_lo_np < far_m, m.sky_max_std),
                 far_m,
                 m.fill_sigma_px,
             )
@@ -361,7 +383,8 @@ def mvs_depth(
             np.asarray(frames[i], dtype=np.float32) / 255.0,
             m.upsample == "joint_bilateral",
         )
-        depth_hi = np.clip(1.0 / np.maximum(inv_hi, 1.0 / far_m), m.min_depth_m, far_m).astype(np.float32)
+        # No lower clip at min_depth_m: the ground plane near the camera may be nearer than the sweep's range.
+        depth_hi = (1.0 / np.clip(inv_hi, 1.0 / far_m, None)).astype(np.float32)
         if not nbrs:
             depth_hi = plane_hi
         out[i] = depth_hi
