@@ -185,7 +185,8 @@ _LABELS = ("stereo", "plane", "filled", "column", "fallback_plane", "far_fallbac
 def sky_mask(texture_std: np.ndarray, colour: np.ndarray, below_horizon: np.ndarray, max_std: float) -> np.ndarray:
     """Pixels taken as sky: textureless (window deviation below `max_std`), sky-coloured (bright, blue at least as
     strong as red: clear or overcast), above the horizon, and connected to the top of the image through such pixels
-    (a bare patch of facade is enclosed by texture, and a plain facade reaching the top is rarely blue)."""
+    (a bare patch of facade is enclosed by texture, and a plain facade reaching the top is rarely blue). A mono
+    camera's sky is never found (a white facade looks the same); it then takes the depth of what is below it."""
     skyish = (colour[..., 2] > colour[..., 0] + 0.04) & (colour.mean(axis=-1) > 0.35)
     candidate = ((texture_std < max_std) & skyish & ~below_horizon).astype(np.uint8)
     count, labels = cv2.connectedComponents(candidate, connectivity=4)
