@@ -23,11 +23,12 @@ import numpy as np
 import torch
 from skimage.metrics import structural_similarity
 
+from drivesim.pipeline.errors import ConfigError
 from drivesim.sim.geometry import invert, pose_2d, scale_intrinsics
 from drivesim.sim.warp import forward_warp
 from drivesim.stages.preprocess.depth import DepthConfig, estimate_depth
 from drivesim.stages.synth.config import DriveConfig, SynthConfig
-from drivesim.stages.synth.drive import Trajectory
+from drivesim.stages.synth.drive import Trajectory, arc_length_at
 from drivesim.stages.synth.world import SynthWorld
 
 DEPTH_SOURCES = ("plane", "mvs", "ground_truth")
@@ -60,7 +61,15 @@ def render_drive(
     camera = world.camera
     K = scale_intrinsics(camera.K, width_px / camera.width_px, height_px / camera.height_px)
     rate_hz = SynthConfig().camera.rate_hz
-    trajectory = Trajectory(world.path, DriveConfig(duration_s=max(1.0, n_frames / rate_hz)))
+    drive_cfg = DriveConfig(duration_s=max(1.0, n_frames / rate_hz))
+    needed_m = float(arc_length_at(drive_cfg, drive_cfg.duration_s))
+    if needed_m > world.path.length_m:
+        raise ConfigError(
+            f"{n_frames} frames need {needed_m:.0f} m of road but the synthetic lane is"
+            f" {world.path.length_m:.0f} m long;"
+            " ask for fewer frames"
+        )
+    trajectory = Trajectory(world.path, drive_cfg)
     rgb = np.empty((n_frames, height_px, width_px, 3), np.uint8)
     depth = np.empty((n_frames, height_px, width_px), np.float32)
     T_wv = np.stack([trajectory.vehicle_pose(i / rate_hz) for i in range(n_frames)])
