@@ -1,0 +1,14 @@
+#!/usr/bin/env bash
+# Run every benchmark in sequence on a quiet machine and merge the figures into benchmarks/RESULTS.md.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PY:-.venv/bin/python}
+$PY benchmarks/bench_render.py
+$PY benchmarks/bench_synth.py
+$PY benchmarks/bench_ingest.py
+$PY benchmarks/bench_poses.py
+$PY benchmarks/bench_depth.py
+$PY benchmarks/bench_preprocess_world.py
+.venv/bin/drivesim --workspace "$(mktemp -d)" bench fidelity --seed 0 --frames 32 --view-frames 6 --markdown benchmarks/results/fidelity.md \
+  --figure benchmarks/fidelity.png
+$PY benchmarks/collect_results.py
