@@ -14,7 +14,7 @@ ORDER = ["ingest", "render", "synth", "poses", "depth", "preprocess_world", "fid
 
 def main() -> None:
     """Write benchmarks/RESULTS.md from benchmarks/results/*.md."""
-    sections = sorted((HERE / "results").glob("*.md"), key=lambda p: (ORDER.index(p.stem) if p.stem in ORDER else 99))
+    sections = sorted((HERE / "results").glob("*.md"), key=lambda p: ORDER.index(p.stem) if p.stem in ORDER else 99)
     parts = [
         "# Benchmark results\n",
         "Measured by the scripts in `benchmarks/` (each section says how to reproduce it). "

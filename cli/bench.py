@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.table import Table
@@ -15,13 +15,17 @@ from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError
 from drivesim.pipeline.progress import progress_bar
 from drivesim.stages.preprocess.depth import DepthConfig
-from drivesim.stages.world.fidelity import DEPTH_SOURCES, FidelityResult, run_fidelity
 
 bench_app = typer.Typer(no_args_is_help=True)
+
+if TYPE_CHECKING:  # the fidelity module imports torch: only when the command runs
+    from drivesim.stages.world.fidelity import FidelityResult
 
 
 def fidelity_table(result: FidelityResult) -> tuple[Table, Table]:
     """Rich tables of the depth metrics and of the novel-view metrics."""
+    from drivesim.stages.world.fidelity import DEPTH_SOURCES
+
     depth = Table(title=f"depth vs ground truth ({len(result.evaluated_frames)} frames)")
     for column in ("method", "AbsRel", "δ<1.25", "seconds"):
         depth.add_column(column, justify="right" if column != "method" else "left")
@@ -47,6 +51,8 @@ def fidelity_table(result: FidelityResult) -> tuple[Table, Table]:
 
 def fidelity_markdown(result: FidelityResult, command: str) -> str:
     """The results as a markdown report (machine, date, command, tables)."""
+    from drivesim.stages.world.fidelity import DEPTH_SOURCES
+
     lines = [
         "# Depth and view-synthesis fidelity against ground truth",
         "",
@@ -100,6 +106,8 @@ def fidelity_command(
     cfg = load_config(DepthConfig, preset=None, config_file=config, overrides=set_)
     if cfg.method != "mvs" and set_ and any(s.startswith("method=") for s in set_):
         raise ConfigError("bench fidelity always compares plane and mvs; leave depth.method alone")
+    from drivesim.stages.world.fidelity import run_fidelity
+
     figure_path = figure if figure is not None else workspace().root / "bench" / "fidelity.png"
     with progress_bar("fidelity bench", total=None) as (progress, task):
 

@@ -9,18 +9,9 @@ import typer
 
 from drivesim.cli.common import ConfigOption, ForceOption, SetOption, console, workspace
 from drivesim.pipeline.config import load_config
-from drivesim.pipeline.errors import ConfigError, DrivesimError, InputError
-from drivesim.pipeline.hashing import sha256_json
-from drivesim.pipeline.workspace import artifact_key
+from drivesim.pipeline.errors import ConfigError, InputError
 from drivesim.stages.ingest.config import TOPIC_ROLES, IngestConfig
 from drivesim.stages.ingest.run import ingest_recording
-
-
-class IngestInterruptedError(DrivesimError):
-    """Ctrl-C during ingest: the partial artifact was removed."""
-
-    exit_code = 130
-
 
 STAGE = "ingest"
 ARTIFACT = "trace"
@@ -66,17 +57,12 @@ def ingest_command(
     ws = workspace()
     config_json = cfg.model_dump(mode="json")
     inputs = {"recording": ws.external_input(path)}
-    key = artifact_key(STAGE, sha256_json(config_json), inputs)
-    if ws.is_fresh(ARTIFACT, key) and not force:
+    if not force and ws.fresh_manifest(ARTIFACT, STAGE, config_json, inputs) is not None:
         console.print(f"trace is fresh ({ws.artifact_dir(ARTIFACT)}), nothing to do; --force to redo", soft_wrap=True)
         return
-    try:
-        with ws.write_artifact(ARTIFACT, STAGE, config_json, inputs) as build:
-            result = ingest_recording(path, cfg, build.dir)
-            build.summary = result.summary
-    except KeyboardInterrupt:
-        # typer turns a bare KeyboardInterrupt into a silent exit code that main() drops: say it here.
-        raise IngestInterruptedError("interrupted: no trace was written; run the command again to redo it") from None
+    with ws.write_artifact(ARTIFACT, STAGE, config_json, inputs) as build:
+        result = ingest_recording(path, cfg, build.dir)
+        build.summary = result.summary
     for note in result.notes:
         console.print(f"[dim]{note}[/]", highlight=False, soft_wrap=True)
     s = result.summary

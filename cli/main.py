@@ -55,18 +55,23 @@ app.command("status", help="Every stage as fresh / stale / missing, with a summa
 app.add_typer(bench.bench_app, name="bench", help="Measure the simulator against ground truth (fidelity).")
 
 
+_INTERRUPTED = "interrupted: no artifact was written; run the command again to redo it"
+
+
 def main() -> None:
     """Entry point: run the app; user errors become one line on stderr and exit code 2."""
     try:
         code = app(standalone_mode=False)
         # Outside standalone mode click returns (not raises) the exit code of an aborted command (Ctrl-C).
         if isinstance(code, int) and code != 0:
+            if code == 130:
+                err_console.print(_INTERRUPTED, highlight=False)
             sys.exit(code)
     except DrivesimError as e:
         err_console.print(f"[bold red]error:[/] {e.one_line()}", highlight=False, soft_wrap=True)
         sys.exit(e.exit_code)
     except KeyboardInterrupt:
-        err_console.print("interrupted: nothing was written; run the command again to redo it", highlight=False)
+        err_console.print(_INTERRUPTED, highlight=False)
         sys.exit(130)
     except typer.Exit as e:
         sys.exit(e.exit_code)

@@ -127,6 +127,13 @@ class Workspace:
             for rel, meta in manifest.get("outputs", {}).items()
         )
 
+    def fresh_manifest(
+        self, name: str, stage: str, config: dict[str, Any], inputs: dict[str, InputRef]
+    ) -> dict[str, Any] | None:
+        """The manifest of artifact `name` when it is fresh for this stage, config and inputs, else None."""
+        key = artifact_key(stage, sha256_json(config), inputs)
+        return self.read_manifest(name) if self.is_fresh(name, key) else None
+
     def clean_stale_temporaries(self) -> None:
         """Remove temporary folders left by a process that was killed before it could clean up."""
         if not self.root.is_dir():

@@ -17,9 +17,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from drivesim.pipeline.errors import InputError
-from drivesim.pipeline.hashing import sha256_json
 from drivesim.pipeline.progress import console, progress_bar
-from drivesim.pipeline.workspace import Workspace, artifact_key
+from drivesim.pipeline.workspace import Workspace
 from drivesim.sim.geometry import invert
 from drivesim.stages.ingest.trace import TraceInfo, validate_trace
 from drivesim.stages.preprocess import depth as depth_mod
@@ -167,9 +166,8 @@ def run_preprocess(ws: Workspace, cfg: PreprocessConfig, force: bool = False) ->
     trace_dir = ws.require("trace", TRACE_HINT)
     inputs = {"trace": ws.artifact_input("trace")}
     config = cfg.model_dump(mode="json")
-    key = artifact_key(STAGE, sha256_json(config), inputs)
-    if ws.is_fresh(ARTIFACT, key) and not force:
-        manifest = ws.read_manifest(ARTIFACT) or {}
+    manifest = None if force else ws.fresh_manifest(ARTIFACT, STAGE, config, inputs)
+    if manifest is not None:
         return PreprocessResult(path=ws.artifact_dir(ARTIFACT), skipped=True, summary=manifest.get("summary", {}))
 
     started = time.perf_counter()

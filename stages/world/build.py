@@ -16,9 +16,8 @@ import cv2
 import numpy as np
 
 from drivesim.pipeline.errors import InputError
-from drivesim.pipeline.hashing import sha256_json
 from drivesim.pipeline.progress import progress_bar
-from drivesim.pipeline.workspace import Workspace, artifact_key
+from drivesim.pipeline.workspace import Workspace
 from drivesim.sim.geometry import scale_intrinsics
 from drivesim.sim.world import WORLD_FORMAT_VERSION
 from drivesim.stages.preprocess.artifact import POSE_ARRAYS, load_preprocessed
@@ -82,9 +81,8 @@ def run_build_world(ws: Workspace, cfg: WorldConfig, force: bool = False) -> Wor
     pre_dir = ws.require("preprocessed", PREPROCESS_HINT)
     inputs = {"trace": ws.artifact_input("trace"), "preprocessed": ws.artifact_input("preprocessed")}
     config = cfg.model_dump(mode="json")
-    key = artifact_key(STAGE, sha256_json(config), inputs)
-    if ws.is_fresh(ARTIFACT, key) and not force:
-        manifest = ws.read_manifest(ARTIFACT) or {}
+    manifest = None if force else ws.fresh_manifest(ARTIFACT, STAGE, config, inputs)
+    if manifest is not None:
         return WorldResult(path=ws.artifact_dir(ARTIFACT), skipped=True, summary=manifest.get("summary", {}))
 
     started = time.perf_counter()
