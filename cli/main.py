@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli import bench, ingest, preprocess, status, synth, world
+from drivesim.cli import bench, config_show, ingest, preprocess, status, synth, world
 from drivesim.cli.common import err_console, state
 from drivesim.cli.not_built import not_built_command
 from drivesim.pipeline.errors import DrivesimError
@@ -51,6 +51,9 @@ not_built_command(app, "export", "Export the policy as ONNX, checked with onnxru
 not_built_command(app, "run", "Every stage of the chain, on the embedded demo drive by default.")
 app.command("status", help="Every stage as fresh / stale / missing, with a summary of each artifact.")(
     status.status_command
+)
+app.command("config", help="Show a stage's config keys with their values, units and meaning.")(
+    config_show.config_command
 )
 app.add_typer(bench.bench_app, name="bench", help="Measure the simulator against ground truth (fidelity).")
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import importlib.resources
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar, get_args, get_origin
 
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
@@ -129,6 +129,14 @@ def load_config(
         raise _friendly(e, model, " + ".join(sources) or "defaults") from None
 
 
+def _type_name(annotation: Any) -> str:
+    if get_origin(annotation) is Literal:
+        return " | ".join(str(arg) for arg in get_args(annotation))
+    if get_origin(annotation) is not None:  # unions, lists: their own text is clearer than their __name__
+        return str(annotation).replace("typing.", "")
+    return getattr(annotation, "__name__", str(annotation))
+
+
 def describe_config(model: type[BaseModel], prefix: str = "") -> list[tuple[str, str, Any, str]]:
     """Every leaf key of a config model as (dotted key, type, default, description)."""
     rows = []
@@ -138,6 +146,6 @@ def describe_config(model: type[BaseModel], prefix: str = "") -> list[tuple[str,
         if isinstance(annotation, type) and issubclass(annotation, BaseModel):
             rows.extend(describe_config(annotation, prefix=key + "."))
         else:
-            type_name = getattr(annotation, "__name__", str(annotation)).replace("typing.", "")
+            type_name = _type_name(annotation)
             rows.append((key, type_name, field.get_default(call_default_factory=True), field.description or ""))
     return rows

@@ -7,7 +7,19 @@ import subprocess
 import sys
 from pathlib import Path
 
-STAGES = ["ingest", "preprocess", "build-world", "meshes", "synth", "train", "eval", "export", "run", "status"]
+STAGES = [
+    "ingest",
+    "preprocess",
+    "build-world",
+    "meshes",
+    "synth",
+    "train",
+    "eval",
+    "export",
+    "run",
+    "status",
+    "config",
+]
 
 
 def _drivesim(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
@@ -37,3 +49,24 @@ def test_status_json_on_empty_workspace(tmp_path: Path) -> None:
     assert report["format"] == 1
     assert [row["stage"] for row in report["stages"]][:3] == ["ingest", "preprocess", "build-world"]
     assert {row["state"] for row in report["stages"]} == {"missing"}
+
+
+def test_config_shows_resolved_values_and_units(tmp_path: Path) -> None:
+    result = _drivesim("config", "preprocess", "--yaml", "--set", "depth.method=mvs", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    import yaml
+
+    resolved = yaml.safe_load(result.stdout)
+    assert resolved["depth"]["method"] == "mvs"
+    (tmp_path / "mine.yaml").write_text(result.stdout)
+    table = _drivesim("config", "ingest", "--config", str(tmp_path / "mine.yaml"), cwd=tmp_path)
+    assert table.returncode == 2 and "unknown config key" in table.stderr  # a preprocess file is not an ingest one
+    table = _drivesim("config", "ingest", cwd=tmp_path)
+    assert "image.width_px" in table.stdout and "640" in table.stdout
+
+
+def test_unknown_override_key_is_one_line_naming_valid_keys(tmp_path: Path) -> None:
+    result = _drivesim("config", "ingest", "--set", "image.widht=3", cwd=tmp_path)
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "image.widht" in lines[0] and "width_px" in lines[0]
