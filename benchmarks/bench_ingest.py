@@ -107,8 +107,15 @@ def _child_bare(recording: Path, kind: str) -> dict:
     t0 = time.perf_counter()
     with open(recording, "rb") as f:
         reader = make_reader(f)
-        for schema, channel, message in reader.iter_messages(topics=[CAMERA_TOPICS[kind]], log_time_order=True):
-            msg = factory.decoder_for(channel.message_encoding, schema)(message.data)
+        # Every message is read and decoded, as ingest must; only the camera's are turned into images.
+        decoders: dict[int, object] = {}
+        for schema, channel, message in reader.iter_messages(log_time_order=True):
+            decode = decoders.get(channel.id)
+            if decode is None:
+                decode = decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
+            msg = decode(message.data)
+            if channel.topic != CAMERA_TOPICS[kind]:
+                continue
             if kind == "raw":
                 img = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.width, 3)
             else:
@@ -220,8 +227,9 @@ def main() -> None:
         "",
         f"Recordings: ROS2 .mcap (uncompressed chunks), camera {WIDTH}x{HEIGHT} at 10 Hz plus CameraInfo, NavSatFix,",
         "Imu 50 Hz, TwistStamped 20 Hz, /tf_static. Ingest stores 640x400 RGB frames, resized with cv2.INTER_AREA",
-        "(default) or INTER_LINEAR (`--set image.interpolation=linear`). *bare* = read the camera messages with",
-        "mcap + mcap_ros2 and `np.frombuffer` / `cv2.imdecode` (full size) them, nothing else. Peak RSS = VmHWM of",
+        "(default) or INTER_LINEAR (`--set image.interpolation=linear`). *bare* = read and decode every message with",
+        "mcap + mcap_ros2 (as ingest must) and `np.frombuffer` / `cv2.imdecode` (full size) the camera's, nothing",
+        "else: no undistortion, resize or writing. Peak RSS = VmHWM of",
         "the measuring subprocess. *hash* = the manifest's sha256 of the outputs that `Workspace.write_artifact`",
         "adds after the stage (not included in ingest frames/s). CPU ms/frame = user + system time of all threads:",
         "ingest decodes and resizes on two worker threads, so on an idle 2-core machine its wall time approaches",
