@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
+from cli_helpers import REAL_DATA
 
 from drivesim.sim.geometry import camera_mount, invert
 from drivesim.stages.preprocess.depth import DepthConfig, estimate_depth
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+REAL = REAL_DATA
 KITTI = REAL / "kitti_odometry_straight"
 CAMERA_HEIGHT_M = 1.65  # KITTI set-up: camera 0 about 1.65 m above the road, looking level
 

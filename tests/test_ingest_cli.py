@@ -11,11 +11,12 @@ import time
 from pathlib import Path
 
 import pytest
+from cli_helpers import REAL_DATA
 from recordings import START_NS, Msg, drive_messages, navsat_values, textured_image, write_recording
 
 from drivesim.cli.main import main
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+REAL = REAL_DATA
 HUSKY = REAL / "husky_gps_imu_odom.bag"
 
 

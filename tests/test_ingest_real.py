@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import REAL_DATA
 
 from drivesim.pipeline.errors import InputError
 from drivesim.stages.ingest.config import IngestConfig
@@ -13,7 +14,7 @@ from drivesim.stages.ingest.kitti import parse_calib_file
 from drivesim.stages.ingest.run import ingest_recording
 from drivesim.stages.ingest.trace import validate_trace
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+REAL = REAL_DATA
 KITTI_DATE = REAL / "kitti_raw" / "2011_09_26"
 KITTI_DRIVE = KITTI_DATE / "2011_09_26_drive_0001_sync"
 KITTI_ODOMETRY = REAL / "kitti_odometry_straight"

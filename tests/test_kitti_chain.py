@@ -8,33 +8,20 @@ to ENU with pyproj at the origin the preprocess stage reports. The drive is ~107
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import REAL_DATA, drivesim_ok
 from pyproj import Transformer
 
 from drivesim.sim.geometry import wrap_angle
 from drivesim.sim.world import World
 
-REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 DRIVE = REAL_DATA / "kitti_raw" / "2011_09_26" / "2011_09_26_drive_0001_sync"
 FRAME_COUNT = 108
 
 pytestmark = pytest.mark.slow
-
-
-def _drivesim(ws: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    result = subprocess.run(
-        [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert result.returncode == 0, f"drivesim {' '.join(args)} failed:\n{result.stdout}\n{result.stderr}"
-    return result
 
 
 def _oxts() -> np.ndarray:
@@ -57,14 +44,14 @@ def chain(tmp_path_factory) -> Path:
     if not DRIVE.is_dir():
         pytest.skip(f"the KITTI raw drive is not at {DRIVE}")
     ws = tmp_path_factory.mktemp("kitti") / "ws"
-    _drivesim(ws, "ingest", str(DRIVE))
-    _drivesim(ws, "preprocess")
-    _drivesim(ws, "build-world")
+    drivesim_ok(ws, "ingest", str(DRIVE))
+    drivesim_ok(ws, "preprocess")
+    drivesim_ok(ws, "build-world")
     return ws
 
 
 def test_status_reports_the_world(chain: Path) -> None:
-    report = json.loads(_drivesim(chain, "status", "--json").stdout)
+    report = json.loads(drivesim_ok(chain, "status", "--json").stdout)
     stages = {row["stage"]: row for row in report["stages"]}
     for stage in ("ingest", "preprocess", "build-world"):
         assert stages[stage]["state"] == "fresh", stages[stage]
@@ -120,5 +107,5 @@ def test_world_loads_and_associates_recorded_poses(chain: Path) -> None:
 
 
 def test_rerun_is_fresh(chain: Path) -> None:
-    assert "fresh, nothing to do" in _drivesim(chain, "preprocess").stdout
-    assert "fresh, nothing to do" in _drivesim(chain, "build-world").stdout
+    assert "fresh, nothing to do" in drivesim_ok(chain, "preprocess").stdout
+    assert "fresh, nothing to do" in drivesim_ok(chain, "build-world").stdout

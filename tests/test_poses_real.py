@@ -7,12 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import REAL_DATA
 from scipy.spatial.transform import Rotation
 
 from drivesim.stages.preprocess.poses import PoseConfig, enu_transformer, estimate_poses, fuse_gps_imu
 from drivesim.stages.preprocess.series import GpsSeries, ImuSeries, OdometrySeries, SensorSeries, SpeedSeries
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+REAL = REAL_DATA
 KITTI_DRIVE = REAL / "kitti_raw" / "2011_09_26" / "2011_09_26_drive_0001_sync"
 HUSKY_BAG = REAL / "husky_gps_imu_odom.bag"
 

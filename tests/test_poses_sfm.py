@@ -2,18 +2,17 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
+from cli_helpers import REAL_DATA
 
 from drivesim.pipeline.errors import InputError
 from drivesim.sim.geometry import camera_mount
 from drivesim.stages.preprocess.poses import PoseConfig, estimate_poses
 from drivesim.stages.preprocess.series import GivenPoses, SensorSeries, SpeedSeries
 
-KITTI_ODOMETRY = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "kitti_odometry_straight"
+KITTI_ODOMETRY = REAL_DATA / "kitti_odometry_straight"
 T_VEHICLE_CAMERA = camera_mount(0.27, 0.0, 1.65)  # KITTI's left grey camera, near enough: level, 1.65 m up
 
 

@@ -7,12 +7,11 @@ the truth: its length, its heading change and its shape (positions after removin
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import drivesim_ok
 
 from drivesim.sim.geometry import yaw_of
 from drivesim.sim.world import World
@@ -20,18 +19,7 @@ from drivesim.sim.world import World
 pytestmark = pytest.mark.slow
 
 DURATION_S = 1.5
-WIDTH_PX, HEIGHT_PX = 320, 200  # 160x100 trips an IndexError in sim/raster.py (reported)
-
-
-def _drivesim(ws: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    result = subprocess.run(
-        [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert result.returncode == 0, f"drivesim {' '.join(args)} failed:\n{result.stdout}\n{result.stderr}"
-    return result
+WIDTH_PX, HEIGHT_PX = 320, 200
 
 
 @pytest.fixture(scope="module")
@@ -55,9 +43,9 @@ def chain(tmp_path_factory) -> Path:
     recording = root / "drive.mcap"
     synthesize_module.synthesize(cfg, recording)
     ws = root / "ws"
-    _drivesim(ws, "ingest", str(recording))
-    _drivesim(ws, "preprocess")
-    _drivesim(ws, "build-world", "--set", "sim_width_px=80")
+    drivesim_ok(ws, "ingest", str(recording))
+    drivesim_ok(ws, "preprocess")
+    drivesim_ok(ws, "build-world", "--set", "sim_width_px=80")
     return ws
 
 
@@ -89,7 +77,7 @@ def test_world_frames_are_the_recorded_ones_and_status_is_fresh(chain: Path) -> 
     # the sim frame is the trace frame shrunk 4x by area averaging
     shrunk = frames[7].reshape(HEIGHT_PX // 4, 4, WIDTH_PX // 4, 4, 3).mean(axis=(1, 3))
     assert np.abs(world.frames[7].astype(float) - shrunk).max() <= 1.0
-    report = json.loads(_drivesim(chain, "status", "--json").stdout)
+    report = json.loads(drivesim_ok(chain, "status", "--json").stdout)
     stages = {row["stage"]: row for row in report["stages"]}
     assert stages["build-world"]["state"] == "fresh"
     assert stages["build-world"]["summary"]["frame_count"] == world.frame_count

@@ -1,0 +1,22 @@
+"""Shared by the tests: where the real recordings are, and running `drivesim` as a user would."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+# ../shared beside the checkout (tests skip, saying so, where it is absent).
+REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+
+
+def drivesim_ok(ws: Path, *args: str, timeout_s: float = 300) -> subprocess.CompletedProcess[str]:
+    """Run `drivesim --workspace ws ARGS...` in a subprocess and assert it succeeded (showing its output if not)."""
+    result = subprocess.run(
+        [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+    )
+    assert result.returncode == 0, f"drivesim {' '.join(args)} failed:\n{result.stdout}\n{result.stderr}"
+    return result
