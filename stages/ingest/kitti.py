@@ -117,6 +117,27 @@ def _image_files(folder: Path) -> list[Path]:
     return files
 
 
+def _write_camera(
+    files: list[Path],
+    times_ns: np.ndarray,
+    P: np.ndarray,
+    source_size: tuple[int, int],
+    cfg: IngestConfig,
+    out_dir: Path,
+    label: str,
+) -> FrameProcessor:
+    """Write a KITTI image folder's frames (at the working resolution) and their times; returns the processor used."""
+    source_w, source_h = source_size
+    processor = FrameProcessor(
+        _pinhole(P, source_w, source_h),
+        working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale),
+        cfg.image.interpolation,
+    )
+    _write_frames(files, processor, out_dir, label, cfg.image.keep_original)
+    np.save(out_dir / "frame_times_ns.npy", times_ns)
+    return processor
+
+
 def _pinhole(P: np.ndarray, width: int, height: int) -> CameraModel:
     K = P.reshape(3, 4)[:, :3].copy()
     return CameraModel(K=K, D=np.zeros(5), model="none", P=K, R=np.eye(3), width_px=width, height_px=height)
@@ -249,13 +270,7 @@ def ingest_kitti_raw(drive: Path, cfg: IngestConfig, out_dir: Path) -> IngestRes
         T_vehicle_camera = np.asarray(cfg.extrinsics.T_vehicle_camera, dtype=float)
         extrinsics_source = "config"
         height_m = cfg.extrinsics.camera_height_m
-    processor = FrameProcessor(
-        _pinhole(P, source_w, source_h),
-        working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale),
-        cfg.image.interpolation,
-    )
-    _write_frames(files, processor, out_dir, cam_dir.name, cfg.image.keep_original)
-    np.save(out_dir / "frame_times_ns.npy", times)
+    processor = _write_camera(files, times, P, (source_w, source_h), cfg, out_dir, cam_dir.name)
     counts = _save_oxts(out_dir, oxts_times, oxts)
     sensors = {
         "camera": {"topic": cam_dir.name, "type": "png", "message_count": len(files)},
@@ -308,13 +323,7 @@ def ingest_kitti_odometry(folder: Path, cfg: IngestConfig, out_dir: Path) -> Ing
     _check_increasing(times, f"camera {cam_dir.name}", times_path)
 
     source_w, source_h = _image_size(files[0])
-    processor = FrameProcessor(
-        _pinhole(P, source_w, source_h),
-        working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale),
-        cfg.image.interpolation,
-    )
-    _write_frames(files, processor, out_dir, cam_dir.name, cfg.image.keep_original)
-    np.save(out_dir / "frame_times_ns.npy", times)
+    processor = _write_camera(files, times, P, (source_w, source_h), cfg, out_dir, cam_dir.name)
     sensors = {"camera": {"topic": cam_dir.name, "type": "png", "message_count": len(files)}}
     if poses is not None:
         np.savez(out_dir / "poses.npz", t_ns=times, T_world_camera=poses)
