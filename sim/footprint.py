@@ -1,0 +1,57 @@
+"""Vehicle footprints on the ground plane: polygons, overlap and clearance (paper §III-B, §IV-A).
+
+A vehicle's footprint is the rectangle of its length x width centred on its pose (x, y) and turned by its yaw, in the
+world frame (local ENU, metres). shapely does the polygon work: the paper's collision reward is
+`R_collision = -|Dilate(P_ego) ∩ P_other| / |P_ego|` with the ego dilated by 1 m in length and 0.4 m in width
+(0.5 m more at each end, 0.2 m more on each side); an intervention in evaluation is any overlap of the undilated
+polygons (> 0), and a collision in training an overlap above 5 % of the ego's area.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from shapely import Polygon, distance, intersection_all
+
+# The paper's dilation of the ego polygon for R_collision (§IV-A): +1 m in length, +0.4 m in width.
+COLLISION_DILATION_LENGTH_M = 1.0
+COLLISION_DILATION_WIDTH_M = 0.4
+
+
+def footprint(x_m: float, y_m: float, yaw_rad: float, length_m: float, width_m: float) -> Polygon:
+    """The vehicle's rectangle on the ground, centred on (x, y) and turned by yaw (world frame)."""
+    half_l, half_w = 0.5 * length_m, 0.5 * width_m
+    corners = np.array([[half_l, half_w], [-half_l, half_w], [-half_l, -half_w], [half_l, -half_w]])
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    rotated = corners @ np.array([[c, s], [-s, c]])
+    return Polygon(rotated + np.array([x_m, y_m]))
+
+
+def overlap_fraction(ego: Polygon, other: Polygon, ego_area_m2: float | None = None) -> float:
+    """|ego ∩ other| / |ego area| (0 when apart); `ego_area_m2` overrides the denominator (the undilated ego)."""
+    area = intersection_all([ego, other]).area
+    return float(area / (ego_area_m2 if ego_area_m2 is not None else ego.area))
+
+
+def clearance_m(a: Polygon, b: Polygon) -> float:
+    """The smallest distance between two footprints (0 when they touch or overlap)."""
+    return float(distance(a, b))
+
+
+def collision_overlap(
+    ego_pose: tuple[float, float, float],
+    ego_size_m: tuple[float, float],
+    other_pose: tuple[float, float, float],
+    other_size_m: tuple[float, float],
+    dilate: bool = True,
+) -> float:
+    """The paper's collision measure: |Dilate(P_ego) ∩ P_other| / |P_ego| (without dilation when `dilate` is False).
+
+    :param ego_pose: (x_m, y_m, yaw_rad) of the ego. :param ego_size_m: (length_m, width_m) of the ego.
+    :param other_pose: the other vehicle's pose. :param other_size_m: its (length_m, width_m).
+    """
+    length_m, width_m = ego_size_m
+    extra_l = COLLISION_DILATION_LENGTH_M if dilate else 0.0
+    extra_w = COLLISION_DILATION_WIDTH_M if dilate else 0.0
+    ego = footprint(*ego_pose, length_m + extra_l, width_m + extra_w)
+    other = footprint(*other_pose, *other_size_m)
+    return overlap_fraction(ego, other, ego_area_m2=length_m * width_m)

@@ -1,0 +1,1 @@
+"""`drivesim eval`: offline closed-loop evaluation with the paper's metrics, plots and an HTML report."""

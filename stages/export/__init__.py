@@ -1,0 +1,1 @@
+"""`drivesim export onnx`: the policy as one ONNX graph, checked with onnxruntime."""

@@ -1,0 +1,1 @@
+"""`drivesim meshes`: the parametrizable vehicle mesh library (build, import, preview)."""
