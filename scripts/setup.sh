@@ -5,8 +5,9 @@ set -euo pipefail
 VENV=${VENV:-.venv}
 PYTHON=${PYTHON:-python3}
 
-# libusb: `import open3d` needs it; EGL + Mesa: moderngl renders headless in the renderer tests.
-debs=(libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgl1)
+# libusb: `import open3d` needs it; EGL + Mesa: moderngl renders headless in the renderer tests;
+# chromium: the eval report test opens the HTML report in a real headless browser.
+debs=(libusb-1.0-0 libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 chromium)
 missing=()
 for d in "${debs[@]}"; do dpkg -s "$d" >/dev/null 2>&1 || missing+=("$d"); done
 if ((${#missing[@]})); then
