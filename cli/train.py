@@ -1,0 +1,108 @@
+"""`drivesim train lane|follow|overtake`: PPO with a CNN and an LSTM in the simulator."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from drivesim.cli.common import ConfigOption, SetOption, console, workspace
+from drivesim.pipeline.config import load_config
+from drivesim.pipeline.errors import ConfigError, DrivesimError
+
+TaskArgument = Annotated[
+    str | None,
+    typer.Argument(help="lane, follow or overtake (taken from the run with --resume).", show_default=False),
+]
+
+
+def train_command(
+    task: TaskArgument = None,
+    world: Annotated[
+        list[Path] | None,
+        typer.Option(
+            "--world",
+            help="A world folder to train in (repeatable: episodes come from all of them); "
+            "default: the workspace's world.",
+        ),
+    ] = None,
+    total_steps: Annotated[
+        int | None, typer.Option("--total-steps", help="Env steps to train for (overrides the preset).")
+    ] = None,
+    envs: Annotated[int | None, typer.Option("--envs", help="Episodes simulated at once.")] = None,
+    resume: Annotated[
+        Path | None,
+        typer.Option("--resume", help="Continue an unfinished run folder (runs/<task>-<time>, or just its name)."),
+    ] = None,
+    warm_start: Annotated[
+        str | None,
+        typer.Option("--warm-start", help="'expert': behaviour cloning from the privileged expert (DAgger) first."),
+    ] = None,
+    config: ConfigOption = None,
+    set_: SetOption = None,
+) -> None:
+    """Train a driving policy with PPO (CNN + LSTM); the run goes to runs/<task>-<time>/ in the workspace.
+
+    Ctrl-C keeps everything up to the last update; `--resume RUN` continues it. Presets: configs/train/<task>.yaml.
+    """
+    # Imported here so `drivesim --help` stays fast (training pulls in torch and stable-baselines3).
+    from drivesim.stages.train.config import TASKS, TrainConfig
+    from drivesim.stages.train.run import read_run_config
+    from drivesim.stages.train.stage import run_training
+
+    ws = workspace()
+    overrides = list(set_ or [])
+    if total_steps is not None:
+        overrides.append(f"total_steps={total_steps}")
+    if envs is not None:
+        overrides.append(f"envs.count={envs}")
+    if warm_start is not None:
+        if warm_start not in ("expert", "none"):
+            raise ConfigError(f"--warm-start {warm_start!r}: the only warm start is 'expert' (or 'none')")
+        overrides.append(f"warm_start.method={warm_start}")
+    run_dir = None
+    worlds = list(world or [])
+    if resume is not None:
+        run_dir = resume if resume.is_dir() else ws.root / "runs" / resume
+        if not run_dir.is_dir():
+            raise DrivesimError("no such run folder to resume", resume)
+        if (run_dir / "manifest.json").is_file():
+            raise DrivesimError("this run is finished (it has a manifest); start a new run instead", run_dir)
+        saved, saved_worlds, _ = read_run_config(run_dir)
+        if task is not None and task != saved.task:
+            raise ConfigError(f"--resume {run_dir.name} is a {saved.task} run, not {task}")
+        cfg = load_config(TrainConfig, config_file=config, overrides=overrides) if (config or overrides) else None
+        merged = saved.model_dump(mode="json")
+        if cfg is not None:  # only what the user gave again on the command line changes
+            merged.update(
+                {
+                    k: v
+                    for k, v in cfg.model_dump(mode="json").items()
+                    if k in {o.split("=", 1)[0].split(".")[0] for o in overrides}
+                }
+            )
+        cfg = TrainConfig.model_validate(merged)
+        worlds = worlds or saved_worlds
+    else:
+        if task not in TASKS:
+            raise ConfigError(f"task {task!r}: choose one of {', '.join(TASKS)}")
+        cfg = load_config(
+            TrainConfig, preset=f"train/{task}", config_file=config, overrides=[f"task={task}", *overrides]
+        )
+    result = run_training(ws, cfg, worlds=worlds or None, resume=run_dir)
+    for note in result.notes:
+        console.print(note, highlight=False, soft_wrap=True)
+    s = result.summary
+    eval_text = (
+        ""
+        if s.eval_success_rate is None
+        else (f"; evaluation on held-back seeds: success {s.eval_success_rate:.0%}, return {s.eval_return_mean:.1f}")
+    )
+    console.print(
+        f"[green]train[/] {s.task}: {s.steps} env steps in {s.wall_s / 60:.1f} min ({s.steps_per_s:.0f} env steps/s; "
+        f"simulator {s.time_simulator_s:.0f} s, rollout {s.time_rollout_s:.0f} s, optimization "
+        f"{s.time_optimization_s:.0f} s){eval_text} -> {result.path} (curves.png)",
+        highlight=False,
+        soft_wrap=True,
+    )

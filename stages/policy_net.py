@@ -1,0 +1,183 @@
+"""The driving policy's network in plain torch: image -> standardized -> small CNN -> LSTM -> steering, value.
+
+Shared by training (wrapped for sb3-contrib's RecurrentPPO in `stages/train/sb3_policy.py`), evaluation
+(`stages/policy.py::LoadedPolicy`) and export (`DrivingNet` is the module that becomes the ONNX graph). Importing this
+module imports torch; `stages/policy.py` imports it only when a policy is loaded.
+
+Shapes: images (N, 3, H, W) uint8; LSTM state (layers, N, hidden) float32; actions (N, 1) in [-1, 1] (normalized
+steering: curvature = action * max_curvature_1pm of the env config).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+STANDARDIZE_EPS = 1e-3
+"""Floor of an image's standard deviation (in [0, 1] intensity units) in the per-image standardization."""
+
+
+def standardize_images(image_u8: torch.Tensor) -> torch.Tensor:
+    """Per-image standardization (paper §IV-A): each image to zero mean and unit variance over all its pixels."""
+    x = image_u8.float() * (1.0 / 255.0)
+    flat = x.flatten(1)
+    mean = flat.mean(dim=1).view(-1, 1, 1, 1)
+    std = flat.std(dim=1).clamp_min(STANDARDIZE_EPS).view(-1, 1, 1, 1)
+    return (x - mean) / std
+
+
+def conv_out_size(size_px: int, kernel: int, stride: int) -> int:
+    """Output size of a 'valid' convolution along one axis."""
+    return (size_px - kernel) // stride + 1
+
+
+class ImageEncoder(nn.Module):
+    """Standardize the image, optionally average-pool it, then a few strided convolutions and one linear layer.
+
+    :param observation_shape: (C, H, W) of the uint8 image.
+    :param conv_layers: (out_channels, kernel, stride) per convolution.
+    :param features_dim: size of the feature vector fed to the LSTM.
+    :param input_pool: average-pool factor applied to the standardized image before the first convolution (1: none).
+    """
+
+    def __init__(
+        self,
+        observation_shape: Sequence[int],
+        conv_layers: Sequence[Sequence[int]],
+        features_dim: int,
+        input_pool: int = 1,
+    ) -> None:
+        super().__init__()
+        channels, height, width = (int(v) for v in observation_shape)
+        self.input_pool = int(input_pool)
+        self.features_dim = int(features_dim)
+        layers: list[nn.Module] = []
+        if self.input_pool > 1:
+            layers.append(nn.AvgPool2d(self.input_pool))
+            height, width = height // self.input_pool, width // self.input_pool
+        in_ch = channels
+        for out_ch, kernel, stride in conv_layers:
+            layers += [nn.Conv2d(in_ch, int(out_ch), int(kernel), int(stride)), nn.ReLU()]
+            height, width = (
+                conv_out_size(height, int(kernel), int(stride)),
+                conv_out_size(width, int(kernel), int(stride)),
+            )
+            if height < 1 or width < 1:
+                raise ValueError(f"conv layers {list(conv_layers)} shrink a {observation_shape} image to nothing")
+            in_ch = int(out_ch)
+        self.conv = nn.Sequential(*layers)
+        self.linear = nn.Sequential(nn.Flatten(), nn.Linear(in_ch * height * width, self.features_dim), nn.ReLU())
+
+    def forward(self, image_u8: torch.Tensor) -> torch.Tensor:
+        """(N, C, H, W) uint8 (or float 0..255) -> (N, features_dim)."""
+        return self.linear(self.conv(standardize_images(image_u8)))
+
+
+def encoder_macs(
+    observation_shape: Sequence[int], conv_layers: Sequence[Sequence[int]], features_dim: int, input_pool: int = 1
+) -> int:
+    """Multiply-adds per frame of `ImageEncoder` (convolutions and the linear layer), for speed reports."""
+    channels, height, width = (int(v) for v in observation_shape)
+    height, width = height // input_pool, width // input_pool
+    macs, in_ch = 0, channels
+    for out_ch, kernel, stride in conv_layers:
+        height, width = conv_out_size(height, kernel, stride), conv_out_size(width, kernel, stride)
+        macs += height * width * out_ch * in_ch * kernel * kernel
+        in_ch = out_ch
+    return macs + in_ch * height * width * features_dim
+
+
+def run_lstm(
+    lstm: nn.LSTM, features: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor], episode_start: torch.Tensor
+) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+    """Run the LSTM over (T, N, F) features, zeroing the state of sequence n before step t where episode_start[t, n].
+
+    Exact and fused: the sequence is cut only at the time steps where some sequence starts an episode, and each
+    piece runs as one `nn.LSTM` call (sb3-contrib loops over every time step as soon as one start is present).
+    Returns the outputs (T, N, hidden) and the final state.
+    """
+    steps = features.shape[0]
+    keep = 1.0 - episode_start.float()
+    h, c = state
+    cuts = [0] + [t for t in range(1, steps) if bool(episode_start[t].any())] + [steps]
+    outputs = []
+    for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+        mask = keep[a].view(1, -1, 1)
+        out, (h, c) = lstm(features[a:b], (h * mask, c * mask))
+        outputs.append(out)
+    return (outputs[0] if len(outputs) == 1 else torch.cat(outputs, dim=0)), (h, c)
+
+
+class DrivingNet(nn.Module):
+    """The whole policy as one module: encoder, LSTM, steering mean and value heads, log std of the steering.
+
+    Weight names (`encoder.*`, `lstm.*`, `action_head.*`, `value_head.*`, `log_std`) are what a run folder's
+    `policy.pt` holds.
+
+    :param observation_shape: (C, H, W) of the uint8 image.
+    :param conv_layers: (out_channels, kernel, stride) per convolution.
+    :param features_dim: encoder output size.
+    :param lstm_hidden_size: LSTM cells per layer.
+    :param lstm_layers: LSTM layers.
+    :param input_pool: average-pool factor before the convolutions.
+    :param log_std_init: initial log standard deviation of the Gaussian steering distribution.
+    """
+
+    def __init__(
+        self,
+        observation_shape: Sequence[int],
+        conv_layers: Sequence[Sequence[int]],
+        features_dim: int = 128,
+        lstm_hidden_size: int = 128,
+        lstm_layers: int = 1,
+        input_pool: int = 1,
+        log_std_init: float = -1.0,
+    ) -> None:
+        super().__init__()
+        self.encoder = ImageEncoder(observation_shape, conv_layers, features_dim, input_pool)
+        self.lstm = nn.LSTM(features_dim, lstm_hidden_size, num_layers=lstm_layers)
+        self.action_head = nn.Linear(lstm_hidden_size, 1)
+        self.value_head = nn.Linear(lstm_hidden_size, 1)
+        self.log_std = nn.Parameter(torch.full((1,), float(log_std_init)))
+        self.hidden_size = int(lstm_hidden_size)
+        self.lstm_layers = int(lstm_layers)
+
+    def initial_state(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Zero LSTM state for n sequences: (h, c), each (layers, n, hidden)."""
+        zeros = torch.zeros(self.lstm_layers, n, self.hidden_size)
+        return zeros, zeros.clone()
+
+    def step(
+        self, image_u8: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor], episode_start: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """One time step for N sequences: (steering mean (N, 1) unclipped, value (N, 1), new state)."""
+        features = self.encoder(image_u8).unsqueeze(0)
+        latent, state = run_lstm(self.lstm, features, state, episode_start.view(1, -1))
+        latent = latent[0]
+        return self.action_head(latent), self.value_head(latent), state
+
+
+class ExportModule(nn.Module):
+    """The deterministic policy for deployment (INTERFACES §4): one step with explicit LSTM state.
+
+    forward(image_u8 (N,3,H,W) uint8, h (L,N,hidden), c (L,N,hidden), episode_start (N,) f32)
+        -> (action (N,1) f32 in [-1, 1], h, c); the state is reset where episode_start == 1 before the step.
+    """
+
+    def __init__(self, net: DrivingNet) -> None:
+        super().__init__()
+        self.net = net
+        self.lstm_layers = net.lstm_layers
+        self.hidden_size = net.hidden_size
+
+    def forward(
+        self, image_u8: torch.Tensor, h: torch.Tensor, c: torch.Tensor, episode_start: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One deterministic step; see the class docstring."""
+        keep = (1.0 - episode_start.float()).view(1, -1, 1)
+        features = self.net.encoder(image_u8).unsqueeze(0)
+        latent, (h_new, c_new) = self.net.lstm(features, (h * keep, c * keep))
+        action = torch.clamp(self.net.action_head(latent[0]), -1.0, 1.0)
+        return action, h_new, c_new

@@ -1,0 +1,120 @@
+"""Where training gets its environments: drivesim's simulator (one or several worlds) or the cost-free stand-in."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
+
+from drivesim.stages.train.config import ENV_IDS
+
+COST_FREE_SHAPE = (3, 64, 160)
+
+
+def _limit_worker_threads(threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+
+
+@dataclass
+class EnvSource:
+    """Makes the training, vectorized and evaluation environments of a run.
+
+    :param task: lane, follow or overtake.
+    :param worlds: world folders (episodes are drawn from all of them); empty with `cost_free`.
+    :param meshes: the vehicle mesh library folder, or None for the procedural one.
+    :param overrides: env config overrides (EnvsConfig.config).
+    :param cost_free: use `CostFreeDrivingEnv` instead of the simulator (speed of the learner alone; tests).
+    :param worker_threads: torch threads in each subprocess worker.
+    """
+
+    task: str
+    worlds: list[Path] = field(default_factory=list)
+    meshes: Path | None = None
+    overrides: dict[str, Any] = field(default_factory=dict)
+    cost_free: bool = False
+    worker_threads: int = 1
+
+    def _world_arg(self) -> Any:
+        return str(self.worlds[0]) if len(self.worlds) == 1 else [str(w) for w in self.worlds]
+
+    def env_fn(self, mode: str = "train") -> Callable[[], gymnasium.Env]:
+        """A picklable constructor of one env (for subprocess workers too)."""
+        return _EnvFn(self, mode)
+
+    def make_env(self, mode: str = "train") -> gymnasium.Env:
+        """One env in this process."""
+        return self.env_fn(mode)()
+
+    def make_vec(self, count: int, kind: str, seed: int, mode: str = "train") -> VecEnv:
+        """`count` envs as an SB3 VecEnv; kind batched | subproc | dummy (batched needs the simulator)."""
+        if kind == "batched" and not self.cost_free:
+            from drivesim.sim.envs.vector import BatchedVecEnv
+
+            venv: VecEnv = BatchedVecEnv(
+                self.task,
+                count,
+                self._world_arg(),
+                None if self.meshes is None else str(self.meshes),
+                mode,
+                self.overrides or None,
+                seed,
+            )
+            return venv
+        if kind == "subproc" and count > 1:
+            venv = SubprocVecEnv([self.env_fn(mode) for _ in range(count)], start_method="forkserver")
+        else:
+            venv = DummyVecEnv([self.env_fn(mode) for _ in range(count)])
+        venv.seed(seed)
+        return venv
+
+    def resolved_env_config(self, env: gymnasium.Env) -> dict[str, Any]:
+        """The full env config of a made env (its `config` when it has one), else the overrides."""
+        config = getattr(env.unwrapped, "config", None)
+        if hasattr(config, "model_dump"):
+            return config.model_dump(mode="json")
+        return dict(self.overrides)
+
+    def max_curvature_1pm(self, env: gymnasium.Env) -> float | None:
+        """The curvature of a full steering action, when the env config says it."""
+        config = getattr(env.unwrapped, "config", None)
+        value = getattr(config, "max_curvature_1pm", None)
+        return None if value is None else float(value)
+
+
+@dataclass
+class _EnvFn:
+    source: EnvSource
+    mode: str
+
+    def __call__(self) -> gymnasium.Env:
+        _limit_worker_threads(self.source.worker_threads)
+        if self.source.cost_free:
+            from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
+
+            steps = int(self.source.overrides.get("episode_steps", 200))
+            return CostFreeDrivingEnv(COST_FREE_SHAPE, episode_steps=steps)
+        import drivesim.sim.envs  # noqa: F401  (registers the drivesim envs)
+
+        meshes = None if self.source.meshes is None else str(self.source.meshes)
+        return gymnasium.make(
+            ENV_IDS[self.source.task],
+            world=self.source._world_arg(),
+            meshes=meshes,
+            mode=self.mode,
+            config=self.source.overrides or None,
+        )
+
+
+def expert_actions(venv: VecEnv) -> np.ndarray:
+    """The privileged expert's action for every env of `venv` now: (n_envs, 1) float32."""
+    own = getattr(venv, "expert_actions", None)
+    if callable(own):
+        return np.asarray(own(), np.float32).reshape(venv.num_envs, -1)
+    return np.stack([np.asarray(a, np.float32).reshape(-1) for a in venv.env_method("expert_action")])

@@ -1,0 +1,249 @@
+"""One training run in its run folder: build the envs and the model, warm start, learn, resume, write the files."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import torch
+from stable_baselines3.common.logger import configure
+
+from drivesim.pipeline.errors import ConfigError, DrivesimError
+from drivesim.stages.policy import CONFIG_JSON, RUNS_DIR
+from drivesim.stages.train.callbacks import RunState, TrainingCallback
+from drivesim.stages.train.config import TrainConfig
+from drivesim.stages.train.envs import EnvSource
+from drivesim.stages.train.periodic_eval import PeriodicEvaluator
+from drivesim.stages.train.recurrent import ChunkedRecurrentPPO, TimedVecEnv
+from drivesim.stages.train.run_files import (
+    CHECKPOINTS,
+    CURVES_PNG,
+    LAST_CHECKPOINT,
+    PROGRESS_CSV,
+    WARM_START_CHECKPOINT,
+    plot_curves,
+    read_progress,
+    torch_save_atomic,
+    write_json,
+    write_policy_files,
+)
+from drivesim.stages.train.sb3_policy import DrivingLstmPolicy
+from drivesim.stages.train.warm_start import warm_start
+
+
+class TrainingInterruptedError(DrivesimError):
+    """Ctrl-C during training: the run folder keeps everything up to the last update; --resume continues it."""
+
+    exit_code = 130
+
+
+@dataclass
+class TrainOutcome:
+    """What a finished run reports (the stage turns it into its summary)."""
+
+    steps: int
+    updates: int
+    episodes: int
+    wall_s: float
+    steps_per_s: float
+    time_s: dict[str, float]
+    last_row: dict[str, Any]
+    warm_start: dict[str, float]
+
+
+def new_run_dir(workspace_root: Path, task: str) -> Path:
+    """A new `runs/<task>-<YYYYmmdd-HHMMSS>` folder name (a suffix when that second is taken); not created."""
+    stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
+    base = workspace_root / RUNS_DIR / f"{task}-{stamp}"
+    run_dir, i = base, 1
+    while run_dir.exists():
+        i += 1
+        run_dir = base.with_name(f"{base.name}-{i}")
+    return run_dir
+
+
+def write_run_config(run_dir: Path, cfg: TrainConfig, source: EnvSource, env_config: dict[str, Any]) -> None:
+    """config.json: the resolved train config, the env config, the worlds and the meshes of the run."""
+    write_json(
+        run_dir / CONFIG_JSON,
+        {
+            "train": cfg.model_dump(mode="json"),
+            "env_config": env_config,
+            "worlds": [str(w) for w in source.worlds],
+            "meshes": None if source.meshes is None else str(source.meshes),
+        },
+    )
+
+
+def read_run_config(run_dir: Path) -> tuple[TrainConfig, list[Path], Path | None]:
+    """The train config, worlds and meshes an unfinished run was started with (for --resume)."""
+    try:
+        data = json.loads((run_dir / CONFIG_JSON).read_text())
+        cfg = TrainConfig.model_validate(data["train"])
+    except FileNotFoundError as e:
+        raise DrivesimError(f"no {CONFIG_JSON}: not a drivesim run folder, nothing to resume", run_dir) from e
+    except (json.JSONDecodeError, KeyError, ValueError) as e:
+        raise DrivesimError(f"{CONFIG_JSON} is damaged ({type(e).__name__}); cannot resume this run", run_dir) from e
+    meshes = data.get("meshes")
+    return cfg, [Path(w) for w in data.get("worlds", [])], None if meshes is None else Path(meshes)
+
+
+def build_model(cfg: TrainConfig, venv: Any) -> ChunkedRecurrentPPO:
+    """The RecurrentPPO with the driving policy, as configured."""
+    try:
+        return _make_model(cfg, venv)
+    except ValueError as e:
+        raise ConfigError(f"policy: {e}") from e
+
+
+def _make_model(cfg: TrainConfig, venv: Any) -> ChunkedRecurrentPPO:
+    ppo, pol = cfg.ppo, cfg.policy
+    return ChunkedRecurrentPPO(
+        DrivingLstmPolicy,
+        venv,
+        learning_rate=ppo.learning_rate,
+        n_steps=cfg.steps_per_env(),
+        batch_size=ppo.minibatch_steps,
+        n_epochs=ppo.epochs,
+        gamma=ppo.gamma,
+        gae_lambda=ppo.gae_lambda,
+        clip_range=ppo.clip_range,
+        ent_coef=ppo.ent_coef,
+        vf_coef=ppo.vf_coef,
+        max_grad_norm=ppo.max_grad_norm,
+        target_kl=ppo.target_kl,
+        policy_kwargs={
+            "conv_layers": [list(layer) for layer in pol.conv_layers],
+            "features_dim": pol.features_dim,
+            "input_pool": pol.input_pool,
+            "lstm_hidden_size": pol.lstm_hidden_size,
+            "n_lstm_layers": pol.lstm_layers,
+            "log_std_init": pol.log_std_init,
+        },
+        sequence_length=pol.sequence_length_steps,
+        seed=cfg.seed,
+        device="cpu",
+        verbose=0,
+    )
+
+
+def _restore(model: ChunkedRecurrentPPO, path: Path) -> dict[str, Any]:
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+        model.policy.load_driving_net_state(checkpoint["policy"])
+        if "optimizer" in checkpoint:
+            model.policy.optimizer.load_state_dict(checkpoint["optimizer"])
+    except Exception as e:  # noqa: BLE001  (any damage: one line, the user can restart from an older checkpoint)
+        raise DrivesimError(
+            f"cannot read the checkpoint ({type(e).__name__}: {str(e).splitlines()[0][:120]}); "
+            "delete it to resume from an older one",
+            path,
+        ) from e
+    model.num_timesteps = int(checkpoint.get("num_timesteps", 0))
+    model._n_updates = int(checkpoint.get("n_updates", 0))
+    if "torch_rng" in checkpoint:
+        torch.set_rng_state(checkpoint["torch_rng"])
+    return checkpoint
+
+
+def train_in_folder(
+    run_dir: Path, cfg: TrainConfig, source: EnvSource, report: Callable[[str], None] = print, progress: Any = None
+) -> TrainOutcome:
+    """Train (or continue training) the run in `run_dir` until cfg.total_steps; write every file but the manifest.
+
+    The folder holds after every PPO update a checkpoint and progress.csv, so a crash or Ctrl-C loses at most the
+    rollout under way; calling this again on the same folder continues from the last checkpoint.
+    """
+    torch.set_num_threads(cfg.learner_threads)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    # Resumed runs draw new training episodes (the envs' seed moves with the steps done).
+    last = run_dir / CHECKPOINTS / LAST_CHECKPOINT
+    done_steps = 0
+    if last.is_file():
+        done_steps = int(torch.load(last, map_location="cpu", weights_only=True).get("num_timesteps", 0))
+    venv = TimedVecEnv(source.make_vec(cfg.envs.count, cfg.envs.vec_env, cfg.seed + done_steps))
+    evaluator = None
+    try:
+        probe = source.make_env("eval")
+        env_config = source.resolved_env_config(probe)
+        max_curvature = source.max_curvature_1pm(probe)
+        if cfg.eval.every_steps > 0 and cfg.eval.episodes > 0:
+            evaluator = PeriodicEvaluator(lambda: probe, cfg.eval.episodes, cfg.eval.seed)
+        else:
+            probe.close()
+        write_run_config(run_dir, cfg, source, env_config)
+        model = build_model(cfg, venv)
+        model.set_logger(configure(str(run_dir / "tb"), ["tensorboard"]))
+        state = RunState()
+        figures: dict[str, float] = {}
+        if last.is_file():
+            checkpoint = _restore(model, last)
+            state = RunState(
+                wall_s=float(checkpoint.get("wall_s", 0.0)),
+                episodes=int(checkpoint.get("episodes", 0)),
+                rows=read_progress(run_dir / PROGRESS_CSV, up_to_steps=model.num_timesteps),
+            )
+            report(f"resuming {run_dir.name} at {model.num_timesteps} env steps")
+        elif cfg.warm_start.method == "expert":
+            warm_path = run_dir / CHECKPOINTS / WARM_START_CHECKPOINT
+            if warm_path.is_file():
+                _restore(model, warm_path)
+                report("warm start: restored from the run's warm-start checkpoint")
+            else:
+                start = time.perf_counter()
+                figures = warm_start(model, venv, cfg.warm_start, cfg.seed, report)
+                state.wall_s = time.perf_counter() - start
+                torch_save_atomic(warm_path, {"policy": model.policy.driving_net_state(), "wall_s": state.wall_s})
+            model.num_timesteps = 0
+        callback = TrainingCallback(
+            run_dir,
+            cfg.envs.count,
+            cfg.total_steps,
+            state,
+            evaluator,
+            cfg.eval.every_steps,
+            cfg.checkpoint_every_steps,
+            progress=progress,
+            timing=lambda: {**model.time_s, "simulator": venv.step_time_s},
+        )
+        remaining = cfg.total_steps - model.num_timesteps
+        start_steps, start = model.num_timesteps, time.perf_counter()
+        if remaining > 0:
+            try:
+                model.learn(remaining, callback=callback, reset_num_timesteps=False)
+            except KeyboardInterrupt:
+                raise TrainingInterruptedError(
+                    f"interrupted at {int(callback.state.rows[-1]['steps']) if callback.state.rows else 0} env steps "
+                    f"(kept up to the last update); continue with `drivesim train --resume {run_dir}`",
+                    run_dir,
+                ) from None
+        elapsed = time.perf_counter() - start
+        write_policy_files(
+            run_dir,
+            cfg.task,
+            tuple(venv.observation_space.shape),
+            model.policy.arch,
+            model.policy.driving_net_state(),
+            max_curvature,
+        )
+        if state.rows:
+            plot_curves(state.rows, run_dir / CURVES_PNG, f"{cfg.task}: {run_dir.name}")
+        return TrainOutcome(
+            steps=int(model.num_timesteps),
+            updates=int(model._n_updates),
+            episodes=state.episodes,
+            wall_s=callback.wall_s(),
+            steps_per_s=(model.num_timesteps - start_steps) / max(elapsed, 1e-9),
+            time_s={**model.time_s, "simulator": venv.step_time_s},
+            last_row=state.rows[-1] if state.rows else {},
+            warm_start=figures,
+        )
+    finally:
+        venv.close()
+        if evaluator is not None:
+            evaluator.close()

@@ -1,0 +1,164 @@
+"""The train stage under the stage contract: `SPEC`, its summary, and `run_training` (what the CLI calls).
+
+A training run is resumable, so unlike other stages it does not build in a temporary folder that a crash removes:
+it trains in its run folder `runs/<task>-<timestamp>/` (checkpoint + progress.csv after every update, no manifest:
+an unfinished run), and only at the end does `run_stage` take the finished files, write manifest.json and move the
+folder into place. Callers that walk the chain pass `artifact=f"runs/{run_dir.name}"` with the folder set by
+`active_run` (see `run_training`); without it the build trains in a new run folder it names itself.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
+from dataclasses import replace
+from pathlib import Path
+
+from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, StageSummary, run_stage
+from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
+from drivesim.stages.train.config import TrainConfig
+
+_ACTIVE_RUN: ContextVar[Path | None] = ContextVar("drivesim_train_run", default=None)
+
+
+class TrainSummary(StageSummary):
+    """A finished training run."""
+
+    task: str
+    """lane, follow or overtake."""
+    run: str
+    """The run folder's name."""
+    steps: int
+    """Env steps trained (warm start not counted)."""
+    updates: int
+    """PPO gradient passes (epochs summed over updates)."""
+    episodes: int
+    """Training episodes finished."""
+    wall_s: float
+    """Training wall time across resumes [s]."""
+    steps_per_s: float
+    """Env steps per second of `learn()` in the last session [1/s]."""
+    time_rollout_s: float
+    """Time collecting rollouts in the last session (simulator included) [s]."""
+    time_simulator_s: float
+    """Time inside the envs' step in the last session [s]."""
+    time_optimization_s: float
+    """Time in PPO updates in the last session [s]."""
+    eval_success_rate: float | None = None
+    """Success rate of the last evaluation on held-back seeds."""
+    eval_return_mean: float | None = None
+    """Mean return of the last evaluation."""
+    warm_start: bool = False
+    """Whether the policy was warm-started from the expert."""
+    worlds: list[str] = []
+    """World folders trained on."""
+
+
+@contextmanager
+def active_run(run_dir: Path) -> Iterator[None]:
+    """Make `run_dir` the folder the stage's build trains in (a new run or one to resume)."""
+    token = _ACTIVE_RUN.set(run_dir)
+    try:
+        yield
+    finally:
+        _ACTIVE_RUN.reset(token)
+
+
+def _worlds_of(ctx: BuildContext) -> list[Path]:
+    external = [ctx.external[k] for k in sorted(ctx.external) if k.startswith("world")]
+    if external:
+        return external
+    return [ctx.inputs["world"]] if "world" in ctx.inputs else []
+
+
+def _meshes_of(ws: Workspace) -> Path | None:
+    folder = ws.artifact_dir("meshes")
+    return folder if (folder / MANIFEST_NAME).is_file() else None
+
+
+def _build(ctx: BuildContext) -> TrainSummary:
+    from drivesim.pipeline.progress import progress_bar
+    from drivesim.stages.train.envs import EnvSource
+    from drivesim.stages.train.run import new_run_dir, train_in_folder
+
+    cfg = ctx.config
+    assert isinstance(cfg, TrainConfig)
+    run_dir = _ACTIVE_RUN.get() or new_run_dir(ctx.workspace.root, cfg.task)
+    cost_free = cfg.envs.source == "cost_free"
+    source = EnvSource(
+        task=cfg.task,
+        worlds=[] if cost_free else _worlds_of(ctx),
+        meshes=None if cost_free else _meshes_of(ctx.workspace),
+        overrides=dict(cfg.envs.config),
+        cost_free=cost_free,
+        worker_threads=cfg.envs.worker_threads,
+    )
+    with progress_bar("train", total=cfg.total_steps) as bar:
+        outcome = train_in_folder(run_dir, cfg, source, report=ctx.notes.append, progress=bar)
+    # The finished files move into the folder run_stage writes the manifest in and moves into place.
+    for entry in run_dir.iterdir():
+        os.replace(entry, ctx.dir / entry.name)
+    row = outcome.last_row
+    return TrainSummary(
+        task=cfg.task,
+        run=run_dir.name,
+        steps=outcome.steps,
+        updates=outcome.updates,
+        episodes=outcome.episodes,
+        wall_s=round(outcome.wall_s, 1),
+        steps_per_s=round(outcome.steps_per_s, 1),
+        time_rollout_s=round(outcome.time_s.get("rollout", 0.0), 1),
+        time_simulator_s=round(outcome.time_s.get("simulator", 0.0), 1),
+        time_optimization_s=round(outcome.time_s.get("optimization", 0.0), 1),
+        eval_success_rate=row.get("eval_success_rate"),
+        eval_return_mean=row.get("eval_return_mean"),
+        warm_start=cfg.warm_start.method != "none",
+        worlds=[str(w) for w in source.worlds],
+    )
+
+
+SPEC: StageSpec[TrainSummary] = StageSpec(
+    name="train",
+    artifact="runs",
+    command="drivesim train overtake",
+    config_model=TrainConfig,
+    preset="train/overtake",
+    summary_model=TrainSummary,
+    requires=("world",),
+    build=_build,
+    collection=True,
+)
+
+
+def run_training(
+    ws: Workspace, cfg: TrainConfig, worlds: list[Path] | None = None, resume: Path | None = None
+) -> StageResult[TrainSummary]:
+    """Train a policy in a new run folder (or continue the unfinished run `resume`) and finish it with a manifest.
+
+    :param ws: the workspace (runs/ goes in it; its world/ is the default world).
+    :param cfg: the resolved train config.
+    :param worlds: world folders to train on (default: the workspace's world); ignored with the cost-free env.
+    :param resume: an unfinished run folder to continue.
+    """
+    from drivesim.stages.train.run import new_run_dir
+
+    run_dir = resume if resume is not None else new_run_dir(ws.root, cfg.task)
+    spec = SPEC
+    external: dict[str, Path] = {}
+    if cfg.envs.source == "cost_free":
+        spec = replace(SPEC, requires=())
+    elif worlds:
+        spec = replace(SPEC, requires=())
+        external = {f"world_{i:02d}": Path(w).absolute() for i, w in enumerate(worlds)}
+    with active_run(run_dir):
+        return run_stage(
+            ws,
+            spec,
+            cfg,
+            force=True,
+            external=external,
+            artifact=f"runs/{run_dir.name}",
+            make_hints={"world": "drivesim build-world"},
+        )

@@ -1,0 +1,209 @@
+"""Warm start: behaviour cloning from the privileged expert on the states the learner visits (DAgger), then a fit
+of the value head to the cloned policy's returns, before PPO.
+
+Written against the policy's own `evaluate_actions` over fixed-length sequence chunks with their LSTM states (the
+`imitation` package pins an old stable-baselines3 and its behaviour cloning ignores the LSTM state). Round 0 drives
+with the expert; round i drives with the expert with probability beta**i per step and env, else with the learner
+(stochastic, as PPO will), and always records the expert's label; the learner is fitted to all data gathered so
+far. The log std of the steering is not fitted (cloning would shrink it to nothing and leave PPO no exploration).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from sb3_contrib.common.recurrent.type_aliases import RNNStates
+from stable_baselines3.common.vec_env import VecEnv
+
+from drivesim.stages.train.config import WarmStartConfig
+from drivesim.stages.train.envs import expert_actions
+from drivesim.stages.train.recurrent import ChunkedRecurrentPPO, ChunkedRolloutBuffer
+
+
+@dataclass
+class ChunkData:
+    """Sequence chunks: obs (K, L, C, H, W) uint8, starts (K, L), labels (K, L, 1), LSTM state at each chunk's start
+    (h, c) (K, layers, hidden)."""
+
+    obs: np.ndarray
+    starts: np.ndarray
+    labels: np.ndarray
+    h: np.ndarray
+    c: np.ndarray
+
+
+def _collect(
+    model: ChunkedRecurrentPPO, venv: VecEnv, steps_per_env: int, beta: float, rng: np.random.Generator, carry: dict
+) -> tuple[ChunkData, float]:
+    """Drive `steps_per_env` steps per env (expert with probability beta); return chunks and the expert share."""
+    policy, L, n = model.policy, model.sequence_length, venv.num_envs
+    layers, hidden = policy.lstm_actor.num_layers, policy.lstm_actor.hidden_size
+    steps_per_env = max(L, steps_per_env // L * L)
+    obs_buf = np.zeros((steps_per_env, n, *venv.observation_space.shape), np.uint8)
+    starts = np.zeros((steps_per_env, n), np.float32)
+    labels = np.zeros((steps_per_env, n, 1), np.float32)
+    hs = np.zeros((steps_per_env // L, n, layers, hidden), np.float32)
+    cs = np.zeros_like(hs)
+    expert_used = 0
+    for t in range(steps_per_env):
+        obs, start, state = carry["obs"], carry["start"], carry["state"]
+        if t % L == 0:
+            hs[t // L] = state[0].numpy().swapaxes(0, 1)
+            cs[t // L] = state[1].numpy().swapaxes(0, 1)
+        with torch.no_grad():
+            learner, _, _, new_state = policy.forward(
+                torch.from_numpy(obs), RNNStates(state, state), torch.from_numpy(start.astype(np.float32))
+            )
+        label = expert_actions(venv)
+        use_expert = rng.random(n) < beta
+        expert_used += int(use_expert.sum())
+        action = np.where(use_expert[:, None], label, learner.numpy().reshape(n, -1))
+        obs_buf[t], starts[t], labels[t] = obs, start, label
+        next_obs, _, dones, _ = venv.step(np.clip(action, -1.0, 1.0).astype(np.float32))
+        carry.update(obs=next_obs, start=dones.astype(np.float32), state=new_state.pi)
+    k = steps_per_env // L
+
+    def chunks(a: np.ndarray) -> np.ndarray:  # (T, n, ...) -> (k * n, L, ...), chunk id = time chunk * n + env
+        return a.reshape(k, L, n, *a.shape[2:]).swapaxes(1, 2).reshape(k * n, L, *a.shape[2:])
+
+    data = ChunkData(
+        chunks(obs_buf),
+        chunks(starts),
+        chunks(labels),
+        hs.reshape(k * n, layers, hidden),
+        cs.reshape(k * n, layers, hidden),
+    )
+    return data, expert_used / (steps_per_env * n)
+
+
+def _concat(a: ChunkData | None, b: ChunkData) -> ChunkData:
+    if a is None:
+        return b
+    return ChunkData(
+        *(
+            np.concatenate([x, y])
+            for x, y in zip((a.obs, a.starts, a.labels, a.h, a.c), (b.obs, b.starts, b.labels, b.h, b.c), strict=True)
+        )
+    )
+
+
+def _clone(
+    model: ChunkedRecurrentPPO, data: ChunkData, epochs: int, optimizer: torch.optim.Optimizer, chunks_per_batch: int
+) -> float:
+    """Fit the steering to the expert's labels (negative log-likelihood with the std fixed); the last mean loss."""
+    policy = model.policy
+    policy.set_training_mode(True)
+    losses = []
+    for _ in range(epochs):
+        losses = []
+        for ids in np.array_split(np.random.permutation(len(data.obs)), max(1, len(data.obs) // chunks_per_batch)):
+            obs = torch.from_numpy(data.obs[ids].reshape(-1, *data.obs.shape[2:]))
+            h = torch.from_numpy(np.ascontiguousarray(data.h[ids].swapaxes(0, 1)))
+            c = torch.from_numpy(np.ascontiguousarray(data.c[ids].swapaxes(0, 1)))
+            _, log_prob, _ = policy.evaluate_actions(
+                obs.float(),
+                torch.from_numpy(data.labels[ids].reshape(-1, 1)),
+                RNNStates((h, c), (h, c)),
+                torch.from_numpy(data.starts[ids].reshape(-1)),
+            )
+            loss = -log_prob.mean()
+            optimizer.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
+            optimizer.step()
+            losses.append(float(loss))
+    return float(np.mean(losses)) if losses else float("nan")
+
+
+def _fit_value(
+    model: ChunkedRecurrentPPO, venv: VecEnv, steps_per_env: int, epochs: int, lr: float, carry: dict
+) -> float:
+    """Fit the value head alone to GAE returns of the cloned policy (two rounds: returns, fit, returns, fit)."""
+    policy, L, n = model.policy, model.sequence_length, venv.num_envs
+    steps_per_env = max(L, steps_per_env // L * L)
+    lstm = policy.lstm_actor
+    buffer = ChunkedRolloutBuffer(
+        steps_per_env,
+        venv.observation_space,
+        venv.action_space,
+        (steps_per_env, lstm.num_layers, n, lstm.hidden_size),
+        "cpu",
+        gae_lambda=model.gae_lambda,
+        gamma=model.gamma,
+        n_envs=n,
+        sequence_length=L,
+    )
+    policy.set_training_mode(False)
+    dones = np.zeros(n, bool)
+    for _ in range(steps_per_env):
+        obs, start, state = carry["obs"], carry["start"], carry["state"]
+        with torch.no_grad():
+            actions, values, log_probs, new_state = policy.forward(
+                torch.from_numpy(obs), RNNStates(state, state), torch.from_numpy(start.astype(np.float32))
+            )
+        next_obs, rewards, dones, infos = venv.step(np.clip(actions.numpy(), -1.0, 1.0))
+        buffer.add(obs, actions.numpy(), rewards, start, values, log_probs, lstm_states=RNNStates(state, state))
+        carry.update(obs=next_obs, start=dones.astype(np.float32), state=new_state.pi)
+    optimizer = torch.optim.Adam(policy.value_net.parameters(), lr=lr)
+    loss_value = float("nan")
+    for _ in range(2):
+        with torch.no_grad():
+            last = policy.predict_values(
+                torch.from_numpy(carry["obs"]), carry["state"], torch.from_numpy(carry["start"])
+            )
+        buffer.compute_returns_and_advantage(last_values=last, dones=dones)
+        for _ in range(max(1, epochs // 2)):
+            for batch in buffer.get(model.batch_size):
+                values, _, _ = policy.evaluate_actions(
+                    batch.observations.float(), batch.actions, batch.lstm_states, batch.episode_starts
+                )
+                loss = torch.mean((batch.returns - values.flatten()) ** 2)
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+                loss_value = float(loss)
+        with torch.no_grad():  # the values the second round's returns bootstrap from
+            for ids in np.array_split(np.arange(steps_per_env * n // L), max(1, steps_per_env * n // L // 64)):
+                batch = buffer._chunk_samples(ids)
+                values, _, _ = policy.evaluate_actions(
+                    batch.observations.float(), batch.actions, batch.lstm_states, batch.episode_starts
+                )
+                k, env = ids // n, ids % n
+                t = k[:, None] * L + np.arange(L)[None, :]
+                buffer.values[t, np.broadcast_to(env[:, None], t.shape)] = values.numpy().reshape(len(ids), L)
+    return loss_value
+
+
+def warm_start(
+    model: ChunkedRecurrentPPO, venv: VecEnv, cfg: WarmStartConfig, seed: int, report: Callable[[str], None] = print
+) -> dict[str, float]:
+    """DAgger from the expert, then the value fit; returns figures for the log (losses, expert share per round)."""
+    rng = np.random.default_rng(seed)
+    policy = model.policy
+    layers, hidden = policy.lstm_actor.num_layers, policy.lstm_actor.hidden_size
+    n = venv.num_envs
+    zeros = torch.zeros(layers, n, hidden)
+    carry = {"obs": venv.reset(), "start": np.ones(n, np.float32), "state": (zeros, zeros.clone())}
+    params = [p for name, p in policy.named_parameters() if name != "log_std"]
+    optimizer = torch.optim.Adam(params, lr=cfg.learning_rate)
+    chunks_per_batch = max(1, model.batch_size // model.sequence_length)
+    data: ChunkData | None = None
+    figures: dict[str, float] = {}
+    for round_ in range(cfg.iterations):
+        beta = cfg.beta**round_
+        new, share = _collect(model, venv, cfg.steps_per_iteration // n, beta, rng, carry)
+        data = _concat(data, new)
+        loss = _clone(model, data, cfg.epochs, optimizer, chunks_per_batch)
+        figures[f"warm_start_bc_loss_{round_}"] = loss
+        report(
+            f"warm start round {round_}: expert drove {share:.0%} of {len(new.obs) * model.sequence_length} "
+            f"steps; cloning loss {loss:.3f} over {len(data.obs) * model.sequence_length} labelled steps"
+        )
+    value_loss = _fit_value(model, venv, cfg.value_fit_steps // n, cfg.value_fit_epochs, cfg.learning_rate, carry)
+    figures["warm_start_value_loss"] = value_loss
+    report(f"warm start: value head fitted to the cloned policy's returns (loss {value_loss:.3f})")
+    policy.set_training_mode(False)
+    return figures
