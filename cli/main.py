@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli import bench, config_show, ingest, preprocess, status, synth, world
+from drivesim.cli import bench, config_show, ingest, preprocess, status, synth, train, world
 from drivesim.cli.common import err_console, state
 from drivesim.cli.not_built import not_built_command
 from drivesim.pipeline.errors import DrivesimError
@@ -45,7 +45,9 @@ not_built_command(app, "meshes", "The parametrizable vehicle mesh library (build
 app.command("synth", help="Render a procedural drive with ground truth and write it as a ROS2 MCAP recording.")(
     synth.synth_command
 )
-not_built_command(app, "train", "Train a driving policy with PPO (tasks: lane, follow, overtake).")
+app.command("train", help="Train a driving policy with PPO, a CNN and an LSTM (tasks: lane, follow, overtake).")(
+    train.train_command
+)
 not_built_command(app, "eval", "Offline closed-loop evaluation: metrics, plots, report.")
 not_built_command(app, "export", "Export the policy as ONNX, checked with onnxruntime.")
 not_built_command(app, "run", "Every stage of the chain, on the embedded demo drive by default.")
