@@ -1,0 +1,243 @@
+"""The evaluation's outputs: `metrics.json`, `episodes.csv`, the figures (`*.png`) and one self-contained
+`report.html` (images inlined as base64, no external resources) with the metrics beside the paper's Table I."""
+
+from __future__ import annotations
+
+import base64
+import csv
+import html
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivesim.stages.evaluate import plots
+from drivesim.stages.evaluate.metrics import (
+    LEVELS,
+    EpisodeResult,
+    Estimate,
+    aggregate,
+    along_track,
+    breakdowns,
+)
+
+# Paper Table I (offline overtaking, 1000 episodes each): garage / outdoor.
+PAPER_TABLE_I = {
+    "intervention": (0.129, 0.167),
+    "min_clearance_m": (0.216, 0.240),
+    "max_deviation_m": (0.361, 0.360),
+    "max_yaw_rad": (0.112, 0.082),
+}
+TABLE_ROWS = (
+    ("intervention", "average intervention ↓", "{:.3f}"),
+    ("min_clearance_m", "minimum clearance (m) ↑", "{:.3f}"),
+    ("max_deviation_m", "maximum deviation (m) ↓", "{:.3f}"),
+    ("max_yaw_rad", "maximum yaw (rad) ↓", "{:.3f}"),
+)
+CAUSE_ROWS = (
+    ("collision", "collision (polygon overlap > 0)"),
+    ("off_lane", "off lane (|q_lat| > Z_lat)"),
+    ("over_rotation", "over-rotation (|q_rot| > Z_rot)"),
+    ("success", "success"),
+    ("end_of_data", "ended at the end of the recorded data"),
+)
+
+
+@dataclass
+class Track:
+    """The world's reference path, for the plots along the track.
+
+    :param x_m: (N,) frame positions. :param y_m: (N,). :param arc_length_m: (N,) distance along the path.
+    """
+
+    x_m: np.ndarray
+    y_m: np.ndarray
+    arc_length_m: np.ndarray
+
+    @classmethod
+    def load(cls, world_dir: Path) -> Track:
+        """From the world's path.npz."""
+        with np.load(Path(world_dir) / "path.npz") as path:
+            return cls(np.asarray(path["x_m"]), np.asarray(path["y_m"]), np.asarray(path["arc_length_m"]))
+
+
+def write_outputs(
+    out_dir: Path,
+    results: Sequence[EpisodeResult],
+    track: Track,
+    task: str,
+    header: dict[str, Any],
+) -> dict[str, Any]:
+    """Write metrics.json, episodes.csv, the PNGs and report.html into `out_dir`; returns the metrics dict.
+
+    :param results: the evaluated episodes, in seed order.
+    :param track: the world's path.
+    :param task: the task evaluated.
+    :param header: what was evaluated (policy, world, seeds, ...), recorded in metrics.json and the report.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    metrics = [r.metrics for r in results]
+    agg = aggregate(metrics)
+    levels = breakdowns(metrics)
+    along = along_track(results, len(track.x_m))
+    figures = {
+        "breakdown.png": plots.plot_breakdowns(levels, out_dir / "breakdown.png"),
+        "clearance.png": plots.plot_clearance(results, out_dir / "clearance.png"),
+        "track.png": plots.plot_track(track.x_m, track.y_m, along, out_dir / "track.png", tracking=task == "follow"),
+        "relative.png": plots.plot_relative(results, out_dir / "relative.png"),
+    }
+    if task == "follow":
+        figures["tracking.png"] = plots.plot_tracking(track.arc_length_m, along, out_dir / "tracking.png")
+    data = {
+        "format": 1,
+        **header,
+        "task": task,
+        "episodes": len(results),
+        "aggregate": {k: v.to_json() for k, v in agg.items()},
+        "intervention_causes": {k: int(sum(getattr(m, k) for m in metrics)) for k, _ in CAUSE_ROWS},
+        "breakdowns": [b.to_json() for b in levels],
+        "paper_table_i": {k: {"garage": g, "outdoor": o} for k, (g, o) in PAPER_TABLE_I.items()},
+    }
+    (out_dir / "metrics.json").write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
+    write_csv(out_dir / "episodes.csv", results)
+    (out_dir / "report.html").write_text(_html(data, agg, levels, figures, results))
+    return data
+
+
+def write_csv(path: Path, results: Sequence[EpisodeResult]) -> None:
+    """One row per episode with its metrics and initial conditions."""
+    rows = [r.metrics.row() for r in results]
+    if not rows:
+        path.write_text("")
+        return
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: _csv_value(v) for k, v in row.items()})
+
+
+def _csv_value(value: Any) -> Any:
+    if isinstance(value, float):
+        return "" if not math.isfinite(value) else round(value, 5)
+    return value
+
+
+def _fmt(e: Estimate, pattern: str = "{:.3f}") -> str:
+    if e.n == 0 or not math.isfinite(e.value):
+        return "—"
+    return f"{pattern.format(e.value)} <span class=ci>[{pattern.format(e.ci_low)}, {pattern.format(e.ci_high)}]</span>"
+
+
+def _img(path: Path, alt: str) -> str:
+    encoded = base64.b64encode(Path(path).read_bytes()).decode("ascii")
+    image = f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{encoded}">'
+    return f"<figure>{image}<figcaption>{html.escape(alt)}</figcaption></figure>"
+
+
+_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:2em auto;max-width:1150px;color:#222}
+h1{font-size:1.5em} h2{font-size:1.2em;margin-top:1.6em;border-bottom:1px solid #ddd}
+table{border-collapse:collapse;margin:.6em 0} td,th{border:1px solid #ccc;padding:.3em .7em;text-align:right}
+th{background:#f3f3f3} td:first-child,th:first-child{text-align:left} .ci{color:#777;font-size:.85em}
+figure{margin:1em 0} img{max-width:100%;border:1px solid #eee} figcaption{color:#555;font-size:.9em}
+.meta td{text-align:left} code{background:#f5f5f5;padding:0 .2em}
+"""
+
+
+def _html(
+    data: dict[str, Any],
+    agg: dict[str, Estimate],
+    levels: Sequence[Any],
+    figures: dict[str, Path],
+    results: Sequence[EpisodeResult],
+) -> str:
+    esc = html.escape
+    meta_keys = ("task", "policy", "episodes", "seed", "world", "meshes", "created_utc")
+    meta = "".join(f"<tr><th>{esc(k)}</th><td>{esc(str(data.get(k, '')))}</td></tr>" for k in meta_keys if k in data)
+    rows = []
+    for key, label, pattern in TABLE_ROWS:
+        garage, outdoor = PAPER_TABLE_I[key]
+        rows.append(
+            f"<tr><td>{label}</td><td>{_fmt(agg[key], pattern)}</td>"
+            f"<td>{pattern.format(garage)}</td><td>{pattern.format(outdoor)}</td></tr>"
+        )
+    extra = []
+    for key, label in (
+        ("success", "success rate"),
+        ("min_clearance_all_m", "minimum clearance over all episodes (m)"),
+        ("mean_tracking_error_m", "mean tracking error (m)"),
+    ):
+        if agg[key].n:
+            extra.append(f"<tr><td>{label}</td><td>{_fmt(agg[key])}</td><td>—</td><td>—</td></tr>")
+    n = max(len(results), 1)
+    counts = data["intervention_causes"]
+    causes = "".join(
+        f"<tr><td>{label}</td><td>{counts[k]}</td><td>{counts[k] / n:.3f}</td></tr>" for k, label in CAUSE_ROWS
+    )
+    level_rows = []
+    for b in levels:
+        cells = "".join(
+            f"<td>{_fmt(i)}<br>{_fmt(d)} m<br><span class=ci>n={i.n}</span></td>"
+            for i, d in zip(b.intervention, b.max_deviation_m, strict=True)
+        )
+        edges = ", ".join(f"{e:.3g}" for e in b.edges)
+        name = esc(plots.FACTOR_LABELS[b.factor])
+        level_rows.append(f"<tr><td>{name}<br><span class=ci>quartiles {edges}</span></td>{cells}</tr>")
+    worst = sorted(results, key=lambda r: (not r.metrics.intervention, _finite_or(r.metrics.min_clearance_m, 1e9)))[:10]
+    worst_rows = "".join(
+        f"<tr><td>{r.metrics.seed}</td><td>{'yes' if r.metrics.intervention else 'no'}</td>"
+        f"<td>{_causes(r)}</td><td>{r.metrics.min_clearance_m:.3f}</td><td>{r.metrics.max_deviation_m:.3f}</td>"
+        f"<td>{r.metrics.max_yaw_rad:.3f}</td><td>{r.metrics.steps}</td></tr>"
+        for r in worst
+    )
+    captions = {
+        "breakdown.png": "Fig. 4: intervention rate and maximum deviation by trial difficulty (95 % CI)",
+        "clearance.png": "Fig. 5: clearance of the steps below 2 m, and the recall of trials by minimum clearance",
+        "track.png": "Fig. 6 (left, middle): intervention rate and deviation from the centre along the track",
+        "relative.png": "Fig. 6 (right): trajectories relative to the front car, last polygons of interventions",
+        "tracking.png": "car following: tracking error by track position",
+    }
+    images = "".join(_img(p, captions[name]) for name, p in figures.items())
+    level_head = "".join(f"<th>{lv}</th>" for lv in LEVELS)
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>drivesim evaluation: {esc(str(data.get("policy", "")))}</title>
+<style>{_CSS}</style></head><body>
+<h1>drivesim evaluation — {esc(str(data.get("task", "")))}, policy {esc(str(data.get("policy", "")))}</h1>
+<table class=meta>{meta}</table>
+<h2>Metrics beside the paper's Table I</h2>
+<table><tr><th>metric</th><th>this evaluation [95 % CI]</th><th>paper, garage</th><th>paper, outdoor</th></tr>
+{"".join(rows)}{"".join(extra)}</table>
+<p class=ci>Intervention: polygon overlap &gt; 0, off lane or over-rotation. Minimum clearance: mean over the episodes
+without a collision of the smallest distance between the two footprints. Maximum deviation / yaw: mean over the episodes
+of the largest |q_lat| / |q_rot|. Rates: Wilson interval; means: percentile bootstrap (2000 resamples).
+Definitions: <code>drivesim.stages.evaluate.metrics</code>.</p>
+<h2>Interventions by cause</h2>
+<table><tr><th>cause</th><th>episodes</th><th>rate</th></tr>{causes}</table>
+<p class=ci>An episode may have more than one cause.</p>
+<h2>Breakdown by trial difficulty</h2>
+<table><tr><th>factor</th>{level_head}</tr>{"".join(level_rows)}</table>
+<p class=ci>Each cell: intervention rate, mean maximum deviation, episodes. Levels are the quartiles of the factor over
+these episodes (initial lateral difference: the smallest is the most challenging).</p>
+<h2>Figures</h2>
+{images}
+<h2>Worst episodes</h2>
+<table><tr><th>seed</th><th>intervention</th><th>causes</th><th>min clearance (m)</th><th>max deviation (m)</th>
+<th>max yaw (rad)</th><th>steps</th></tr>{worst_rows}</table>
+<p class=ci>Every episode: <code>episodes.csv</code>, per-step trajectories in <code>episodes/&lt;seed&gt;.json</code>;
+aggregates in <code>metrics.json</code>.</p>
+</body></html>
+"""
+
+
+def _finite_or(value: float, default: float) -> float:
+    return value if math.isfinite(value) else default
+
+
+def _causes(r: EpisodeResult) -> str:
+    names = [k for k in ("collision", "off_lane", "over_rotation") if getattr(r.metrics, k)]
+    return ", ".join(names) or "—"
