@@ -14,18 +14,22 @@ from collections.abc import Sequence
 
 import torch
 from torch import nn
+from torch.nn import functional
 
 STANDARDIZE_EPS = 1e-3
 """Floor of an image's standard deviation (in [0, 1] intensity units) in the per-image standardization."""
 
 
-def standardize_images(image_u8: torch.Tensor) -> torch.Tensor:
-    """Per-image standardization (paper §IV-A): each image to zero mean and unit variance over all its pixels."""
-    x = image_u8.float() * (1.0 / 255.0)
-    flat = x.flatten(1)
-    mean = flat.mean(dim=1).view(-1, 1, 1, 1)
-    std = flat.std(dim=1).clamp_min(STANDARDIZE_EPS).view(-1, 1, 1, 1)
-    return (x - mean) / std
+def standardize_images(image_u8: torch.Tensor, pool: int = 1) -> torch.Tensor:
+    """Per-image standardization (paper §IV-A): each image (average-pooled by `pool` first) to zero mean and unit
+    variance over all its pixels; the std is floored at STANDARDIZE_EPS (in [0, 1] intensity units)."""
+    x = image_u8.float()
+    if pool > 1:
+        # Pooling first makes the standardization 4x cheaper (it was half the cost of a training pass).
+        x = functional.avg_pool2d(x, pool)
+    var, mean = torch.var_mean(x.flatten(1), dim=1)
+    scale = torch.rsqrt(var.clamp_min((STANDARDIZE_EPS * 255.0) ** 2))
+    return (x - mean.view(-1, 1, 1, 1)) * scale.view(-1, 1, 1, 1)
 
 
 def conv_out_size(size_px: int, kernel: int, stride: int) -> int:
@@ -34,12 +38,12 @@ def conv_out_size(size_px: int, kernel: int, stride: int) -> int:
 
 
 class ImageEncoder(nn.Module):
-    """Standardize the image, optionally average-pool it, then a few strided convolutions and one linear layer.
+    """Average-pool the image (optionally) and standardize it, then a few strided convolutions and one linear layer.
 
     :param observation_shape: (C, H, W) of the uint8 image.
     :param conv_layers: (out_channels, kernel, stride) per convolution.
     :param features_dim: size of the feature vector fed to the LSTM.
-    :param input_pool: average-pool factor applied to the standardized image before the first convolution (1: none).
+    :param input_pool: average-pool factor applied to the image before standardization (1: none).
     """
 
     def __init__(
@@ -54,9 +58,7 @@ class ImageEncoder(nn.Module):
         self.input_pool = int(input_pool)
         self.features_dim = int(features_dim)
         layers: list[nn.Module] = []
-        if self.input_pool > 1:
-            layers.append(nn.AvgPool2d(self.input_pool))
-            height, width = height // self.input_pool, width // self.input_pool
+        height, width = height // self.input_pool, width // self.input_pool
         in_ch = channels
         for out_ch, kernel, stride in conv_layers:
             layers += [nn.Conv2d(in_ch, int(out_ch), int(kernel), int(stride)), nn.ReLU()]
@@ -72,7 +74,7 @@ class ImageEncoder(nn.Module):
 
     def forward(self, image_u8: torch.Tensor) -> torch.Tensor:
         """(N, C, H, W) uint8 (or float 0..255) -> (N, features_dim)."""
-        return self.linear(self.conv(standardize_images(image_u8)))
+        return self.linear(self.conv(standardize_images(image_u8, self.input_pool)))
 
 
 def encoder_macs(

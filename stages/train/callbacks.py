@@ -190,9 +190,10 @@ class TrainingCallback(BaseCallback):
             if isinstance(value, float | int) and key != "steps" and math.isfinite(float(value)):
                 self.model.logger.record(f"drivesim/{key}", float(value))
         self.model.logger.dump(steps)
+        # The checkpoint first: progress.csv never gets ahead of it (a resume drops rows past the checkpoint).
+        self.save_checkpoint()
         self.state.rows.append(row)
         write_progress(self.run_dir / PROGRESS_CSV, self.state.rows)
-        self.save_checkpoint()
 
     def _prev_steps(self) -> int:
         return int(self.state.rows[-1]["steps"]) if self.state.rows else 0
@@ -211,7 +212,7 @@ class TrainingCallback(BaseCallback):
         }
         folder = self.run_dir / CHECKPOINTS
         torch_save_atomic(folder / LAST_CHECKPOINT, checkpoint)
-        prev = self._prev_steps() if len(self.state.rows) < 2 else int(self.state.rows[-2]["steps"])
+        prev = self._prev_steps()
         if (
             self.checkpoint_every_steps > 0
             and steps // self.checkpoint_every_steps > prev // self.checkpoint_every_steps

@@ -114,7 +114,7 @@ def _clone(
             loss.backward()
             torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
             optimizer.step()
-            losses.append(float(loss))
+            losses.append(loss.item())
     return float(np.mean(losses)) if losses else float("nan")
 
 
@@ -164,7 +164,7 @@ def _fit_value(
                 optimizer.zero_grad()
                 loss.backward()
                 optimizer.step()
-                loss_value = float(loss)
+                loss_value = loss.item()
         with torch.no_grad():  # the values the second round's returns bootstrap from
             for ids in np.array_split(np.arange(steps_per_env * n // L), max(1, steps_per_env * n // L // 64)):
                 batch = buffer._chunk_samples(ids)

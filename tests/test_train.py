@@ -1,0 +1,276 @@
+"""Training mechanics on the cost-free env (seconds): the fused recurrent pass is exact, save -> load gives identical
+actions, damaged runs are refused with one line, a killed run resumes, the warm start clones the expert.
+Learning itself is shown by benchmarks/bench_learning.py, not here."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+from drivesim.pipeline.config import load_config
+from drivesim.pipeline.workspace import Workspace
+from drivesim.stages.policy import RunError, latest_run, load_policy
+from drivesim.stages.train.config import TrainConfig
+from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
+from drivesim.stages.train.recurrent import ChunkedRecurrentPPO
+from drivesim.stages.train.run import build_model
+from drivesim.stages.train.sb3_policy import DrivingLstmPolicy
+from drivesim.stages.train.stage import run_training
+from drivesim.stages.train.warm_start import warm_start
+
+SMALL = [
+    "envs.source=cost_free",
+    "envs.count=2",
+    "ppo.buffer_steps=256",
+    "ppo.minibatch_steps=128",
+    "ppo.epochs=2",
+    "eval.every_steps=256",
+    "eval.episodes=2",
+    "envs.config.episode_steps=40",
+    "policy.sequence_length_steps=16",
+    "envs.vec_env=dummy",
+]
+
+
+def small_config(total_steps: int = 512, extra: list[str] | None = None) -> TrainConfig:
+    return load_config(
+        TrainConfig, preset="train/lane", overrides=[*SMALL, f"total_steps={total_steps}", *(extra or [])]
+    )
+
+
+def cost_free_model(episode_steps: int = 23) -> ChunkedRecurrentPPO:
+    venv = DummyVecEnv([lambda: CostFreeDrivingEnv(episode_steps=episode_steps) for _ in range(2)])
+    venv.seed(0)
+    return ChunkedRecurrentPPO(
+        DrivingLstmPolicy,
+        venv,
+        n_steps=64,
+        batch_size=64,
+        n_epochs=1,
+        sequence_length=16,
+        seed=0,
+        device="cpu",
+        policy_kwargs={"conv_layers": [(8, 5, 2), (16, 3, 2)], "input_pool": 2},
+    )
+
+
+def test_fused_recurrent_pass_is_exact() -> None:
+    """Chunks with episode starts inside: log-probs and values equal sb3-contrib's per-step loop and the rollout's."""
+    torch.manual_seed(0)
+    model = cost_free_model(episode_steps=23)  # episodes end inside the 16-step chunks
+    model._setup_learn(128, None)
+    model.collect_rollouts(model.env, model._init_callback(None), model.rollout_buffer, model.n_steps)
+    starts_inside = 0
+    for batch in model.rollout_buffer.get(64):
+        starts = batch.episode_starts.view(-1, 16)
+        starts_inside += int(starts[:, 1:].sum())
+        policy = model.policy
+        with torch.no_grad():
+            values, log_prob, _ = policy.evaluate_actions(
+                batch.observations.float(), batch.actions, batch.lstm_states, batch.episode_starts
+            )
+            features = policy.extract_features(batch.observations.float())
+            latent, _ = RecurrentActorCriticPolicy._process_sequence(
+                features, batch.lstm_states.pi, batch.episode_starts, policy.lstm_actor
+            )
+            ref_log_prob = policy._get_action_dist_from_latent(latent).log_prob(batch.actions)
+        assert torch.allclose(log_prob, ref_log_prob, atol=1e-5)
+        assert torch.allclose(values.flatten(), policy.value_net(latent).flatten(), atol=1e-5)
+        # ... and equal to what the rollout computed step by step (the stored chunk states are right)
+        assert torch.allclose(log_prob, batch.old_log_prob, atol=1e-4)
+        assert torch.allclose(values.flatten(), batch.old_values, atol=1e-4)
+    assert starts_inside >= 2
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    ws = Workspace(tmp_path_factory.mktemp("ws"))
+    result = run_training(ws, small_config(512))
+    assert result.summary.steps >= 512
+    return result.path
+
+
+def test_run_folder_and_round_trip(finished_run: Path) -> None:
+    """A finished run holds its files; the loaded policy acts exactly like the trained one (and its export)."""
+    for name in (
+        "config.json",
+        "policy.json",
+        "policy.pt",
+        "normalization.json",
+        "progress.csv",
+        "curves.png",
+        "manifest.json",
+        "checkpoints/last.pt",
+    ):
+        assert (finished_run / name).is_file(), name
+    assert list((finished_run / "tb").iterdir())
+    header = (finished_run / "progress.csv").read_text().splitlines()[0].split(",")
+    for column in (
+        "steps_per_s",
+        "reward_lane",
+        "reward_comfort",
+        "term_off_lane",
+        "term_time_limit",
+        "eval_success_rate",
+        "time_simulator_s",
+        "time_optimization_s",
+    ):
+        assert column in header, column
+    assert latest_run(finished_run.parents[1], task="lane") == finished_run
+    assert latest_run(finished_run.parents[1], task="overtake") is None
+
+    loaded = load_policy(finished_run)
+    assert loaded.task == "lane" and loaded.observation_shape == (3, 64, 160)
+    cfg = small_config(512)
+    venv = DummyVecEnv([lambda: CostFreeDrivingEnv(episode_steps=40) for _ in range(3)])
+    model = build_model(cfg, venv)
+    checkpoint = torch.load(finished_run / "checkpoints" / "last.pt", weights_only=True)
+    model.policy.load_driving_net_state(checkpoint["policy"])
+    export = loaded.export_module()
+    rng = np.random.default_rng(1)
+    state_sb3, state_ours = None, loaded.initial_state(3)
+    h, c = (torch.from_numpy(s) for s in loaded.initial_state(3))
+    acted = []
+    for t in range(12):
+        obs = rng.integers(0, 255, (3, 3, 64, 160), dtype=np.uint8)
+        start = np.array([t == 0, t == 0 or t == 6, t == 0], dtype=bool)
+        a_sb3, state_sb3 = model.policy.predict(obs, state_sb3, start, deterministic=True)
+        a_ours, state_ours = loaded.predict(obs, state_ours, start)
+        with torch.no_grad():
+            a_export, h, c = export(torch.from_numpy(obs), h, c, torch.from_numpy(start.astype(np.float32)))
+        np.testing.assert_allclose(a_ours, np.clip(a_sb3, -1, 1), atol=1e-5)
+        np.testing.assert_allclose(a_export.numpy(), a_ours, atol=1e-5)
+        acted.append(a_ours)
+    assert a_ours.dtype == np.float32 and a_ours.shape == (3, 1)
+    assert np.ptp(np.concatenate(acted)) > 1e-4  # the actions depend on the input (not a constant)
+
+
+def test_damaged_runs_are_refused_with_one_line(finished_run: Path, tmp_path: Path) -> None:
+    import shutil
+
+    copy = tmp_path / "lane-copy"
+    shutil.copytree(finished_run, copy)
+    weights = copy / "policy.pt"
+    weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])
+    with pytest.raises(RunError, match="changed or truncated"):
+        load_policy(copy)
+    (copy / "manifest.json").unlink()
+    with pytest.raises(RunError, match="unfinished.*--resume"):
+        load_policy(copy)
+    with pytest.raises(RunError, match="no such run folder"):
+        load_policy(tmp_path / "nope")
+
+
+def test_pickled_code_is_never_executed(tmp_path: Path) -> None:
+    """A weights file holding a pickle that would run code is refused by weights_only loading."""
+    from drivesim.stages.policy import load_weights
+    from drivesim.stages.policy_net import DrivingNet
+
+    marker = tmp_path / "pwned"
+
+    class Evil:
+        def __reduce__(self):  # noqa: ANN204
+            return (os.system, (f"touch {marker}",))
+
+    bad = tmp_path / "policy.pt"
+    torch.save({"encoder.linear.0.weight": Evil()}, bad)
+    with pytest.raises(RunError, match="not a readable"):
+        load_weights(DrivingNet((3, 64, 160), [(8, 5, 2)], input_pool=2), bad)
+    assert not marker.exists()
+
+
+def _drivesim(ws: Path, *args: str) -> list[str]:
+    return [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), *args]
+
+
+def test_killed_run_resumes_with_nothing_lost(tmp_path: Path) -> None:
+    """SIGKILL mid-run leaves an unfinished, resumable run; --resume finishes it from the last update."""
+    ws = tmp_path / "ws"
+    sets = [a for s in SMALL for a in ("--set", s)]
+    proc = subprocess.Popen(
+        _drivesim(ws, "train", "lane", "--total-steps", "100000", *sets), stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    try:
+        deadline = time.time() + 60
+        progress = None
+        while time.time() < deadline:
+            runs = list((ws / "runs").glob("lane-*")) if (ws / "runs").is_dir() else []
+            if runs and (runs[0] / "progress.csv").is_file():
+                progress = runs[0] / "progress.csv"
+                if len(progress.read_text().splitlines()) >= 3:  # header + 2 updates
+                    break
+            time.sleep(0.2)
+        assert progress is not None, "the run wrote no progress in 60 s"
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    run_dir = progress.parent
+    assert not (run_dir / "manifest.json").exists()
+    with pytest.raises(RunError, match="unfinished"):
+        load_policy(run_dir)
+    done = torch.load(run_dir / "checkpoints" / "last.pt", weights_only=True)["num_timesteps"]
+    assert done >= 512
+    result = subprocess.run(
+        _drivesim(ws, "train", "--resume", str(run_dir), "--total-steps", str(done + 512)),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stderr
+    assert f"resuming {run_dir.name} at {done} env steps" in result.stdout
+    steps = [int(line.split(",")[0]) for line in (run_dir / "progress.csv").read_text().splitlines()[1:]]
+    assert steps == sorted(steps) and steps[0] == 256 and steps[-1] >= done + 512
+    assert len(set(steps)) == len(steps)  # nothing logged twice, nothing lost
+    assert load_policy(run_dir).task == "lane"
+    again = subprocess.run(_drivesim(ws, "train", "--resume", str(run_dir)), capture_output=True, text=True)
+    assert again.returncode == 2 and "finished" in again.stderr and "Traceback" not in again.stderr
+
+
+def test_warm_start_clones_the_expert() -> None:
+    """After DAgger the deterministic policy steers like the expert on states it drives into itself."""
+    torch.manual_seed(0)
+    cfg = small_config(
+        256,
+        [
+            "warm_start.method=expert",
+            "warm_start.iterations=3",
+            "warm_start.epochs=6",
+            "warm_start.steps_per_iteration=512",
+            "warm_start.value_fit_steps=256",
+            "warm_start.value_fit_epochs=2",
+        ],
+    )
+    venv = DummyVecEnv([lambda: CostFreeDrivingEnv(episode_steps=60) for _ in range(2)])
+    venv.seed(3)
+    model = build_model(cfg, venv)
+
+    def disagreement() -> float:
+        env = CostFreeDrivingEnv(episode_steps=60)
+        errors = []
+        for seed in range(4):
+            obs, _ = env.reset(seed=100 + seed)
+            state, start = None, np.array([True])
+            for _ in range(40):
+                action, state = model.policy.predict(obs[None], state, start, deterministic=True)
+                errors.append(abs(float(np.clip(action[0, 0], -1, 1)) - float(env.expert_action()[0])))
+                obs, _, terminated, truncated, _ = env.step(action[0])
+                start = np.array([False])
+                if terminated or truncated:
+                    break
+        return float(np.mean(errors))
+
+    before = disagreement()
+    figures = warm_start(model, venv, cfg.warm_start, seed=0, report=lambda _: None)
+    after = disagreement()
+    assert after < 0.5 * before, (before, after)
+    assert np.isfinite(figures["warm_start_value_loss"])
