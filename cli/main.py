@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from drivesim.cli import bench, config_show, ingest, preprocess, status, synth, train, world
+from drivesim.cli import eval as eval_cmd
 from drivesim.cli.common import err_console, state
 from drivesim.cli.not_built import not_built_command
 from drivesim.pipeline.errors import DrivesimError
@@ -48,7 +49,7 @@ app.command("synth", help="Render a procedural drive with ground truth and write
 app.command("train", help="Train a driving policy with PPO, a CNN and an LSTM (tasks: lane, follow, overtake).")(
     train.train_command
 )
-not_built_command(app, "eval", "Offline closed-loop evaluation: metrics, plots, report.")
+app.command("eval", help="Offline closed-loop evaluation: metrics, plots, report.")(eval_cmd.eval_command)
 not_built_command(app, "export", "Export the policy as ONNX, checked with onnxruntime.")
 not_built_command(app, "run", "Every stage of the chain, on the embedded demo drive by default.")
 app.command("status", help="Every stage as fresh / stale / missing, with a summary of each artifact.")(

@@ -71,6 +71,7 @@ def write_outputs(
     track: Track,
     task: str,
     header: dict[str, Any],
+    clearance_max_m: float = 2.0,
 ) -> dict[str, Any]:
     """Write metrics.json, episodes.csv, the PNGs and report.html into `out_dir`; returns the metrics dict.
 
@@ -78,6 +79,7 @@ def write_outputs(
     :param track: the world's path.
     :param task: the task evaluated.
     :param header: what was evaluated (policy, world, seeds, ...), recorded in metrics.json and the report.
+    :param clearance_max_m: upper end of the per-step clearance histogram [m].
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     metrics = [r.metrics for r in results]
@@ -86,7 +88,7 @@ def write_outputs(
     along = along_track(results, len(track.x_m))
     figures = {
         "breakdown.png": plots.plot_breakdowns(levels, out_dir / "breakdown.png"),
-        "clearance.png": plots.plot_clearance(results, out_dir / "clearance.png"),
+        "clearance.png": plots.plot_clearance(results, out_dir / "clearance.png", clearance_max_m),
         "track.png": plots.plot_track(track.x_m, track.y_m, along, out_dir / "track.png", tracking=task == "follow"),
         "relative.png": plots.plot_relative(results, out_dir / "relative.png"),
     }
@@ -197,7 +199,7 @@ def _html(
     )
     captions = {
         "breakdown.png": "Fig. 4: intervention rate and maximum deviation by trial difficulty (95 % CI)",
-        "clearance.png": "Fig. 5: clearance of the steps below 2 m, and the recall of trials by minimum clearance",
+        "clearance.png": "Fig. 5: clearance of the steps (histogram), and the recall of trials by minimum clearance",
         "track.png": "Fig. 6 (left, middle): intervention rate and deviation from the centre along the track",
         "relative.png": "Fig. 6 (right): trajectories relative to the front car, last polygons of interventions",
         "tracking.png": "car following: tracking error by track position",

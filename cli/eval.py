@@ -1,0 +1,106 @@
+"""`drivesim eval`: closed-loop episodes with fixed seeds, the paper's metrics, figures and an HTML report."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from drivesim.cli.common import ConfigOption, ForceOption, SetOption, console, workspace
+from drivesim.pipeline.config import load_config
+
+
+def eval_command(
+    task: Annotated[
+        str | None, typer.Option("--task", help="lane, follow or overtake (default: overtake).", show_default=False)
+    ] = None,
+    policy: Annotated[
+        str | None,
+        typer.Option(
+            "--policy",
+            help="A run folder of `drivesim train`, an exported .onnx file, or 'expert'. "
+            "Default: the workspace's newest finished run of the task, else the expert.",
+            show_default=False,
+        ),
+    ] = None,
+    episodes: Annotated[
+        int | None, typer.Option("--episodes", help="Episodes to run (default 1000).", show_default=False)
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option("--workers", help="Worker processes (default: one per core).", show_default=False)
+    ] = None,
+    seed: Annotated[
+        int | None, typer.Option("--seed", help="Seed of episode 0; episode i uses seed + i.", show_default=False)
+    ] = None,
+    world: Annotated[
+        Path | None, typer.Option("--world", help="World folder (default: the workspace's world/).", show_default=False)
+    ] = None,
+    meshes: Annotated[
+        Path | None,
+        typer.Option("--meshes", help="Vehicle mesh library (default: the workspace's meshes/).", show_default=False),
+    ] = None,
+    video: Annotated[
+        int | None, typer.Option("--video", help="Render MP4s of N episodes (the worst and the best).")
+    ] = None,
+    name: Annotated[
+        str | None,
+        typer.Option("--name", help="Folder name under eval/ (default: <task>-<policy>).", show_default=False),
+    ] = None,
+    config: ConfigOption = None,
+    set_: SetOption = None,
+    force: ForceOption = False,
+) -> None:
+    """Evaluate a policy in closed loop: intervention, clearance, deviation and yaw with 95 % intervals.
+
+    Writes eval/<name>/ in the workspace: report.html (self-contained), metrics.json, episodes.csv,
+    episodes/<seed>.json and the figures. Ctrl-C keeps the finished episodes; the same command resumes.
+    """
+    # Imported here so `drivesim --help` stays fast.
+    from drivesim.stages.evaluate.config import EvalConfig
+    from drivesim.stages.evaluate.stage import run_eval
+    from drivesim.stages.policy import latest_run
+
+    ws = workspace()
+    overrides = list(set_ or [])
+    for key, value in (("task", task), ("episodes", episodes), ("seed", seed), ("video", video)):
+        if value is not None:
+            overrides.append(f"{key}={value}")
+    for key, value in (("world", world), ("meshes", meshes)):
+        if value is not None:
+            overrides.append(f"{key}={value.absolute()}")
+    cfg = load_config(EvalConfig, preset="eval", config_file=config, overrides=overrides)
+    if policy is not None:
+        cfg.policy = policy
+    elif not any(o.startswith("policy=") for o in overrides) and cfg.policy == "expert" and config is None:
+        newest = latest_run(ws, cfg.task)
+        if newest is not None:
+            cfg.policy = str(newest)
+    if workers is not None:
+        cfg.workers = workers
+    if name is not None:
+        cfg.name = name
+    console.print(
+        f"evaluating {cfg.policy} on {cfg.task}: {cfg.episodes} episodes from seed {cfg.seed}", highlight=False
+    )
+    result = run_eval(ws, cfg, force=force)
+    s = result.summary
+    report = result.path / "report.html"
+    if result.skipped:
+        console.print(f"{result.path} is fresh, nothing to do; --force redoes it\nreport: {report}", soft_wrap=True)
+        return
+    for note in result.notes:
+        console.print(note, highlight=False, soft_wrap=True)
+
+    def show(value: float | None) -> str:
+        return "n/a" if value is None else f"{value:.3f}"
+
+    speed = f", {s.episodes_per_min:.1f} episodes/min with {s.workers} workers" if s.episodes_per_min else ""
+    console.print(
+        f"[green]eval[/] {s.episodes} episodes of {s.policy}: intervention {s.intervention:.3f} "
+        f"(collision {s.collision:.3f}, off lane {s.off_lane:.3f}, over-rotation {s.over_rotation:.3f}), "
+        f"min clearance {show(s.min_clearance_m)} m, max deviation {show(s.max_deviation_m)} m, "
+        f"max yaw {show(s.max_yaw_rad)} rad{speed}\nreport: {report}",
+        highlight=False,
+        soft_wrap=True,
+    )

@@ -1,0 +1,40 @@
+"""The eval stage's config (`drivesim config eval` lists every key with its unit)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import Field
+
+from drivesim.pipeline.config import StageConfig
+
+
+class EvalConfig(StageConfig):
+    """`drivesim eval`: closed-loop episodes with fixed seeds, the paper's metrics, plots and an HTML report."""
+
+    task: Literal["lane", "follow", "overtake"] = "overtake"
+    """The task to evaluate (its drivesim env: drivesim/Lane-v0, Follow-v0 or Overtake-v0)."""
+    policy: str = "expert"
+    """`expert` (the env's privileged expert), a run folder of `drivesim train`, or an exported `.onnx` file."""
+    episodes: int = Field(1000, ge=1)
+    """Number of episodes; episode i is reset with seed `seed + i`."""
+    seed: int = Field(0, ge=0)
+    """Seed of the first episode."""
+    world: str | None = None
+    """World folder to evaluate in; null = the workspace's world/."""
+    meshes: str | None = None
+    """Vehicle mesh library folder; null = the workspace's meshes/ when built, else the procedural library."""
+    env: dict[str, Any] = {}
+    """Env config overrides (keys of the env's EnvConfig), applied over a run's training env config."""
+    video: int = Field(0, ge=0)
+    """MP4s to render of chosen episodes (alternately the worst and the best)."""
+    clearance_histogram_max_m: float = Field(2.0, gt=0)
+    """Upper end of the per-step clearance histogram (Fig. 5) [m]."""
+    env_id: str | None = None
+    """Gymnasium id to evaluate in instead of the task's drivesim env (a user's own registered env)."""
+    env_entry_point: str | None = None
+    """`module:Class` registering `env_id` first when it is not registered yet."""
+    workers: int | None = Field(None, ge=1, exclude=True)
+    """Worker processes; null = one per core. Not part of the artifact's identity (same seeds, same numbers)."""
+    name: str | None = Field(None, exclude=True)
+    """The evaluation's folder name under eval/; null = `<task>-<policy>`. Not part of the artifact's identity."""

@@ -1,0 +1,346 @@
+"""The eval stage under the stage contract: `SPEC`, its summary, and `run_eval` (what the CLI calls).
+
+An evaluation is resumable: its episodes are written one by one into a work folder `eval/.partial-<name>/episodes/`
+that survives an interruption (with `partial.json` recording what they were made with: a different config, world
+or policy starts the work folder afresh). When every episode is on disk the build copies them into the temporary
+folder `run_stage` gives it, writes the metrics, figures and report there, and `run_stage` writes the manifest and
+moves `eval/<name>/` into place atomically; only then is the work folder removed. A bad run folder, ONNX file or
+world is refused with one line before any episode runs, and leaves no report.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import dataclass, replace
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from drivesim.pipeline.errors import ConfigError, DrivesimError, InputError
+from drivesim.pipeline.hashing import sha256_json
+from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, StageSummary, run_stage
+from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
+from drivesim.stages.evaluate.config import EvalConfig
+
+EVAL_DIR = "eval"
+PARTIAL_PREFIX = ".partial-"
+WORLD_HINT = "drivesim build-world"
+
+
+class EvalSummary(StageSummary):
+    """A finished evaluation: the headline metrics (means and rates over its episodes)."""
+
+    task: str
+    """lane, follow or overtake."""
+    policy: str
+    """expert, a run folder's name or an ONNX file's name."""
+    episodes: int
+    """Episodes evaluated."""
+    intervention: float
+    """Intervention rate (collision, off lane or over-rotation)."""
+    collision: float
+    """Rate of episodes with a polygon overlap > 0."""
+    off_lane: float
+    """Rate of episodes that left the lane."""
+    over_rotation: float
+    """Rate of episodes that turned too far from the road heading."""
+    success: float
+    """Success rate."""
+    min_clearance_m: float | None
+    """Mean minimum clearance of the episodes without a collision [m]."""
+    max_deviation_m: float | None
+    """Mean maximum |lateral deviation| [m]."""
+    max_yaw_rad: float | None
+    """Mean maximum |yaw relative to the road| [rad]."""
+    episodes_resumed: int
+    """Episodes found on disk from an interrupted evaluation."""
+    episodes_per_min: float | None
+    """Episodes run per minute in this session (None when all were resumed) [1/min]."""
+    workers: int
+    """Worker processes used."""
+    videos: list[str] = []
+    """MP4 files rendered."""
+
+
+@dataclass
+class _Plan:
+    """What an evaluation runs, resolved from the config and the workspace."""
+
+    name: str
+    world: Path
+    world_in_workspace: bool
+    meshes: Path | None
+    policy_text: str
+    policy_path: Path | None
+
+
+def _policy_label(policy: str) -> str:
+    if policy == "expert":
+        return "expert"
+    path = Path(policy)
+    return path.stem if path.suffix.lower() == ".onnx" else path.name
+
+
+def default_name(task: str, policy: str) -> str:
+    """`<task>-<policy>` (a run folder's name already starts with its task)."""
+    label = _policy_label(policy)
+    return label if label.startswith(f"{task}-") else f"{task}-{label}"
+
+
+def _plan(ws: Workspace, cfg: EvalConfig) -> _Plan:
+    if cfg.world is not None:
+        world = Path(cfg.world).absolute()
+        if not world.is_dir():
+            raise InputError("no such world folder; build one with `drivesim build-world`", world)
+        world_in_ws = False
+    else:
+        world = ws.require("world", WORLD_HINT)
+        world_in_ws = True
+    if cfg.meshes is not None:
+        meshes: Path | None = Path(cfg.meshes).absolute()
+        if not meshes.is_dir():
+            raise InputError("no such mesh library folder; build one with `drivesim meshes`", meshes)
+    else:
+        ws_meshes = ws.artifact_dir("meshes")
+        meshes = ws_meshes if (ws_meshes / MANIFEST_NAME).is_file() else None
+    policy_path = None
+    if cfg.policy != "expert":
+        policy_path = Path(cfg.policy).absolute()
+        if not policy_path.exists():
+            what = "ONNX file" if policy_path.suffix.lower() == ".onnx" else "run folder"
+            raise InputError(
+                f"no such {what}; give a run folder of `drivesim train`, an .onnx file or expert", policy_path
+            )
+    name = cfg.name or default_name(cfg.task, cfg.policy)
+    if "/" in name or name.startswith(".") or not name.strip():
+        raise ConfigError(f"--name {name!r}: a plain folder name is needed (no '/', not starting with '.')")
+    return _Plan(name, world, world_in_ws, meshes, cfg.policy, policy_path)
+
+
+def resolve(ws: Workspace, cfg: EvalConfig) -> tuple[EvalConfig, _Plan]:
+    """The config with absolute paths (so the artifact's identity does not depend on the working folder)."""
+    plan = _plan(ws, cfg)
+    update: dict[str, Any] = {
+        "name": plan.name,
+        "world": None if plan.world_in_workspace else str(plan.world),
+        "meshes": None if plan.meshes is None or cfg.meshes is None else str(plan.meshes),
+        "policy": "expert" if plan.policy_path is None else str(plan.policy_path),
+    }
+    return cfg.model_copy(update=update), plan
+
+
+def _world_of(ctx: BuildContext) -> Path:
+    return ctx.external["world"] if "world" in ctx.external else ctx.inputs["world"]
+
+
+def _open_and_check(cfg: EvalConfig, factory: Any, policy_spec: Any, world: Path) -> dict[str, Any]:
+    """Build the env and the policy once here, so bad input is one line before any episode runs.
+
+    Returns the env kwargs to use (a run's training env config merged in).
+    """
+    import numpy as np
+
+    from drivesim.stages.evaluate.report import Track
+
+    try:
+        Track.load(world)
+    except (OSError, KeyError, ValueError) as e:
+        raise InputError(f"not a world folder (path.npz unreadable: {e}); run `{WORLD_HINT}`", world) from e
+    env = _make_env(factory, world)
+    try:
+        policy = policy_spec.load(env)
+        run_task = getattr(policy, "task", None)
+        if policy_spec.kind == "run" and run_task != cfg.task:
+            raise InputError(
+                f"the run trained a {run_task} policy, not {cfg.task}; use --task {run_task}", policy_spec.path
+            )
+        env_config = dict(getattr(policy, "env_config", {}) or {})
+        if env_config:  # the policy's own env settings (its view), then the user's overrides
+            env.close()
+            factory = replace(factory, kwargs={**factory.kwargs, "config": {**env_config, **cfg.env} or None})
+            env = _make_env(factory, world)
+            policy = policy_spec.load(env)
+        obs, _ = env.reset(seed=cfg.seed)
+        try:
+            action, _ = policy.predict(obs[None], policy.initial_state(1), np.ones(1, dtype=bool))
+            action = np.asarray(action, dtype=np.float32)
+        except DrivesimError:
+            raise
+        except Exception as e:  # a wrong input name, shape or dtype from torch or onnxruntime
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise InputError(
+                f"the policy does not take this env's observations {tuple(obs.shape)} uint8: {first[:200]}",
+                policy_spec.path,
+            ) from e
+        if action.size != 1 or not np.all(np.isfinite(action)):
+            raise InputError(f"the policy gave {action.shape} actions; one finite steering value is needed")
+    finally:
+        env.close()
+    return dict(factory.kwargs)
+
+
+def _make_env(factory: Any, world: Path) -> Any:
+    import gymnasium
+
+    try:
+        return factory()
+    except (ValueError, FileNotFoundError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise InputError(f"cannot evaluate in this world: {first}", world) from e
+    except gymnasium.error.Error as e:
+        raise DrivesimError(f"the env {factory.env_id} is not available: {e}") from e
+
+
+def _partial_key(ctx: BuildContext, config_json: dict[str, Any]) -> str:
+    ws = ctx.workspace
+    inputs = {k: ws.external_input(p).hash for k, p in sorted(ctx.external.items())}
+    inputs.update({k: ws.artifact_input(k).hash for k in sorted(ctx.inputs)})
+    return sha256_json({"config": config_json, "inputs": inputs})
+
+
+def _prepare_partial(folder: Path, key: str, notes: list[str]) -> Path:
+    """The work folder's episodes/ folder, emptied first when it was made for something else."""
+    marker = folder / "partial.json"
+    if folder.is_dir():
+        try:
+            same = json.loads(marker.read_text()).get("key") == key
+        except (OSError, ValueError):
+            same = False
+        if not same:
+            shutil.rmtree(folder)
+            notes.append(f"discarded the episodes of an earlier evaluation with other settings in {folder}")
+    (folder / "episodes").mkdir(parents=True, exist_ok=True)
+    marker.write_text(json.dumps({"key": key}) + "\n")
+    return folder / "episodes"
+
+
+def _build(ctx: BuildContext) -> EvalSummary:
+    from drivesim.pipeline.progress import progress_bar
+    from drivesim.stages.evaluate.metrics import evaluate_episode
+    from drivesim.stages.evaluate.report import Track, write_outputs
+    from drivesim.stages.evaluate.rollout import (
+        TASK_ENV_IDS,
+        EnvFactory,
+        PolicySpec,
+        RunningRate,
+        completed_seeds,
+        default_workers,
+        read_episode,
+        run_episodes,
+    )
+    from drivesim.stages.evaluate.video import render_videos
+
+    cfg = ctx.config
+    assert isinstance(cfg, EvalConfig)
+    world = _world_of(ctx)
+    meshes = ctx.external.get("meshes")
+    policy_spec = PolicySpec.parse(cfg.policy)
+    factory = EnvFactory(
+        env_id=cfg.env_id or TASK_ENV_IDS[cfg.task],
+        kwargs={"world": str(world), "meshes": None if meshes is None else str(meshes), "mode": "eval"}
+        | ({"config": dict(cfg.env)} if cfg.env else {}),
+        entry_point=cfg.env_entry_point,
+    )
+    factory = replace(factory, kwargs=_open_and_check(cfg, factory, policy_spec, world))
+
+    name = cfg.name or default_name(cfg.task, cfg.policy)
+    partial = ctx.workspace.root / EVAL_DIR / f"{PARTIAL_PREFIX}{name}"
+    episodes_dir = _prepare_partial(partial, _partial_key(ctx, cfg.model_dump(mode="json")), ctx.notes)
+    seeds = [cfg.seed + i for i in range(cfg.episodes)]
+    resumed = len(completed_seeds(episodes_dir, seeds))
+    if resumed:
+        ctx.notes.append(f"resumed: {resumed} of {len(seeds)} episodes were already on disk")
+    workers = cfg.workers or default_workers()
+    rate = RunningRate()
+    started = time.perf_counter()
+    with progress_bar("eval", total=len(seeds)) as (progress, task):
+        progress.update(task, completed=resumed)
+
+        def on_episode(done: Any) -> None:
+            progress.update(task, advance=1, description=rate.add(done))
+
+        ran = run_episodes(factory, policy_spec, cfg.task, seeds, episodes_dir, workers=workers, on_episode=on_episode)
+    elapsed = time.perf_counter() - started
+
+    results = []
+    for seed in seeds:
+        record = read_episode(episodes_dir / f"{seed}.json")
+        if record is None:
+            raise DrivesimError(f"episode {seed} is missing from {episodes_dir}; run the evaluation again")
+        results.append(evaluate_episode(record))
+    shutil.copytree(episodes_dir, ctx.dir / "episodes")
+    header = {
+        "policy": _policy_label(cfg.policy),
+        "policy_path": cfg.policy,
+        "world": str(world),
+        "meshes": str(meshes) if meshes else "procedural",
+        "seed": cfg.seed,
+        "workers": workers,
+        "episodes_per_min": round(60 * ran / elapsed, 2) if ran else None,
+        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
+    data = write_outputs(ctx.dir, results, Track.load(world), cfg.task, header, cfg.clearance_histogram_max_m)
+    videos = render_videos(results, cfg.video, factory, policy_spec, ctx.dir)
+    agg = data["aggregate"]
+    return EvalSummary(
+        task=cfg.task,
+        policy=header["policy"],
+        episodes=len(results),
+        intervention=agg["intervention"]["value"],
+        collision=agg["collision"]["value"],
+        off_lane=agg["off_lane"]["value"],
+        over_rotation=agg["over_rotation"]["value"],
+        success=agg["success"]["value"],
+        min_clearance_m=agg["min_clearance_m"]["value"],
+        max_deviation_m=agg["max_deviation_m"]["value"],
+        max_yaw_rad=agg["max_yaw_rad"]["value"],
+        episodes_resumed=resumed,
+        episodes_per_min=header["episodes_per_min"],
+        workers=workers,
+        videos=[p.name for p in videos],
+    )
+
+
+SPEC: StageSpec[EvalSummary] = StageSpec(
+    name="eval",
+    artifact=EVAL_DIR,
+    command="drivesim eval",
+    config_model=EvalConfig,
+    preset="eval",
+    summary_model=EvalSummary,
+    requires=("world",),
+    build=_build,
+    collection=True,
+)
+
+
+def run_eval(ws: Workspace, cfg: EvalConfig, force: bool = False) -> StageResult[EvalSummary]:
+    """Evaluate `cfg.policy` into `eval/<name>/` (resuming an interrupted evaluation of the same settings).
+
+    :param ws: the workspace (its world/ and meshes/ are the defaults).
+    :param cfg: the eval config; `name` and `workers` do not change the artifact's identity.
+    :param force: evaluate again even when `eval/<name>/` is fresh.
+    """
+    cfg, plan = resolve(ws, cfg)
+    external: dict[str, Path] = {}
+    if not plan.world_in_workspace:
+        external["world"] = plan.world
+    if plan.meshes is not None:
+        external["meshes"] = plan.meshes
+    if plan.policy_path is not None:
+        external["policy"] = plan.policy_path
+    spec = SPEC if plan.world_in_workspace else replace(SPEC, requires=())
+    result = run_stage(
+        ws,
+        spec,
+        cfg,
+        force=force,
+        external=external,
+        artifact=f"{EVAL_DIR}/{plan.name}",
+        make_hints={"world": WORLD_HINT},
+    )
+    if not result.skipped:
+        shutil.rmtree(ws.root / EVAL_DIR / f"{PARTIAL_PREFIX}{plan.name}", ignore_errors=True)
+    return result
