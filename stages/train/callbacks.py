@@ -110,6 +110,7 @@ class TrainingCallback(BaseCallback):
     :param checkpoint_every_steps: numbered checkpoint period [env steps].
     :param progress: (rich Progress, task id) or None.
     :param timing: `timing() -> dict` of time spent so far (rollout, optimization, simulator) [s].
+    :param time_limit_s: stop learn() once the run's training wall time exceeds this [s].
     """
 
     def __init__(
@@ -123,8 +124,10 @@ class TrainingCallback(BaseCallback):
         checkpoint_every_steps: int,
         progress: Any = None,
         timing: Callable[[], dict] | None = None,
+        time_limit_s: float | None = None,
     ) -> None:
         super().__init__()
+        self.time_limit_s = time_limit_s
         self.run_dir = run_dir
         self.tracker = EpisodeTracker(n_envs)
         self.total_steps = total_steps
@@ -153,6 +156,8 @@ class TrainingCallback(BaseCallback):
 
     def _on_step(self) -> bool:
         self.tracker.step(self.locals["rewards"], self.locals["dones"], self.locals["infos"])
+        if self.time_limit_s is not None and self.wall_s() > self.time_limit_s:
+            return False  # SB3 stops learn() here; the weights are those of the last update
         now = time.perf_counter()
         if self.progress is not None and now - self._last_bar > 0.5:
             self._last_bar = now

@@ -119,6 +119,8 @@ class TrainConfig(StageConfig):
     """lane, follow or overtake."""
     total_steps: int = 2_000_000
     """Env steps to train for (warm start not counted)."""
+    time_limit_s: float | None = None
+    """Stop after this much training wall time, at the end of an update, and finish the run [s] (None: no limit)."""
     seed: int = 0
     """Seed of the policy's initialization and of the training episodes."""
     learner_threads: int = 2

@@ -31,6 +31,7 @@ from drivesim.stages.train.run_files import (
     torch_save_atomic,
     write_json,
     write_policy_files,
+    write_progress,
 )
 from drivesim.stages.train.sb3_policy import DrivingLstmPolicy
 from drivesim.stages.train.warm_start import warm_start
@@ -210,6 +211,7 @@ def train_in_folder(
             cfg.checkpoint_every_steps,
             progress=progress,
             timing=lambda: {**model.time_s, "simulator": venv.step_time_s},
+            time_limit_s=cfg.time_limit_s,
         )
         remaining = cfg.total_steps - model.num_timesteps
         start_steps, start = model.num_timesteps, time.perf_counter()
@@ -223,6 +225,9 @@ def train_in_folder(
                     run_dir,
                 ) from None
         elapsed = time.perf_counter() - start
+        if evaluator is not None and state.rows and "eval_success_rate" not in state.rows[-1]:
+            state.rows[-1].update(evaluator(model.policy))  # stopped by the time limit: evaluate the final policy
+            write_progress(run_dir / PROGRESS_CSV, state.rows)
         write_policy_files(
             run_dir,
             cfg.task,

@@ -4,7 +4,7 @@ A training run is resumable, so unlike other stages it does not build in a tempo
 it trains in its run folder `runs/<task>-<timestamp>/` (checkpoint + progress.csv after every update, no manifest:
 an unfinished run), and only at the end does `run_stage` take the finished files, write manifest.json and move the
 folder into place. Callers that walk the chain pass `artifact=f"runs/{run_dir.name}"` with the folder set by
-`active_run` (see `run_training`); without it the build trains in a new run folder it names itself.
+`active_run`: call `run_training`, which does both (the build refuses to run without an active run folder).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from contextvars import ContextVar
 from dataclasses import replace
 from pathlib import Path
 
+from drivesim.pipeline.errors import DrivesimError
 from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, StageSummary, run_stage
 from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
 from drivesim.stages.train.config import TrainConfig
@@ -81,11 +82,14 @@ def _meshes_of(ws: Workspace) -> Path | None:
 def _build(ctx: BuildContext) -> TrainSummary:
     from drivesim.pipeline.progress import progress_bar
     from drivesim.stages.train.envs import EnvSource
-    from drivesim.stages.train.run import new_run_dir, train_in_folder
+    from drivesim.stages.train.run import train_in_folder
 
     cfg = ctx.config
     assert isinstance(cfg, TrainConfig)
-    run_dir = _ACTIVE_RUN.get() or new_run_dir(ctx.workspace.root, cfg.task)
+    run_dir = _ACTIVE_RUN.get()
+    if run_dir is None:
+        # run_stage(ws, SPEC, cfg) alone would move the finished run over the whole runs/ folder.
+        raise DrivesimError("the train stage runs through stages.train.stage.run_training (one folder per run)")
     cost_free = cfg.envs.source == "cost_free"
     source = EnvSource(
         task=cfg.task,

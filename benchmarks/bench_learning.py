@@ -1,0 +1,184 @@
+"""Learning, shown by numbers (issue 9): train under a wall-clock budget, then evaluate on held-back seeds.
+
+Scenarios (each: `drivesim train` through `run_training` with the task's preset and a time limit, then N episodes
+of the deterministic policy in eval mode, where any overlap is a collision; a random policy beside it):
+    lane-demo       lane on the demo world, 15 min            target: >= 90 % of episodes without intervention
+    overtake-demo   overtake on the demo world, 60 min, warm start from the expert   target: >= 70 % passes
+    lane-kitti      lane on a world built from the real KITTI drive, 15 min          target: >= 80 %
+
+    .venv/bin/python benchmarks/bench_learning.py --only lane-demo --minutes 3    # a short check
+    .venv/bin/python benchmarks/bench_learning.py --kitti-world WS/world          # everything (~1.5 h)
+
+Writes benchmarks/results/learning.md and the curves as benchmarks/results/learning_<scenario>.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drivesim.pipeline.config import load_config
+from drivesim.pipeline.workspace import Workspace
+from drivesim.stages.policy import load_policy
+from drivesim.stages.train.config import TrainConfig
+from drivesim.stages.train.envs import EnvSource
+from drivesim.stages.train.stage import run_training
+
+RESULTS = Path(__file__).parent / "results"
+HELD_BACK_SEED = 2_000_000
+
+
+@dataclass
+class Scenario:
+    name: str
+    task: str
+    minutes: float
+    target: float
+    warm_start: bool
+    world_kind: str
+
+
+SCENARIOS = {
+    "lane-demo": Scenario("lane-demo", "lane", 15, 0.90, False, "demo"),
+    "overtake-demo": Scenario("overtake-demo", "overtake", 60, 0.70, True, "demo"),
+    "lane-kitti": Scenario("lane-kitti", "lane", 15, 0.80, False, "kitti"),
+}
+
+
+def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson interval of a rate."""
+    if n == 0:
+        return math.nan, math.nan
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return centre - half, centre + half
+
+
+def evaluate(task: str, world: Path, episodes: int, policy=None, env_config: dict | None = None) -> dict:  # noqa: ANN001
+    """Success rate and termination causes over held-back seeds; a random policy when `policy` is None."""
+    env = EnvSource(task=task, worlds=[world], overrides=env_config or {}).make_env("eval")
+    rng = np.random.default_rng(0)
+    successes, causes, lengths = 0, {}, []
+    for i in range(episodes):
+        obs, _ = env.reset(seed=HELD_BACK_SEED + i)
+        state = None if policy is None else policy.initial_state(1)
+        start = np.array([True])
+        length = 0
+        while True:
+            length += 1
+            if policy is None:
+                action = rng.uniform(-1, 1, (1,)).astype(np.float32)
+            else:
+                actions, state = policy.predict(obs[None], state, start)
+                action = actions[0]
+            start = np.array([False])
+            obs, _, terminated, truncated, info = env.step(action)
+            if terminated or truncated:
+                break
+        lengths.append(length)
+        successes += bool(info.get("success", False))
+        for cause, flag in (info.get("termination") or {}).items():
+            causes[cause] = causes.get(cause, 0) + bool(flag)
+    env.close()
+    return {"episodes": episodes, "successes": successes, "causes": causes, "mean_length": float(np.mean(lengths))}
+
+
+def run_scenario(scenario: Scenario, world: Path, minutes: float, episodes: int, scratch: Path) -> dict:
+    ws = Workspace(scratch / scenario.name)
+    overrides = [f"time_limit_s={minutes * 60:.0f}", "total_steps=100000000"]
+    if scenario.warm_start:
+        overrides.append("warm_start.method=expert")
+    cfg = load_config(TrainConfig, preset=f"train/{scenario.task}", overrides=overrides)
+    start = time.perf_counter()
+    result = run_training(ws, cfg, worlds=[world])
+    train_s = time.perf_counter() - start
+    policy = load_policy(result.path)
+    trained = evaluate(scenario.task, world, episodes, policy, policy.env_config)
+    random = evaluate(scenario.task, world, episodes, None, policy.env_config)
+    curves = RESULTS / f"learning_{scenario.name}.png"
+    shutil.copyfile(result.path / "curves.png", curves)
+    return {
+        "summary": result.summary,
+        "train_s": train_s,
+        "trained": trained,
+        "random": random,
+        "curves": curves,
+        "run": result.path,
+    }
+
+
+def _rate(r: dict) -> str:
+    lo, hi = wilson(r["successes"], r["episodes"])
+    return f"{r['successes'] / r['episodes']:.0%} ({lo:.0%}–{hi:.0%})"
+
+
+def write_results(
+    rows: list[tuple[Scenario, Path, dict]], loads: list[tuple[float, float, float]], episodes: int
+) -> None:
+    lines = [
+        "# Learning: success on held-back seeds after a wall-clock training budget",
+        "",
+        f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {os.cpu_count()} cores; load average "
+        f"(1 min) before each scenario: {', '.join(f'{x[0]:.2f}' for x in loads)} (the machine may have been "
+        f"shared). {episodes} evaluation episodes per policy (seeds {HELD_BACK_SEED}+, eval mode: any overlap is "
+        "a collision); success = lane/follow: the time limit without intervention, overtake: passed and back in "
+        "the lane without intervention. 95 % Wilson intervals in brackets. "
+        "`python benchmarks/bench_learning.py` redoes it.",
+        "",
+        "| scenario | world | trained | env steps | env steps/s | success (trained) | success (random) | target | "
+        "interventions of the trained policy | curves |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---|---|",
+    ]
+    for scenario, world, r in rows:
+        s, trained = r["summary"], r["trained"]
+        causes = ", ".join(f"{k} {v}" for k, v in sorted(trained["causes"].items()) if v and k != "time_limit")
+        met = "met" if trained["successes"] / trained["episodes"] >= scenario.target else "not met"
+        lines.append(
+            f"| {scenario.name}{' (warm start)' if scenario.warm_start else ''} | {world} | {s.wall_s / 60:.1f} min | "
+            f"{s.steps} | {s.steps_per_s:.0f} | {_rate(trained)} | {_rate(r['random'])} | "
+            f"≥ {scenario.target:.0%} ({met}) | {causes or 'none'} | {r['curves'].name} |"
+        )
+    (RESULTS / "learning.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {RESULTS / 'learning.md'}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", action="append", choices=sorted(SCENARIOS), help="run only these scenarios")
+    parser.add_argument("--minutes", type=float, default=None, help="override every scenario's training budget")
+    parser.add_argument("--episodes", type=int, default=50, help="evaluation episodes per policy")
+    parser.add_argument("--demo-world", type=Path, default=Path("/tmp/ws-demo/world"))
+    parser.add_argument("--kitti-world", type=Path, default=None, help="a world built from ../shared/data/real")
+    parser.add_argument(
+        "--scratch",
+        type=Path,
+        default=Path("/tmp/drivesim-bench-learning"),
+        help="workspace root for the runs (outside the repository)",
+    )
+    args = parser.parse_args()
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    rows, loads = [], []
+    for name in args.only or list(SCENARIOS):
+        scenario = SCENARIOS[name]
+        world = args.demo_world if scenario.world_kind == "demo" else args.kitti_world
+        if world is None or not (world / "manifest.json").is_file():
+            print(f"skipping {name}: no world at {world} (build one and pass --kitti-world / --demo-world)")
+            continue
+        loads.append(os.getloadavg())
+        minutes = args.minutes if args.minutes is not None else scenario.minutes
+        result = run_scenario(scenario, world, minutes, args.episodes, args.scratch)
+        print(f"{name}: trained {_rate(result['trained'])}, random {_rate(result['random'])}")
+        rows.append((scenario, world, result))
+    write_results(rows, loads, args.episodes)
+
+
+if __name__ == "__main__":
+    main()
