@@ -50,8 +50,8 @@ class Row:
     note: str = ""
 
 
-def cost_free_vec(n_envs: int = 2, episode_steps: int = 200) -> VecEnv:
-    venv = DummyVecEnv([lambda: CostFreeDrivingEnv(SHAPE, episode_steps=episode_steps) for _ in range(n_envs)])
+def cost_free_vec(n_envs: int = 2, episode_steps: int = 200, shape: tuple[int, int, int] = SHAPE) -> VecEnv:
+    venv = DummyVecEnv([lambda: CostFreeDrivingEnv(shape, episode_steps=episode_steps) for _ in range(n_envs)])
     venv.seed(0)
     return venv
 

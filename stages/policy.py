@@ -93,7 +93,8 @@ class LoadedPolicy:
     ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
         """One step for N episodes: obs (N, C, H, W) uint8 -> actions (N, 1) float32 in [-1, 1] and the new state.
 
-        The state of episode n is reset before the step where episode_start[n] is true. Stochastic actions
+        The state of episode n is reset before the step where episode_start[n] is true (state None: all zero).
+        Stochastic actions
         (deterministic=False) sample the Gaussian steering distribution.
         """
         import torch
@@ -103,6 +104,8 @@ class LoadedPolicy:
             raise ValueError(
                 f"observations must be (N, {', '.join(map(str, self.observation_shape))}) uint8, got {obs.shape}"
             )
+        if state is None:
+            state = self.initial_state(obs.shape[0])
         with torch.no_grad():
             h, c = (torch.as_tensor(np.asarray(s), dtype=torch.float32) for s in state)
             starts = torch.as_tensor(np.asarray(episode_start, dtype=np.float32).reshape(-1))
