@@ -218,7 +218,7 @@ def _html(
 without a collision of the smallest distance between the two footprints. Maximum deviation / yaw: mean over the episodes
 of the largest |q_lat| / |q_rot|. Rates: Wilson interval; means: percentile bootstrap (2000 resamples).
 Definitions: <code>drivesim.stages.evaluate.metrics</code>.</p>
-<h2>Interventions by cause</h2>
+<h2>Interventions by cause, and outcomes</h2>
 <table><tr><th>cause</th><th>episodes</th><th>rate</th></tr>{causes}</table>
 <p class=ci>An episode may have more than one cause.</p>
 <h2>Breakdown by trial difficulty</h2>
