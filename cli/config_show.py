@@ -19,6 +19,7 @@ STAGE_CONFIGS = {
     "synth": ("drivesim.stages.synth.config", "SynthConfig", "synth"),
     "preprocess": ("drivesim.stages.preprocess.config", "PreprocessConfig", "preprocess"),
     "build-world": ("drivesim.stages.world.config", "WorldConfig", "world"),
+    "train": ("drivesim.stages.train.config", "TrainConfig", "train/overtake"),
 }
 
 
