@@ -261,3 +261,23 @@ def test_report_renders_with_its_images_in_headless_chromium(tmp_path):
         assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == steps + 1
         ok, frame = capture.read()
         assert ok and frame.std() > 5
+
+
+def test_follow_reports_tracking_error_by_track_position(tmp_path):
+    register_fake_envs()
+    world = _fake_world(tmp_path / "world")
+    cfg = EvalConfig(
+        task="follow",
+        episodes=4,
+        world=str(world),
+        workers=1,
+        env_id="drivesim-test/FakeFollow-v0",
+        env_entry_point="eval_fakes:FakeDrivingEnv",
+    )
+    result = run_eval(Workspace(tmp_path / "ws"), cfg)
+    assert result.path.name == "follow-expert"
+    metrics = json.loads((result.path / "metrics.json").read_text())
+    tracking = metrics["aggregate"]["mean_tracking_error_m"]
+    # The fake front car keeps its 1-2 m lateral offset while the expert holds the lane centre.
+    assert tracking["n"] == 4 and 0.9 < tracking["value"] < 2.1
+    assert (result.path / "tracking.png").stat().st_size > 10_000

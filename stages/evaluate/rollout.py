@@ -22,6 +22,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from drivesim.pipeline.errors import DrivesimError
 from drivesim.stages.evaluate.metrics import TRAJECTORY_FIELDS, EpisodeRecord, evaluate_episode
 
 TASK_ENV_IDS = {"lane": "drivesim/Lane-v0", "follow": "drivesim/Follow-v0", "overtake": "drivesim/Overtake-v0"}
@@ -112,8 +113,10 @@ class PolicySpec:
             from drivesim.stages.policy import load_policy
 
             return load_policy(Path(self.path))
-        from drivesim.stages.onnx_policy import OnnxPolicy
-
+        try:
+            from drivesim.stages.onnx_policy import OnnxPolicy
+        except ImportError as e:
+            raise DrivesimError("this version of drivesim cannot run ONNX policies (no stages.onnx_policy)") from e
         return OnnxPolicy(Path(self.path))
 
 

@@ -150,7 +150,7 @@ def _open_and_check(cfg: EvalConfig, factory: Any, policy_spec: Any, world: Path
         raise InputError(f"not a world folder (path.npz unreadable: {e}); run `{WORLD_HINT}`", world) from e
     env = _make_env(factory, world)
     try:
-        policy = policy_spec.load(env)
+        policy = _load_policy(policy_spec, env)
         run_task = getattr(policy, "task", None)
         if policy_spec.kind == "run" and run_task != cfg.task:
             raise InputError(
@@ -161,7 +161,7 @@ def _open_and_check(cfg: EvalConfig, factory: Any, policy_spec: Any, world: Path
             env.close()
             factory = replace(factory, kwargs={**factory.kwargs, "config": {**env_config, **cfg.env} or None})
             env = _make_env(factory, world)
-            policy = policy_spec.load(env)
+            policy = _load_policy(policy_spec, env)
         obs, _ = env.reset(seed=cfg.seed)
         try:
             action, _ = policy.predict(obs[None], policy.initial_state(1), np.ones(1, dtype=bool))
@@ -179,6 +179,17 @@ def _open_and_check(cfg: EvalConfig, factory: Any, policy_spec: Any, world: Path
     finally:
         env.close()
     return dict(factory.kwargs)
+
+
+def _load_policy(policy_spec: Any, env: Any) -> Any:
+    """The policy; anything but a DrivesimError (an unreadable ONNX graph, say) becomes one line."""
+    try:
+        return policy_spec.load(env)
+    except DrivesimError:
+        raise
+    except Exception as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise InputError(f"cannot load the policy: {first[:200]}", policy_spec.path) from e
 
 
 def _make_env(factory: Any, world: Path) -> Any:
