@@ -210,12 +210,10 @@ def footprints_per_step(record: EpisodeRecord) -> tuple[np.ndarray, np.ndarray]:
     n = len(traj["t_s"])
     clearance = np.full(n, np.inf)
     overlap = np.zeros(n)
-    ego_size = (float(ep["ego_length_m"]), float(ep["ego_width_m"]))
-    other_length = ep.get("other_length_m")
-    other_width = ep.get("other_width_m")
-    if other_length is None or other_width is None or "other_x_m" not in traj:
+    sizes = [_number(ep, k) for k in ("ego_length_m", "ego_width_m", "other_length_m", "other_width_m")]
+    if not np.all(np.isfinite(sizes)) or "other_x_m" not in traj:
         return clearance, overlap
-    other_size = (float(other_length), float(other_width))
+    ego_size, other_size = (sizes[0], sizes[1]), (sizes[2], sizes[3])
     for i in range(n):
         other_pose = (traj["other_x_m"][i], traj["other_y_m"][i], traj["other_yaw_rad"][i])
         if not np.all(np.isfinite(other_pose)):
@@ -225,6 +223,15 @@ def footprints_per_step(record: EpisodeRecord) -> tuple[np.ndarray, np.ndarray]:
         clearance[i] = clearance_m(ego, other)
         overlap[i] = ego.intersection(other).area
     return clearance, overlap
+
+
+def _number(data: dict[str, Any], key: str) -> float:
+    """data[key] as a float; NaN when absent or null."""
+    value = data.get(key)
+    try:
+        return float(value) if value is not None else float("nan")
+    except (TypeError, ValueError):
+        return float("nan")
 
 
 def _max_abs(values: np.ndarray) -> float:
@@ -265,9 +272,9 @@ def evaluate_episode(record: EpisodeRecord) -> EpisodeResult:
         max_deviation_m=max_deviation,
         max_yaw_rad=max_yaw,
         mean_tracking_error_m=mean_tracking,
-        road_curvature_1pm=float(ep.get("road_curvature_1pm", float("nan"))),
-        other_speed_mps=float(ep.get("other_speed_mps", float("nan"))),
-        initial_lateral_m=float(ep.get("initial_lateral_m", float("nan"))),
+        road_curvature_1pm=_number(ep, "road_curvature_1pm"),
+        other_speed_mps=_number(ep, "other_speed_mps"),
+        initial_lateral_m=_number(ep, "initial_lateral_m"),
         return_=float(record.return_),
     )
     return EpisodeResult(metrics=metrics, clearance_m=clearance, overlap_m2=overlap, record=record)
