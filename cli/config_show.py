@@ -20,6 +20,7 @@ STAGE_CONFIGS = {
     "preprocess": ("drivesim.stages.preprocess.config", "PreprocessConfig", "preprocess"),
     "build-world": ("drivesim.stages.world.config", "WorldConfig", "world"),
     "train": ("drivesim.stages.train.config", "TrainConfig", "train/overtake"),
+    "eval": ("drivesim.stages.evaluate.config", "EvalConfig", "eval"),
 }
 
 
