@@ -85,6 +85,8 @@ def train_command(
         cfg = TrainConfig.model_validate(merged)
         worlds = worlds or saved_worlds
     else:
+        if task is None:
+            raise ConfigError(f"give a task to train: {', '.join(TASKS)} (or --resume RUN)")
         if task not in TASKS:
             raise ConfigError(f"task {task!r}: choose one of {', '.join(TASKS)}")
         cfg = load_config(

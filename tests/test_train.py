@@ -274,3 +274,19 @@ def test_warm_start_clones_the_expert() -> None:
     after = disagreement()
     assert after < 0.5 * before, (before, after)
     assert np.isfinite(figures["warm_start_value_loss"])
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["train", "bogus"], "choose one of lane, follow, overtake"),
+        (["train", "lane", "--world", "/nonexistent"], "not a world folder"),
+        (["train", "lane"], "run `drivesim build-world` first"),
+        (["train", "--resume", "nope"], "no such run folder"),
+    ],
+)
+def test_bad_input_is_one_line(tmp_path: Path, args: list[str], message: str) -> None:
+    result = subprocess.run(_drivesim(tmp_path / "ws", *args), capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert message in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "ws" / "runs").exists() or not list((tmp_path / "ws" / "runs").iterdir())

@@ -161,13 +161,16 @@ def train_in_folder(
     rollout under way; calling this again on the same folder continues from the last checkpoint.
     """
     torch.set_num_threads(cfg.learner_threads)
-    run_dir.mkdir(parents=True, exist_ok=True)
     # Resumed runs draw new training episodes (the envs' seed moves with the steps done).
     last = run_dir / CHECKPOINTS / LAST_CHECKPOINT
     done_steps = 0
     if last.is_file():
         done_steps = int(torch.load(last, map_location="cpu", weights_only=True).get("num_timesteps", 0))
-    venv = TimedVecEnv(source.make_vec(cfg.envs.count, cfg.envs.vec_env, cfg.seed + done_steps))
+    try:
+        venv = TimedVecEnv(source.make_vec(cfg.envs.count, cfg.envs.vec_env, cfg.seed + done_steps))
+    except (ValueError, FileNotFoundError) as e:  # the envs' one-line errors (short world, missing meshes, ...)
+        raise DrivesimError(f"cannot make the {cfg.task} env: {str(e).splitlines()[0]}") from e
+    run_dir.mkdir(parents=True, exist_ok=True)
     evaluator = None
     try:
         probe = source.make_env("eval")

@@ -154,6 +154,11 @@ def run_training(
     if cfg.envs.source == "cost_free":
         spec = replace(SPEC, requires=())
     elif worlds:
+        for world in worlds:
+            if not (Path(world) / MANIFEST_NAME).is_file():
+                raise DrivesimError(
+                    "not a world folder (no manifest.json); make one with `drivesim build-world`", world
+                )
         spec = replace(SPEC, requires=())
         external = {f"world_{i:02d}": Path(w).absolute() for i, w in enumerate(worlds)}
     with active_run(run_dir):
