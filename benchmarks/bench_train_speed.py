@@ -26,6 +26,7 @@ import torch
 from sb3_contrib import RecurrentPPO
 from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
 from stable_baselines3 import PPO
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 from drivesim.stages.policy_net import encoder_macs
@@ -82,6 +83,7 @@ def measure(name: str, make_model: Any, steps: int, venv: VecEnv, threads: int =
     torch.set_num_threads(threads)
     timed_env = TimedVecEnv(venv)
     model = make_model(timed_env)
+    model.set_logger(Logger(None, []))  # no SB3 log folder in /tmp
     timer = model if isinstance(model, ChunkedRecurrentPPO) else _Timed(model)
     start = time.perf_counter()
     model.learn(steps)

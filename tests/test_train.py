@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from drivesim.pipeline.config import load_config
@@ -68,6 +69,7 @@ def test_fused_recurrent_pass_is_exact() -> None:
     """Chunks with episode starts inside: log-probs and values equal sb3-contrib's per-step loop and the rollout's."""
     torch.manual_seed(0)
     model = cost_free_model(episode_steps=23)  # episodes end inside the 16-step chunks
+    model.set_logger(Logger(None, []))  # no SB3 log folder in /tmp
     model._setup_learn(128, None)
     model.collect_rollouts(model.env, model._init_callback(None), model.rollout_buffer, model.n_steps)
     starts_inside = 0
