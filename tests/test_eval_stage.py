@@ -281,3 +281,31 @@ def test_follow_reports_tracking_error_by_track_position(tmp_path):
     # The fake front car keeps its 1-2 m lateral offset while the expert holds the lane centre.
     assert tracking["n"] == 4 and 0.9 < tracking["value"] < 2.1
     assert (result.path / "tracking.png").stat().st_size > 10_000
+
+
+def test_resume_into_fewer_episodes_keeps_only_those(tmp_path, monkeypatch):
+    register_fake_envs()
+    world = _fake_world(tmp_path / "world")
+    ws = Workspace(tmp_path / "ws")
+    original = rollout.RunningRate.add
+
+    def interrupt_at_five(self, done):
+        if self.count == 4:
+            raise KeyboardInterrupt
+        return original(self, done)
+
+    monkeypatch.setattr(rollout.RunningRate, "add", interrupt_at_five)
+    with pytest.raises(KeyboardInterrupt):
+        run_eval(ws, EvalConfig(episodes=8, world=str(world), workers=1, **FAKE))
+    monkeypatch.setattr(rollout.RunningRate, "add", original)
+    # The episode count is not part of what an episode is: 3 of the 5 on disk are reused, the others left out.
+    result = run_eval(ws, EvalConfig(episodes=3, world=str(world), workers=1, **FAKE))
+    assert result.summary.episodes_resumed == 3 and result.summary.episodes_per_min is None
+    assert sorted(p.name for p in (result.path / "episodes").glob("*.json")) == ["0.json", "1.json", "2.json"]
+    # Another env config is another evaluation: the work folder starts afresh.
+    with pytest.raises(KeyboardInterrupt):
+        monkeypatch.setattr(rollout.RunningRate, "add", interrupt_at_five)
+        run_eval(ws, EvalConfig(episodes=8, world=str(world), workers=1, **FAKE))
+    monkeypatch.setattr(rollout.RunningRate, "add", original)
+    other = run_eval(ws, EvalConfig(episodes=3, world=str(world), workers=1, env={"x": 1}, **FAKE))
+    assert other.summary.episodes_resumed == 0 and any("discarded" in note for note in other.notes)

@@ -1,11 +1,11 @@
 """The eval stage under the stage contract: `SPEC`, its summary, and `run_eval` (what the CLI calls).
 
 An evaluation is resumable: its episodes are written one by one into a work folder `eval/.partial-<name>/episodes/`
-that survives an interruption (with `partial.json` recording what they were made with: a different config, world
-or policy starts the work folder afresh). When every episode is on disk the build copies them into the temporary
-folder `run_stage` gives it, writes the metrics, figures and report there, and `run_stage` writes the manifest and
-moves `eval/<name>/` into place atomically; only then is the work folder removed. A bad run folder, ONNX file or
-world is refused with one line before any episode runs, and leaves no report.
+that survives an interruption (`partial.json` records what they were made with: a different world, policy or env
+config starts the work folder afresh; more or fewer episodes do not). When every episode is on disk the build copies
+them into the temporary folder `run_stage` gives it, writes the metrics, figures and report there, and `run_stage`
+writes the manifest and moves `eval/<name>/` into place atomically; only then is the work folder removed. A bad run
+folder, ONNX file or world is refused with one line before any episode runs, and leaves no report.
 """
 
 from __future__ import annotations
@@ -204,7 +204,13 @@ def _make_env(factory: Any, world: Path) -> Any:
         raise DrivesimError(f"the env {factory.env_id} is not available: {e}") from e
 
 
+# Keys that do not change what an episode is: an interrupted evaluation of 100 episodes resumes into one of 1000.
+_REPORT_ONLY_KEYS = ("episodes", "video", "clearance_histogram_max_m")
+
+
 def _partial_key(ctx: BuildContext, config_json: dict[str, Any]) -> str:
+    """What the work folder's episodes depend on: the config (but the report-only keys) and the inputs."""
+    config_json = {k: v for k, v in config_json.items() if k not in _REPORT_ONLY_KEYS}
     ws = ctx.workspace
     inputs = {k: ws.external_input(p).hash for k, p in sorted(ctx.external.items())}
     inputs.update({k: ws.artifact_input(k).hash for k in sorted(ctx.inputs)})
@@ -281,7 +287,9 @@ def _build(ctx: BuildContext) -> EvalSummary:
         if record is None:
             raise DrivesimError(f"episode {seed} is missing from {episodes_dir}; run the evaluation again")
         results.append(evaluate_episode(record))
-    shutil.copytree(episodes_dir, ctx.dir / "episodes")
+    (ctx.dir / "episodes").mkdir()
+    for seed in seeds:
+        shutil.copy2(episodes_dir / f"{seed}.json", ctx.dir / "episodes" / f"{seed}.json")
     header = {
         "policy": _policy_label(cfg.policy),
         "policy_path": cfg.policy,
