@@ -72,9 +72,17 @@ class ImageEncoder(nn.Module):
         self.conv = nn.Sequential(*layers)
         self.linear = nn.Sequential(nn.Flatten(), nn.Linear(in_ch * height * width, self.features_dim), nn.ReLU())
 
+    def preprocess(self, image_u8: torch.Tensor) -> torch.Tensor:
+        """The parameter-free part: (N, C, H, W) uint8 -> pooled, standardized float (N, C, H/pool, W/pool)."""
+        return standardize_images(image_u8, self.input_pool)
+
+    def encode_preprocessed(self, x: torch.Tensor) -> torch.Tensor:
+        """The learned part, on `preprocess`'s output -> (N, features_dim)."""
+        return self.linear(self.conv(x))
+
     def forward(self, image_u8: torch.Tensor) -> torch.Tensor:
         """(N, C, H, W) uint8 (or float 0..255) -> (N, features_dim)."""
-        return self.linear(self.conv(standardize_images(image_u8, self.input_pool)))
+        return self.encode_preprocessed(self.preprocess(image_u8))
 
 
 def encoder_macs(

@@ -92,6 +92,17 @@ def test_fused_recurrent_pass_is_exact() -> None:
         assert torch.allclose(log_prob, batch.old_log_prob, atol=1e-4)
         assert torch.allclose(values.flatten(), batch.old_values, atol=1e-4)
     assert starts_inside >= 2
+    # The update's path: observations preprocessed once for all epochs give the same log-probs and values.
+    buffer = model.rollout_buffer
+    buffer.preprocessed = model.policy.preprocess_observations(buffer.observations)
+    model.policy.observations_preprocessed = True
+    for batch in buffer.get(64):
+        with torch.no_grad():
+            values, log_prob, _ = model.policy.evaluate_actions(
+                batch.observations, batch.actions, batch.lstm_states, batch.episode_starts
+            )
+        assert torch.allclose(log_prob, batch.old_log_prob, atol=1e-4)
+        assert torch.allclose(values.flatten(), batch.old_values, atol=1e-4)
 
 
 @pytest.fixture(scope="module")

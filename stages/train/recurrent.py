@@ -4,8 +4,8 @@ sb3-contrib's `RecurrentRolloutBuffer` cuts each minibatch into sequences at epi
 longest, copying every sequence through a Python list; with many short episodes most of a minibatch is padding.
 Here each env's rollout is cut into chunks of `sequence_length` steps (the LSTM state at each chunk's first step is
 stored during the rollout), a minibatch is a random set of whole chunks gathered with one fancy index, and episode
-starts inside a chunk are handled exactly by `run_lstm` (the state is zeroed there). Observations stay uint8 until
-the network.
+starts inside a chunk are handled exactly by `run_lstm` (the state is zeroed there). Observations stay uint8 in the
+buffer; the encoder's parameter-free preprocessing (pooling, standardization) runs once per update, not per epoch.
 """
 
 from __future__ import annotations
@@ -53,6 +53,8 @@ class ChunkedRolloutBuffer(RecurrentRolloutBuffer):
         if buffer_size % sequence_length:
             raise ValueError(f"rollout length {buffer_size} is not a multiple of the chunk length {sequence_length}")
         self.sequence_length = sequence_length
+        self.preprocessed: np.ndarray | None = None
+        """Observations after the encoder's preprocessing (set for the duration of an update), else None."""
         super().__init__(
             buffer_size, observation_space, action_space, hidden_state_shape, device, gae_lambda, gamma, n_envs
         )
@@ -95,7 +97,7 @@ class ChunkedRolloutBuffer(RecurrentRolloutBuffer):
         c = torch.from_numpy(np.ascontiguousarray(self.chunk_c[k, env].swapaxes(0, 1)))
         returns = take(self.returns)
         return RecurrentRolloutBufferSamples(
-            observations=take(self.observations),
+            observations=take(self.observations if self.preprocessed is None else self.preprocessed),
             actions=take(self.actions),
             old_values=take(self.values),
             old_log_prob=take(self.log_probs),
@@ -166,7 +168,16 @@ class ChunkedRecurrentPPO(RecurrentPPO):
 
     def train(self) -> None:
         start = time.perf_counter()
-        super().train()
+        prepare = getattr(self.policy, "preprocess_observations", None)
+        if prepare is not None:
+            self.rollout_buffer.preprocessed = prepare(self.rollout_buffer.observations)
+            self.policy.observations_preprocessed = True
+        try:
+            super().train()
+        finally:
+            self.rollout_buffer.preprocessed = None
+            if prepare is not None:
+                self.policy.observations_preprocessed = False
         self.time_s["optimization"] += time.perf_counter() - start
         for hook in self.update_hooks:
             hook()

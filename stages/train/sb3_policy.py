@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch
 from gymnasium import spaces
 from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
@@ -106,11 +107,29 @@ class DrivingLstmPolicy(RecurrentActorCriticPolicy):
         output, states = run_lstm(lstm, sequence, lstm_states, starts)
         return torch.flatten(output.transpose(0, 1), start_dim=0, end_dim=1), states
 
+    observations_preprocessed = False
+    """Set by ChunkedRecurrentPPO.train while the buffer hands out `preprocess_observations`' output."""
+
+    def preprocess_observations(self, observations: np.ndarray, batch: int = 1024) -> np.ndarray:
+        """The encoder's parameter-free preprocessing of (..., C, H, W) uint8 images, done once per update rather
+        than once per epoch (it is a third of a training pass)."""
+        encoder = self.features_extractor.encoder
+        flat = observations.reshape(-1, *observations.shape[-3:])
+        with torch.no_grad():
+            parts = [
+                encoder.preprocess(torch.from_numpy(flat[i : i + batch])).numpy() for i in range(0, len(flat), batch)
+            ]
+        out = np.concatenate(parts)
+        return out.reshape(*observations.shape[:-3], *out.shape[1:])
+
     def evaluate_actions(
         self, obs: torch.Tensor, actions: torch.Tensor, lstm_states: RNNStates, episode_starts: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Values, log-probabilities of `actions` and entropies over sequences; the value loss reaches the trunk."""
-        features = self.extract_features(obs)
+        if self.observations_preprocessed:
+            features = self.features_extractor.encoder.encode_preprocessed(obs)
+        else:
+            features = self.extract_features(obs)
         latent, _ = self._process_sequence(features, lstm_states.pi, episode_starts, self.lstm_actor)
         distribution = self._get_action_dist_from_latent(latent)
         return self.value_net(latent), distribution.log_prob(actions), distribution.entropy()
