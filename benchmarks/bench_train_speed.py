@@ -189,6 +189,39 @@ def learner_variants(steps: int, epochs: int, include_slow: bool) -> list[Row]:
             note=f"{macs_full / 1e6:.1f} M multiply-adds per frame",
         )
     )
+    rows.append(
+        measure(
+            " drivesim, the paper's 10 epochs",
+            lambda env: ChunkedRecurrentPPO(
+                DrivingLstmPolicy, env, policy_kwargs=ours, sequence_length=16, **{**common, "n_epochs": 10}
+            ),
+            steps,
+            cost_free_vec(),
+        )
+    )
+    small_obs = {**ours, "input_pool": 1}
+    rows.append(
+        measure(
+            " drivesim, 3x32x80 observations from the env (no pooling)",
+            lambda env: ChunkedRecurrentPPO(
+                DrivingLstmPolicy, env, policy_kwargs=small_obs, sequence_length=16, **common
+            ),
+            steps,
+            cost_free_vec(shape=(3, 32, 80)),
+            note="same CNN on a 4x smaller image",
+        )
+    )
+    rows.append(
+        measure(
+            " drivesim, 8 envs per step",
+            lambda env: ChunkedRecurrentPPO(
+                DrivingLstmPolicy, env, policy_kwargs=ours, sequence_length=16, **{**common, "n_steps": 256}
+            ),
+            steps,
+            cost_free_vec(n_envs=8),
+            note="rollout 256 steps per env",
+        )
+    )
     plain = {
         "features_extractor_class": EncoderExtractor,
         "features_extractor_kwargs": SMALL_CNN,
