@@ -111,6 +111,7 @@ class TrainingCallback(BaseCallback):
     :param progress: (rich Progress, task id) or None.
     :param timing: `timing() -> dict` of time spent so far (rollout, optimization, simulator) [s].
     :param time_limit_s: stop learn() once the run's training wall time exceeds this [s].
+    :param extra_checkpoint: `extra_checkpoint() -> dict` of more to keep in each checkpoint (reward statistics).
     """
 
     def __init__(
@@ -125,9 +126,11 @@ class TrainingCallback(BaseCallback):
         progress: Any = None,
         timing: Callable[[], dict] | None = None,
         time_limit_s: float | None = None,
+        extra_checkpoint: Callable[[], dict] | None = None,
     ) -> None:
         super().__init__()
         self.time_limit_s = time_limit_s
+        self.extra_checkpoint = extra_checkpoint or dict
         self.run_dir = run_dir
         self.tracker = EpisodeTracker(n_envs)
         self.total_steps = total_steps
@@ -155,7 +158,10 @@ class TrainingCallback(BaseCallback):
         return self._wall0 + time.perf_counter() - self._t0
 
     def _on_step(self) -> bool:
-        self.tracker.step(self.locals["rewards"], self.locals["dones"], self.locals["infos"])
+        # The env's own rewards: with reward normalization, locals["rewards"] are the scaled ones.
+        get_original = getattr(self.training_env, "get_original_reward", None)
+        rewards = get_original() if get_original is not None else self.locals["rewards"]
+        self.tracker.step(rewards, self.locals["dones"], self.locals["infos"])
         if self.time_limit_s is not None and self.wall_s() > self.time_limit_s:
             return False  # SB3 stops learn() here; the weights are those of the last update
         now = time.perf_counter()
@@ -214,6 +220,7 @@ class TrainingCallback(BaseCallback):
             "wall_s": float(self.wall_s()),
             "episodes": int(self.state.episodes),
             "torch_rng": torch.get_rng_state(),
+            **self.extra_checkpoint(),
         }
         folder = self.run_dir / CHECKPOINTS
         torch_save_atomic(folder / LAST_CHECKPOINT, checkpoint)

@@ -59,6 +59,9 @@ class PPOConfig(_Section):
     """Value loss weight."""
     max_grad_norm: float = 0.5
     """Gradient norm clip."""
+    normalize_reward: bool = True
+    """Divide rewards by the running std of the discounted return (SB3 VecNormalize), so the shared trunk's value
+    loss stays of order 1 (without it lane keeping learned several times slower, benchmarks/results)."""
     target_kl: float | None = None
     """Stop an update's epochs early when the KL divergence exceeds 1.5x this (None: never)."""
 

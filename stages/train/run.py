@@ -10,8 +10,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from stable_baselines3.common.logger import configure
+from stable_baselines3.common.vec_env import VecNormalize
 
 from drivesim.pipeline.errors import ConfigError, DrivesimError
 from drivesim.stages.policy import CONFIG_JSON, RUNS_DIR
@@ -133,7 +135,17 @@ def _make_model(cfg: TrainConfig, venv: Any) -> ChunkedRecurrentPPO:
     )
 
 
-def _restore(model: ChunkedRecurrentPPO, path: Path) -> dict[str, Any]:
+def return_stats(venv: VecNormalize) -> dict[str, Any]:
+    """The reward normalization's running statistics of the discounted return (checkpoints, normalization.json)."""
+    rms = venv.ret_rms
+    return {
+        "return_mean": float(np.asarray(rms.mean)),
+        "return_var": float(np.asarray(rms.var)),
+        "return_count": float(rms.count),
+    }
+
+
+def _restore(model: ChunkedRecurrentPPO, path: Path, venv: VecNormalize) -> dict[str, Any]:
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
         model.policy.load_driving_net_state(checkpoint["policy"])
@@ -145,6 +157,10 @@ def _restore(model: ChunkedRecurrentPPO, path: Path) -> dict[str, Any]:
             "delete it to resume from an older one",
             path,
         ) from e
+    if "return_var" in checkpoint:
+        venv.ret_rms.mean = np.float64(checkpoint["return_mean"])
+        venv.ret_rms.var = np.float64(checkpoint["return_var"])
+        venv.ret_rms.count = float(checkpoint["return_count"])
     model.num_timesteps = int(checkpoint.get("num_timesteps", 0))
     model._n_updates = int(checkpoint.get("n_updates", 0))
     if "torch_rng" in checkpoint:
@@ -167,9 +183,10 @@ def train_in_folder(
     if last.is_file():
         done_steps = int(torch.load(last, map_location="cpu", weights_only=True).get("num_timesteps", 0))
     try:
-        venv = TimedVecEnv(source.make_vec(cfg.envs.count, cfg.envs.vec_env, cfg.seed + done_steps))
+        timed = TimedVecEnv(source.make_vec(cfg.envs.count, cfg.envs.vec_env, cfg.seed + done_steps))
     except (ValueError, FileNotFoundError) as e:  # the envs' one-line errors (short world, missing meshes, ...)
         raise DrivesimError(f"cannot make the {cfg.task} env: {str(e).splitlines()[0]}") from e
+    venv = VecNormalize(timed, norm_obs=False, norm_reward=cfg.ppo.normalize_reward, gamma=cfg.ppo.gamma)
     run_dir.mkdir(parents=True, exist_ok=True)
     evaluator = None
     try:
@@ -186,7 +203,7 @@ def train_in_folder(
         state = RunState()
         figures: dict[str, float] = {}
         if last.is_file():
-            checkpoint = _restore(model, last)
+            checkpoint = _restore(model, last, venv)
             state = RunState(
                 wall_s=float(checkpoint.get("wall_s", 0.0)),
                 episodes=int(checkpoint.get("episodes", 0)),
@@ -196,13 +213,16 @@ def train_in_folder(
         elif cfg.warm_start.method == "expert":
             warm_path = run_dir / CHECKPOINTS / WARM_START_CHECKPOINT
             if warm_path.is_file():
-                _restore(model, warm_path)
+                _restore(model, warm_path, venv)
                 report("warm start: restored from the run's warm-start checkpoint")
             else:
                 start = time.perf_counter()
                 figures = warm_start(model, venv, cfg.warm_start, cfg.seed, report)
                 state.wall_s = time.perf_counter() - start
-                torch_save_atomic(warm_path, {"policy": model.policy.driving_net_state(), "wall_s": state.wall_s})
+                torch_save_atomic(
+                    warm_path,
+                    {"policy": model.policy.driving_net_state(), "wall_s": state.wall_s, **return_stats(venv)},
+                )
             model.num_timesteps = 0
         callback = TrainingCallback(
             run_dir,
@@ -213,8 +233,9 @@ def train_in_folder(
             cfg.eval.every_steps,
             cfg.checkpoint_every_steps,
             progress=progress,
-            timing=lambda: {**model.time_s, "simulator": venv.step_time_s},
+            timing=lambda: {**model.time_s, "simulator": timed.step_time_s},
             time_limit_s=cfg.time_limit_s,
+            extra_checkpoint=lambda: return_stats(venv),
         )
         remaining = cfg.total_steps - model.num_timesteps
         start_steps, start = model.num_timesteps, time.perf_counter()
@@ -238,6 +259,7 @@ def train_in_folder(
             model.policy.arch,
             model.policy.driving_net_state(),
             max_curvature,
+            reward_normalization={"enabled": cfg.ppo.normalize_reward, "gamma": cfg.ppo.gamma, **return_stats(venv)},
         )
         if state.rows:
             plot_curves(state.rows, run_dir / CURVES_PNG, f"{cfg.task}: {run_dir.name}")
@@ -247,7 +269,7 @@ def train_in_folder(
             episodes=state.episodes,
             wall_s=callback.wall_s(),
             steps_per_s=(model.num_timesteps - start_steps) / max(elapsed, 1e-9),
-            time_s={**model.time_s, "simulator": venv.step_time_s},
+            time_s={**model.time_s, "simulator": timed.step_time_s},
             last_row=state.rows[-1] if state.rows else {},
             warm_start=figures,
         )

@@ -52,13 +52,19 @@ def write_policy_files(
     arch: dict[str, Any],
     net_state: dict[str, torch.Tensor],
     max_curvature_1pm: float | None,
+    reward_normalization: dict[str, Any] | None = None,
 ) -> None:
-    """policy.json, normalization.json and policy.pt (DrivingNet weights) of a run."""
+    """policy.json, normalization.json and policy.pt (DrivingNet weights) of a run.
+
+    normalization.json: the observations' per-image standardization (inside the network; nothing to fit) and the
+    training-only reward normalization's running return statistics (not needed to act).
+    """
     normalization = {
         "kind": "per_image_standardization",
-        "scale": 1.0 / 255.0,
+        "pool": int(arch.get("input_pool", 1)),
         "std_floor": STANDARDIZE_EPS,
-        "note": "inside the network: x/255, minus the image's mean, over max(its std, std_floor)",
+        "note": "inside the network: average-pool by `pool`, minus the image's mean, over max(its std, "
+        "std_floor * 255)",
     }
     write_json(
         run_dir / POLICY_JSON,
@@ -77,7 +83,7 @@ def write_policy_files(
             "normalization": normalization,
         },
     )
-    write_json(run_dir / NORMALIZATION_JSON, normalization)
+    write_json(run_dir / NORMALIZATION_JSON, {"observation": normalization, "reward": reward_normalization or {}})
     torch_save_atomic(run_dir / POLICY_WEIGHTS, {k: v.contiguous() for k, v in net_state.items()})
 
 
