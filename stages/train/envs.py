@@ -99,7 +99,8 @@ class _EnvFn:
             from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
 
             steps = int(self.source.overrides.get("episode_steps", 200))
-            return CostFreeDrivingEnv(COST_FREE_SHAPE, episode_steps=steps)
+            drift = float(self.source.overrides.get("drift", 0.02))
+            return CostFreeDrivingEnv(COST_FREE_SHAPE, episode_steps=steps, drift=drift)
         import drivesim.sim.envs  # noqa: F401  (registers the drivesim envs)
 
         meshes = None if self.source.meshes is None else str(self.source.meshes)
