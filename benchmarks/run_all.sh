@@ -11,4 +11,7 @@ $PY benchmarks/bench_depth.py
 $PY benchmarks/bench_preprocess_world.py
 .venv/bin/drivesim --workspace "$(mktemp -d)" bench fidelity --seed 0 --frames 32 --view-frames 6 --markdown benchmarks/results/fidelity.md \
   --figure benchmarks/fidelity.png
+$PY benchmarks/bench_train_speed.py --world "${DEMO_WORLD:-/tmp/ws-demo/world}"
+# Learning under wall-clock budgets (~1.5 h): lane 15 min, overtake 60 min, lane on KITTI 15 min.
+[ -n "${LEARNING:-}" ] && $PY benchmarks/bench_learning.py ${KITTI_WORLD:+--kitti-world "$KITTI_WORLD"}
 $PY benchmarks/collect_results.py
