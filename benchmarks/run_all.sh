@@ -13,5 +13,5 @@ $PY benchmarks/bench_preprocess_world.py
   --figure benchmarks/fidelity.png
 $PY benchmarks/bench_train_speed.py --world "${DEMO_WORLD:-/tmp/ws-demo/world}"
 # Learning under wall-clock budgets (~1.5 h): lane 15 min, overtake 60 min, lane on KITTI 15 min.
-[ -n "${LEARNING:-}" ] && $PY benchmarks/bench_learning.py ${KITTI_WORLD:+--kitti-world "$KITTI_WORLD"}
+if [ -n "${LEARNING:-}" ]; then $PY benchmarks/bench_learning.py ${KITTI_WORLD:+--kitti-world "$KITTI_WORLD"}; fi
 $PY benchmarks/collect_results.py
