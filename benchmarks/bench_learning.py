@@ -18,6 +18,8 @@ import argparse
 import math
 import os
 import shutil
+import subprocess
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +35,15 @@ from drivesim.stages.train.stage import run_training
 
 RESULTS = Path(__file__).parent / "results"
 HELD_BACK_SEED = 2_000_000
+KITTI_DRIVE = (
+    Path(__file__).resolve().parents[2]
+    / "shared"
+    / "data"
+    / "real"
+    / "kitti_raw"
+    / "2011_09_26"
+    / "2011_09_26_drive_0001_sync"
+)
 
 
 @dataclass
@@ -89,6 +100,18 @@ def evaluate(task: str, world: Path, episodes: int, policy=None, env_config: dic
             causes[cause] = causes.get(cause, 0) + bool(flag)
     env.close()
     return {"episodes": episodes, "successes": successes, "causes": causes, "mean_length": float(np.mean(lengths))}
+
+
+def build_kitti_world(scratch: Path) -> Path | None:
+    """A world from the real KITTI drive in ../shared/data/real (ingest, preprocess, build-world), or None."""
+    drive = KITTI_DRIVE
+    if not drive.is_dir():
+        return None
+    ws = scratch / "kitti-world"
+    if not (ws / "world" / "manifest.json").is_file():
+        for args in (["ingest", str(drive)], ["preprocess"], ["build-world"]):
+            subprocess.run([sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), *args], check=True)
+    return ws / "world"
 
 
 def run_scenario(scenario: Scenario, world: Path, minutes: float, episodes: int, scratch: Path) -> dict:
@@ -156,7 +179,12 @@ def main() -> None:
     parser.add_argument("--minutes", type=float, default=None, help="override every scenario's training budget")
     parser.add_argument("--episodes", type=int, default=50, help="evaluation episodes per policy")
     parser.add_argument("--demo-world", type=Path, default=Path("/tmp/ws-demo/world"))
-    parser.add_argument("--kitti-world", type=Path, default=None, help="a world built from ../shared/data/real")
+    parser.add_argument(
+        "--kitti-world",
+        type=Path,
+        default=None,
+        help="a world built from ../shared/data/real (default: built into --scratch)",
+    )
     parser.add_argument(
         "--scratch",
         type=Path,
@@ -169,6 +197,8 @@ def main() -> None:
     for name in args.only or list(SCENARIOS):
         scenario = SCENARIOS[name]
         world = args.demo_world if scenario.world_kind == "demo" else args.kitti_world
+        if scenario.world_kind == "kitti" and world is None:
+            world = build_kitti_world(args.scratch)
         if world is None or not (world / "manifest.json").is_file():
             print(f"skipping {name}: no world at {world} (build one and pass --kitti-world / --demo-world)")
             continue
