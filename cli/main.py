@@ -46,7 +46,11 @@ not_built_command(app, "meshes", "The parametrizable vehicle mesh library (build
 app.command("synth", help="Render a procedural drive with ground truth and write it as a ROS2 MCAP recording.")(
     synth.synth_command
 )
-app.command("train", help="Train a driving policy with PPO, a CNN and an LSTM (tasks: lane, follow, overtake).")(
+app.command(
+    "train",
+    help="Train a driving policy with PPO, a CNN and an LSTM (tasks: lane, follow, overtake) into runs/<task>-<time>/; "
+    "Ctrl-C keeps everything up to the last update and --resume RUN continues it.",
+)(
     train.train_command
 )
 app.command("eval", help="Offline closed-loop evaluation: metrics, plots, report.")(eval_cmd.eval_command)
