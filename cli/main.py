@@ -50,9 +50,7 @@ app.command(
     "train",
     help="Train a driving policy with PPO, a CNN and an LSTM (tasks: lane, follow, overtake) into runs/<task>-<time>/; "
     "Ctrl-C keeps everything up to the last update and --resume RUN continues it.",
-)(
-    train.train_command
-)
+)(train.train_command)
 app.command("eval", help="Offline closed-loop evaluation: metrics, plots, report.")(eval_cmd.eval_command)
 not_built_command(app, "export", "Export the policy as ONNX, checked with onnxruntime.")
 not_built_command(app, "run", "Every stage of the chain, on the embedded demo drive by default.")
