@@ -303,3 +303,24 @@ def test_bad_input_is_one_line(tmp_path: Path, args: list[str], message: str) ->
     assert result.returncode == 2
     assert message in result.stderr and "Traceback" not in result.stderr
     assert not (tmp_path / "ws" / "runs").exists() or not list((tmp_path / "ws" / "runs").iterdir())
+
+
+def test_ctrl_c_keeps_a_resumable_run(tmp_path: Path) -> None:
+    """Ctrl-C: exit code 130, one line naming the --resume command, the run left unfinished but resumable."""
+    ws = tmp_path / "ws"
+    sets = [a for s in SMALL for a in ("--set", s)]
+    proc = subprocess.Popen(
+        _drivesim(ws, "train", "lane", "--total-steps", "100000", *sets),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.time() + 60
+    while time.time() < deadline and not list(ws.glob("runs/lane-*/progress.csv")):
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130
+    assert "--resume" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    run_dir = next(ws.glob("runs/lane-*"))
+    assert (run_dir / "checkpoints" / "last.pt").is_file() and not (run_dir / "manifest.json").exists()
