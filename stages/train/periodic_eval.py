@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import gymnasium
 import numpy as np
 import torch
+from stable_baselines3.common.vec_env import VecEnv
 
 from drivesim.stages.policy_net import DrivingNet
 from drivesim.stages.train.callbacks import EpisodeRecord, summarize_episodes
@@ -39,26 +43,59 @@ def run_episodes(
     return records
 
 
-class PeriodicEvaluator:
-    """Evaluates the training policy on fixed held-back seeds; the env is made once and kept.
+def run_episodes_batched(net: DrivingNet, venv: VecEnv, max_steps: int = 100_000) -> list[EpisodeRecord]:
+    """The first episode of every env of `venv` at once (one batched step for all), deterministic policy."""
+    n = venv.num_envs
+    net.eval()
+    obs = venv.reset()
+    state = net.initial_state(n)
+    start = torch.ones(n)
+    totals, lengths = np.zeros(n), np.zeros(n, dtype=int)
+    terms: list[dict[str, float]] = [{} for _ in range(n)]
+    records: list[EpisodeRecord | None] = [None] * n
+    with torch.no_grad():
+        for _ in range(max_steps):
+            mean, _, state = net.step(torch.from_numpy(np.ascontiguousarray(obs)), state, start)
+            obs, rewards, dones, infos = venv.step(np.clip(mean.numpy(), -1.0, 1.0).astype(np.float32))
+            start = torch.from_numpy(dones.astype(np.float32))
+            for i in range(n):
+                if records[i] is not None:
+                    continue  # its first episode is over; the env runs on (auto-reset) until all are
+                totals[i] += float(rewards[i])
+                lengths[i] += 1
+                for name, value in (infos[i].get("rewards") or {}).items():
+                    terms[i][name] = terms[i].get(name, 0.0) + float(value)
+                if dones[i]:
+                    causes = {k: bool(v) for k, v in (infos[i].get("termination") or {}).items()}
+                    records[i] = EpisodeRecord(
+                        float(totals[i]), int(lengths[i]), terms[i], causes, bool(infos[i].get("success", False))
+                    )
+            if all(r is not None for r in records):
+                break
+    return [r for r in records if r is not None]
 
-    :param make_env: makes the eval-mode env.
-    :param episodes: episodes per evaluation.
+
+class PeriodicEvaluator:
+    """Evaluates the training policy on fixed held-back seeds, all episodes at once in one vectorized env (made
+    once and kept; env i's episode has seed first_seed + i).
+
+    :param make_vec: makes the eval-mode VecEnv with one env per episode.
     :param first_seed: first held-back seed.
     """
 
-    def __init__(self, make_env, episodes: int, first_seed: int) -> None:  # noqa: ANN001
-        self.make_env = make_env
-        self.seeds = [first_seed + i for i in range(episodes)]
-        self.env: gymnasium.Env | None = None
+    def __init__(self, make_vec: Callable[[], VecEnv], first_seed: int) -> None:
+        self.make_vec = make_vec
+        self.first_seed = first_seed
+        self.venv: VecEnv | None = None
 
-    def __call__(self, policy) -> dict[str, float]:  # noqa: ANN001
+    def __call__(self, policy: Any) -> dict[str, float]:
         """eval_* figures of `policy` (a DrivingLstmPolicy)."""
-        if self.env is None:
-            self.env = self.make_env()
-        return summarize_episodes(run_episodes(policy.to_driving_net(), self.env, self.seeds), prefix="eval_")
+        if self.venv is None:
+            self.venv = self.make_vec()
+        self.venv.seed(self.first_seed)
+        return summarize_episodes(run_episodes_batched(policy.to_driving_net(), self.venv), prefix="eval_")
 
     def close(self) -> None:
-        """Close the env."""
-        if self.env is not None:
-            self.env.close()
+        """Close the envs."""
+        if self.venv is not None:
+            self.venv.close()

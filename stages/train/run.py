@@ -194,9 +194,11 @@ def train_in_folder(
         env_config = source.resolved_env_config(probe)
         max_curvature = source.max_curvature_1pm(probe)
         if cfg.eval.every_steps > 0 and cfg.eval.episodes > 0:
-            evaluator = PeriodicEvaluator(lambda: probe, cfg.eval.episodes, cfg.eval.seed)
-        else:
-            probe.close()
+            kind = "dummy" if cfg.envs.vec_env == "subproc" else cfg.envs.vec_env
+            evaluator = PeriodicEvaluator(
+                lambda: source.make_vec(cfg.eval.episodes, kind, cfg.eval.seed, mode="eval"), cfg.eval.seed
+            )
+        probe.close()
         write_run_config(run_dir, cfg, source, env_config)
         model = build_model(cfg, venv)
         model.set_logger(configure(str(run_dir / "tb"), ["tensorboard"]))
