@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli import bench, config_show, ingest, preprocess, status, synth, train, world
+from drivesim.cli import bench, config_show, export, ingest, preprocess, status, synth, train, world
 from drivesim.cli import eval as eval_cmd
 from drivesim.cli.common import err_console, state
 from drivesim.cli.not_built import not_built_command
@@ -52,7 +52,7 @@ app.command(
     "Ctrl-C keeps everything up to the last update and --resume RUN continues it.",
 )(train.train_command)
 app.command("eval", help="Offline closed-loop evaluation: metrics, plots, report.")(eval_cmd.eval_command)
-not_built_command(app, "export", "Export the policy as ONNX, checked with onnxruntime.")
+app.add_typer(export.export_app, name="export", help="Export the policy as ONNX, checked with onnxruntime.")
 not_built_command(app, "run", "Every stage of the chain, on the embedded demo drive by default.")
 app.command("status", help="Every stage as fresh / stale / missing, with a summary of each artifact.")(
     status.status_command

@@ -1,0 +1,110 @@
+"""An exported policy (`drivesim export onnx`) run on onnxruntime, behind the same interface as `LoadedPolicy`.
+
+The graph (INTERFACES §6) takes `image_u8` (N, 3, H, W) uint8, `h` and `c` (layers, N, hidden) float32 and
+`episode_start` (N,) float32, and returns `action` (N, 1) float32 in [-1, 1] with the new `h_out`, `c_out`.
+Its metadata (`drivesim.*` keys, JSON values) says the task, input shape, region of interest, action scale, the
+training config's hash and the LSTM sizes.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivesim.pipeline.errors import DrivesimError
+
+INPUT_NAMES = ("image_u8", "h", "c", "episode_start")
+OUTPUT_NAMES = ("action", "h_out", "c_out")
+METADATA_PREFIX = "drivesim."
+METADATA_FORMAT = 1
+
+
+class OnnxPolicyError(DrivesimError):
+    """An ONNX file that is not a drivesim policy (unreadable, other inputs, no metadata)."""
+
+
+def _metadata(session: Any, path: Path) -> dict[str, Any]:
+    raw = session.get_modelmeta().custom_metadata_map
+    meta = {}
+    for key, value in raw.items():
+        if key.startswith(METADATA_PREFIX):
+            try:
+                meta[key[len(METADATA_PREFIX) :]] = json.loads(value)
+            except json.JSONDecodeError as e:
+                raise OnnxPolicyError(f"metadata {key} is not JSON; export the policy again", path) from e
+    missing = [k for k in ("format", "input_shape", "lstm_layers", "hidden_size") if k not in meta]
+    if missing:
+        raise OnnxPolicyError(
+            f"not a drivesim policy: metadata lacks {', '.join(METADATA_PREFIX + k for k in missing)}; "
+            "make one with `drivesim export onnx`",
+            path,
+        )
+    return meta
+
+
+class OnnxPolicy:
+    """A `drivesim export onnx` graph on onnxruntime: `initial_state(n)` and `predict(...)` as `LoadedPolicy`.
+
+    :param path: the .onnx file.
+    :param intra_op_threads: onnxruntime threads per call (1: what the car's one core gets).
+    """
+
+    def __init__(self, path: Path | str, intra_op_threads: int = 1) -> None:
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise OnnxPolicyError("no such ONNX file", self.path)
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = intra_op_threads
+        options.inter_op_num_threads = 1
+        try:
+            self.session = ort.InferenceSession(str(self.path), options, providers=["CPUExecutionProvider"])
+        except Exception as e:  # onnxruntime raises its own Fail/InvalidGraph/... types, all with long messages
+            raise OnnxPolicyError(f"not a readable ONNX model ({type(e).__name__})", self.path) from e
+        inputs = tuple(i.name for i in self.session.get_inputs())
+        outputs = tuple(o.name for o in self.session.get_outputs())
+        if inputs != INPUT_NAMES or outputs != OUTPUT_NAMES:
+            raise OnnxPolicyError(
+                f"not a drivesim policy graph: inputs {list(inputs)} and outputs {list(outputs)}, expected "
+                f"{list(INPUT_NAMES)} -> {list(OUTPUT_NAMES)}; make one with `drivesim export onnx`",
+                self.path,
+            )
+        self.metadata = _metadata(self.session, self.path)
+        self.task: str = str(self.metadata.get("task", ""))
+        self.observation_shape: tuple[int, int, int] = tuple(int(v) for v in self.metadata["input_shape"])  # type: ignore[assignment]
+        self.lstm_layers = int(self.metadata["lstm_layers"])
+        self.hidden_size = int(self.metadata["hidden_size"])
+        self.config_hash = str(self.metadata.get("config_hash", ""))
+        self.env_config: dict = dict(self.metadata.get("env_config") or {})
+
+    def initial_state(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Zero LSTM state (h, c) for n episodes, each (layers, n, hidden) float32."""
+        shape = (self.lstm_layers, n, self.hidden_size)
+        return np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+
+    def predict(
+        self, obs: np.ndarray, state: Any, episode_start: np.ndarray, deterministic: bool = True
+    ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """One step for N episodes: obs (N, C, H, W) uint8 -> actions (N, 1) float32 in [-1, 1] and the new state.
+
+        The graph is the deterministic policy; deterministic=False is refused (the exported graph has no sampling).
+        """
+        if not deterministic:
+            raise ValueError("an exported ONNX policy is deterministic; call predict with deterministic=True")
+        obs = np.ascontiguousarray(obs, dtype=np.uint8)
+        if obs.ndim != 4 or tuple(obs.shape[1:]) != self.observation_shape:
+            raise ValueError(
+                f"observations must be (N, {', '.join(map(str, self.observation_shape))}) uint8, got {obs.shape}"
+            )
+        if state is None:
+            state = self.initial_state(obs.shape[0])
+        h, c = (np.ascontiguousarray(s, dtype=np.float32) for s in state)
+        starts = np.asarray(episode_start, dtype=np.float32).reshape(-1)
+        action, h_out, c_out = self.session.run(
+            list(OUTPUT_NAMES), {"image_u8": obs, "h": h, "c": c, "episode_start": starts}
+        )
+        return action.astype(np.float32, copy=False), (h_out, c_out)

@@ -1,0 +1,133 @@
+"""`drivesim export onnx` and `OnnxPolicy`: one graph that reproduces the torch policy, with metadata; bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivesim.pipeline.errors import DrivesimError
+from drivesim.pipeline.workspace import Workspace
+from drivesim.stages.onnx_policy import OnnxPolicy
+from drivesim.stages.policy import load_policy
+
+SHAPE = (3, 64, 160)
+
+
+def make_run(folder: Path, task: str = "overtake", hidden: int = 16) -> Path:
+    """A finished run folder as `drivesim train` writes it (small network, random but non-trivial weights)."""
+    import torch
+
+    from drivesim.pipeline.hashing import sha256_file
+    from drivesim.stages.policy import build_net
+    from drivesim.stages.train.run_files import write_json, write_policy_files
+
+    arch = {"conv_layers": [[8, 5, 4], [16, 3, 2]], "features_dim": 32, "lstm_hidden_size": hidden, "lstm_layers": 1}
+    torch.manual_seed(0)
+    net = build_net({"observation_shape": list(SHAPE), "architecture": arch})
+    with torch.no_grad():  # a steering head large enough that actions vary over the rollout
+        net.action_head.weight.mul_(20.0)
+    folder.mkdir(parents=True)
+    write_policy_files(folder, task, SHAPE, arch, net.state_dict(), 0.15)
+    env_config = {"view": {"roi_px": [40, 60, 240, 96]}, "episode_steps": 300}
+    config = {"train": {"task": task}, "env_config": env_config, "worlds": [], "meshes": None}
+    write_json(folder / "config.json", config)
+    outputs = {"policy.pt": {"sha256": sha256_file(folder / "policy.pt")}}
+    write_json(folder / "manifest.json", {"outputs": outputs, "config_hash": "abc123", "created_utc": "2026-01-01"})
+    return folder
+
+
+def drivesim(ws: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "drivesim.cli.main", "-w", str(ws), *args], capture_output=True, text=True, timeout=300
+    )
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    ws = tmp_path_factory.mktemp("ws")
+    run = make_run(ws / "runs" / "overtake-20260101-000000")
+    done = drivesim(ws, "export", "onnx", "--set", "latency_steps=50")  # default run: the newest one
+    assert done.returncode == 0, done.stderr
+    assert "policy.onnx" in done.stdout
+    return ws, run
+
+
+def test_export_writes_a_checked_graph_with_metadata(exported: tuple[Path, Path]) -> None:
+    ws, run = exported
+    onnx_path = ws / "export" / "policy.onnx"
+    check = json.loads((ws / "export" / "check.json").read_text())
+    assert check["run"] == str(run)
+    assert check["rollout"]["steps"] == 200 and check["rollout"]["reset_step"] == 100
+    assert check["max_abs_diff"] <= 1e-4
+    assert check["rollout"]["action_range"] > 0.05  # the compared actions really vary
+    assert 0 < check["latency"]["median_ms"] < 1000 / 30
+    assert check["size_bytes"] == onnx_path.stat().st_size
+
+    policy = OnnxPolicy(onnx_path)
+    assert policy.observation_shape == SHAPE and policy.task == "overtake"
+    assert (policy.lstm_layers, policy.hidden_size) == (1, 16)
+    assert policy.config_hash == "abc123"
+    assert policy.metadata["roi_px"] == [40, 60, 240, 96]
+    assert policy.metadata["action_scale"]["max_curvature_1pm"] == pytest.approx(0.15)
+    assert policy.env_config["episode_steps"] == 300
+
+
+def test_onnx_policy_matches_loaded_policy_with_resets(exported: tuple[Path, Path]) -> None:
+    ws, run = exported
+    torch_policy, onnx_policy = load_policy(run), OnnxPolicy(ws / "export" / "policy.onnx")
+    rng = np.random.default_rng(3)
+    state_t, state_o = torch_policy.initial_state(3), onnx_policy.initial_state(3)
+    actions = []
+    for t in range(30):
+        obs = rng.integers(0, 256, size=(3, *SHAPE), dtype=np.uint8)
+        starts = np.array([t == 0, t == 12, t in (0, 20)], dtype=bool)
+        a_t, state_t = torch_policy.predict(obs, state_t, starts)
+        a_o, state_o = onnx_policy.predict(obs, state_o, starts)
+        assert a_o.shape == (3, 1) and a_o.dtype == np.float32
+        np.testing.assert_allclose(a_o, a_t, atol=1e-5)
+        np.testing.assert_allclose(state_o[0], state_t[0], atol=1e-5)
+        actions.append(a_o)
+    assert np.ptp(np.stack(actions)) > 0.05
+    with pytest.raises(ValueError, match="uint8"):
+        onnx_policy.predict(np.zeros((1, 3, 32, 32), np.uint8), None, np.ones(1))
+
+
+def test_second_export_is_fresh(exported: tuple[Path, Path]) -> None:
+    ws, _ = exported
+    done = drivesim(ws, "export", "onnx", "--set", "latency_steps=50")
+    assert done.returncode == 0 and "fresh" in done.stdout
+
+
+def test_onnx_with_wrong_inputs_is_one_line(tmp_path: Path) -> None:
+    import torch
+
+    class Other(torch.nn.Module):
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            return x * 2
+
+    path = tmp_path / "other.onnx"
+    torch.onnx.export(Other(), (torch.zeros(1, 4),), str(path), input_names=["x"], dynamo=False)
+    with pytest.raises(DrivesimError, match="not a drivesim policy graph") as info:
+        OnnxPolicy(path)
+    assert "\n" not in info.value.one_line()
+    (tmp_path / "junk.onnx").write_bytes(b"not onnx")
+    with pytest.raises(DrivesimError, match="not a readable ONNX model"):
+        OnnxPolicy(tmp_path / "junk.onnx")
+
+
+def test_bad_input_is_one_line_and_writes_nothing(tmp_path: Path) -> None:
+    ws = tmp_path / "ws"
+    done = drivesim(ws, "export", "onnx")
+    assert done.returncode == 2 and "drivesim train" in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    make_run(ws / "runs" / "lane-20260101-000000", task="lane")
+    # A tolerance nothing can meet: the check fails and no export/ folder is left behind.
+    done = drivesim(ws, "export", "onnx", "--set", "tolerance=-1")
+    assert done.returncode == 2 and "differs from torch" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
+    assert not (ws / "export").exists()
+    assert Workspace(ws).read_manifest("export") is None
