@@ -10,22 +10,24 @@ import yaml
 from rich.table import Table
 
 from drivesim.cli.common import ConfigOption, SetOption, console
-from drivesim.pipeline.config import describe_config, load_config
+from drivesim.pipeline.config import StageConfig, describe_config, load_config
 from drivesim.pipeline.errors import ConfigError
+from drivesim.stages.chain import CHAIN, OFF_CHAIN_CONFIGS
 
-# stage -> (module, config class, preset name)
-STAGE_CONFIGS = {
-    "ingest": ("drivesim.stages.ingest.config", "IngestConfig", "ingest"),
-    "synth": ("drivesim.stages.synth.config", "SynthConfig", "synth"),
-    "preprocess": ("drivesim.stages.preprocess.config", "PreprocessConfig", "preprocess"),
-    "build-world": ("drivesim.stages.world.config", "WorldConfig", "world"),
-    "train": ("drivesim.stages.train.config", "TrainConfig", "train/overtake"),
-    "eval": ("drivesim.stages.evaluate.config", "EvalConfig", "eval"),
-}
+
+def _stage_configs() -> dict[str, tuple[type[StageConfig], str]]:
+    """Stage name -> (config model, preset): the chain registry plus the stages outside it (synth)."""
+    configs = {spec.name: (spec.config_model, spec.preset) for spec in CHAIN}
+    for name, (module, class_name, preset) in OFF_CHAIN_CONFIGS.items():
+        configs[name] = (getattr(importlib.import_module(module), class_name), preset)
+    return configs
+
+
+_STAGE_NAMES = [spec.name for spec in CHAIN] + list(OFF_CHAIN_CONFIGS)
 
 
 def config_command(
-    stage: Annotated[str, typer.Argument(help=f"One of: {', '.join(STAGE_CONFIGS)}.")],
+    stage: Annotated[str, typer.Argument(help=f"One of: {', '.join(_STAGE_NAMES)}.")],
     as_yaml: Annotated[
         bool, typer.Option("--yaml", help="Print the resolved config as YAML (a --config file).")
     ] = False,
@@ -33,10 +35,10 @@ def config_command(
     set_: SetOption = None,
 ) -> None:
     """Show a stage's config keys: type, resolved value (preset + --config + --set) and description with units."""
-    if stage not in STAGE_CONFIGS:
-        raise ConfigError(f"unknown stage {stage!r}; stages with a config: {', '.join(STAGE_CONFIGS)}")
-    module, class_name, preset = STAGE_CONFIGS[stage]
-    model = getattr(importlib.import_module(module), class_name)
+    configs = _stage_configs()
+    if stage not in configs:
+        raise ConfigError(f"unknown stage {stage!r}; stages with a config: {', '.join(configs)}")
+    model, preset = configs[stage]
     cfg = load_config(model, preset=preset, config_file=config, overrides=set_)
     resolved = cfg.model_dump(mode="json")
     if as_yaml:

@@ -11,10 +11,7 @@ from drivesim.cli.common import ConfigOption, ForceOption, SetOption, console, w
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError, InputError
 from drivesim.stages.ingest.config import TOPIC_ROLES, IngestConfig
-from drivesim.stages.ingest.run import ingest_recording
-
-STAGE = "ingest"
-ARTIFACT = "trace"
+from drivesim.stages.ingest.stage import run_ingest
 
 
 def topic_overrides(topic: list[str] | None) -> list[str]:
@@ -54,22 +51,17 @@ def ingest_command(
     )
     if not path.exists():
         raise InputError("no such file or folder", path)
-    ws = workspace()
-    config_json = cfg.model_dump(mode="json")
-    inputs = {"recording": ws.external_input(path)}
-    if not force and ws.fresh_manifest(ARTIFACT, STAGE, config_json, inputs) is not None:
-        console.print(f"trace is fresh ({ws.artifact_dir(ARTIFACT)}), nothing to do; --force to redo", soft_wrap=True)
+    result = run_ingest(workspace(), path, cfg, force=force)
+    if result.skipped:
+        console.print(f"trace is fresh ({result.path}), nothing to do; --force to redo", soft_wrap=True)
         return
-    with ws.write_artifact(ARTIFACT, STAGE, config_json, inputs) as build:
-        result = ingest_recording(path, cfg, build.dir)
-        build.summary = result.summary
     for note in result.notes:
         console.print(f"[dim]{note}[/]", highlight=False, soft_wrap=True)
     s = result.summary
-    sensors = ", ".join(f"{name} {v['message_count']}" for name, v in s["sensors"].items())
+    sensors = ", ".join(f"{name} {v.message_count}" for name, v in s.sensors.items())
     console.print(
-        f"[green]trace[/] {ws.artifact_dir(ARTIFACT)}: {s['frame_count']} frames "
-        f"{s['width_px']}x{s['height_px']}, {s['duration_s']:.1f} s; {sensors}",
+        f"[green]trace[/] {result.path}: {s.frame_count} frames "
+        f"{s.width_px}x{s.height_px}, {s.duration_s:.1f} s; {sensors}",
         highlight=False,
         soft_wrap=True,
     )

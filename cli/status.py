@@ -10,6 +10,7 @@ from rich.table import Table
 
 from drivesim.cli.common import console, workspace
 from drivesim.pipeline.status import status_report
+from drivesim.stages.chain import CHAIN
 
 _STATE_STYLE = {"fresh": "green", "stale": "yellow", "missing": "dim"}
 
@@ -33,7 +34,7 @@ def status_command(
     as_json: Annotated[bool, typer.Option("--json", help="Print the stable JSON form (format 1) for scripts.")] = False,
 ) -> None:
     """Show every stage of the chain as fresh, stale or missing, with a summary of each artifact."""
-    report = status_report(workspace())
+    report = status_report(workspace(), CHAIN)
     if as_json:
         print(json.dumps(report, indent=2))
         return

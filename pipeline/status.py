@@ -1,6 +1,6 @@
-"""The stage chain and each artifact's state: fresh, stale or missing.
+"""Each artifact of the stage chain as fresh, stale or missing (the chain itself is `drivesim.stages.chain.CHAIN`).
 
-`drivesim status --json` prints `status_report()`, a stable format (version 1) that scripts may read:
+`drivesim status --json` prints `status_report(ws, CHAIN)`, a stable format (version 1) that scripts may read:
     {"format": 1, "workspace": str, "stages": [
         {"stage": str, "artifact": str, "state": "fresh" | "stale" | "missing",
          "reasons": [str, ...], "created_utc": str | null, "summary": {...}}, ...]}
@@ -10,35 +10,16 @@ height_px, sensors: {name: {"topic": str, "type": str, "message_count": int}}).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from drivesim.pipeline.hashing import fingerprint_external
+from drivesim.pipeline.stage import StageSpec
 from drivesim.pipeline.version import code_version
-from drivesim.pipeline.workspace import Workspace
+from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
 
 STATUS_FORMAT_VERSION = 1
-
-
-@dataclass(frozen=True)
-class StageInfo:
-    """One stage of the chain: the command, the artifact it writes, and how a user makes it."""
-
-    stage: str
-    artifact: str
-    make_hint: str
-
-
-CHAIN: tuple[StageInfo, ...] = (
-    StageInfo("ingest", "trace", "drivesim ingest PATH"),
-    StageInfo("preprocess", "preprocessed", "drivesim preprocess"),
-    StageInfo("build-world", "world", "drivesim build-world"),
-    StageInfo("meshes", "meshes", "drivesim meshes build"),
-    StageInfo("train", "runs", "drivesim train overtake"),
-    StageInfo("eval", "eval", "drivesim eval"),
-    StageInfo("export", "export", "drivesim export onnx"),
-)
 
 
 def stale_reasons(ws: Workspace, manifest: dict[str, Any]) -> list[str]:
@@ -68,18 +49,34 @@ def stale_reasons(ws: Workspace, manifest: dict[str, Any]) -> list[str]:
     return reasons
 
 
-def status_report(ws: Workspace) -> dict[str, Any]:
-    """Every stage of the chain with its state, reasons and the summary its manifest recorded."""
+def newest_complete(ws: Workspace, collection: str) -> str | None:
+    """The newest complete artifact of a collection (`runs/<task>-<ts>`): a sub-folder with a manifest, or None."""
+    folder = ws.artifact_dir(collection)
+    if not folder.is_dir():
+        return None
+    complete = [sub for sub in folder.iterdir() if sub.is_dir() and (sub / MANIFEST_NAME).is_file()]
+    if not complete:
+        return None
+    newest = max(complete, key=lambda sub: ((sub / MANIFEST_NAME).stat().st_mtime, sub.name))
+    return f"{collection}/{newest.name}"
+
+
+def status_report(ws: Workspace, chain: Sequence[StageSpec]) -> dict[str, Any]:
+    """Every stage of `chain` (the registry `drivesim.stages.chain.CHAIN`) with its state, reasons and summary.
+
+    A collection stage (many runs or evaluations) shows its newest complete artifact.
+    """
     stages = []
-    for info in CHAIN:
-        manifest = ws.read_manifest(info.artifact)
+    for spec in chain:
+        artifact = (newest_complete(ws, spec.artifact) or spec.artifact) if spec.collection else spec.artifact
+        manifest = ws.read_manifest(artifact)
         if manifest is None:
             stages.append(
                 {
-                    "stage": info.stage,
-                    "artifact": info.artifact,
+                    "stage": spec.name,
+                    "artifact": artifact,
                     "state": "missing",
-                    "reasons": [f"run `{info.make_hint}`"],
+                    "reasons": [f"run `{spec.command}`"],
                     "created_utc": None,
                     "summary": {},
                 }
@@ -88,8 +85,8 @@ def status_report(ws: Workspace) -> dict[str, Any]:
         reasons = stale_reasons(ws, manifest)
         stages.append(
             {
-                "stage": info.stage,
-                "artifact": info.artifact,
+                "stage": spec.name,
+                "artifact": artifact,
                 "state": "stale" if reasons else "fresh",
                 "reasons": reasons,
                 "created_utc": manifest.get("created_utc"),

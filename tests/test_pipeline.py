@@ -11,6 +11,7 @@ from drivesim.pipeline.config import StageConfig, describe_config, load_config
 from drivesim.pipeline.errors import ConfigError, MissingArtifactError
 from drivesim.pipeline.status import status_report
 from drivesim.pipeline.workspace import Workspace, artifact_key
+from drivesim.stages.chain import CHAIN
 
 
 class _Image(StageConfig):
@@ -85,20 +86,20 @@ def test_status_reports_missing_fresh_and_stale(tmp_path: Path) -> None:
     recording = _external(tmp_path)
     _write(ws, "trace", b"abc", inputs={"recording": Workspace.external_input(recording)})
     _write(ws, "preprocessed", b"p", inputs={"trace": ws.artifact_input("trace")})
-    states = {row["stage"]: row["state"] for row in status_report(ws)["stages"]}
+    states = {row["stage"]: row["state"] for row in status_report(ws, CHAIN)["stages"]}
     assert states["ingest"] == "fresh" and states["preprocess"] == "fresh" and states["build-world"] == "missing"
 
     _write(ws, "trace", b"new content")  # upstream rebuilt: downstream is stale
-    report = {row["stage"]: row for row in status_report(ws)["stages"]}
+    report = {row["stage"]: row for row in status_report(ws, CHAIN)["stages"]}
     assert report["preprocess"]["state"] == "stale"
     assert "input trace changed" in report["preprocess"]["reasons"]
 
     recording.write_bytes(b"another recording")
     _write(ws, "trace", b"abc", inputs={"recording": Workspace.external_input(tmp_path / "drive.bag")})
     recording.write_bytes(b"edited again")
-    report = {row["stage"]: row for row in status_report(ws)["stages"]}
+    report = {row["stage"]: row for row in status_report(ws, CHAIN)["stages"]}
     assert report["ingest"]["state"] == "stale"
-    assert json.loads(json.dumps(status_report(ws)))["format"] == 1
+    assert json.loads(json.dumps(status_report(ws, CHAIN)))["format"] == 1
 
 
 def test_require_names_the_command_to_run(tmp_path: Path) -> None:

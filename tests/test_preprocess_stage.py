@@ -26,6 +26,7 @@ from test_preprocess_stage_fakes import (
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError, InputError, MissingArtifactError
 from drivesim.pipeline.workspace import Workspace
+from drivesim.stages.preprocess import run as run_module
 from drivesim.stages.preprocess import stage
 from drivesim.stages.preprocess.artifact import load_preprocessed
 from drivesim.stages.preprocess.config import PreprocessConfig
@@ -47,9 +48,9 @@ def test_preprocess_writes_poses_depth_and_summary(ws: Workspace, monkeypatch) -
     assert calls[0]["frames_shape"] == (FRAME_COUNT, HEIGHT_PX, WIDTH_PX, 3)
     # the arc: 10 m/s for 1.1 s
     duration_s = (FRAME_COUNT - 1) * 0.1
-    assert result.summary["path_length_m"] == pytest.approx(SPEED_MPS * duration_s, abs=1e-3)
-    assert result.summary["pose_source"] == "fake_gps_imu"
-    assert result.summary["residual_m"] == pytest.approx(0.2)
+    assert result.summary.path_length_m == pytest.approx(SPEED_MPS * duration_s, abs=1e-3)
+    assert result.summary.pose_source == "fake_gps_imu"
+    assert result.summary.residual_m == pytest.approx(0.2)
     np.testing.assert_allclose(pre.poses["curvature_1pm"], 1.0 / RADIUS_M)
     np.testing.assert_array_equal(pre.poses["frame_index"], np.arange(FRAME_COUNT))
     np.testing.assert_allclose(pre.poses["T_world_camera"], pre.poses["T_world_vehicle"] @ T_VEHICLE_CAMERA)
@@ -65,9 +66,9 @@ def test_preprocess_writes_poses_depth_and_summary(ws: Workspace, monkeypatch) -
         assert point_world[2] == pytest.approx(0.0, abs=1e-3)
         assert 1.0 < depth < 10.0
     assert pre.origin["pose_source"] == "fake_gps_imu" and pre.origin["origin_lat_deg"] == 49.0
-    assert result.summary["depth_method"] == "plane"
-    assert 0.1 < result.summary["depth_far_fraction"] < 0.9  # the sky half of the image is far
-    assert result.summary["depth_median_m"] > CAMERA_HEIGHT_M
+    assert result.summary.depth_method == "plane"
+    assert 0.1 < result.summary.depth_far_fraction < 0.9  # the sky half of the image is far
+    assert result.summary.depth_median_m > CAMERA_HEIGHT_M
 
     preview = result.path / "depth_preview.png"
     assert preview.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -130,7 +131,7 @@ def test_a_failure_mid_depth_leaves_no_artifact(ws: Workspace, monkeypatch) -> N
         args[6][0] = 1.0  # some depth was written into the memmap before the failure
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(stage.depth_mod, "estimate_depth", broken_depth)
+    monkeypatch.setattr(run_module.depth_mod, "estimate_depth", broken_depth)
     with pytest.raises(RuntimeError, match="disk full"):
         stage.run_preprocess(ws, PreprocessConfig(), force=True)
     assert ws.read_manifest("preprocessed") == before

@@ -103,7 +103,7 @@ def arc_poses(frame_times_ns: np.ndarray) -> types.SimpleNamespace:
 
 def install_fake_poses(monkeypatch) -> list[dict]:
     """Replace series loading and pose fusion by the arc above; returns a list recording each call's arguments."""
-    from drivesim.stages.preprocess import stage
+    from drivesim.stages.preprocess import run as stage
 
     calls: list[dict] = []
 

@@ -22,10 +22,12 @@ from drivesim.pipeline.errors import MissingArtifactError
 from drivesim.pipeline.status import status_report
 from drivesim.pipeline.workspace import Workspace
 from drivesim.sim.world import World
+from drivesim.stages.chain import CHAIN
 from drivesim.stages.preprocess import stage as preprocess_stage
 from drivesim.stages.preprocess.config import PreprocessConfig
-from drivesim.stages.world.build import resize_depth, run_build_world, sim_resolution
+from drivesim.stages.world.build import resize_depth, sim_resolution
 from drivesim.stages.world.config import WorldConfig
+from drivesim.stages.world.stage import run_build_world
 
 
 @pytest.fixture
@@ -72,7 +74,7 @@ def test_build_world_loads_in_the_simulator(ws: Workspace) -> None:
 
 def test_world_summary_in_status_and_people_files(ws: Workspace) -> None:
     result = run_build_world(ws, WorldConfig())
-    stages = {row["stage"]: row for row in status_report(ws)["stages"]}
+    stages = {row["stage"]: row for row in status_report(ws, CHAIN)["stages"]}
     world = stages["build-world"]
     assert world["state"] == "fresh"
     summary = world["summary"]
@@ -101,10 +103,10 @@ def test_fresh_force_and_upstream_change(ws: Workspace) -> None:
     assert not run_build_world(ws, cfg, force=True).skipped
     # preprocessing again with another config changes the input hash: the world is stale and rebuilt
     preprocess_stage.run_preprocess(ws, load_config(PreprocessConfig, overrides=["frames.step=2"]))
-    stages = {row["stage"]: row for row in status_report(ws)["stages"]}
+    stages = {row["stage"]: row for row in status_report(ws, CHAIN)["stages"]}
     assert stages["build-world"]["state"] == "stale"
     rebuilt = run_build_world(ws, cfg)
-    assert not rebuilt.skipped and rebuilt.summary["frame_count"] == FRAME_COUNT // 2
+    assert not rebuilt.skipped and rebuilt.summary.frame_count == FRAME_COUNT // 2
 
 
 def test_missing_preprocessed_says_run_preprocess(tmp_path: Path) -> None:

@@ -20,13 +20,13 @@ from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.images import CameraModel, FrameProcessor, working_size
 from drivesim.stages.ingest.output import (
     FrameStore,
+    IngestResult,
     OrderedPipeline,
     gps_series,
     imu_series,
     speed_series,
     write_json,
 )
-from drivesim.stages.ingest.ros import IngestResult
 
 IMU_HEIGHT_M = 0.93
 KITTI_CAMERA_HEIGHT_M = 1.65

@@ -7,10 +7,20 @@ import re
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
+
+
+@dataclass
+class IngestResult:
+    """What an ingest produced: the manifest summary and notes for the user (e.g. which camera was chosen)."""
+
+    summary: dict[str, Any]
+    notes: list[str] = field(default_factory=list)
+
 
 _NUMBER_LIST = re.compile(r"\[\s*((?:-?[\d.eE+-]+|null)(?:,\s*(?:-?[\d.eE+-]+|null))*)\s*\]")
 

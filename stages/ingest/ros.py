@@ -7,7 +7,6 @@ configure it are read once: /tf_static, the first CameraInfo and the first camer
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +27,14 @@ from drivesim.stages.ingest.images import (
     resize_depth,
     working_size,
 )
-from drivesim.stages.ingest.output import FrameStore, GrowableArray, NpyStreamWriter, OrderedPipeline, write_json
+from drivesim.stages.ingest.output import (
+    FrameStore,
+    GrowableArray,
+    IngestResult,
+    NpyStreamWriter,
+    OrderedPipeline,
+    write_json,
+)
 from drivesim.stages.ingest.pointcloud import LidarWriter, PointCloudError, cloud_points
 from drivesim.stages.ingest.series import (
     GpsRecorder,
@@ -42,14 +48,6 @@ from drivesim.stages.ingest.series import (
 )
 from drivesim.stages.ingest.sources import MessageSource, open_source
 from drivesim.stages.ingest.topics import TopicChoice, choose_topics, describe_topics
-
-
-@dataclass
-class IngestResult:
-    """What an ingest produced: the manifest summary and notes for the user (e.g. which camera was chosen)."""
-
-    summary: dict[str, Any]
-    notes: list[str] = field(default_factory=list)
 
 
 def _first(source: MessageSource, topic: str) -> Any | None:

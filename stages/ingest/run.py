@@ -6,7 +6,8 @@ from pathlib import Path
 
 from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.kitti import ingest_kitti_odometry, ingest_kitti_raw
-from drivesim.stages.ingest.ros import IngestResult, ingest_ros
+from drivesim.stages.ingest.output import IngestResult
+from drivesim.stages.ingest.ros import ingest_ros
 from drivesim.stages.ingest.sources import detect_format
 
 

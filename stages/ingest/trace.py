@@ -252,3 +252,52 @@ def validate_trace(path: Path | str) -> TraceInfo:
         series=tuple(series),
         has_gt_depth=has_gt_depth,
     )
+
+
+TRACE_HINT = "drivesim ingest PATH"
+
+
+@dataclass
+class TraceView:
+    """The parts of a trace artifact that preprocess and build-world read.
+
+    :param root: the trace folder.
+    :param frames: (N, H, W, 3) uint8 RGB, memory-mapped.
+    :param frame_times_ns: (N,) int64 camera stamps.
+    :param calibration: the contents of calibration.json.
+    :param K: 3x3 intrinsics at the working resolution.
+    :param T_vehicle_camera: 4x4 camera optical frame -> vehicle frame.
+    """
+
+    root: Path
+    frames: np.ndarray
+    frame_times_ns: np.ndarray
+    calibration: dict[str, Any]
+    K: np.ndarray
+    T_vehicle_camera: np.ndarray
+    info: TraceInfo
+
+
+def open_trace(trace_dir: Path) -> TraceView:
+    """Open the trace's frames (memory-mapped), stamps and calibration; InputError naming the file when malformed."""
+    info = validate_trace(trace_dir)
+    try:
+        calibration = json.loads((trace_dir / "calibration.json").read_text())
+        frames = np.load(trace_dir / "frames.npy", mmap_mode="r")
+        frame_times_ns = np.load(trace_dir / "frame_times_ns.npy")
+    except FileNotFoundError as e:
+        raise InputError(f"the trace lacks {Path(e.filename).name}; run `{TRACE_HINT}` again", trace_dir) from e
+    except (OSError, ValueError) as e:
+        raise InputError(f"unreadable trace: {e}; run `{TRACE_HINT}` again", trace_dir) from e
+    for key in ("K", "T_vehicle_camera", "width_px", "height_px"):
+        if key not in calibration:
+            raise InputError(f"calibration.json lacks {key!r}", trace_dir)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
+        raise InputError(f"frames.npy must be uint8 (N, H, W, 3), got {frames.dtype} {frames.shape}", trace_dir)
+    if frame_times_ns.shape != (frames.shape[0],) or np.any(np.diff(frame_times_ns) <= 0):
+        raise InputError("frame_times_ns.npy must hold one strictly increasing stamp per frame", trace_dir)
+    K = np.asarray(calibration["K"], dtype=float)
+    T_vehicle_camera = np.asarray(calibration["T_vehicle_camera"], dtype=float)
+    if K.shape != (3, 3) or T_vehicle_camera.shape != (4, 4):
+        raise InputError("calibration.json: K must be 3x3 and T_vehicle_camera 4x4", trace_dir)
+    return TraceView(trace_dir, frames, frame_times_ns, calibration, K, T_vehicle_camera, info)

@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -18,78 +17,15 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from drivesim.pipeline.errors import InputError
 from drivesim.pipeline.progress import console, progress_bar
-from drivesim.pipeline.workspace import Workspace
+from drivesim.pipeline.stage import BuildContext
 from drivesim.sim.geometry import invert
-from drivesim.stages.ingest.trace import TraceInfo, validate_trace
+from drivesim.stages.ingest.trace import TraceInfo, open_trace
 from drivesim.stages.preprocess import depth as depth_mod
 from drivesim.stages.preprocess import poses as poses_mod
 from drivesim.stages.preprocess import series as series_mod
 from drivesim.stages.preprocess.artifact import POSE_ARRAYS_FLOAT
 from drivesim.stages.preprocess.config import PreprocessConfig
-
-STAGE = "preprocess"
-ARTIFACT = "preprocessed"
-TRACE_HINT = "drivesim ingest PATH"
-
-
-@dataclass
-class TraceView:
-    """The parts of a trace artifact that preprocess and build-world read.
-
-    :param root: the trace folder.
-    :param frames: (N, H, W, 3) uint8 RGB, memory-mapped.
-    :param frame_times_ns: (N,) int64 camera stamps.
-    :param calibration: the contents of calibration.json.
-    :param K: 3x3 intrinsics at the working resolution.
-    :param T_vehicle_camera: 4x4 camera optical frame -> vehicle frame.
-    """
-
-    root: Path
-    frames: np.ndarray
-    frame_times_ns: np.ndarray
-    calibration: dict[str, Any]
-    K: np.ndarray
-    T_vehicle_camera: np.ndarray
-    info: TraceInfo
-
-
-@dataclass
-class PreprocessResult:
-    """What `run_preprocess` did.
-
-    :param path: the preprocessed artifact folder.
-    :param skipped: True when the artifact was already fresh and nothing was redone.
-    :param summary: the manifest summary (pose_source, frame_count, path_length_m, depth figures).
-    """
-
-    path: Path
-    skipped: bool
-    summary: dict[str, Any] = field(default_factory=dict)
-
-
-def open_trace(trace_dir: Path) -> TraceView:
-    """Open the trace's frames (memory-mapped), stamps and calibration; InputError naming the file when malformed."""
-    info = validate_trace(trace_dir)
-    try:
-        calibration = json.loads((trace_dir / "calibration.json").read_text())
-        frames = np.load(trace_dir / "frames.npy", mmap_mode="r")
-        frame_times_ns = np.load(trace_dir / "frame_times_ns.npy")
-    except FileNotFoundError as e:
-        raise InputError(f"the trace lacks {Path(e.filename).name}; run `{TRACE_HINT}` again", trace_dir) from e
-    except (OSError, ValueError) as e:
-        raise InputError(f"unreadable trace: {e}; run `{TRACE_HINT}` again", trace_dir) from e
-    for key in ("K", "T_vehicle_camera", "width_px", "height_px"):
-        if key not in calibration:
-            raise InputError(f"calibration.json lacks {key!r}", trace_dir)
-    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
-        raise InputError(f"frames.npy must be uint8 (N, H, W, 3), got {frames.dtype} {frames.shape}", trace_dir)
-    if frame_times_ns.shape != (frames.shape[0],) or np.any(np.diff(frame_times_ns) <= 0):
-        raise InputError("frame_times_ns.npy must hold one strictly increasing stamp per frame", trace_dir)
-    K = np.asarray(calibration["K"], dtype=float)
-    T_vehicle_camera = np.asarray(calibration["T_vehicle_camera"], dtype=float)
-    if K.shape != (3, 3) or T_vehicle_camera.shape != (4, 4):
-        raise InputError("calibration.json: K must be 3x3 and T_vehicle_camera 4x4", trace_dir)
-    return TraceView(trace_dir, frames, frame_times_ns, calibration, K, T_vehicle_camera, info)
+from drivesim.stages.preprocess.stage import PreprocessSummary
 
 
 class LidarPerFrame(Sequence[np.ndarray]):
@@ -158,18 +94,10 @@ def select_frames(n_frames: int, cfg: PreprocessConfig) -> slice:
     return selected
 
 
-def run_preprocess(ws: Workspace, cfg: PreprocessConfig, force: bool = False) -> PreprocessResult:
-    """Fuse poses and estimate per-frame depth for the workspace's trace, writing `<ws>/preprocessed/`.
-
-    Does nothing when the artifact is fresh for this config and trace, unless `force`.
-    """
-    trace_dir = ws.require("trace", TRACE_HINT)
-    inputs = {"trace": ws.artifact_input("trace")}
-    config = cfg.model_dump(mode="json")
-    manifest = None if force else ws.fresh_manifest(ARTIFACT, STAGE, config, inputs)
-    if manifest is not None:
-        return PreprocessResult(path=ws.artifact_dir(ARTIFACT), skipped=True, summary=manifest.get("summary", {}))
-
+def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
+    """Fuse poses and estimate per-frame depth for the workspace's trace, writing the files into `ctx.dir`."""
+    cfg: PreprocessConfig = ctx.config  # type: ignore[assignment]
+    trace_dir = ctx.inputs["trace"]
     started = time.perf_counter()
     trace = open_trace(trace_dir)
     if cfg.depth.method == "lidar" and "lidar_scans" not in trace.info.series:
@@ -190,62 +118,58 @@ def run_preprocess(ws: Workspace, cfg: PreprocessConfig, force: bool = False) ->
     T_world_camera = T_world_vehicle @ T_vehicle_camera
     n, h, w = frames.shape[:3]
 
-    with ws.write_artifact(ARTIFACT, STAGE, config, inputs) as build:
-        depth_out = np.lib.format.open_memmap(build.dir / "depth.npy", mode="w+", dtype=np.float32, shape=(n, h, w))
-        with progress_bar(f"depth ({cfg.depth.method})", total=n) as (progress, task):
-            depth_summary = depth_mod.estimate_depth(
-                frames,
-                K,
-                T_world_camera,
-                T_vehicle_camera,
-                trace.calibration.get("camera_height_m"),
-                cfg.depth,
-                depth_out,
-                progress=lambda done: progress.advance(task, done),
-                points_vehicle=(
-                    LidarPerFrame(trace.info, frame_times_ns, T_world_vehicle) if cfg.depth.method == "lidar" else None
-                ),
-            )
-        depth_out.flush()
-        poses = {
-            "frame_index": frame_index.astype(np.int64),
-            "t_ns": np.asarray(frame_times_ns, dtype=np.int64),
-            **{k: np.asarray(getattr(fused, k), dtype=np.float64) for k in POSE_ARRAYS_FLOAT},
-            "T_world_vehicle": T_world_vehicle,
-            "T_world_camera": T_world_camera,
-        }
-        np.savez(build.dir / "poses.npz", **poses)
-        origin = {
-            "pose_source": str(fused.source),
-            "origin_lat_deg": _float_or_none(getattr(fused, "origin_lat_deg", None)),
-            "origin_lon_deg": _float_or_none(getattr(fused, "origin_lon_deg", None)),
-            "origin_alt_m": _float_or_none(getattr(fused, "origin_alt_m", None)),
-            "residual_m": _rms_or_none(getattr(fused, "residual_m", None)),
-            "depth_method": cfg.depth.method,
-            "max_depth_m": cfg.depth.max_depth_m,
-            "width_px": int(w),
-            "height_px": int(h),
-        }
-        (build.dir / "origin.json").write_text(json.dumps(origin, indent=2) + "\n")
-        preview = np.linspace(0, n - 1, min(cfg.preview.frame_count, n)).round().astype(int)
-        write_depth_preview(
-            build.dir / "depth_preview.png", frames, depth_out, preview, frame_index, cfg.depth.max_depth_m
+    depth_out = np.lib.format.open_memmap(ctx.dir / "depth.npy", mode="w+", dtype=np.float32, shape=(n, h, w))
+    with progress_bar(f"depth ({cfg.depth.method})", total=n) as (progress, task):
+        depth_summary = depth_mod.estimate_depth(
+            frames,
+            K,
+            T_world_camera,
+            T_vehicle_camera,
+            trace.calibration.get("camera_height_m"),
+            cfg.depth,
+            depth_out,
+            progress=lambda done: progress.advance(task, done),
+            points_vehicle=(
+                LidarPerFrame(trace.info, frame_times_ns, T_world_vehicle) if cfg.depth.method == "lidar" else None
+            ),
         )
-        depth_stats = _depth_stats(depth_out, cfg.depth.max_depth_m)
-        del depth_out
-        build.summary = {
-            "pose_source": origin["pose_source"],
-            "frame_count": int(n),
-            "path_length_m": round(float(poses["arc_length_m"][-1] - poses["arc_length_m"][0]), 3),
-            "residual_m": origin["residual_m"],
-            "depth_method": cfg.depth.method,
-            "width_px": int(w),
-            "height_px": int(h),
-            **depth_stats,
-            "depth_seconds_per_frame": depth_summary.get("seconds_per_frame"),
-            "seconds": round(time.perf_counter() - started, 3),
-        }
-    return PreprocessResult(path=ws.artifact_dir(ARTIFACT), skipped=False, summary=build.summary)
+    depth_out.flush()
+    poses = {
+        "frame_index": frame_index.astype(np.int64),
+        "t_ns": np.asarray(frame_times_ns, dtype=np.int64),
+        **{k: np.asarray(getattr(fused, k), dtype=np.float64) for k in POSE_ARRAYS_FLOAT},
+        "T_world_vehicle": T_world_vehicle,
+        "T_world_camera": T_world_camera,
+    }
+    np.savez(ctx.dir / "poses.npz", **poses)
+    origin = {
+        "pose_source": str(fused.source),
+        "origin_lat_deg": _float_or_none(getattr(fused, "origin_lat_deg", None)),
+        "origin_lon_deg": _float_or_none(getattr(fused, "origin_lon_deg", None)),
+        "origin_alt_m": _float_or_none(getattr(fused, "origin_alt_m", None)),
+        "residual_m": _rms_or_none(getattr(fused, "residual_m", None)),
+        "depth_method": cfg.depth.method,
+        "max_depth_m": cfg.depth.max_depth_m,
+        "width_px": int(w),
+        "height_px": int(h),
+    }
+    (ctx.dir / "origin.json").write_text(json.dumps(origin, indent=2) + "\n")
+    preview = np.linspace(0, n - 1, min(cfg.preview.frame_count, n)).round().astype(int)
+    write_depth_preview(ctx.dir / "depth_preview.png", frames, depth_out, preview, frame_index, cfg.depth.max_depth_m)
+    depth_stats = _depth_stats(depth_out, cfg.depth.max_depth_m)
+    del depth_out
+    return PreprocessSummary(
+        pose_source=origin["pose_source"],
+        frame_count=int(n),
+        path_length_m=round(float(poses["arc_length_m"][-1] - poses["arc_length_m"][0]), 3),
+        residual_m=origin["residual_m"],
+        depth_method=cfg.depth.method,
+        width_px=int(w),
+        height_px=int(h),
+        **depth_stats,
+        depth_seconds_per_frame=depth_summary.get("seconds_per_frame"),
+        seconds=round(time.perf_counter() - started, 3),
+    )
 
 
 def _float_or_none(value: Any) -> float | None:

@@ -8,42 +8,24 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 
 from drivesim.pipeline.errors import InputError
 from drivesim.pipeline.progress import progress_bar
-from drivesim.pipeline.workspace import Workspace
+from drivesim.pipeline.stage import BuildContext
 from drivesim.sim.geometry import scale_intrinsics
 from drivesim.sim.world import WORLD_FORMAT_VERSION
+from drivesim.stages.ingest.trace import open_trace
 from drivesim.stages.preprocess.artifact import POSE_ARRAYS, load_preprocessed
-from drivesim.stages.preprocess.stage import TRACE_HINT, open_trace
 from drivesim.stages.world.birdseye import write_birdseye
 from drivesim.stages.world.config import WorldConfig
 from drivesim.stages.world.pointcloud import fuse_pointcloud, write_ply
+from drivesim.stages.world.stage import WorldSummary
 
-STAGE = "build-world"
-ARTIFACT = "world"
 PREPROCESS_HINT = "drivesim preprocess"
 _CHUNK_FRAMES = 16
-
-
-@dataclass
-class WorldResult:
-    """What `run_build_world` did.
-
-    :param path: the world folder.
-    :param skipped: True when the world was already fresh and nothing was redone.
-    :param summary: the manifest summary (frame_count, path_length_m, curvature range, sim resolution).
-    """
-
-    path: Path
-    skipped: bool
-    summary: dict[str, Any] = field(default_factory=dict)
 
 
 def sim_resolution(width_px: int, height_px: int, sim_width_px: int) -> tuple[int, int]:
@@ -75,16 +57,10 @@ def resize_frames(frames: np.ndarray, width_px: int, height_px: int) -> np.ndarr
     return np.stack([cv2.resize(np.asarray(f), (width_px, height_px), interpolation=cv2.INTER_AREA) for f in frames])
 
 
-def run_build_world(ws: Workspace, cfg: WorldConfig, force: bool = False) -> WorldResult:
-    """Build `<ws>/world/` from the trace and the preprocessed poses and depth; no-op when fresh unless `force`."""
-    trace_dir = ws.require("trace", TRACE_HINT)
-    pre_dir = ws.require("preprocessed", PREPROCESS_HINT)
-    inputs = {"trace": ws.artifact_input("trace"), "preprocessed": ws.artifact_input("preprocessed")}
-    config = cfg.model_dump(mode="json")
-    manifest = None if force else ws.fresh_manifest(ARTIFACT, STAGE, config, inputs)
-    if manifest is not None:
-        return WorldResult(path=ws.artifact_dir(ARTIFACT), skipped=True, summary=manifest.get("summary", {}))
-
+def build_world(ctx: BuildContext) -> WorldSummary:
+    """Write the world's files into `ctx.dir` from the trace and the preprocessed poses and depth."""
+    cfg: WorldConfig = ctx.config  # type: ignore[assignment]
+    trace_dir, pre_dir = ctx.inputs["trace"], ctx.inputs["preprocessed"]
     started = time.perf_counter()
     trace = open_trace(trace_dir)
     pre = load_preprocessed(pre_dir)
@@ -106,84 +82,82 @@ def run_build_world(ws: Workspace, cfg: WorldConfig, force: bool = False) -> Wor
     K_sim = scale_intrinsics(trace.K, w / src_w, h / src_h)
     far_depth_m = float(pre.origin.get("max_depth_m") or np.inf)
 
-    with ws.write_artifact(ARTIFACT, STAGE, config, inputs) as build:
-        frames_out = np.lib.format.open_memmap(build.dir / "frames.npy", mode="w+", dtype=np.uint8, shape=(n, h, w, 3))
-        depth_out = np.lib.format.open_memmap(build.dir / "depth_m.npy", mode="w+", dtype=np.float32, shape=(n, h, w))
-        with progress_bar(f"world frames at {w}x{h}", total=n) as (progress, task):
-            for start in range(0, n, _CHUNK_FRAMES):
-                stop = min(n, start + _CHUNK_FRAMES)
-                frames_out[start:stop] = resize_frames(trace.frames[frame_index[start:stop]], w, h)
-                depth_out[start:stop] = resize_depth(pre.depth_m[start:stop], w, h, cfg.depth_resize)
-                progress.advance(task, stop - start)
-        frames_out.flush()
-        depth_out.flush()
-        del frames_out, depth_out
+    frames_out = np.lib.format.open_memmap(ctx.dir / "frames.npy", mode="w+", dtype=np.uint8, shape=(n, h, w, 3))
+    depth_out = np.lib.format.open_memmap(ctx.dir / "depth_m.npy", mode="w+", dtype=np.float32, shape=(n, h, w))
+    with progress_bar(f"world frames at {w}x{h}", total=n) as (progress, task):
+        for start in range(0, n, _CHUNK_FRAMES):
+            stop = min(n, start + _CHUNK_FRAMES)
+            frames_out[start:stop] = resize_frames(trace.frames[frame_index[start:stop]], w, h)
+            depth_out[start:stop] = resize_depth(pre.depth_m[start:stop], w, h, cfg.depth_resize)
+            progress.advance(task, stop - start)
+    frames_out.flush()
+    depth_out.flush()
+    del frames_out, depth_out
 
-        camera = {
-            "width_px": w,
-            "height_px": h,
-            "K": K_sim.tolist(),
-            "T_vehicle_camera": trace.T_vehicle_camera.tolist(),
-            "camera_height_m": trace.calibration.get("camera_height_m"),
-            "source_width_px": int(src_w),
-            "source_height_px": int(src_h),
-        }
-        (build.dir / "camera.json").write_text(json.dumps(camera, indent=2) + "\n")
-        path = {key: pre.poses[key] for key in POSE_ARRAYS}
-        np.savez(build.dir / "path.npz", **path)
-        curvature = path["curvature_1pm"]
-        path_length_m = float(path["arc_length_m"][-1] - path["arc_length_m"][0])
-        info = {
-            "format": WORLD_FORMAT_VERSION,
-            "frame_count": int(n),
-            "road_width_m": cfg.road_width_m,
-            "lane_width_m": cfg.lane_width_m,
-            "path_length_m": round(path_length_m, 3),
-            "curvature_min_1pm": round(float(curvature.min()), 6),
-            "curvature_max_1pm": round(float(curvature.max()), 6),
-            "pose_source": pre.origin.get("pose_source"),
-            "origin_lat_deg": pre.origin.get("origin_lat_deg"),
-            "origin_lon_deg": pre.origin.get("origin_lon_deg"),
-            "origin_alt_m": pre.origin.get("origin_alt_m"),
-            "depth_method": pre.origin.get("depth_method"),
-            "far_depth_m": pre.origin.get("max_depth_m"),
-        }
-        (build.dir / "world.json").write_text(json.dumps(info, indent=2) + "\n")
+    camera = {
+        "width_px": w,
+        "height_px": h,
+        "K": K_sim.tolist(),
+        "T_vehicle_camera": trace.T_vehicle_camera.tolist(),
+        "camera_height_m": trace.calibration.get("camera_height_m"),
+        "source_width_px": int(src_w),
+        "source_height_px": int(src_h),
+    }
+    (ctx.dir / "camera.json").write_text(json.dumps(camera, indent=2) + "\n")
+    path = {key: pre.poses[key] for key in POSE_ARRAYS}
+    np.savez(ctx.dir / "path.npz", **path)
+    curvature = path["curvature_1pm"]
+    path_length_m = float(path["arc_length_m"][-1] - path["arc_length_m"][0])
+    info = {
+        "format": WORLD_FORMAT_VERSION,
+        "frame_count": int(n),
+        "road_width_m": cfg.road_width_m,
+        "lane_width_m": cfg.lane_width_m,
+        "path_length_m": round(path_length_m, 3),
+        "curvature_min_1pm": round(float(curvature.min()), 6),
+        "curvature_max_1pm": round(float(curvature.max()), 6),
+        "pose_source": pre.origin.get("pose_source"),
+        "origin_lat_deg": pre.origin.get("origin_lat_deg"),
+        "origin_lon_deg": pre.origin.get("origin_lon_deg"),
+        "origin_alt_m": pre.origin.get("origin_alt_m"),
+        "depth_method": pre.origin.get("depth_method"),
+        "far_depth_m": pre.origin.get("max_depth_m"),
+    }
+    (ctx.dir / "world.json").write_text(json.dumps(info, indent=2) + "\n")
 
-        point_count = 0
-        if cfg.pointcloud.enabled:
-            points, colours = fuse_pointcloud(
-                _FrameLookup(trace.frames, frame_index),
-                pre.depth_m,
-                trace.K,
-                pre.poses["T_world_camera"],
-                far_depth_m,
-                cfg.pointcloud,
-            )
-            write_ply(build.dir / "pointcloud.ply", points, colours)
-            point_count = int(points.shape[0])
-        write_birdseye(
-            build.dir / "birdseye.png",
-            path["x_m"],
-            path["y_m"],
-            path["yaw_rad"],
-            curvature,
-            cfg.lane_width_m,
-            title=f"reference path: {n} frames, {path_length_m:.1f} m ({info['pose_source']})",
+    point_count = 0
+    if cfg.pointcloud.enabled:
+        points, colours = fuse_pointcloud(
+            _FrameLookup(trace.frames, frame_index),
+            pre.depth_m,
+            trace.K,
+            pre.poses["T_world_camera"],
+            far_depth_m,
+            cfg.pointcloud,
         )
-        build.summary = {
-            "frame_count": int(n),
-            "path_length_m": info["path_length_m"],
-            "curvature_min_1pm": info["curvature_min_1pm"],
-            "curvature_max_1pm": info["curvature_max_1pm"],
-            "sim_width_px": w,
-            "sim_height_px": h,
-            "pointcloud_points": point_count,
-            "pose_source": info["pose_source"],
-            "depth_method": info["depth_method"],
-            "seconds": round(time.perf_counter() - started, 3),
-        }
-    return WorldResult(path=ws.artifact_dir(ARTIFACT), skipped=False, summary=build.summary)
+        write_ply(ctx.dir / "pointcloud.ply", points, colours)
+        point_count = int(points.shape[0])
+    write_birdseye(
+        ctx.dir / "birdseye.png",
+        path["x_m"],
+        path["y_m"],
+        path["yaw_rad"],
+        curvature,
+        cfg.lane_width_m,
+        title=f"reference path: {n} frames, {path_length_m:.1f} m ({info['pose_source']})",
+    )
+    return WorldSummary(
+        frame_count=int(n),
+        path_length_m=info["path_length_m"],
+        curvature_min_1pm=info["curvature_min_1pm"],
+        curvature_max_1pm=info["curvature_max_1pm"],
+        sim_width_px=w,
+        sim_height_px=h,
+        pointcloud_points=point_count,
+        pose_source=info["pose_source"],
+        depth_method=info["depth_method"],
+        seconds=round(time.perf_counter() - started, 3),
+    )
 
 
 class _FrameLookup:
