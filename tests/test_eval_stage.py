@@ -309,3 +309,28 @@ def test_resume_into_fewer_episodes_keeps_only_those(tmp_path, monkeypatch):
     monkeypatch.setattr(rollout.RunningRate, "add", original)
     other = run_eval(ws, EvalConfig(episodes=3, world=str(world), workers=1, env={"x": 1}, **FAKE))
     assert other.summary.episodes_resumed == 0 and any("discarded" in note for note in other.notes)
+
+
+def test_onnx_policy_gives_the_torch_policy_metrics(tmp_path):
+    pytest.importorskip("drivesim.stages.onnx_policy", reason="OnnxPolicy (EXPORT engineer) not built yet")
+    from drivesim.stages.export.onnx_export import export_onnx
+    from drivesim.stages.policy import load_policy
+
+    register_fake_envs()
+    world = _fake_world(tmp_path / "world")
+    run = _make_run(tmp_path / "runs" / "overtake-1", "overtake")
+    loaded = load_policy(run)
+    onnx_path = tmp_path / "policy.onnx"
+    meta = {"task": "overtake", "input_shape": [3, 64, 160], "lstm_layers": 1, "hidden_size": 8, "env_config": {}}
+    export_onnx(loaded.export_module(), (3, 64, 160), meta, onnx_path)
+    ws = Workspace(tmp_path / "ws")
+    by_torch = run_eval(ws, EvalConfig(episodes=4, world=str(world), workers=1, policy=str(run), **FAKE))
+    by_onnx = run_eval(ws, EvalConfig(episodes=4, world=str(world), workers=1, policy=str(onnx_path), **FAKE))
+    assert by_onnx.path.name == "overtake-policy" and by_torch.path.name == "overtake-1"
+    a = json.loads((by_torch.path / "metrics.json").read_text())["aggregate"]
+    b = json.loads((by_onnx.path / "metrics.json").read_text())["aggregate"]
+    for key in ("intervention", "success", "max_deviation_m", "max_yaw_rad", "min_clearance_all_m"):
+        assert b[key]["value"] == pytest.approx(a[key]["value"], abs=1e-4), key
+    # An ONNX policy of another task is refused like a run folder.
+    result = _run_cli(tmp_path / "ws2", *_fake_args(world), "--task", "follow", "--policy", str(onnx_path))
+    assert result.returncode == 2 and "overtake policy, not follow" in result.stderr
