@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli import bench, config_show, export, ingest, preprocess, status, synth, train, world
+from drivesim.cli import bench, config_show, export, ingest, preprocess, run, status, synth, train, world
 from drivesim.cli import eval as eval_cmd
 from drivesim.cli.common import err_console, state
 from drivesim.cli.not_built import not_built_command
@@ -53,7 +53,7 @@ app.command(
 )(train.train_command)
 app.command("eval", help="Offline closed-loop evaluation: metrics, plots, report.")(eval_cmd.eval_command)
 app.add_typer(export.export_app, name="export", help="Export the policy as ONNX, checked with onnxruntime.")
-not_built_command(app, "run", "Every stage of the chain, on the embedded demo drive by default.")
+app.command("run", help="Every stage of the chain, on the embedded demo drive by default.")(run.run_command)
 app.command("status", help="Every stage as fresh / stale / missing, with a summary of each artifact.")(
     status.status_command
 )

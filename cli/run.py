@@ -1,0 +1,61 @@
+"""`drivesim run`: the whole chain in one command, each stage skipped when its artifact is fresh."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from drivesim.cli.common import console, workspace
+
+
+def run_command(
+    recording: Annotated[
+        Path | None,
+        typer.Argument(
+            help="Your recording (ROS1 .bag, rosbag2 folder, .mcap, KITTI raw drive). Default: the embedded demo "
+            "drive, synthesized first into <workspace>/recordings/demo.mcap.",
+            show_default=False,
+        ),
+    ] = None,
+    preset: Annotated[
+        str,
+        typer.Option("--preset", help="Run preset in configs/run/: demo (about 30 min on 2 cores) or full."),
+    ] = "demo",
+    config: Annotated[
+        Path | None,
+        typer.Option("--config", help="YAML file of per-stage overrides (stage: {key: value}), after the preset."),
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set",
+            help="Override one stage's config value, e.g. --set train.total_steps=4096 (repeatable).",
+        ),
+    ] = None,
+    force: Annotated[bool, typer.Option("--force", help="Redo every stage even when its artifact is fresh.")] = False,
+) -> None:
+    """Run every stage in order: (synth,) ingest, preprocess, build-world, meshes, train, eval, export.
+
+    A stage whose artifact is fresh (same config, same inputs) is skipped, so running it again after a crash or
+    Ctrl-C continues where it stopped. Ends with the path of the evaluation's HTML report and of the ONNX policy.
+    """
+    # Imported here so `drivesim --help` stays fast.
+    from drivesim.stages.run_chain import StageRun, load_run_preset, run_chain
+
+    overrides = load_run_preset(preset, config, set_ or [])
+
+    def on_stage(done: StageRun) -> None:
+        state = "[dim]fresh, skipped[/]" if done.skipped else f"[green]done[/] in {done.wall_s:.1f} s"
+        console.print(f"[bold]{done.stage}[/]: {state} -> {done.path}", highlight=False, soft_wrap=True)
+        for note in done.notes:
+            console.print(f"  [dim]{note}[/]", highlight=False, soft_wrap=True)
+
+    result = run_chain(workspace(), recording, overrides, force=force, on_stage=on_stage)
+    total_s = sum(s.wall_s for s in result.stages)
+    console.print(f"[bold green]chain finished[/] in {total_s / 60:.1f} min", highlight=False)
+    if result.report_html is not None:
+        console.print(f"report: {result.report_html}", highlight=False, soft_wrap=True)
+    if result.onnx is not None:
+        console.print(f"policy: {result.onnx}", highlight=False, soft_wrap=True)
