@@ -30,7 +30,7 @@ WIDTH_PX, HEIGHT_PX = 960, 600
 
 
 def _render(folder: Path, n_frames: int, seed: int) -> None:
-    from drivesim.stages.world.fidelity import render_drive
+    from drivesim.bench.fidelity import render_drive
 
     drive = render_drive(seed, n_frames, WIDTH_PX, HEIGHT_PX)
     np.save(folder / "frames.npy", drive.rgb)
@@ -79,7 +79,7 @@ def main() -> None:
         _worker(Path(args.worker[0]), args.worker[1], args.overrides)
         return
 
-    from drivesim.stages.world.fidelity import depth_metrics
+    from drivesim.bench.fidelity import depth_metrics
 
     n_frames = 8 if args.quick else args.frames
     load_1min = os.getloadavg()[0]

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
+from drivesim.bench.machine import machine_line
 from drivesim.cli.common import ConfigOption, SetOption, console, workspace
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError
@@ -19,12 +20,12 @@ from drivesim.stages.preprocess.depth import DepthConfig
 bench_app = typer.Typer(no_args_is_help=True)
 
 if TYPE_CHECKING:  # the fidelity module imports torch: only when the command runs
-    from drivesim.stages.world.fidelity import FidelityResult
+    from drivesim.bench.fidelity import FidelityResult
 
 
 def fidelity_table(result: FidelityResult) -> tuple[Table, Table]:
     """Rich tables of the depth metrics and of the novel-view metrics."""
-    from drivesim.stages.world.fidelity import DEPTH_SOURCES
+    from drivesim.bench.fidelity import DEPTH_SOURCES
 
     depth = Table(title=f"depth vs ground truth ({len(result.evaluated_frames)} frames)")
     for column in ("method", "AbsRel", "δ<1.25", "seconds"):
@@ -51,12 +52,12 @@ def fidelity_table(result: FidelityResult) -> tuple[Table, Table]:
 
 def fidelity_markdown(result: FidelityResult, command: str) -> str:
     """The results as a markdown report (machine, date, command, tables)."""
-    from drivesim.stages.world.fidelity import DEPTH_SOURCES
+    from drivesim.bench.fidelity import DEPTH_SOURCES
 
     lines = [
         "# Depth and view-synthesis fidelity against ground truth",
         "",
-        "- machine: 2-core CPU, no GPU",
+        f"- machine: {machine_line()}",
         f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
         f"- command: `{command}`",
         f"- synthetic drive: seed {result.seed}, {result.frames} frames at {result.width_px}x{result.height_px}; depth "
@@ -106,7 +107,7 @@ def fidelity_command(
     cfg = load_config(DepthConfig, preset=None, config_file=config, overrides=set_)
     if cfg.method != "mvs" and set_ and any(s.startswith("method=") for s in set_):
         raise ConfigError("bench fidelity always compares plane and mvs; leave depth.method alone")
-    from drivesim.stages.world.fidelity import run_fidelity
+    from drivesim.bench.fidelity import run_fidelity
 
     figure_path = figure if figure is not None else workspace().root / "bench" / "fidelity.png"
     with progress_bar("fidelity bench", total=None) as (progress, task):

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
+from drivesim.bench.fidelity import ViewOffset, depth_metrics, image_metrics, run_fidelity
 from drivesim.pipeline.errors import ConfigError
-from drivesim.stages.world.fidelity import ViewOffset, depth_metrics, image_metrics, run_fidelity
 
 
 def test_depth_metrics_values() -> None:
