@@ -24,8 +24,8 @@ WIDTH_PX, HEIGHT_PX = 320, 200
 
 @pytest.fixture(scope="module")
 def chain(tmp_path_factory) -> Path:
-    synthesize_module = pytest.importorskip("drivesim.stages.synth.synthesize", reason="synth has not landed")
     from drivesim.pipeline.config import load_config
+    from drivesim.stages.synth import synthesize as synthesize_module
     from drivesim.stages.synth.config import SynthConfig
 
     root = tmp_path_factory.mktemp("synth")
