@@ -1,0 +1,336 @@
+"""Each agent's camera view (paper §III-A, DESIGN §4 steps 3-5): the recorded frame warped to the agent's pose with
+every other car inserted, lit like the scene and harmonized, rendered only in the policy's region of interest.
+
+One `ViewSynthesizer.render` call produces B views:
+1. the agent's full pose from its associated recorded frame, T_world_agent = T_world_vehicle[frame] @ planar(q_long,
+   q_lat, q_rot) (keeps the recorded height, pitch and roll), and its camera T_world_agent @ T_vehicle_camera;
+2. eq. 2: `warp.forward_warp` of the recorded RGB-D frame straight into the region of interest at the policy's
+   resolution (the world's intrinsics scaled by out / roi);
+3. every other car, placed on the ground of the viewer's recorded frame the same way, rasterized (`raster.py`, back
+   faces culled, full or light level of detail by projected size) in the same region and composited with a per-pixel
+   depth test against the warped depth, so occlusion works both ways; lit by an ambient light equal to the scene's
+   mean colour and a directional light from the viewpoint at infinity (`shading.Lighting`);
+4. harmonization of the inserted cars under their mask (`harmonize.py`).
+
+Speed: recorded frames are turned into torch tensors once and kept in a small cache (so the warp's per-source cache
+hits while an agent stays near a frame), vehicles are packed once per model and level of detail and placed with
+`PackedScene.transformed`, cars outside the region's frustum are skipped before rasterization, and all views with cars
+are rasterized in one call.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pydantic
+import torch
+
+from drivesim.sim.geometry import invert, scale_intrinsics
+from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer
+from drivesim.sim.raster import PackedScene, Rasterizer, composite, merge_scenes
+from drivesim.sim.shading import Lighting
+from drivesim.sim.warp import WarpResult, forward_warp
+from drivesim.sim.world import World, relative_pose
+
+__all__ = ["CarPlacement", "ViewBatch", "ViewConfig", "ViewSynthesizer", "planar_transforms"]
+
+TIMING_KEYS = ("warp", "raster", "composite", "lighting", "harmonize")
+_FRAME_CACHE_SIZE = 16
+_WARP_MARGIN_PX = 3
+
+
+class ViewConfig(pydantic.BaseModel):
+    """What each agent sees and how it is rendered."""
+
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+
+    roi_px: tuple[int, int, int, int] = (0, 72, 320, 128)
+    """(x0, y0, w, h) region of the world's simulation image (px of the 320 x 200 grid) the policy sees; the default
+    is the road ahead (full width, from a little above the horizon down to the bottom) of the demo and KITTI cameras."""
+    out_width_px: int = pydantic.Field(160, gt=0)
+    """Width of the policy's image (px); the region of interest is scaled to it."""
+    out_height_px: int = pydantic.Field(64, gt=0)
+    """Height of the policy's image (px)."""
+    lighting: bool = True
+    """Light inserted cars with the scene's mean colour (ambient) and a directional light from the viewpoint; off:
+    cars are drawn with their unlit base colour."""
+    harmonization: bool = True
+    """Harmonize inserted cars toward their surroundings (the harmonizer; statistical by default)."""
+    directional_gain: float = pydantic.Field(0.8, ge=0.0)
+    """Directional light colour as a multiple of the scene's mean colour (unitless)."""
+    full_detail_min_px: float = pydantic.Field(40.0, ge=0.0)
+    """A car whose projected size (largest dimension, px of the policy's image) reaches this is drawn with the full
+    mesh; smaller ones with the light mesh."""
+    max_car_distance_m: float = pydantic.Field(120.0, gt=0.0)
+    """Cars farther than this from the camera (m, along the optical axis) are not drawn."""
+    fill_holes: bool = True
+    """Fill 1-2 px cracks of the warp (never larger disocclusions)."""
+
+    @pydantic.field_validator("roi_px")
+    @classmethod
+    def _positive_roi(cls, roi: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+        x0, y0, w, h = roi
+        if x0 < 0 or y0 < 0 or w <= 0 or h <= 0:
+            raise ValueError(f"roi_px {roi}: x0, y0 must be >= 0 and w, h > 0")
+        return roi
+
+
+@dataclass
+class CarPlacement:
+    """One other car seen in a view: a library model at a world pose (centre of its footprint on the ground).
+
+    :param model: a `vehicle_library.VehicleModel` (anything with `full`, `light` mesh lists and `length_m`,
+        `width_m`, `height_m`). :param x_m, y_m: world position. :param yaw_rad: world heading.
+    :param object_id: id of the car in the views (for callers that tell cars apart).
+    """
+
+    model: Any
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    object_id: int = 1
+
+
+@dataclass
+class ViewBatch:
+    """B rendered views.
+
+    :param rgb: (B, out_h, out_w, 3) uint8. :param car_mask: (B, out_h, out_w) bool, where an inserted car is visible.
+    :param timings_ms: time spent in this call per part: "warp", "raster", "composite", "lighting", "harmonize".
+    """
+
+    rgb: np.ndarray
+    car_mask: np.ndarray
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+def planar_transforms(q_long_m: np.ndarray, q_lat_m: np.ndarray, q_rot_rad: np.ndarray) -> np.ndarray:
+    """(B, 4, 4) transforms of a planar offset (forward, left, heading) in a vehicle frame."""
+    q_long, q_lat, q_rot = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (q_long_m, q_lat_m, q_rot_rad))
+    T = np.zeros((len(q_long), 4, 4))
+    c, s = np.cos(q_rot), np.sin(q_rot)
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
+    T[:, 2, 2] = T[:, 3, 3] = 1.0
+    T[:, 0, 3], T[:, 1, 3] = q_long, q_lat
+    return T
+
+
+class ViewSynthesizer:
+    """Renders agents' camera views in a world (module docstring).
+
+    :param world: the loaded world. :param config: the view settings.
+    :param device: torch device ("cpu", "cuda"). :param harmonizer: default `StatisticalHarmonizer()`.
+    """
+
+    def __init__(
+        self, world: World, config: ViewConfig | None = None, device: str = "cpu", harmonizer: Harmonizer | None = None
+    ):
+        self.world = world
+        self.config = config = config or ViewConfig()
+        self.device = torch.device(device)
+        self.harmonizer = harmonizer if harmonizer is not None else StatisticalHarmonizer()
+        x0, y0, w, h = config.roi_px
+        if x0 + w > world.width_px or y0 + h > world.height_px:
+            raise ValueError(
+                f"view roi_px {config.roi_px} is not inside the world's {world.width_px}x{world.height_px} image"
+            )
+        sx, sy = config.out_width_px / w, config.out_height_px / h
+        # The region of interest is rendered as an image of its own: intrinsics scaled to the policy's resolution,
+        # principal point shifted by the region's (scaled) corner. Fractional corners are fine.
+        K_scaled = scale_intrinsics(world.K, sx, sy)
+        self.K_view = K_scaled.copy()
+        self.K_view[0, 2] -= x0 * sx
+        self.K_view[1, 2] -= y0 * sy
+        self.K_src = np.asarray(world.K, dtype=np.float64)
+        self.T_vehicle_camera = np.asarray(world.T_vehicle_camera, dtype=np.float64)
+        self.T_camera_vehicle = invert(self.T_vehicle_camera)
+        self._T_world_vehicle = np.asarray(world.path["T_world_vehicle"], dtype=np.float64)
+        self._T_world_camera = np.asarray(world.path["T_world_camera"], dtype=np.float64)
+        self._path_x = np.asarray(world.path["x_m"], dtype=np.float64)
+        self._path_y = np.asarray(world.path["y_m"], dtype=np.float64)
+        self._path_yaw = np.asarray(world.path["yaw_rad"], dtype=np.float64)
+        self.rasterizer = Rasterizer(config.out_width_px, config.out_height_px, self.device, cull_back_faces=True)
+        self._frames: OrderedDict[int, tuple[torch.Tensor, torch.Tensor, np.ndarray]] = OrderedDict()
+        self._packed: dict[int, tuple[Any, PackedScene, PackedScene]] = {}
+        self._frustum_normals = self._frustum_planes()
+
+    # ------------------------------------------------------------------ caches
+    def _frame(self, index: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+        """Recorded frame `index` as (rgb (H, W, 3) uint8, depth (H, W) float32) tensors and its mean colour in [0, 1];
+        the same tensor objects while cached, so the warp's per-source cache hits."""
+        entry = self._frames.get(index)
+        if entry is not None:
+            self._frames.move_to_end(index)
+            return entry
+        rgb_np = np.array(self.world.frames[index], copy=True)
+        rgb = torch.from_numpy(rgb_np).to(self.device)
+        depth = torch.from_numpy(np.array(self.world.depth_m[index], dtype=np.float32, copy=True)).to(self.device)
+        mean_rgb = rgb_np.reshape(-1, 3).mean(axis=0) / 255.0
+        entry = (rgb, depth, mean_rgb)
+        self._frames[index] = entry
+        if len(self._frames) > _FRAME_CACHE_SIZE:
+            self._frames.popitem(last=False)
+        return entry
+
+    def _model_scenes(self, model: Any) -> tuple[PackedScene, PackedScene]:
+        """(full, light) packed meshes of a vehicle model in its own frame, packed once per model object."""
+        entry = self._packed.get(id(model))
+        if entry is None or entry[0] is not model:
+            full = self.rasterizer.pack(list(model.full)) if not isinstance(model.full, PackedScene) else model.full
+            light_meshes = getattr(model, "light", None)
+            light = full if not light_meshes else self.rasterizer.pack(list(light_meshes))
+            entry = (model, full, light)
+            self._packed[id(model)] = entry  # holds the model, so its id stays unique
+        return entry[1], entry[2]
+
+    def _frustum_planes(self) -> np.ndarray:
+        """(4, 3) inward normals of the side planes of the view's frustum (through the optical centre)."""
+        w, h = self.config.out_width_px, self.config.out_height_px
+        corners = np.array([[-0.5, -0.5, 1], [w - 0.5, -0.5, 1], [w - 0.5, h - 0.5, 1], [-0.5, h - 0.5, 1]])
+        rays = corners @ np.linalg.inv(self.K_view).T
+        normals = np.cross(rays, np.roll(rays, -1, axis=0))  # clockwise on screen = inward with y down
+        return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+    # ------------------------------------------------------------------ poses
+    def camera_poses(
+        self, frame_index: np.ndarray, x_m: np.ndarray, y_m: np.ndarray, yaw_rad: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(T_world_vehicle, T_world_camera) of B agents, each on the ground of its associated recorded frame."""
+        f = np.asarray(frame_index, dtype=np.int64)
+        q_lat, q_long, q_rot = relative_pose(
+            np.asarray(x_m, float), np.asarray(y_m, float), np.asarray(yaw_rad, float),
+            self._path_x[f], self._path_y[f], self._path_yaw[f],
+        )  # fmt: skip
+        T_world_vehicle = self._T_world_vehicle[f] @ planar_transforms(q_long, q_lat, q_rot)
+        return T_world_vehicle, T_world_vehicle @ self.T_vehicle_camera
+
+    def _visible(self, T_camera_car: np.ndarray, model: Any) -> bool:
+        """Whether a car's bounding sphere reaches into the view's frustum (and is not too far)."""
+        half_height = 0.5 * float(model.height_m)
+        centre = T_camera_car[:3, :3] @ np.array([0.0, 0.0, half_height]) + T_camera_car[:3, 3]
+        radius = 0.5 * float(np.sqrt(model.length_m**2 + model.width_m**2 + model.height_m**2))
+        if centre[2] + radius < self.rasterizer.near_m or centre[2] - radius > self.config.max_car_distance_m:
+            return False
+        return bool((self._frustum_normals @ centre > -radius).all())
+
+    # ------------------------------------------------------------------ render
+    def render(
+        self,
+        frame_index: np.ndarray,
+        x_m: np.ndarray,
+        y_m: np.ndarray,
+        yaw_rad: np.ndarray,
+        cars: list[list[CarPlacement]],
+    ) -> ViewBatch:
+        """B views: agent b at world pose (x_m[b], y_m[b], yaw_rad[b]) associated with recorded frame frame_index[b],
+        seeing the cars `cars[b]`."""
+        cfg = self.config
+        timings = dict.fromkeys(TIMING_KEYS, 0.0)
+        frame_index = np.atleast_1d(np.asarray(frame_index, dtype=np.int64))
+        B = len(frame_index)
+        if len(cars) != B:
+            raise ValueError(f"got {len(cars)} car lists for {B} views")
+        if (frame_index < 0).any() or (frame_index >= self.world.frame_count).any():
+            raise ValueError(f"frame_index must be in [0, {self.world.frame_count}), got {frame_index.tolist()}")
+        _, T_world_camera = self.camera_poses(frame_index, x_m, y_m, yaw_rad)
+        T_camera_world = invert(T_world_camera)
+
+        start = time.perf_counter()
+        rgb_views, depth_views = [], []
+        for b in range(B):
+            rgb, depth, _ = self._frame(int(frame_index[b]))
+            T_dst_src = T_camera_world[b] @ self._T_world_camera[frame_index[b]]
+            warped = _warp(rgb, depth, self.K_src, T_dst_src, self.K_view, cfg)
+            rgb_views.append(warped.rgb)
+            depth_views.append(warped.depth_m)
+        rgb_out = torch.stack(rgb_views)
+        depth_out = torch.stack(depth_views)
+        timings["warp"] = 1e3 * (time.perf_counter() - start)
+
+        car_mask = torch.zeros((B, cfg.out_height_px, cfg.out_width_px), dtype=torch.bool, device=self.device)
+        start = time.perf_counter()
+        scenes, viewers, lights = [], [], []
+        for b in range(B):
+            placed = self._placed_cars(b, int(frame_index[b]), T_camera_world[b], cars[b])
+            if placed:
+                scenes.append(merge_scenes(placed))
+                viewers.append(b)
+                lights.append(self._lighting(int(frame_index[b])))
+        timings["lighting"] = 1e3 * (time.perf_counter() - start)
+        if viewers:
+            start = time.perf_counter()
+            identity = np.broadcast_to(np.eye(4), (len(viewers), 4, 4))
+            drawn = self.rasterizer.render(scenes, identity, self.K_view, lighting=lights)
+            timings["raster"] = 1e3 * (time.perf_counter() - start)
+            start = time.perf_counter()
+            index = torch.as_tensor(viewers, device=self.device)
+            rgb_c, _, front = composite(rgb_out.index_select(0, index), depth_out.index_select(0, index), drawn)
+            timings["composite"] = 1e3 * (time.perf_counter() - start)
+            if cfg.harmonization and bool(front.any()):
+                start = time.perf_counter()
+                harmonized = self.harmonizer(rgb_c.to(torch.float32) / 255.0, front)
+                rgb_c = torch.where(front[..., None], (harmonized * 255.0 + 0.5).clamp_(0, 255).to(torch.uint8), rgb_c)
+                timings["harmonize"] = 1e3 * (time.perf_counter() - start)
+            rgb_out = rgb_out.index_copy(0, index, rgb_c)
+            car_mask = car_mask.index_copy(0, index, front)
+        return ViewBatch(rgb=rgb_out.cpu().numpy(), car_mask=car_mask.cpu().numpy(), timings_ms=timings)
+
+    def _lighting(self, frame: int) -> Lighting:
+        """Ambient = the scene's mean colour, directional light from the viewpoint at infinity; or unlit colours."""
+        if not self.config.lighting:
+            return Lighting(ambient_rgb=np.ones(3), light_dir_cam=np.array([0.0, 0.0, 1.0]), light_rgb=np.zeros(3))
+        mean_rgb = self._frame(frame)[2]
+        return Lighting(
+            ambient_rgb=mean_rgb,
+            light_dir_cam=np.array([0.0, 0.0, 1.0]),
+            light_rgb=self.config.directional_gain * mean_rgb,
+        )
+
+    def _placed_cars(
+        self, b: int, frame: int, T_camera_world: np.ndarray, cars: list[CarPlacement]
+    ) -> list[PackedScene]:
+        """The visible cars of view b as packed scenes in its camera frame (origin = camera)."""
+        if not cars:
+            return []
+        x = np.array([c.x_m for c in cars], dtype=np.float64)
+        y = np.array([c.y_m for c in cars], dtype=np.float64)
+        yaw = np.array([c.yaw_rad for c in cars], dtype=np.float64)
+        q_lat, q_long, q_rot = relative_pose(x, y, yaw, self._path_x[frame], self._path_y[frame], self._path_yaw[frame])
+        T_camera_car = T_camera_world @ self._T_world_vehicle[frame] @ planar_transforms(q_long, q_lat, q_rot)
+        placed = []
+        fx = float(self.K_view[0, 0])
+        for car, T in zip(cars, T_camera_car, strict=True):
+            if not self._visible(T, car.model):
+                continue
+            full, light = self._model_scenes(car.model)
+            size_px = fx * max(float(car.model.length_m), float(car.model.height_m)) / max(float(T[2, 3]), 0.1)
+            scene = full if size_px >= self.config.full_detail_min_px else light
+            placed.append(scene.transformed(T, object_id=car.object_id))
+        return placed
+
+
+def _warp(
+    rgb: torch.Tensor,
+    depth: torch.Tensor,
+    K_src: np.ndarray,
+    T_dst_src: np.ndarray,
+    K_view: np.ndarray,
+    cfg: ViewConfig,
+) -> WarpResult:
+    """One recorded frame warped into one view (the frame's tensors are cached, so its source constants are too).
+
+    The view is passed as the region of a slightly larger destination image (a margin of _WARP_MARGIN_PX on every
+    side): hole filling then sees the pixels just outside the view, and the warp only transforms the source pixels
+    that can land in it."""
+    m = _WARP_MARGIN_PX
+    K_dst = K_view.copy()
+    K_dst[0, 2] += m
+    K_dst[1, 2] += m
+    w, h = cfg.out_width_px, cfg.out_height_px
+    return forward_warp(
+        rgb, depth, K_src, T_dst_src, K_dst, w + 2 * m + 1, h + 2 * m + 1, roi=(m, m, w, h), fill_holes=cfg.fill_holes
+    )
