@@ -263,7 +263,7 @@ class ViewSynthesizer:
         timings["lighting"] = 1e3 * (time.perf_counter() - start)
         if viewers:
             start = time.perf_counter()
-            identity = np.broadcast_to(np.eye(4), (len(viewers), 4, 4))
+            identity = np.repeat(np.eye(4)[None], len(viewers), axis=0)
             drawn = self.rasterizer.render(scenes, identity, self.K_view, lighting=lights)
             timings["raster"] = 1e3 * (time.perf_counter() - start)
             start = time.perf_counter()

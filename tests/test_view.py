@@ -1,0 +1,284 @@
+"""Each agent's view (sim/view.py) and harmonization (sim/harmonize.py), on a small hand-made world whose geometry is
+known exactly: a flat ground plane in front of a camera 1.6 m high, and a wall 40 m ahead above the horizon."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert, pose_2d
+from drivesim.sim.harmonize import OnnxHarmonizer, StatisticalHarmonizer
+from drivesim.sim.mesh import Material, Mesh
+from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer
+from drivesim.sim.world import World
+
+W_PX, H_PX = 320, 200
+CAMERA_HEIGHT_M = 1.6
+WALL_M = 40.0
+NO_EFFECTS = {"lighting": False, "harmonization": False}
+
+
+def _box(length_m: float, width_m: float, height_m: float, rgb: tuple[float, float, float]) -> Mesh:
+    """A closed box on the ground (z = 0), centred on its footprint, faces counter-clockwise seen from outside."""
+    v = np.array(
+        [
+            [x, y, z]
+            for x in (-length_m / 2, length_m / 2)
+            for y in (-width_m / 2, width_m / 2)
+            for z in (0.0, height_m)
+        ],
+        dtype=np.float32,
+    )  # vertex 4 * ix + 2 * iy + iz
+    faces = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1]]
+    faces += [[2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+    return Mesh(v, np.array(faces, dtype=np.int64), material=Material(diffuse_rgb=rgb, specular_rgb=(0, 0, 0)))
+
+
+@dataclass
+class BoxModel:
+    """Stands in for a vehicle_library.VehicleModel."""
+
+    name: str
+    length_m: float
+    width_m: float
+    height_m: float
+    full: list[Mesh]
+    light: list[Mesh]
+
+
+def box_model(rgb: tuple[float, float, float] = (0.5, 0.25, 0.1), size=(4.0, 1.8, 1.5)) -> BoxModel:
+    return BoxModel("box", *size, [_box(*size, rgb)], [_box(*size, rgb)])
+
+
+def make_world(tmp: Path, rgb_scale=(1.0, 1.0, 1.0), near_wall_left_m: float | None = None, n: int = 4) -> World:
+    """A straight drive along +x, one frame every 2 m, over a textured ground plane."""
+    K = intrinsics_from_hfov(W_PX, H_PX, np.deg2rad(80.0))
+    T_vc = camera_mount(0.0, 0.0, CAMERA_HEIGHT_M)
+    v, u = np.mgrid[0:H_PX, 0:W_PX].astype(np.float64)
+    below = v > K[1, 2] + 0.5
+    depth = np.full((H_PX, W_PX), WALL_M, dtype=np.float32)
+    depth[below] = np.minimum(K[1, 1] * CAMERA_HEIGHT_M / (v[below] - K[1, 2]), WALL_M)
+    rng = np.random.default_rng(0)
+    frames = np.empty((n, H_PX, W_PX, 3), dtype=np.uint8)
+    for i in range(n):
+        base = np.where(below[..., None], [110, 110, 105], [70, 110, 170]).astype(np.float64)
+        base += rng.normal(0, 12, size=base.shape)
+        frames[i] = np.clip(base * np.asarray(rgb_scale), 0, 255).astype(np.uint8)
+    depths = np.repeat(depth[None], n, axis=0)
+    if near_wall_left_m is not None:
+        depths[:, :, : W_PX // 2] = near_wall_left_m
+        frames[:, :, : W_PX // 2] = (20, 200, 20)
+    x = 2.0 * np.arange(n)
+    T_wv = np.stack([pose_2d(xi, 0.0, 0.0) for xi in x])
+    path = {
+        "x_m": x, "y_m": np.zeros(n), "z_m": np.zeros(n), "yaw_rad": np.zeros(n), "speed_mps": np.full(n, 10.0),
+        "curvature_1pm": np.zeros(n), "arc_length_m": x.copy(), "t_ns": np.arange(n) * 200_000_000,
+        "frame_index": np.arange(n), "T_world_vehicle": T_wv, "T_world_camera": T_wv @ T_vc,
+    }  # fmt: skip
+    return World(
+        root=tmp, frames=frames, depth_m=depths, K=K, T_vehicle_camera=T_vc, width_px=W_PX, height_px=H_PX,
+        camera_height_m=CAMERA_HEIGHT_M, path=path, road_width_m=8.0, lane_width_m=3.5, info={"format": 1},
+    )  # fmt: skip
+
+
+def render_one(vs: ViewSynthesizer, cars, frame=0, x=None, y=0.0, yaw=0.0):
+    x = vs.world.path["x_m"][frame] if x is None else x
+    return vs.render(np.array([frame]), np.array([x]), np.array([y]), np.array([yaw]), [cars])
+
+
+def projected_bbox(vs: ViewSynthesizer, model: BoxModel, T_vehicle_car: np.ndarray) -> tuple[float, ...]:
+    """Pixel bounding box (u0, v0, u1, v1) of the car's 8 box corners projected into the view."""
+    L, Wd, H = model.length_m, model.width_m, model.height_m
+    corners = np.array([[x, y, z, 1.0] for x in (-L / 2, L / 2) for y in (-Wd / 2, Wd / 2) for z in (0.0, H)])
+    p = (invert(vs.world.T_vehicle_camera) @ T_vehicle_car @ corners.T)[:3]
+    uv = (vs.K_view @ p)[:2] / p[2]
+    return uv[0].min(), uv[1].min(), uv[0].max(), uv[1].max()
+
+
+def test_car_ahead_at_projected_position_and_size(tmp_path):
+    world = make_world(tmp_path)
+    vs = ViewSynthesizer(world, ViewConfig(**NO_EFFECTS))
+    model = box_model()
+    for ahead_m, lateral_m in ((8.0, 0.0), (12.0, 1.5), (20.0, -2.0)):
+        out = render_one(vs, [CarPlacement(model, ahead_m, lateral_m, 0.0)])
+        mask = out.car_mask[0]
+        rows, cols = np.nonzero(mask)
+        u0, v0, u1, v1 = projected_bbox(vs, model, pose_2d(ahead_m, lateral_m, 0.0))
+        # Pixel centres inside the projected box: first/last covered pixel within half a pixel (+1 for the edge rule).
+        assert abs(cols.min() - u0) <= 1.5 and abs(cols.max() - u1) <= 1.5, (ahead_m, cols.min(), cols.max(), u0, u1)
+        assert abs(rows.min() - v0) <= 1.5 and abs(rows.max() - min(v1, 63)) <= 1.5, (ahead_m, rows.min(), v0)
+        expected_area = (u1 - u0) * (min(v1, 63.5) - v0)
+        assert mask.sum() == pytest.approx(expected_area, rel=0.15)
+
+
+def test_agent_offset_moves_the_car_in_the_view(tmp_path):
+    """The agent 1 m to the left of its recorded frame sees the car 1 m further right, as the projection says."""
+    world = make_world(tmp_path)
+    vs = ViewSynthesizer(world, ViewConfig(**NO_EFFECTS))
+    model = box_model()
+    out = render_one(vs, [CarPlacement(model, 12.0, 0.0, 0.0)], frame=0, x=0.0, y=1.0)
+    cols = np.nonzero(out.car_mask[0])[1]
+    u0, _, u1, _ = projected_bbox(vs, model, pose_2d(12.0, -1.0, 0.0))
+    assert abs(cols.min() - u0) <= 1.5 and abs(cols.max() - u1) <= 1.5
+
+
+def test_occlusion_both_ways(tmp_path):
+    """A recorded surface 6 m away (left half) hides a car at 12 m; the car hides the ground and wall behind it."""
+    world = make_world(tmp_path, near_wall_left_m=6.0)
+    vs = ViewSynthesizer(world, ViewConfig(**NO_EFFECTS))
+    model = box_model(rgb=(0.8, 0.2, 0.2))
+    out = render_one(vs, [CarPlacement(model, 12.0, 0.0, 0.0)])
+    u0, v0, u1, v1 = projected_bbox(vs, model, pose_2d(12.0, 0.0, 0.0))
+    centre_col = vs.config.out_width_px / 2
+    inside = np.zeros_like(out.car_mask[0])
+    inside[int(np.ceil(v0)) + 1 : int(v1), int(np.ceil(u0)) + 1 : int(u1)] = True
+    left, right = inside.copy(), inside.copy()
+    left[:, int(centre_col) - 1 :] = False
+    right[:, : int(centre_col) + 1] = False
+    assert left.any() and right.any()
+    assert not out.car_mask[0][left].any(), "the nearer recorded surface must hide the car"
+    assert np.abs(out.rgb[0][left].astype(int) - (20, 200, 20)).max() <= 1
+    assert out.car_mask[0][right].all(), "the car must hide what is behind it"
+    assert np.abs(out.rgb[0][right].astype(int) - (204, 51, 51)).max() <= 1  # unlit colour, ground hidden
+
+
+def test_lighting_follows_the_scene_mean(tmp_path):
+    model = box_model(rgb=(0.5, 0.5, 0.5))
+    cars = [CarPlacement(model, 10.0, 0.0, 0.0)]
+    bright = make_world(tmp_path, rgb_scale=(1.0, 1.0, 1.0))
+    reddish = make_world(tmp_path, rgb_scale=(1.0, 0.5, 0.5))
+    cfg = ViewConfig(harmonization=False)
+    views = [render_one(ViewSynthesizer(w, cfg), cars) for w in (bright, reddish)]
+    car = [v.rgb[0][v.car_mask[0]].astype(float).mean(axis=0) for v in views]
+    mean_bright = bright.frames[0].reshape(-1, 3).mean(0) / 255
+    mean_red = reddish.frames[0].reshape(-1, 3).mean(0) / 255
+    # A grey car lit by ambient = mean and directional = gain * mean: its colour is proportional to the scene mean.
+    for c in range(3):
+        assert car[1][c] / car[0][c] == pytest.approx(mean_red[c] / mean_bright[c], rel=0.03)
+    # The rear face (normal toward the viewer) gets 0.5 * mean * (1 + gain).
+    assert car[0] == pytest.approx(255 * 0.5 * mean_bright * (1 + cfg.directional_gain), rel=0.05)
+
+
+def test_harmonization_moves_car_statistics_toward_surroundings(tmp_path):
+    world = make_world(tmp_path, rgb_scale=(0.6, 0.7, 1.0))
+    model = box_model(rgb=(0.9, 0.9, 0.1))
+    cars = [CarPlacement(model, 10.0, 0.0, 0.0)]
+    plain = render_one(ViewSynthesizer(world, ViewConfig(harmonization=False)), cars)
+    harmonized = render_one(ViewSynthesizer(world, ViewConfig(harmonization=True)), cars)
+    mask = plain.car_mask[0]
+    assert (harmonized.car_mask[0] == mask).all()
+    assert (harmonized.rgb[0][~mask] == plain.rgb[0][~mask]).all(), "only the car may change"
+    ring = torch.nn.functional.max_pool2d(torch.from_numpy(mask)[None, None].float(), 13, 1, 6)[0, 0].bool().numpy()
+    ring &= ~mask
+    surroundings = plain.rgb[0][ring].astype(float).mean(0)
+    before = np.abs(plain.rgb[0][mask].astype(float).mean(0) - surroundings).sum()
+    after = np.abs(harmonized.rgb[0][mask].astype(float).mean(0) - surroundings).sum()
+    assert after < 0.8 * before
+
+
+def test_statistical_harmonizer_leaves_views_without_a_car_alone():
+    rgb = torch.rand(2, 8, 10, 3)
+    mask = torch.zeros(2, 8, 10, dtype=torch.bool)
+    mask[0, 2:5, 3:6] = True
+    out = StatisticalHarmonizer()(rgb, mask)
+    assert torch.equal(out[1], rgb[1]) and torch.equal(out[0][~mask[0]], rgb[0][~mask[0]])
+    assert not torch.equal(out[0][mask[0]], rgb[0][mask[0]])
+
+
+def _onnx_half(path: Path, two_inputs: bool) -> None:
+    """A tiny harmonization graph: output = 0.5 * image (of the 4-channel input, or of the image input)."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    half = helper.make_tensor("half", TensorProto.FLOAT, [], [0.5])
+    if two_inputs:
+        inputs = [helper.make_tensor_value_info("image", TensorProto.FLOAT, ["B", 3, "H", "W"]),
+                  helper.make_tensor_value_info("mask", TensorProto.FLOAT, ["B", 1, "H", "W"])]  # fmt: skip
+        nodes = [helper.make_node("Mul", ["image", "half"], ["out"])]
+        inits = [half]
+    else:
+        inputs = [helper.make_tensor_value_info("composite", TensorProto.FLOAT, ["B", 4, "H", "W"])]
+        starts = helper.make_tensor("starts", TensorProto.INT64, [1], [0])
+        ends = helper.make_tensor("ends", TensorProto.INT64, [1], [3])
+        axes = helper.make_tensor("axes", TensorProto.INT64, [1], [1])
+        nodes = [helper.make_node("Slice", ["composite", "starts", "ends", "axes"], ["rgb"]),
+                 helper.make_node("Mul", ["rgb", "half"], ["out"])]  # fmt: skip
+        inits = [half, starts, ends, axes]
+    output = helper.make_tensor_value_info("out", TensorProto.FLOAT, ["B", 3, "H", "W"])
+    graph = helper.make_graph(nodes, "half", inputs, [output], initializer=inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.checker.check_model(model)
+    onnx.save(model, path)
+
+
+@pytest.mark.parametrize("two_inputs", [False, True])
+def test_onnx_harmonizer_applies_the_graph_under_the_mask(tmp_path, two_inputs):
+    path = tmp_path / "harmonizer.onnx"
+    _onnx_half(path, two_inputs)
+    harmonizer = OnnxHarmonizer(path)
+    rgb = torch.rand(2, 6, 7, 3)
+    mask = torch.rand(2, 6, 7) > 0.5
+    out = harmonizer(rgb, mask)
+    assert torch.allclose(out[mask], 0.5 * rgb[mask]) and torch.equal(out[~mask], rgb[~mask])
+    # Plugged into the view.
+    world = make_world(tmp_path)
+    view = render_one(
+        ViewSynthesizer(world, ViewConfig(), harmonizer=harmonizer), [CarPlacement(box_model(), 10, 0, 0)]
+    )
+    plain = render_one(ViewSynthesizer(world, ViewConfig(harmonization=False)), [CarPlacement(box_model(), 10, 0, 0)])
+    m = view.car_mask[0]
+    assert np.abs(view.rgb[0][m].astype(float) - 0.5 * plain.rgb[0][m]).max() <= 1.0
+
+
+def test_onnx_harmonizer_bad_file_is_one_line(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no such harmonization model"):
+        OnnxHarmonizer(tmp_path / "missing.onnx")
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"not a graph")
+    with pytest.raises(ValueError, match="not a usable ONNX model"):
+        OnnxHarmonizer(bad)
+
+
+def _batch_request(world: World):
+    model_a, model_b = box_model((0.2, 0.3, 0.8)), box_model((0.7, 0.7, 0.2), size=(5.0, 2.0, 1.9))
+    frames = np.array([0, 1, 2])
+    x = np.array([0.3, 2.5, 3.6])
+    y = np.array([0.0, -0.6, 0.8])
+    yaw = np.array([0.0, 0.05, -0.08])
+    cars = [
+        [CarPlacement(model_a, 10.0, 0.5, 0.1)],
+        [],
+        [CarPlacement(model_a, 14.0, 1.0, 0.0), CarPlacement(model_b, 18.0, -2.0, -0.2, object_id=2)],
+    ]
+    return frames, x, y, yaw, cars
+
+
+def test_same_inputs_same_bytes_and_batch_equals_one_by_one(tmp_path):
+    world = make_world(tmp_path)
+    frames, x, y, yaw, cars = _batch_request(world)
+    batch = ViewSynthesizer(world).render(frames, x, y, yaw, cars)
+    again = ViewSynthesizer(world).render(frames, x, y, yaw, cars)
+    assert batch.rgb.tobytes() == again.rgb.tobytes() and (batch.car_mask == again.car_mask).all()
+    assert batch.car_mask[0].any() and not batch.car_mask[1].any() and batch.car_mask[2].any()
+    vs = ViewSynthesizer(world)
+    for b in range(len(frames)):
+        one = vs.render(frames[b : b + 1], x[b : b + 1], y[b : b + 1], yaw[b : b + 1], cars[b : b + 1])
+        assert one.rgb[0].tobytes() == batch.rgb[b].tobytes(), b
+        assert (one.car_mask[0] == batch.car_mask[b]).all()
+    assert set(batch.timings_ms) == {"warp", "raster", "composite", "lighting", "harmonize"}
+
+
+def test_bad_requests_are_one_line(tmp_path):
+    world = make_world(tmp_path)
+    with pytest.raises(ValueError, match="not inside the world's 320x200 image"):
+        ViewSynthesizer(world, ViewConfig(roi_px=(100, 100, 320, 128)))
+    vs = ViewSynthesizer(world)
+    with pytest.raises(ValueError, match="frame_index must be in"):
+        vs.render(np.array([9]), np.zeros(1), np.zeros(1), np.zeros(1), [[]])
+    with pytest.raises(ValueError, match="car lists"):
+        vs.render(np.array([0]), np.zeros(1), np.zeros(1), np.zeros(1), [])
