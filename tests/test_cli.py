@@ -36,7 +36,7 @@ def test_help_lists_every_stage(tmp_path: Path) -> None:
 
 
 def test_unbuilt_stage_says_so_and_exits_2(tmp_path: Path) -> None:
-    result = _drivesim("train", "overtake", cwd=tmp_path)
+    result = _drivesim("meshes", "build", cwd=tmp_path)  # the one command still to be built (MESHES)
     assert result.returncode == 2
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "not built yet" in lines[0]
