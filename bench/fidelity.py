@@ -26,7 +26,8 @@ from skimage.metrics import structural_similarity
 from drivesim.pipeline.errors import ConfigError
 from drivesim.sim.geometry import invert, pose_2d, scale_intrinsics
 from drivesim.sim.warp import forward_warp
-from drivesim.stages.preprocess.depth import DepthConfig, estimate_depth
+from drivesim.stages.preprocess.config import DepthConfig
+from drivesim.stages.preprocess.depth import estimate_depth
 from drivesim.stages.synth.config import DriveConfig, SynthConfig
 from drivesim.stages.synth.drive import Trajectory, arc_length_at
 from drivesim.stages.synth.world import SynthWorld

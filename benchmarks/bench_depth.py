@@ -52,7 +52,8 @@ def _peak_rss_mb() -> float:
 def _worker(folder: Path, method: str, overrides: list[str]) -> None:
     """Run one method on the rendered drive; print a JSON line with its timing and peak RSS."""
     from drivesim.pipeline.config import load_config
-    from drivesim.stages.preprocess.depth import DepthConfig, estimate_depth
+    from drivesim.stages.preprocess.config import DepthConfig
+    from drivesim.stages.preprocess.depth import estimate_depth
 
     cfg = load_config(DepthConfig, overrides=[f"method={method}", *overrides])
     frames = np.load(folder / "frames.npy", mmap_mode="r")

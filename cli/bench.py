@@ -15,7 +15,7 @@ from drivesim.cli.common import ConfigOption, SetOption, console, workspace
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError
 from drivesim.pipeline.progress import progress_bar
-from drivesim.stages.preprocess.depth import DepthConfig
+from drivesim.stages.preprocess.config import DepthConfig
 
 bench_app = typer.Typer(no_args_is_help=True)
 

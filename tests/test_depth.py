@@ -16,7 +16,8 @@ from pydantic import ValidationError
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError, InputError
 from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, pose_2d
-from drivesim.stages.preprocess.depth import DepthConfig, estimate_depth
+from drivesim.stages.preprocess.config import DepthConfig
+from drivesim.stages.preprocess.depth import estimate_depth
 from drivesim.stages.preprocess.depth_lidar import densify, project_points
 from drivesim.stages.preprocess.depth_plane import pixel_rays
 

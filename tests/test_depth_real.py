@@ -8,7 +8,8 @@ import pytest
 from cli_helpers import REAL_DATA
 
 from drivesim.sim.geometry import camera_mount, invert
-from drivesim.stages.preprocess.depth import DepthConfig, estimate_depth
+from drivesim.stages.preprocess.config import DepthConfig
+from drivesim.stages.preprocess.depth import estimate_depth
 
 REAL = REAL_DATA
 KITTI = REAL / "kitti_odometry_straight"

@@ -19,7 +19,7 @@ from drivesim.sim.geometry import invert
 from drivesim.stages.preprocess.depth_plane import plane_depth
 
 if TYPE_CHECKING:
-    from drivesim.stages.preprocess.depth import DepthConfig
+    from drivesim.stages.preprocess.config import DepthConfig
 
 
 def project_points(

@@ -36,7 +36,7 @@ from drivesim.sim.geometry import invert, scale_intrinsics
 from drivesim.stages.preprocess.depth_plane import pixel_rays, plane_depth
 
 if TYPE_CHECKING:
-    from drivesim.stages.preprocess.depth import DepthConfig, MvsConfig
+    from drivesim.stages.preprocess.config import DepthConfig, MvsConfig
 
 _EPS_VAR = 1e-4  # grey levels are in [0, 1]; variance below ~(1 % grey)^2 means no texture to match
 _RANGE_SIGMA = 12.0 / 255.0  # colour difference (0-1 scale) at which the upsampling weight falls to exp(-1/2)
