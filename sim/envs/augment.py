@@ -1,0 +1,46 @@
+"""Episode-level photometric augmentation of the uint8 observation: gamma, brightness, contrast, saturation."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class Augmentation:
+    """One episode's draw; `apply` maps (..., 3) uint8 images."""
+
+    gamma: float = 1.0
+    brightness: float = 0.0
+    contrast: float = 1.0
+    saturation: float = 1.0
+
+    @classmethod
+    def sample(cls, rng: np.random.Generator, gamma, brightness, contrast, saturation) -> Augmentation:  # noqa: ANN001
+        """A draw from the given (low, high) ranges."""
+        return cls(*(float(rng.uniform(*r)) for r in (gamma, brightness, contrast, saturation)))
+
+    def __post_init__(self) -> None:
+        # Gamma, brightness and contrast act per channel value: one 256-entry table, applied by indexing.
+        v = np.arange(256, dtype=np.float32) / 255.0
+        v = v**self.gamma + self.brightness
+        v = (v - 0.5) * self.contrast + 0.5
+        self._lut = np.clip(np.rint(v * 255.0), 0, 255).astype(np.uint8)
+
+    @property
+    def identity(self) -> bool:
+        """True when it changes nothing."""
+        return self.gamma == 1.0 and self.brightness == 0.0 and self.contrast == 1.0 and self.saturation == 1.0
+
+    def apply(self, rgb: np.ndarray) -> np.ndarray:
+        """The augmented image (same shape, uint8)."""
+        if self.identity:
+            return rgb
+        out = self._lut[rgb]
+        if self.saturation != 1.0:
+            f = out.astype(np.float32)
+            grey = f @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+            f = grey[..., None] + self.saturation * (f - grey[..., None])
+            out = np.clip(f, 0, 255).astype(np.uint8)
+        return out

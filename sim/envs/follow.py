@@ -1,0 +1,47 @@
+"""drivesim/Follow-v0: follow a front car that changes lanes at random."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from drivesim.sim.agents import LateralProfile, ReferencePath
+from drivesim.sim.envs.base import DrivingEnv
+
+
+class FollowEnv(DrivingEnv):
+    """Car following (paper §III-C): track the trajectory of a front car that changes lanes.
+
+    ## Action and observation spaces
+    As drivesim/Lane-v0 (normalized steering curvature; the (3, h, w) uint8 camera region of interest), with the
+    front car inserted into the view.
+
+    ## Rewards
+    lane = weight_lane · (1 - (e / Z_lat)²) with e the ego's lateral distance from the front car's path
+    (info["state"]["tracking_error_m"]); collision = weight_collision · -|Dilate(P_ego) ∩ P_other| / |P_ego|;
+    comfort = -weight_comfort · |δ̈|; pass = 0.
+
+    ## Start state
+    The ego as in Lane-v0; the front car front_distance_m ahead and front_lateral_m to a random side, heading
+    along the road; both at one common speed drawn from follow_speed_mps. The front car drives with pure pursuit
+    (pursuit_gain, pursuit_lookahead_m) on a path that changes between its start offset, the lane centre and the
+    mirrored offset at random places.
+
+    ## Episode end
+    As Lane-v0, plus collision: the undilated footprints overlap by more than 5 % of the ego's area in training
+    (0 % in evaluation). info["success"]: ended without an intervention.
+    """
+
+    task = "follow"
+    has_other = True
+
+    def _speeds(self, rng: np.random.Generator) -> tuple[float, float]:
+        speed = float(rng.uniform(*self.config.follow_speed_mps))
+        return speed, speed
+
+    def _other_profile(
+        self, rng: np.random.Generator, arc_m: float, lateral_m: float, ref: ReferencePath
+    ) -> LateralProfile:
+        return LateralProfile.lane_changes(rng, arc_m, ref.end_m, (lateral_m, 0.0, -lateral_m), lateral_m)
+
+    def _lane_error(self) -> float:
+        return self._m["tracking_error_m"]
