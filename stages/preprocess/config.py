@@ -7,7 +7,64 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from drivesim.pipeline.config import StageConfig
-from drivesim.stages.preprocess.poses import PoseConfig
+
+PoseSource = Literal["auto", "gps_imu", "odometry", "given", "sfm", "ground_truth"]
+
+
+class PoseConfig(StageConfig):
+    """How per-frame poses are estimated."""
+
+    source: PoseSource = "auto"
+    """Pose source. auto: given poses > GPS (+IMU, +speed) > odometry > error. ground_truth (synthetic drives) and
+    sfm (camera-only, slow) are used only when asked for."""
+    gps_max_std_m: float = Field(10.0, gt=0)
+    """Fixes whose horizontal position std exceeds this (m) are dropped before fusion."""
+    gps_min_std_m: float = Field(0.02, gt=0)
+    """Floor on a fix's position std (m), so an over-confident receiver cannot pin the track."""
+    gps_default_std_m: float = Field(3.0, gt=0)
+    """Position std (m) assumed for fixes whose covariance is unknown (covariance_type 0)."""
+    gps_gate_chi2: float = Field(13.8, gt=0)
+    """Mahalanobis gate for fixes (chi-square, 2 dof; 13.8 = 99.9 %); farther fixes are outliers."""
+    gps_gate_reset_s: float = Field(5.0, gt=0)
+    """When every fix has been gated out for this long (s), the filter re-accepts fixes (it, not the GPS, drifted)."""
+    accel_std_mps2: float = Field(1.0, gt=0)
+    """Process noise: std of unmodelled longitudinal acceleration (m/s^2 per sqrt(Hz))."""
+    yaw_accel_std_radps2: float = Field(0.5, gt=0)
+    """Process noise: std of unmodelled yaw acceleration (rad/s^2 per sqrt(Hz))."""
+    position_walk_m_per_sqrt_s: float = Field(0.05, ge=0)
+    """Process noise: position random walk for what CTRV does not model (slip, bumps) (m/sqrt(s))."""
+    gyro_bias_init_std_radps: float = Field(0.01, ge=0)
+    """Prior std of the gyro's yaw-rate bias (rad/s); the filter estimates the bias."""
+    gyro_bias_walk_radps_per_sqrt_s: float = Field(1e-4, ge=0)
+    """Random walk of the gyro bias (rad/s/sqrt(s))."""
+    imu_yaw_rate_std_radps: float = Field(0.01, gt=0)
+    """Noise of one averaged IMU yaw-rate measurement (rad/s), i.e. one update at imu_rate_hz."""
+    odometry_yaw_rate_std_radps: float = Field(0.05, gt=0)
+    """Noise of odometry yaw rate (rad/s), used only without an IMU (wheel yaw rates slip)."""
+    speed_std_mps: float = Field(0.1, gt=0)
+    """Noise of one averaged speed measurement (m/s)."""
+    imu_rate_hz: float = Field(25.0, gt=0)
+    """IMU and speed samples are averaged into bins at this rate before fusion (Hz): a 1-hour drive at 100 Hz
+    runs in seconds, and averaging loses little the CTRV model can use at 25 Hz."""
+    smoothing: bool = True
+    """Run the RTS smoother after the filter (off: the causal filter estimate)."""
+    use_imu_tilt: bool = True
+    """Roll and pitch of T_world_vehicle from the IMU's orientation where it gives one (else level); the heading
+    always comes from the fusion."""
+    use_altitude: bool = True
+    """z from the smoothed GPS altitude (else 0)."""
+    altitude_smoothing_s: float = Field(2.0, ge=0)
+    """Gaussian smoothing of the altitude over time (s, sigma)."""
+    curvature_min_speed_mps: float = Field(1.0, gt=0)
+    """Curvature regularisation speed v0 (m/s): curvature is fitted as yaw_rate = kappa*speed over the samples near
+    each point with a prior kappa = 0 worth a sample at v0/10 each, so stops take the road's curvature from their
+    neighbours and crawls cannot blow it up (unsmoothed: yaw_rate*v/(v^2+v0^2))."""
+    curvature_smoothing_m: float = Field(2.0, ge=0)
+    """Gaussian smoothing of the curvature along the arc length (m, sigma)."""
+    sfm_scale_m: float | None = Field(None, gt=0)
+    """Camera-only SfM: the metric length of the camera path over the sequence (m), when there is no speed series."""
+    sfm_image_width_px: int = Field(640, ge=64)
+    """Camera-only SfM: frames are resized to at most this width (px) before feature extraction."""
 
 
 class MvsConfig(StageConfig):

@@ -7,82 +7,23 @@ the pose source (odometry frame, or the first vehicle pose for given camera pose
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
-from pydantic import Field
 from pyproj import Transformer
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation, Slerp
 
-from drivesim.pipeline.config import StageConfig
 from drivesim.pipeline.errors import InputError
 from drivesim.sim.geometry import invert, wrap_angle
 from drivesim.stages.preprocess import ekf
+from drivesim.stages.preprocess.config import PoseConfig
 from drivesim.stages.preprocess.series import GpsSeries, SensorSeries
-
-PoseSource = Literal["auto", "gps_imu", "odometry", "given", "sfm", "ground_truth"]
 
 NO_SOURCE_MESSAGE = (
     "no GPS, odometry or given poses in the trace; set poses.source=sfm with poses.sfm_scale_m or a speed series"
 )
-
-
-class PoseConfig(StageConfig):
-    """How per-frame poses are estimated."""
-
-    source: PoseSource = "auto"
-    """Pose source. auto: given poses > GPS (+IMU, +speed) > odometry > error. ground_truth (synthetic drives) and
-    sfm (camera-only, slow) are used only when asked for."""
-    gps_max_std_m: float = Field(10.0, gt=0)
-    """Fixes whose horizontal position std exceeds this (m) are dropped before fusion."""
-    gps_min_std_m: float = Field(0.02, gt=0)
-    """Floor on a fix's position std (m), so an over-confident receiver cannot pin the track."""
-    gps_default_std_m: float = Field(3.0, gt=0)
-    """Position std (m) assumed for fixes whose covariance is unknown (covariance_type 0)."""
-    gps_gate_chi2: float = Field(13.8, gt=0)
-    """Mahalanobis gate for fixes (chi-square, 2 dof; 13.8 = 99.9 %); farther fixes are outliers."""
-    gps_gate_reset_s: float = Field(5.0, gt=0)
-    """When every fix has been gated out for this long (s), the filter re-accepts fixes (it, not the GPS, drifted)."""
-    accel_std_mps2: float = Field(1.0, gt=0)
-    """Process noise: std of unmodelled longitudinal acceleration (m/s^2 per sqrt(Hz))."""
-    yaw_accel_std_radps2: float = Field(0.5, gt=0)
-    """Process noise: std of unmodelled yaw acceleration (rad/s^2 per sqrt(Hz))."""
-    position_walk_m_per_sqrt_s: float = Field(0.05, ge=0)
-    """Process noise: position random walk for what CTRV does not model (slip, bumps) (m/sqrt(s))."""
-    gyro_bias_init_std_radps: float = Field(0.01, ge=0)
-    """Prior std of the gyro's yaw-rate bias (rad/s); the filter estimates the bias."""
-    gyro_bias_walk_radps_per_sqrt_s: float = Field(1e-4, ge=0)
-    """Random walk of the gyro bias (rad/s/sqrt(s))."""
-    imu_yaw_rate_std_radps: float = Field(0.01, gt=0)
-    """Noise of one averaged IMU yaw-rate measurement (rad/s), i.e. one update at imu_rate_hz."""
-    odometry_yaw_rate_std_radps: float = Field(0.05, gt=0)
-    """Noise of odometry yaw rate (rad/s), used only without an IMU (wheel yaw rates slip)."""
-    speed_std_mps: float = Field(0.1, gt=0)
-    """Noise of one averaged speed measurement (m/s)."""
-    imu_rate_hz: float = Field(25.0, gt=0)
-    """IMU and speed samples are averaged into bins at this rate before fusion (Hz): a 1-hour drive at 100 Hz
-    runs in seconds, and averaging loses little the CTRV model can use at 25 Hz."""
-    smoothing: bool = True
-    """Run the RTS smoother after the filter (off: the causal filter estimate)."""
-    use_imu_tilt: bool = True
-    """Roll and pitch of T_world_vehicle from the IMU's orientation where it gives one (else level); the heading
-    always comes from the fusion."""
-    use_altitude: bool = True
-    """z from the smoothed GPS altitude (else 0)."""
-    altitude_smoothing_s: float = Field(2.0, ge=0)
-    """Gaussian smoothing of the altitude over time (s, sigma)."""
-    curvature_min_speed_mps: float = Field(1.0, gt=0)
-    """Curvature regularisation speed v0 (m/s): curvature is fitted as yaw_rate = kappa*speed over the samples near
-    each point with a prior kappa = 0 worth a sample at v0/10 each, so stops take the road's curvature from their
-    neighbours and crawls cannot blow it up (unsmoothed: yaw_rate*v/(v^2+v0^2))."""
-    curvature_smoothing_m: float = Field(2.0, ge=0)
-    """Gaussian smoothing of the curvature along the arc length (m, sigma)."""
-    sfm_scale_m: float | None = Field(None, gt=0)
-    """Camera-only SfM: the metric length of the camera path over the sequence (m), when there is no speed series."""
-    sfm_image_width_px: int = Field(640, ge=64)
-    """Camera-only SfM: frames are resized to at most this width (px) before feature extraction."""
 
 
 @dataclass
@@ -587,6 +528,17 @@ def given_track(series: SensorSeries, frame_times_ns: np.ndarray, cfg: PoseConfi
 # ---------------------------------------------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class PoseInputs:
+    """What a pose source may read: the trace's series and frame times, and for sfm its frames and intrinsics."""
+
+    series: SensorSeries
+    frame_times_ns: np.ndarray
+    frames: np.ndarray | None
+    K: np.ndarray | None
+    T_vehicle_camera: np.ndarray
+
+
 def estimate_poses(
     series: SensorSeries,
     frame_times_ns: np.ndarray,
@@ -605,49 +557,62 @@ def estimate_poses(
     if len(frame_times_ns) == 0:
         raise InputError("the trace has no frames to estimate poses for")
     T_vc = np.eye(4) if T_vehicle_camera is None else np.asarray(T_vehicle_camera, dtype=float)
-    source = cfg.source
-    if source == "auto":
-        if series.given_poses is not None:
-            source = "given"
-        elif series.gps is not None and len(_gps_enu(series.gps, cfg)[0]) > 0:
-            source = "gps_imu"
-        elif series.odometry is not None:
-            source = "odometry"
-        else:
-            raise InputError(NO_SOURCE_MESSAGE)
-    if source == "given":
-        return given_track(series, frame_times_ns, cfg, T_vc)
-    if source == "gps_imu":
-        return fuse_gps_imu(series, frame_times_ns, cfg)
-    if source == "odometry":
-        return odometry_track(series, frame_times_ns, cfg)
-    if source == "ground_truth":
-        gt = series.ground_truth
-        if gt is None or len(gt.t_ns) == 0:
-            raise InputError("source ground_truth needs ground_truth.npz (synthetic recordings only)")
-        return track_poses(gt.t_ns, gt.T_world_vehicle, frame_times_ns, "ground_truth", cfg)
-    if source == "sfm":
-        if frames is None or K is None:
-            raise InputError("source sfm needs the trace's frames and intrinsics")
-        from drivesim.stages.preprocess.sfm import sfm_poses  # pycolmap is slow to import; only load it when used
+    inputs = PoseInputs(series, frame_times_ns, frames, K, T_vc)
+    source = cfg.source if cfg.source != "auto" else _auto_source(series, cfg)
+    return POSE_SOURCES[source](inputs, cfg)
 
-        speed = (series.speed.t_ns, series.speed.speed_mps) if series.speed is not None else None
-        if speed is None and series.odometry is not None:
-            speed = (series.odometry.t_ns, series.odometry.linear_velocity_mps[:, 0])
-        return sfm_poses(
-            frames,
-            K,
-            frame_times_ns,
-            speed,
-            cfg.sfm_scale_m,
-            T_vc,
-            max_width_px=cfg.sfm_image_width_px,
-            cfg=cfg,
-        )
-    raise InputError(f"unknown pose source {source!r}")
+
+def _auto_source(series: SensorSeries, cfg: PoseConfig) -> str:
+    """auto: given poses, else GPS (+IMU, +speed), else odometry."""
+    if series.given_poses is not None:
+        return "given"
+    if series.gps is not None and len(_gps_enu(series.gps, cfg)[0]) > 0:
+        return "gps_imu"
+    if series.odometry is not None:
+        return "odometry"
+    raise InputError(NO_SOURCE_MESSAGE)
+
+
+def _ground_truth(inputs: PoseInputs, cfg: PoseConfig) -> FusedPoses:
+    gt = inputs.series.ground_truth
+    if gt is None or len(gt.t_ns) == 0:
+        raise InputError("source ground_truth needs ground_truth.npz (synthetic recordings only)")
+    return track_poses(gt.t_ns, gt.T_world_vehicle, inputs.frame_times_ns, "ground_truth", cfg)
+
+
+def _sfm(inputs: PoseInputs, cfg: PoseConfig) -> FusedPoses:
+    if inputs.frames is None or inputs.K is None:
+        raise InputError("source sfm needs the trace's frames and intrinsics")
+    from drivesim.stages.preprocess.sfm import sfm_track  # pycolmap is slow to import; only load it when used
+
+    series = inputs.series
+    speed = (series.speed.t_ns, series.speed.speed_mps) if series.speed is not None else None
+    if speed is None and series.odometry is not None:
+        speed = (series.odometry.t_ns, series.odometry.linear_velocity_mps[:, 0])
+    t_ns, T_world_vehicle = sfm_track(
+        inputs.frames,
+        inputs.K,
+        inputs.frame_times_ns,
+        speed,
+        cfg.sfm_scale_m,
+        inputs.T_vehicle_camera,
+        max_width_px=cfg.sfm_image_width_px,
+    )
+    return track_poses(t_ns, T_world_vehicle, inputs.frame_times_ns, "sfm", cfg, speed=speed)
+
+
+# poses.source -> the function that estimates the poses from it (the one place that dispatches on the name).
+POSE_SOURCES: dict[str, Callable[[PoseInputs, PoseConfig], FusedPoses]] = {
+    "given": lambda inputs, cfg: given_track(inputs.series, inputs.frame_times_ns, cfg, inputs.T_vehicle_camera),
+    "gps_imu": lambda inputs, cfg: fuse_gps_imu(inputs.series, inputs.frame_times_ns, cfg),
+    "odometry": lambda inputs, cfg: odometry_track(inputs.series, inputs.frame_times_ns, cfg),
+    "ground_truth": _ground_truth,
+    "sfm": _sfm,
+}
 
 
 __all__ = [
+    "POSE_SOURCES",
     "FusedPoses",
     "PoseConfig",
     "camera_poses",

@@ -8,16 +8,12 @@ from __future__ import annotations
 
 import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from drivesim.pipeline.errors import InputError
 from drivesim.sim.geometry import invert, scale_intrinsics
-
-if TYPE_CHECKING:  # poses imports this module lazily; a runtime import back would be circular
-    from drivesim.stages.preprocess.poses import FusedPoses, PoseConfig
 
 SCALE_HINT = (
     "SfM recovers the path only up to scale: set poses.sfm_scale_m (the camera's path length in metres) "
@@ -125,7 +121,7 @@ def metric_scale(
     return metric_length / sfm_length
 
 
-def sfm_poses(
+def sfm_track(
     frames: np.ndarray,
     K: np.ndarray,
     frame_times_ns: np.ndarray,
@@ -133,18 +129,14 @@ def sfm_poses(
     scale_m: float | None,
     T_vehicle_camera: np.ndarray,
     max_width_px: int = 640,
-    cfg: PoseConfig | None = None,
-) -> FusedPoses:
-    """Per-frame vehicle poses from the images alone, in metres (source "sfm").
+) -> tuple[np.ndarray, np.ndarray]:
+    """The vehicle's metric track from the images alone: (t_ns (M,), T_world_vehicle (M, 4, 4)) of the registered
+    frames, world = the first registered vehicle pose (the pose source "sfm" turns it into per-frame poses).
 
     :param speed: (t_ns, speed_mps) to scale the path, or None.
     :param scale_m: the camera's path length over the sequence (m), used instead of the speed when given.
-    :param cfg: the PoseConfig (curvature settings); defaults when None.
     :raises InputError: no scale source, or the reconstruction failed or registered under half of the frames.
     """
-    from drivesim.stages.preprocess.poses import PoseConfig, track_poses
-
-    cfg = cfg if cfg is not None else PoseConfig()
     if scale_m is None and (speed is None or len(speed[0]) == 0):
         raise InputError(SCALE_HINT)  # before spending minutes on the reconstruction
     frame_times_ns = np.asarray(frame_times_ns, dtype=np.int64)
@@ -159,4 +151,4 @@ def sfm_poses(
     T_camera_vehicle = invert(np.asarray(T_vehicle_camera, dtype=float))
     T_sfm_vehicle = T_sfm_camera @ T_camera_vehicle
     T_world_vehicle = invert(T_sfm_vehicle[0]) @ T_sfm_vehicle
-    return track_poses(t_ns, T_world_vehicle, frame_times_ns, "sfm", cfg, speed=speed)
+    return t_ns, T_world_vehicle
