@@ -45,9 +45,23 @@ class StatisticalHarmonizer:
 
     def __call__(self, rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Harmonized copy of `rgb` (B, h, w, 3) float [0, 1] under `mask` (B, h, w) bool."""
+        rows = mask.any(dim=2).any(dim=0).nonzero()
+        cols = mask.any(dim=1).any(dim=0).nonzero()
+        if rows.numel() == 0:
+            return rgb
+        # Only the box around all masks (plus the ring) matters: the rest of the images is left as it is.
+        r = self.ring_px
+        y0, y1 = max(int(rows[0]) - r, 0), int(rows[-1]) + r + 1
+        x0, x1 = max(int(cols[0]) - r, 0), int(cols[-1]) + r + 1
+        out = rgb.clone()
+        out[:, y0:y1, x0:x1] = self._harmonize(rgb[:, y0:y1, x0:x1], mask[:, y0:y1, x0:x1])
+        return out
+
+    def _harmonize(self, rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         m = mask.to(rgb.dtype)[:, None]  # (B, 1, h, w)
-        k = 2 * self.ring_px + 1
-        ring = (max_pool2d(m, k, stride=1, padding=self.ring_px) - m)[:, 0]  # (B, h, w) 1 in the ring
+        k, r = 2 * self.ring_px + 1, self.ring_px
+        dilated = max_pool2d(max_pool2d(m, (1, k), stride=1, padding=(0, r)), (k, 1), stride=1, padding=(r, 0))
+        ring = (dilated - m)[:, 0]  # (B, h, w) 1 in the ring (a square structuring element)
         m = m[:, 0]
 
         def stats(weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

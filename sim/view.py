@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import pydantic
 import torch
+from torch.nn.functional import avg_pool2d, max_pool2d
 
 from drivesim.sim.geometry import invert, scale_intrinsics
 from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer
@@ -39,7 +40,7 @@ from drivesim.sim.world import World, relative_pose
 __all__ = ["CarPlacement", "ViewBatch", "ViewConfig", "ViewSynthesizer", "planar_transforms"]
 
 TIMING_KEYS = ("warp", "raster", "composite", "lighting", "harmonize")
-_FRAME_CACHE_SIZE = 16
+_FRAME_CACHE_SIZE = 2048  # recorded frames kept as tensors (about 0.1 MB each at the default view)
 _WARP_MARGIN_PX = 3
 
 
@@ -62,13 +63,17 @@ class ViewConfig(pydantic.BaseModel):
     """Harmonize inserted cars toward their surroundings (the harmonizer; statistical by default)."""
     directional_gain: float = pydantic.Field(0.8, ge=0.0)
     """Directional light colour as a multiple of the scene's mean colour (unitless)."""
-    full_detail_min_px: float = pydantic.Field(40.0, ge=0.0)
+    full_detail_min_px: float = pydantic.Field(80.0, ge=0.0)
     """A car whose projected size (largest dimension, px of the policy's image) reaches this is drawn with the full
     mesh; smaller ones with the light mesh."""
     max_car_distance_m: float = pydantic.Field(120.0, gt=0.0)
     """Cars farther than this from the camera (m, along the optical axis) are not drawn."""
     fill_holes: bool = True
     """Fill 1-2 px cracks of the warp (never larger disocclusions)."""
+    source_downsample: bool = True
+    """Warp from recorded frames reduced by the integer factor closest to (not above) roi / out, colour area-averaged
+    and depth min-pooled (the nearest surface wins): about that factor squared fewer points to warp, at the policy's
+    resolution anyway. Off: warp the frames at the world's resolution."""
 
     @pydantic.field_validator("roi_px")
     @classmethod
@@ -145,7 +150,11 @@ class ViewSynthesizer:
         self.K_view = K_scaled.copy()
         self.K_view[0, 2] -= x0 * sx
         self.K_view[1, 2] -= y0 * sy
-        self.K_src = np.asarray(world.K, dtype=np.float64)
+        factor = max(1, int(np.floor(min(w / config.out_width_px, h / config.out_height_px) + 1e-9)))
+        self.source_factor = factor if config.source_downsample else 1
+        self.K_src = scale_intrinsics(
+            np.asarray(world.K, dtype=np.float64), 1 / self.source_factor, 1 / self.source_factor
+        )
         self.T_vehicle_camera = np.asarray(world.T_vehicle_camera, dtype=np.float64)
         self.T_camera_vehicle = invert(self.T_vehicle_camera)
         self._T_world_vehicle = np.asarray(world.path["T_world_vehicle"], dtype=np.float64)
@@ -167,9 +176,22 @@ class ViewSynthesizer:
             self._frames.move_to_end(index)
             return entry
         rgb_np = np.array(self.world.frames[index], copy=True)
+        mean_rgb = rgb_np.reshape(-1, 3).mean(axis=0) / 255.0
         rgb = torch.from_numpy(rgb_np).to(self.device)
         depth = torch.from_numpy(np.array(self.world.depth_m[index], dtype=np.float32, copy=True)).to(self.device)
-        mean_rgb = rgb_np.reshape(-1, 3).mean(axis=0) / 255.0
+        f = self.source_factor
+        if f > 1:
+            H, W = depth.shape
+            H, W = H - H % f, W - W % f
+            rgb_f = rgb[:H, :W].permute(2, 0, 1)[None].to(torch.float32)
+            rgb = avg_pool2d(rgb_f, f)[0].permute(1, 2, 0).add_(0.5).to(torch.uint8).contiguous()
+            # Nearest surface per block (no-data pixels, <= 0 or NaN, must not win: they become +inf first).
+            d = depth[:H, :W].clone()
+            no_data = ~(d > 0)
+            d[no_data] = torch.inf
+            d = -max_pool2d(-d[None, None], f)[0, 0]
+            d[torch.isposinf(d) & ~torch.isposinf(depth[:H, :W]).reshape(H // f, f, W // f, f).any(3).any(1)] = 0.0
+            depth = d.contiguous()
         entry = (rgb, depth, mean_rgb)
         self._frames[index] = entry
         if len(self._frames) > _FRAME_CACHE_SIZE:
