@@ -8,10 +8,9 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli import bench, config_show, export, ingest, preprocess, run, status, synth, train, world
+from drivesim.cli import bench, config_show, export, ingest, meshes, preprocess, run, status, synth, train, world
 from drivesim.cli import eval as eval_cmd
 from drivesim.cli.common import err_console, state
-from drivesim.cli.not_built import not_built_command
 from drivesim.pipeline.errors import DrivesimError
 
 app = typer.Typer(
@@ -42,7 +41,7 @@ app.command("preprocess", help="Poses (GPS/IMU/odometry fusion) and per-frame de
 app.command("build-world", help="The simulatable world: frames, depth, reference path, index, point cloud.")(
     world.build_world_command
 )
-not_built_command(app, "meshes", "The parametrizable vehicle mesh library (build, import, preview).")
+app.add_typer(meshes.meshes_app, name="meshes", help="The vehicle mesh library: build, import, preview.")
 app.command("synth", help="Render a procedural drive with ground truth and write it as a ROS2 MCAP recording.")(
     synth.synth_command
 )

@@ -1,0 +1,57 @@
+"""The meshes stage under the stage contract: `SPEC`, its typed summary and `run_meshes`.
+
+Light to import; the work is in `stages/meshes/build.py` (trimesh), imported when the stage runs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, StageSummary, run_stage
+from drivesim.pipeline.workspace import Workspace
+from drivesim.stages.meshes.config import MeshesConfig
+
+
+class MeshesSummary(StageSummary):
+    """What the meshes stage records in its manifest (and `drivesim status` shows)."""
+
+    model_count: int
+    """Vehicles in the library."""
+    imported_count: int
+    """Of which imported from user mesh files."""
+    full_triangles_mean: float
+    """Mean triangles per vehicle at the full level of detail."""
+    light_triangles_mean: float
+    """Mean triangles per vehicle at the light level of detail."""
+    seconds: float
+    """Wall time of the stage [s]."""
+
+
+def _build(ctx: BuildContext) -> MeshesSummary:
+    from drivesim.stages.meshes.build import build_meshes  # trimesh: only when it runs
+
+    return build_meshes(ctx)
+
+
+SPEC: StageSpec[MeshesSummary] = StageSpec(
+    name="meshes",
+    artifact="meshes",
+    command="drivesim meshes build",
+    config_model=MeshesConfig,
+    preset="meshes",
+    summary_model=MeshesSummary,
+    requires=(),
+    build=_build,
+)
+
+
+def run_meshes(ws: Workspace, cfg: MeshesConfig, force: bool = False) -> StageResult[MeshesSummary]:
+    """Build `<ws>/meshes/` (atomically; no-op when fresh unless `force`). Imported files are external inputs."""
+    external = {f"import-{i}": Path(imp.path) for i, imp in enumerate(cfg.imports)}
+    return run_stage(ws, SPEC, cfg, force=force, external=external)
+
+
+def current_imports(ws: Workspace) -> list[dict]:
+    """The imports recorded in the workspace's meshes artifact (empty when there is none)."""
+    manifest = ws.read_manifest(SPEC.artifact) or {}
+    return list((manifest.get("config") or {}).get("imports", []))
