@@ -10,6 +10,7 @@ from __future__ import annotations
 from drivesim.pipeline.stage import StageSpec
 from drivesim.stages.evaluate.stage import SPEC as EVAL
 from drivesim.stages.ingest.stage import SPEC as INGEST
+from drivesim.stages.meshes.stage import SPEC as MESHES
 from drivesim.stages.preprocess.stage import SPEC as PREPROCESS
 from drivesim.stages.train.stage import SPEC as TRAIN
 from drivesim.stages.world.stage import SPEC as BUILD_WORLD
@@ -20,6 +21,7 @@ CHAIN: tuple[StageSpec, ...] = (
     INGEST,
     PREPROCESS,
     BUILD_WORLD,
+    MESHES,
     TRAIN,
     EVAL,
 )
