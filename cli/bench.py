@@ -137,3 +137,49 @@ def fidelity_command(
     console.print(depth)
     console.print(views)
     console.print(f"figure: {figure_path}")
+
+
+@bench_app.command("sim")
+def sim_command(
+    as_json: Annotated[bool, typer.Option("--json", help="Print the results as JSON instead of tables.")] = False,
+    world: Annotated[
+        Path | None, typer.Option("--world", help="World folder (default: the workspace's world/).")
+    ] = None,
+    steps: Annotated[int, typer.Option("--steps", help="Env steps per measurement.", min=10)] = 300,
+    tasks: Annotated[str, typer.Option("--tasks", help="Comma-separated tasks.")] = "lane,follow,overtake",
+    markdown: Annotated[
+        Path | None, typer.Option("--markdown", help="Also write the results as a markdown report to this file.")
+    ] = None,
+) -> None:
+    """Simulator speed: env steps/s per task (one process, one env per core, batched envs) at the default
+    observation, ms per step split into dynamics, association, warp, car raster, harmonization and rewards, and
+    the view synthesizer alone."""
+    from drivesim.bench.sim_speed import TASKS, run_sim_speed, sim_speed_markdown
+
+    world_path = world if world is not None else workspace().root / "world"
+    if not (world_path / "world.json").is_file():
+        raise ConfigError(f"{world_path}: no world here; build one with `drivesim build-world` or pass --world")
+    chosen = tuple(t.strip() for t in tasks.split(",") if t.strip())
+    if not chosen or any(t not in TASKS for t in chosen):
+        raise ConfigError(f"--tasks {tasks!r}: choose from {', '.join(TASKS)}")
+    with progress_bar("simulator speed", total=None):
+        result = run_sim_speed(world_path, tasks=chosen, steps=steps)
+    if markdown is not None:
+        markdown.parent.mkdir(parents=True, exist_ok=True)
+        command = f"drivesim bench sim --world {world_path} --steps {steps} --tasks {','.join(chosen)}"
+        markdown.write_text(sim_speed_markdown(result, command))
+    if as_json:
+        print(json.dumps(result.to_json(), indent=2))
+        return
+    table = Table(title=f"simulator speed ({result.machine})")
+    for column in ("task", "steps/s", "all cores", "batched", "warp ms", "raster ms", "harmonize ms", "total ms"):
+        table.add_column(column, justify="left" if column == "task" else "right")
+    for t in result.tasks:
+        ms = t.ms_per_step
+        table.add_row(
+            t.task, f"{t.steps_per_s:.0f}", f"{t.steps_per_s_all_cores:.0f}", f"{t.batched_steps_per_s:.0f}",
+            f"{ms['warp']:.2f}", f"{ms['raster']:.2f}", f"{ms['harmonize']:.2f}", f"{ms['total']:.2f}",
+        )  # fmt: skip
+    console.print(table)
+    for key, value in result.view_ms.items():
+        console.print(f"view alone, {key}: {value:.2f}")
