@@ -277,7 +277,7 @@ class FrameProcessor:
         return factor
 
 
-def resize_depth(depth_m: np.ndarray, out_size: tuple[int, int]) -> np.ndarray:
+def resize_depth_nearest(depth_m: np.ndarray, out_size: tuple[int, int]) -> np.ndarray:
     """Depth at the working resolution by nearest neighbour (averaging would invent depths across edges)."""
     if depth_m.shape[1] == out_size[0] and depth_m.shape[0] == out_size[1]:
         return depth_m

@@ -22,9 +22,9 @@ from drivesim.stages.ingest.output import (
     FrameStore,
     IngestResult,
     OrderedPipeline,
-    gps_series,
-    imu_series,
-    speed_series,
+    empty_gps_series,
+    empty_imu_series,
+    empty_speed_series,
     write_json,
 )
 
@@ -214,7 +214,7 @@ def read_oxts(drive: Path, step_ns: int, use_timestamps: bool) -> tuple[np.ndarr
 
 
 def _save_oxts(out_dir: Path, times: np.ndarray, oxts: np.ndarray) -> dict[str, int]:
-    gps, imu, speed = gps_series(), imu_series(), speed_series()
+    gps, imu, speed = empty_gps_series(), empty_imu_series(), empty_speed_series()
     quats = Rotation.from_euler("ZYX", oxts[:, [5, 4, 3]]).as_quat()  # yaw, pitch, roll -> R_enu_imu
     for t, row, q in zip(times, oxts, quats, strict=True):
         acc_m = row[23]

@@ -118,7 +118,7 @@ class Series:
         return len(order)
 
 
-def gps_series() -> Series:
+def empty_gps_series() -> Series:
     """Columns of gps.npz (see trace.py)."""
     return Series(
         {
@@ -132,7 +132,7 @@ def gps_series() -> Series:
     )
 
 
-def imu_series() -> Series:
+def empty_imu_series() -> Series:
     """Columns of imu.npz (see trace.py)."""
     return Series(
         {
@@ -143,12 +143,12 @@ def imu_series() -> Series:
     )
 
 
-def speed_series() -> Series:
+def empty_speed_series() -> Series:
     """Columns of speed.npz (see trace.py)."""
     return Series({"speed_mps": ((), np.float64)})
 
 
-def odometry_series() -> Series:
+def empty_odometry_series() -> Series:
     """Columns of odometry.npz (see trace.py)."""
     return Series(
         {

@@ -24,7 +24,7 @@ from drivesim.stages.ingest.images import (
     decode_compressed,
     decode_depth,
     decode_raw,
-    resize_depth,
+    resize_depth_nearest,
     working_size,
 )
 from drivesim.stages.ingest.output import (
@@ -232,7 +232,7 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
             if depth_writer.rows_written >= n_frames:
                 raise InputError(f"{gt_depth_topic.name} has more messages than {camera.name}", path)
             depth_m = decode_depth(msg.data, msg.encoding, int(msg.height), int(msg.width), int(msg.step))
-            depth_writer.write(np.ascontiguousarray(resize_depth(depth_m, out_size), dtype=np.float32))
+            depth_writer.write(np.ascontiguousarray(resize_depth_nearest(depth_m, out_size), dtype=np.float32))
             depth_times.append(stamp_ns(msg, log_ns))
 
         handlers[gt_depth_topic.name] = on_depth

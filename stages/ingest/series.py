@@ -13,7 +13,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from drivesim.stages.ingest.extrinsics import StaticTfTree, pose_from_msg, transform_from_msg
-from drivesim.stages.ingest.output import Series, gps_series, imu_series, odometry_series, speed_series
+from drivesim.stages.ingest.output import (
+    Series,
+    empty_gps_series,
+    empty_imu_series,
+    empty_odometry_series,
+    empty_speed_series,
+)
 
 _NAN4 = np.full(4, np.nan)
 
@@ -37,7 +43,7 @@ class GpsRecorder:
     """sensor_msgs/NavSatFix -> gps.npz (position, status, ENU covariance)."""
 
     def __init__(self) -> None:
-        self.series = gps_series()
+        self.series = empty_gps_series()
 
     def __call__(self, msg: Any, log_ns: int) -> None:
         self.series.append(
@@ -64,7 +70,7 @@ class ImuRecorder:
     """
 
     def __init__(self, tf: StaticTfTree, vehicle_frame: str | None) -> None:
-        self.series = imu_series()
+        self.series = empty_imu_series()
         self._tf = tf
         self._vehicle_frame = vehicle_frame
         self._rotations: dict[str, tuple[np.ndarray, Rotation] | None] = {}
@@ -106,7 +112,7 @@ class SpeedRecorder:
     """geometry_msgs/TwistStamped (or TwistWithCovarianceStamped) forward speed -> speed.npz."""
 
     def __init__(self) -> None:
-        self.series = speed_series()
+        self.series = empty_speed_series()
 
     def __call__(self, msg: Any, log_ns: int) -> None:
         twist = msg.twist.twist if hasattr(msg.twist, "twist") else msg.twist
@@ -129,7 +135,7 @@ class OdometryRecorder:
     """
 
     def __init__(self, speed: SpeedRecorder | None) -> None:
-        self.series = odometry_series()
+        self.series = empty_odometry_series()
         self._speed = speed
 
     def __call__(self, msg: Any, log_ns: int) -> None:

@@ -151,7 +151,7 @@ class DriveConfig(StageConfig):
     """Unix time of the first message (s); default 2026-01-01T00:00:00Z."""
 
 
-class WorldConfig(StageConfig):
+class SynthWorldConfig(StageConfig):
     """Everything `SynthWorld.from_seed` needs besides the seed."""
 
     road: RoadConfig = RoadConfig()
@@ -165,7 +165,7 @@ class SynthConfig(StageConfig):
 
     seed: int = Field(0, ge=0)
     """Seed of the world and of the sensor noise; equal seeds give equal recordings."""
-    world: WorldConfig = WorldConfig()
+    world: SynthWorldConfig = SynthWorldConfig()
     """The procedural world."""
     camera: CameraConfig = CameraConfig()
     """The forward camera."""

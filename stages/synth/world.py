@@ -23,7 +23,7 @@ from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.raster import Lighting, Rasterizer
 from drivesim.stages.synth import textures
-from drivesim.stages.synth.config import CameraConfig, SynthConfig, WorldConfig
+from drivesim.stages.synth.config import CameraConfig, SynthConfig, SynthWorldConfig
 from drivesim.stages.synth.primitives import MeshBuffer, box, icosphere, prism, quad_faces
 from drivesim.stages.synth.road import RoadPath, build_centreline
 from drivesim.stages.synth.scenery import (
@@ -52,7 +52,7 @@ CLOUD_RGB = np.array([0.96, 0.96, 0.97], np.float32)
 
 
 @dataclass(frozen=True)
-class CameraModel:
+class SynthCamera:
     """A pinhole camera on the vehicle: intrinsics, image size and mount (T_vehicle_camera: optical -> vehicle)."""
 
     K: np.ndarray
@@ -66,7 +66,7 @@ class CameraModel:
         return float(self.T_vehicle_camera[2, 3])
 
     @classmethod
-    def from_config(cls, cfg: CameraConfig) -> CameraModel:
+    def from_config(cls, cfg: CameraConfig) -> SynthCamera:
         """The camera described by `cfg`."""
         K = intrinsics_from_hfov(cfg.width_px, cfg.height_px, np.deg2rad(cfg.hfov_deg))
         T = camera_mount(cfg.forward_m, 0.0, cfg.height_m, pitch_down_rad=np.deg2rad(cfg.pitch_down_deg))
@@ -81,7 +81,7 @@ class SynthWorld:
     :param camera: the default camera (from `SynthConfig.camera`).
     """
 
-    def __init__(self, seed: int, config: WorldConfig, camera: CameraModel) -> None:
+    def __init__(self, seed: int, config: SynthWorldConfig, camera: SynthCamera) -> None:
         self.seed = int(seed)
         self.config = config
         self.camera = camera
@@ -99,18 +99,18 @@ class SynthWorld:
         self._rays = np.zeros((0, 0, 3), np.float32)
 
     @classmethod
-    def from_seed(cls, seed: int, cfg: SynthConfig | WorldConfig | None = None) -> SynthWorld:
+    def from_seed(cls, seed: int, cfg: SynthConfig | SynthWorldConfig | None = None) -> SynthWorld:
         """The world of `seed` with the settings of `cfg` (defaults when None)."""
         synth = cfg if isinstance(cfg, SynthConfig) else SynthConfig()
-        world_cfg = cfg if isinstance(cfg, WorldConfig) else synth.world
-        return cls(seed, world_cfg, CameraModel.from_config(synth.camera))
+        world_cfg = cfg if isinstance(cfg, SynthWorldConfig) else synth.world
+        return cls(seed, world_cfg, SynthCamera.from_config(synth.camera))
 
     @classmethod
     def from_sidecar(cls, path: Path | str) -> SynthWorld:
         """Rebuild the world of a recording from its `<recording>.world.json` sidecar."""
         data = json.loads(Path(path).read_text())
         cfg = SynthConfig.model_validate(data["config"])
-        return cls(data["seed"], cfg.world, CameraModel.from_config(cfg.camera))
+        return cls(data["seed"], cfg.world, SynthCamera.from_config(cfg.camera))
 
     @property
     def triangle_count(self) -> int:
@@ -250,7 +250,7 @@ def _sky_colour(directions: np.ndarray, clouds: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------- meshes
-def _build_meshes(road: RoadPath, layout: Layout, cfg: WorldConfig, rng: np.random.Generator) -> list[Mesh]:
+def _build_meshes(road: RoadPath, layout: Layout, cfg: SynthWorldConfig, rng: np.random.Generator) -> list[Mesh]:
     road_cfg = cfg.road
     meshes = [
         _road_mesh(road, road_cfg, rng),
@@ -332,7 +332,7 @@ def _sidewalk_meshes(road: RoadPath, road_cfg, rng: np.random.Generator) -> list
     ]
 
 
-def _ground_meshes(road: RoadPath, cfg: WorldConfig, rng: np.random.Generator) -> list[Mesh]:
+def _ground_meshes(road: RoadPath, cfg: SynthWorldConfig, rng: np.random.Generator) -> list[Mesh]:
     """Textured lawn tiles around the road and coarse far tiles to the horizon.
 
     The rasterizer pays for every triangle's screen area, hidden or not, so lawn is not laid under the pavement:
