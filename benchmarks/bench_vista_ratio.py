@@ -1,0 +1,117 @@
+"""Our simulator against VISTA 2.0.6, side by side in one run, on the same KITTI drive and camera size (200 x 320).
+
+VISTA runs in its own virtual environment OUTSIDE this repository (install recipe: ../shared/bench/vista/README.md;
+copy that folder, e.g. to /tmp/vista-bench, and make its venv there). Its step loop (`bench_vista.py`) measures ms per
+step (dynamics + sensor) with 0 and 1 other car; ours measures an env step of `lane` (no other car) and `overtake`
+(one other car) with the observation set to the whole 320 x 200 camera image, then at the default observation.
+
+    .venv/bin/python benchmarks/bench_vista_ratio.py --vista-dir /tmp/vista-bench --world /tmp/ws-kitti/world
+
+Writes benchmarks/results/vista.md (and the raw JSON beside it). The ratio is VISTA's median ms per step over ours.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from drivesim.bench.machine import machine_line
+
+KITTI = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "kitti_raw"
+FULL_CAMERA = {"roi_px": (0, 0, 320, 200), "out_width_px": 320, "out_height_px": 200}
+
+
+def ours_ms_per_step(world: str, task: str, steps: int, config: dict | None) -> dict[str, float]:
+    """Median and mean ms per env step (expert actions; resets not counted) of one env in this process."""
+    import gymnasium
+    import torch
+
+    import drivesim.sim.envs  # noqa: F401
+
+    torch.set_num_threads(1)
+    env = gymnasium.make(f"drivesim/{task.capitalize()}-v0", world=world, meshes=None, config=config)
+    env.reset(seed=0)
+    for _ in range(10):
+        env.step(env.unwrapped.expert_action())
+    env.reset(seed=0)
+    times, episode = [], 0
+    for _ in range(steps):
+        action = env.unwrapped.expert_action()
+        start = time.perf_counter()
+        _, _, terminated, truncated, _ = env.step(action)
+        times.append(1e3 * (time.perf_counter() - start))
+        if terminated or truncated:
+            episode += 1
+            env.reset(seed=episode)
+    return {"median_ms": float(np.median(times)), "mean_ms": float(np.mean(times)), "steps": steps}
+
+
+def vista_ms_per_step(vista_dir: Path, steps: int, out_dir: Path) -> dict[str, dict]:
+    """VISTA's bench_vista.py results for 0 and 1 other car (its trace and car mesh are made first if missing)."""
+    python = vista_dir / "venv" / "bin" / "python"
+    if not python.is_file():
+        sys.exit(f"{python}: no VISTA venv; follow {vista_dir}/README.md (install it outside the repository)")
+    env = {**os.environ, "PYOPENGL_PLATFORM": "egl", "PATH": f"{vista_dir / 'venv' / 'bin'}:{os.environ['PATH']}"}
+    if not (vista_dir / "traces" / "kitti_0001").exists():
+        drive = KITTI / "2011_09_26" / "2011_09_26_drive_0001_sync"
+        calib = KITTI / "2011_09_26" / "calib_cam_to_cam.txt"
+        command = [str(python), "make_kitti_trace.py", "--drive", str(drive), "--calib", str(calib)]
+        subprocess.run(command, cwd=vista_dir, env=env, check=True)
+    if not (vista_dir / "meshes" / "simple_car").exists():
+        subprocess.run([str(python), "make_car_mesh.py"], cwd=vista_dir, env=env, check=True)
+    command = [str(python), "bench_vista.py", "--others", "0", "1", "--steps", str(steps), "--warmup", "20",
+               "--size", "200", "320", "--save-frames", "0", "--out", str(out_dir), "--tag", "_ratio"]  # fmt: skip
+    subprocess.run(command, cwd=vista_dir, env=env, check=True)
+    return json.loads((out_dir / "bench_ratio.json").read_text())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--vista-dir", type=Path, default=Path("/tmp/vista-bench"))
+    parser.add_argument("--world", default="/tmp/ws-kitti/world", help="our world built from the same KITTI drive")
+    parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "vista.md")
+    args = parser.parse_args()
+
+    load_before = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        vista = vista_ms_per_step(args.vista_dir.resolve(), args.steps, Path(tmp))
+    ours_full = {n: ours_ms_per_step(args.world, t, args.steps, FULL_CAMERA) for n, t in ((0, "lane"), (1, "overtake"))}
+    ours_default = {n: ours_ms_per_step(args.world, t, args.steps, None) for n, t in ((0, "lane"), (1, "overtake"))}
+    rows = []
+    for n in (0, 1):
+        v = vista[f"others_{n}"]["dyn_plus_sens_ms"]["median"]
+        rows.append((n, v, ours_full[n]["median_ms"], v / ours_full[n]["median_ms"], ours_default[n]["median_ms"]))
+    lines = [
+        "# drivesim vs VISTA 2.0.6: ms per simulation step",
+        "",
+        f"- machine: {machine_line()} (load average {load_before:.1f} at the start)",
+        f"- drive: KITTI 2011_09_26_drive_0001; our world `{args.world}`; camera 200 x 320 on both sides",
+        f"- VISTA: its own venv in `{args.vista_dir}` (bench_vista.py, dynamics + sensor, median over {args.steps} "
+        "steps, pyrender on EGL/llvmpipe); ours: one env step (dynamics, association, warp, car, lighting, "
+        "harmonization, rewards), median over the same number of steps, one thread",
+        "- command: `.venv/bin/python benchmarks/bench_vista_ratio.py " + " ".join(sys.argv[1:]) + "`",
+        "",
+        "| other cars | VISTA ms/step | ours ms/step (200x320) | ratio | ours ms/step (default 160x64 ROI) |",
+        "|---:|---:|---:|---:|---:|",
+    ]
+    lines += [f"| {n} | {v:.2f} | {o:.2f} | {r:.1f}x | {d:.2f} |" for n, v, o, r, d in rows]
+    lines += ["", "The target is 20x."]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text("\n".join(lines) + "\n")
+    raw = {"vista": {k: {m: vista[k][m] for m in ("dyn_ms", "sens_ms", "dyn_plus_sens_ms")} for k in vista},
+           "ours_full_camera": ours_full, "ours_default": ours_default}  # fmt: skip
+    args.out.with_suffix(".json").write_text(json.dumps(raw, indent=1))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
