@@ -36,6 +36,8 @@ from drivesim.stages.train.recurrent import ChunkedRecurrentPPO, TimedVecEnv
 from drivesim.stages.train.sb3_policy import DrivingLstmPolicy, EncoderExtractor
 
 RESULTS = Path(__file__).parent / "results" / "train_speed.md"
+LEARNER = "The learner alone (cost-free env)"
+REAL = "End to end with the real simulator (overtake)"
 SHAPE = (3, 64, 160)
 SMALL_CNN = {"conv_layers": [[16, 5, 2], [32, 3, 2], [64, 3, 1]], "features_dim": 128, "input_pool": 2}
 FULL_RES_CNN = {"conv_layers": [[16, 5, 3], [32, 3, 2], [64, 3, 2]], "features_dim": 128, "input_pool": 1}
@@ -247,7 +249,9 @@ def real_env_rows(world: Path, steps: int, envs: int) -> list[Row]:
     rows = []
     for epochs in (4, 10):
         cfg = load_config(
-            TrainConfig, preset="train/overtake", overrides=[f"ppo.epochs={epochs}", f"envs.count={envs}"]
+            TrainConfig,
+            preset="train/overtake",
+            overrides=[f"ppo.epochs={epochs}", f"envs.count={envs}", f"ppo.buffer_steps={steps}"],
         )
         source = EnvSource(task="overtake", worlds=[world])
         venv = source.make_vec(cfg.envs.count, cfg.envs.vec_env, seed=0)
@@ -264,17 +268,8 @@ def real_env_rows(world: Path, steps: int, envs: int) -> list[Row]:
     return rows
 
 
-def write_results(rows: list[Row], args: argparse.Namespace, load: tuple[float, float, float]) -> None:
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+def _table(rows: list[Row]) -> list[str]:
     lines = [
-        "# Training speed: env steps per second of `learn()`",
-        "",
-        f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {platform.node()} ({os.cpu_count()} cores), "
-        f"torch {torch.__version__}; load average before: {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1/5/15 min; "
-        "the machine was shared, so figures are noisy). "
-        f"Learner variants: cost-free env, 2 envs, {args.steps} steps, rollout 1024 steps per env, minibatch 512, "
-        f"{args.epochs} epochs. `python benchmarks/bench_train_speed.py` redoes it.",
-        "",
         "| variant | env steps/s | rollout [s] | of which simulator [s] | optimization [s] | note |",
         "|---|---:|---:|---:|---:|---|",
     ]
@@ -283,7 +278,57 @@ def write_results(rows: list[Row], args: argparse.Namespace, load: tuple[float, 
             f"| {r.name.strip()} | {r.steps_per_s:.0f} | {r.rollout_s:.1f} | {r.simulator_s:.1f} | "
             f"{r.optimization_s:.1f} | {r.note} |"
         )
-    RESULTS.write_text("\n".join(lines) + "\n")
+    return lines
+
+
+def _sections() -> dict[str, str]:
+    """The result file's two sections (learner alone, real simulator) as last written."""
+    if not RESULTS.is_file():
+        return {}
+    parts = RESULTS.read_text().split("\n## ")
+    return {p.split("\n", 1)[0]: "## " + p for p in parts[1:]}
+
+
+def write_results(
+    learner: list[Row], real: list[Row], args: argparse.Namespace, load: tuple[float, float, float]
+) -> None:
+    """Rewrite the sections measured now; keep the other one as it was."""
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    when = (
+        f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {platform.node()} "
+        f"({os.cpu_count()} cores), torch {torch.__version__}; load average before: {load[0]:.2f} / {load[1]:.2f} "
+        f"/ {load[2]:.2f} (1/5/15 min; the machine was shared, so figures are noisy)."
+    )
+    sections = _sections()
+    if learner:
+        sections[LEARNER] = "\n".join(
+            [
+                f"## {LEARNER}",
+                "",
+                when + f" Cost-free env, 2 envs, {args.steps} steps, rollout 1024 steps per env, "
+                f"minibatch 512, {args.epochs} epochs. `python benchmarks/bench_train_speed.py` redoes it.",
+                "",
+                *_table(learner),
+                "",
+            ]
+        )
+    if real:
+        sections[REAL] = "\n".join(
+            [
+                f"## {REAL}",
+                "",
+                when + f" The overtake preset (batched env, {args.envs} envs) on {args.world}, "
+                f"{args.real_steps} env steps per run, the buffer cut to that. `python benchmarks/bench_train_speed.py "
+                "--only-real --world WORLD` redoes it.",
+                "",
+                *_table(real),
+                "",
+            ]
+        )
+    text = "# Training speed: env steps per second of `learn()`\n\n" + "\n".join(
+        sections[k] for k in (LEARNER, REAL) if k in sections
+    )
+    RESULTS.write_text(text.rstrip() + "\n")
     print(f"wrote {RESULTS}")
 
 
