@@ -48,6 +48,8 @@ PATH_ARRAYS_FLOAT = (
     "curvature_1pm",
     "arc_length_m",
 )
+# Every array of path.npz (and of the preprocessed poses.npz, which has the same per-frame arrays).
+PATH_ARRAYS = ("frame_index", "t_ns", *PATH_ARRAYS_FLOAT, "T_world_vehicle", "T_world_camera")
 
 # How many nearest frames to consider before filtering by heading and arc length: a handful is enough because
 # frames are spaced along one path; more only matters where the path passes the same place twice.
@@ -167,7 +169,7 @@ class World:
             raise ValueError(f"{self.root / 'frames.npy'}: {self.frames.dtype} {self.frames.shape} does not match")
         if self.depth_m.shape != (n, self.height_px, self.width_px) or self.depth_m.dtype != np.float32:
             raise ValueError(f"{self.root / 'depth_m.npy'}: {self.depth_m.dtype} {self.depth_m.shape} does not match")
-        for key in (*PATH_ARRAYS_FLOAT, "t_ns", "frame_index", "T_world_vehicle", "T_world_camera"):
+        for key in PATH_ARRAYS:
             if key not in self.path or len(self.path[key]) != n:
                 raise ValueError(f"{self.root / 'path.npz'}: array {key!r} is missing or not of length {n}")
 

@@ -33,9 +33,11 @@ from typing import Any
 import numpy as np
 
 from drivesim.pipeline.errors import InputError
+from drivesim.sim.world import PATH_ARRAYS, PATH_ARRAYS_FLOAT
 
-POSE_ARRAYS_FLOAT = ("x_m", "y_m", "z_m", "yaw_rad", "speed_mps", "curvature_1pm", "arc_length_m")
-POSE_ARRAYS = ("frame_index", "t_ns", *POSE_ARRAYS_FLOAT, "T_world_vehicle", "T_world_camera")
+# poses.npz holds the same per-frame arrays as the world's path.npz: one schema, defined by the simulator's loader.
+POSE_ARRAYS_FLOAT = PATH_ARRAYS_FLOAT
+POSE_ARRAYS = PATH_ARRAYS
 ORIGIN_KEYS = ("pose_source", "origin_lat_deg", "origin_lon_deg", "origin_alt_m", "residual_m", "depth_method")
 
 
