@@ -37,7 +37,7 @@ from drivesim.sim.shading import Lighting
 from drivesim.sim.warp import WarpResult, forward_warp
 from drivesim.sim.world import World, relative_pose
 
-__all__ = ["CarPlacement", "ViewBatch", "ViewConfig", "ViewSynthesizer", "planar_transforms"]
+__all__ = ["CarPlacement", "ViewBatch", "ViewConfig", "ViewSynthesizer", "fit_roi", "planar_transforms"]
 
 TIMING_KEYS = ("warp", "raster", "composite", "lighting", "harmonize")
 _FRAME_CACHE_SIZE = 2048  # recorded frames kept as tensors (about 0.1 MB each at the default view)
@@ -51,7 +51,9 @@ class ViewConfig(pydantic.BaseModel):
 
     roi_px: tuple[int, int, int, int] = (0, 72, 320, 128)
     """(x0, y0, w, h) region of the world's simulation image (px of the 320 x 200 grid) the policy sees; the default
-    is the road ahead (full width, from a little above the horizon down to the bottom) of the demo and KITTI cameras."""
+    is the road ahead (full width, from a little above the horizon down to the bottom). In a world whose image is
+    smaller (a KITTI world is 320 x 96) the region is shrunk about its bottom centre, keeping its aspect ratio, until
+    it fits (`ViewSynthesizer.roi_px` is the region used)."""
     out_width_px: int = pydantic.Field(160, gt=0)
     """Width of the policy's image (px); the region of interest is scaled to it."""
     out_height_px: int = pydantic.Field(64, gt=0)
@@ -124,6 +126,20 @@ def planar_transforms(q_long_m: np.ndarray, q_lat_m: np.ndarray, q_rot_rad: np.n
     return T
 
 
+def fit_roi(roi_px: tuple[int, int, int, int], width_px: int, height_px: int) -> tuple[float, float, float, float]:
+    """The region `roi_px` (x0, y0, w, h) inside a width x height image: as is when it fits, else shrunk about its
+    bottom centre with its aspect ratio kept, then moved inside the image (fractional pixels allowed)."""
+    x0, y0, w, h = (float(v) for v in roi_px)
+    scale = min(1.0, width_px / w, height_px / h)
+    if scale == 1.0 and x0 + w <= width_px and y0 + h <= height_px:
+        return x0, y0, w, h
+    centre_x, bottom = x0 + 0.5 * w, min(y0 + h, float(height_px))
+    w, h = w * scale, h * scale
+    x0 = min(max(centre_x - 0.5 * w, 0.0), width_px - w)
+    y0 = min(max(bottom - h, 0.0), height_px - h)
+    return x0, y0, w, h
+
+
 class ViewSynthesizer:
     """Renders agents' camera views in a world (module docstring).
 
@@ -138,11 +154,7 @@ class ViewSynthesizer:
         self.config = config = config or ViewConfig()
         self.device = torch.device(device)
         self.harmonizer = harmonizer if harmonizer is not None else StatisticalHarmonizer()
-        x0, y0, w, h = config.roi_px
-        if x0 + w > world.width_px or y0 + h > world.height_px:
-            raise ValueError(
-                f"view roi_px {config.roi_px} is not inside the world's {world.width_px}x{world.height_px} image"
-            )
+        self.roi_px = x0, y0, w, h = fit_roi(config.roi_px, world.width_px, world.height_px)
         sx, sy = config.out_width_px / w, config.out_height_px / h
         # The region of interest is rendered as an image of its own: intrinsics scaled to the policy's resolution,
         # principal point shifted by the region's (scaled) corner. Fractional corners are fine.

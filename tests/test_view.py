@@ -13,7 +13,7 @@ import torch
 from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert, pose_2d
 from drivesim.sim.harmonize import OnnxHarmonizer, StatisticalHarmonizer
 from drivesim.sim.mesh import Material, Mesh
-from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer
+from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer, fit_roi
 from drivesim.sim.world import World
 
 W_PX, H_PX = 320, 200
@@ -275,10 +275,16 @@ def test_same_inputs_same_bytes_and_batch_equals_one_by_one(tmp_path):
 
 def test_bad_requests_are_one_line(tmp_path):
     world = make_world(tmp_path)
-    with pytest.raises(ValueError, match="not inside the world's 320x200 image"):
-        ViewSynthesizer(world, ViewConfig(roi_px=(100, 100, 320, 128)))
     vs = ViewSynthesizer(world)
     with pytest.raises(ValueError, match="frame_index must be in"):
         vs.render(np.array([9]), np.zeros(1), np.zeros(1), np.zeros(1), [[]])
     with pytest.raises(ValueError, match="car lists"):
         vs.render(np.array([0]), np.zeros(1), np.zeros(1), np.zeros(1), [])
+
+
+def test_region_of_interest_fits_smaller_images():
+    assert fit_roi((0, 72, 320, 128), 320, 200) == (0, 72, 320, 128)
+    # A KITTI world (320 x 96): the 2.5:1 band shrinks about its bottom centre to 240 x 96.
+    assert fit_roi((0, 72, 320, 128), 320, 96) == pytest.approx((40, 0, 240, 96))
+    # Too far down or right: moved inside, size kept.
+    assert fit_roi((100, 100, 240, 100), 320, 200) == pytest.approx((80, 100, 240, 100))
