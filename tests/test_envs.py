@@ -1,0 +1,175 @@
+"""The drivesim gymnasium envs on a small hand-made world: API, determinism, rewards, terminations, the expert,
+the batched vector env and one-line errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+from sim_worlds import SMALL_VIEW, write_test_world
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+import drivesim.sim.envs  # noqa: F401  (registers the envs)
+from drivesim.sim.dynamics import BicycleState
+from drivesim.sim.envs.vector import BatchedVecEnv
+
+TASKS = {"lane": "drivesim/Lane-v0", "follow": "drivesim/Follow-v0", "overtake": "drivesim/Overtake-v0"}
+
+
+@pytest.fixture(scope="session")
+def world_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_test_world(tmp_path_factory.mktemp("sim-world") / "world")
+
+
+def _make(world_dir: Path, task: str, mode: str = "train", **overrides: object) -> gymnasium.Env:
+    return gymnasium.make(TASKS[task], world=str(world_dir), meshes=None, mode=mode, config={**SMALL_VIEW, **overrides})
+
+
+class _NanAsNone(gymnasium.Wrapper, gymnasium.utils.RecordConstructorArgs):
+    """info["state"] NaNs (no other car, no follow path) as None: gymnasium's determinism check compares info values
+    with ==, and NaN != NaN; every other value is compared as it is."""
+
+    def __init__(self, env: gymnasium.Env) -> None:
+        gymnasium.utils.RecordConstructorArgs.__init__(self)
+        gymnasium.Wrapper.__init__(self, env)
+
+    @staticmethod
+    def _clean(info: dict) -> dict:
+        state = {k: (None if v != v else v) for k, v in info["state"].items()}
+        episode = info.get("episode")
+        if episode is not None:
+            info = {**info, "episode": {k: (None if v != v else v) for k, v in episode.items()}}
+        return {**info, "state": state}
+
+    def reset(self, **kwargs: object) -> tuple:
+        obs, info = self.env.reset(**kwargs)
+        return obs, self._clean(info)
+
+    def step(self, action: np.ndarray) -> tuple:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return obs, reward, terminated, truncated, self._clean(info)
+
+
+@pytest.mark.parametrize("task", list(TASKS))
+def test_check_env(world_dir: Path, task: str) -> None:
+    env = _make(world_dir, task)
+    check_env(_NanAsNone(env.unwrapped), skip_render_check=True)
+    obs, info = env.reset(seed=3)
+    assert obs.shape == (3, 16, 40) and obs.dtype == np.uint8
+    assert set(info["episode"]) >= {"seed", "world", "start_frame", "ego_speed_mps", "other_speed_mps"}
+
+
+def test_same_seed_same_observation_bytes(world_dir: Path) -> None:
+    a, b = _make(world_dir, "overtake"), _make(world_dir, "overtake")
+    obs_a, info_a = a.reset(seed=11)
+    obs_b, info_b = b.reset(seed=11)
+    assert obs_a.tobytes() == obs_b.tobytes() and info_a["episode"] == info_b["episode"]
+    for _ in range(3):
+        obs_a, *_ = a.step(np.array([0.3], np.float32))
+        obs_b, *_ = b.step(np.array([0.3], np.float32))
+    assert obs_a.tobytes() == obs_b.tobytes()
+    other, _ = a.reset(seed=12)
+    assert other.tobytes() != obs_b.tobytes()
+
+
+def test_reward_terms_sum_to_the_reward(world_dir: Path) -> None:
+    env = _make(world_dir, "overtake").unwrapped
+    env.reset_state(5)
+    seen = set()
+    for step in range(60):
+        reward, terminated, truncated, info = env.advance(np.array([np.sin(step / 5.0)], np.float32))
+        assert set(info["rewards"]) == {"lane", "pass", "collision", "comfort"}
+        assert sum(info["rewards"].values()) == pytest.approx(reward, abs=1e-9)
+        seen |= {k for k, v in info["rewards"].items() if v != 0.0}
+        if terminated or truncated:
+            break
+    assert {"lane", "comfort"} <= seen
+
+
+def _place_ego(env: gymnasium.Env, arc_m: float, lateral_m: float, yaw_offset_rad: float = 0.0) -> None:
+    x, y, yaw = env.sim.reference.pose(arc_m, lateral_m)
+    ego = env.sim.agents[0]
+    ego.state = BicycleState(x, y, yaw + yaw_offset_rad, 0.0, ego.state.speed_mps)
+    ego.frame_index = int(np.argmin(np.abs(env.sim.reference.arc_m - arc_m)))
+
+
+@pytest.mark.parametrize(
+    ("flag", "where"),
+    [("off_lane", "lateral"), ("over_rotation", "yaw"), ("collision", "ram"), ("end_of_data", "end")],
+)
+def test_each_termination_flag(world_dir: Path, flag: str, where: str) -> None:
+    env = _make(world_dir, "overtake", mode="eval").unwrapped
+    env.reset_state(1)
+    ego, other = env.sim.agents
+    if where == "lateral":
+        _place_ego(env, ego.arc_m, 3.0)
+    elif where == "yaw":
+        _place_ego(env, ego.arc_m, 0.0, 0.7)
+    elif where == "ram":
+        _place_ego(env, other.arc_m - 1.0, other.lateral_m)
+    else:
+        _place_ego(env, env.sim.reference.end_m - 3.0, 0.0)
+    _, terminated, truncated, info = env.advance(np.zeros(1, np.float32))
+    assert terminated and not truncated and info["termination"][flag]
+    assert not info["success"]
+    assert [k for k, v in info["termination"].items() if v] == [flag]
+
+
+def test_time_limit_truncates(world_dir: Path) -> None:
+    env = _make(world_dir, "lane", episode_steps=4)
+    env.reset(seed=0)
+    results = [env.step(np.zeros(1, np.float32)) for _ in range(4)]
+    assert [r[3] for r in results] == [False, False, False, True]
+    assert results[-1][4]["termination"]["time_limit"] and results[-1][4]["success"]
+
+
+def test_expert_passes_the_front_car(world_dir: Path) -> None:
+    """The privileged expert overtakes without intervention in most episodes (state only: no rendering needed)."""
+    env = _make(world_dir, "overtake", mode="eval").unwrapped
+    successes = 0
+    for seed in range(30):
+        env.reset_state(seed)
+        while True:
+            _, terminated, truncated, info = env.advance(env.expert_action())
+            if terminated or truncated:
+                break
+        successes += info["success"]
+        if info["success"]:
+            assert info["state"]["pass_margin_m"] > env.config.pass_distance_m
+    assert successes >= 24
+
+
+def test_batched_vec_env_equals_single_envs(world_dir: Path) -> None:
+    config = {**SMALL_VIEW, "episode_steps": 4}
+    batched = BatchedVecEnv("overtake", 2, str(world_dir), None, "train", config, seed=7)
+    single = DummyVecEnv([lambda: _make(world_dir, "overtake", episode_steps=4) for _ in range(2)])
+    single.seed(7)
+    assert np.array_equal(batched.reset(), single.reset())
+    actions = np.array([[0.2], [-0.4]], np.float32)
+    for _ in range(5):  # crosses the time limit: automatic reset with terminal_observation
+        obs_b, rew_b, done_b, info_b = batched.step(actions)
+        obs_s, rew_s, done_s, info_s = single.step(actions)
+        assert np.array_equal(obs_b, obs_s) and np.allclose(rew_b, rew_s) and np.array_equal(done_b, done_s)
+        for ib, is_ in zip(info_b, info_s, strict=True):
+            assert ib["state"] == pytest.approx(is_["state"], nan_ok=True)
+            if "terminal_observation" in is_:
+                assert np.array_equal(ib["terminal_observation"], is_["terminal_observation"])
+    assert batched.expert_actions().shape == (2, 1)
+
+
+def test_bad_worlds_and_meshes_are_one_line(world_dir: Path, tmp_path: Path) -> None:
+    short = write_test_world(tmp_path / "short", length_m=40.0)
+    with pytest.raises(ValueError, match=r"world.json: path of 40 m is too short"):
+        _make(short, "overtake")
+    with pytest.raises(FileNotFoundError, match="no such meshes folder"):
+        gymnasium.make(TASKS["overtake"], world=str(world_dir), meshes=str(tmp_path / "nope"), config=SMALL_VIEW)
+    old = write_test_world(tmp_path / "old", length_m=100.0)
+    (old / "world.json").write_text(json.dumps({**json.loads((old / "world.json").read_text()), "format": 0}))
+    with pytest.raises(ValueError, match="world format 0"):
+        _make(old, "lane")
+    with pytest.raises(FileNotFoundError, match="frames.npy: missing"):
+        _make(tmp_path / "nothing", "lane")
