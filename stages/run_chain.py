@@ -256,6 +256,8 @@ def run_chain(
         if on_stage is not None:
             on_stage(stage_run)
 
+    # Every config first: a typo in the preset is one line before anything runs.
+    configs = [stage_config(spec.config_model, spec.preset, overrides.get(spec.name, {}), spec.name) for spec in chain]
     if recording is None:
         record(synth_demo(ws, overrides.get(SYNTH, {}), force=force))
         recording = done[-1].path
@@ -263,9 +265,8 @@ def run_chain(
         raise InputError("no such recording", recording)
     walk = _Walk(ws=ws, recording=Path(recording).absolute(), hints={s.artifact: s.command for s in chain}, force=force)
     report, onnx = None, None
-    for spec in chain:
+    for spec, cfg in zip(chain, configs, strict=True):
         began = time.perf_counter()
-        cfg = stage_config(spec.config_model, spec.preset, overrides.get(spec.name, {}), spec.name)
         result = RUNNERS.get(spec.name, _run_default)(walk, spec, cfg)
         summary = result.summary.model_dump(mode="json") if hasattr(result.summary, "model_dump") else {}
         record(StageRun(spec.name, result.path, result.skipped, time.perf_counter() - began, result.notes, summary))

@@ -63,7 +63,7 @@ def test_export_writes_a_checked_graph_with_metadata(exported: tuple[Path, Path]
     check = json.loads((ws / "export" / "check.json").read_text())
     assert check["run"] == str(run)
     assert check["rollout"]["steps"] == 200 and check["rollout"]["reset_step"] == 100
-    assert check["max_abs_diff"] <= 1e-4
+    assert check["max_abs_diff"] <= 1e-4 and check["rollout"]["max_rel_diff_state"] <= 1e-4
     assert check["rollout"]["action_range"] > 0.05  # the compared actions really vary
     assert 0 < check["latency"]["median_ms"] < 1000 / 30
     assert check["size_bytes"] == onnx_path.stat().st_size
@@ -131,3 +131,53 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path: Path) -> None:
     assert len(done.stderr.strip().splitlines()) == 1
     assert not (ws / "export").exists()
     assert Workspace(ws).read_manifest("export") is None
+
+
+@pytest.mark.slow
+def test_onnx_policy_evaluates_like_the_trained_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run of a few hundred PPO steps, exported: `eval --policy model.onnx` gives the torch run's metrics."""
+    from drivesim.pipeline.config import load_config
+    from drivesim.stages.evaluate.config import EvalConfig
+    from drivesim.stages.evaluate.stage import run_eval
+    from drivesim.stages.export.config import ExportConfig
+    from drivesim.stages.export.stage import run_export
+    from drivesim.stages.train.config import TrainConfig
+    from drivesim.stages.train.stage import run_training
+
+    monkeypatch.syspath_prepend(str(Path(__file__).parent))  # eval_fakes, for the eval workers too
+    monkeypatch.setenv("PYTHONPATH", str(Path(__file__).parent))
+    ws = Workspace(tmp_path / "ws")
+    small = [
+        "envs.source=cost_free",
+        "envs.count=2",
+        "envs.vec_env=dummy",
+        "envs.config.episode_steps=40",
+        "ppo.buffer_steps=128",
+        "ppo.minibatch_steps=64",
+        "ppo.epochs=2",
+        "eval.every_steps=100000",
+        "eval.episodes=1",
+        "total_steps=384",
+    ]
+    run = run_training(ws, load_config(TrainConfig, preset="train/overtake", overrides=small)).path
+    exported = run_export(ws, ExportConfig(run=str(run), latency_steps=50))
+    onnx_path = exported.path / "policy.onnx"
+    fake = {"env_id": "drivesim-test/FakeOvertake-v0", "env_entry_point": "eval_fakes:FakeDrivingEnv"}
+    world = tmp_path / "world"  # the fake env's road: one recorded frame per metre, a gentle bend
+    world.mkdir()
+    x_m = np.arange(200.0)
+    np.savez(world / "path.npz", x_m=x_m, y_m=0.002 * x_m**2, arc_length_m=x_m)
+    metrics = {}
+    for policy in (str(run), str(onnx_path)):
+        cfg = EvalConfig(task="overtake", policy=policy, episodes=6, world=str(world), workers=1, **fake)
+        result = run_eval(ws, cfg)
+        metrics[policy] = json.loads((result.path / "metrics.json").read_text())
+    torch_metrics, onnx_metrics = metrics[str(run)], metrics[str(onnx_path)]
+    assert torch_metrics["aggregate"].keys() == onnx_metrics["aggregate"].keys()
+    compared = []
+    for key, value in torch_metrics["aggregate"].items():
+        theirs = onnx_metrics["aggregate"][key]
+        if isinstance(value, dict) and isinstance(value.get("value"), float):
+            assert theirs["value"] == pytest.approx(value["value"], abs=1e-4, nan_ok=True), key
+            compared.append(key)
+    assert {"intervention", "min_clearance_m", "max_deviation_m", "max_yaw_rad"} <= set(compared)

@@ -19,7 +19,7 @@ class ExportConfig(StageConfig):
     check_episodes: int = 2
     """Episodes stepped side by side in the check (only the first one restarts in the middle)."""
     tolerance: float = 1e-4
-    """Largest absolute difference between torch and onnxruntime (actions and LSTM state) the export accepts."""
+    """Largest difference torch vs onnxruntime the export accepts: steering (absolute), LSTM state (relative)."""
     latency_steps: int = 300
     """Timed single-episode steps on one onnxruntime thread (after 20 warm-up steps)."""
     seed: int = 0

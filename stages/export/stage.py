@@ -33,7 +33,9 @@ class ExportSummary(StageSummary):
     task: str
     """The policy's task."""
     max_abs_diff: float
-    """Largest absolute difference torch vs onnxruntime over the check rollout (actions and LSTM state)."""
+    """Largest absolute difference of the steering, torch vs onnxruntime, over the check rollout."""
+    max_rel_diff_state: float
+    """Largest difference of the LSTM state (h, c) relative to its magnitude (at least 1) over the rollout."""
     latency_median_ms: float
     """Median onnxruntime time of one single-episode step on one thread (ms)."""
     latency_p99_ms: float
@@ -91,11 +93,13 @@ def _build(ctx: BuildContext) -> ExportSummary:
     rng = np.random.default_rng(cfg.seed)
     images = check_images(rng, cfg.check_steps, cfg.check_episodes, policy.observation_shape)
     check = compare_rollout(module, onnx_policy, images, cfg.check_reset_step)
-    max_abs_diff = max(float(check["max_abs_diff_action"]), float(check["max_abs_diff_state"]))
-    if not max_abs_diff <= cfg.tolerance:  # also catches NaN
+    max_abs_diff = float(check["max_abs_diff_action"])
+    state_diff = float(check["max_rel_diff_state"])
+    if not (max_abs_diff <= cfg.tolerance and state_diff <= cfg.tolerance):  # also catches NaN
         raise ExportError(
-            f"onnxruntime differs from torch by {max_abs_diff:.3g} (> tolerance {cfg.tolerance:g}) over the "
-            f"{cfg.check_steps}-step check; nothing was written",
+            f"onnxruntime differs from torch by {max_abs_diff:.3g} in the steering and {state_diff:.3g} "
+            f"(relative) in the LSTM state, over tolerance {cfg.tolerance:g} in the {cfg.check_steps}-step check; "
+            "nothing was written",
             policy.run_dir,
         )
     timing_images = check_images(rng, cfg.latency_steps, 1, policy.observation_shape)[:, 0]
@@ -124,6 +128,7 @@ def _build(ctx: BuildContext) -> ExportSummary:
         run=policy.run_dir.name,
         task=policy.task,
         max_abs_diff=max_abs_diff,
+        max_rel_diff_state=state_diff,
         latency_median_ms=float(latency["median_ms"]),
         latency_p99_ms=float(latency["p99_ms"]),
         size_bytes=size,
