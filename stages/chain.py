@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from drivesim.pipeline.stage import StageSpec
 from drivesim.stages.evaluate.stage import SPEC as EVAL
+from drivesim.stages.export.stage import SPEC as EXPORT
 from drivesim.stages.ingest.stage import SPEC as INGEST
 from drivesim.stages.meshes.stage import SPEC as MESHES
 from drivesim.stages.preprocess.stage import SPEC as PREPROCESS
@@ -24,6 +25,7 @@ CHAIN: tuple[StageSpec, ...] = (
     MESHES,
     TRAIN,
     EVAL,
+    EXPORT,
 )
 
 # Configs outside the chain: synth makes a recording file (the chain's input), not an artifact of the workspace,
