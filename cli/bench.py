@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from datetime import UTC, datetime
 from pathlib import Path
@@ -183,3 +184,49 @@ def sim_command(
     console.print(table)
     for key, value in result.view_ms.items():
         console.print(f"view alone, {key}: {value:.2f}")
+
+
+@bench_app.command("car-fidelity")
+def car_fidelity_command(
+    as_json: Annotated[bool, typer.Option("--json", help="Print the results as JSON instead of a report.")] = False,
+    real_world: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--real-world",
+            help="METHOD=WORLD_DIR of a real drive's world, e.g. plane=/tmp/ws/world "
+            "(repeatable; one per depth method).",
+        ),
+    ] = None,
+    frames: Annotated[int, typer.Option("--frames", help="Synthetic frames evaluated.", min=1)] = 3,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the synthetic world and the car.")] = 0,
+    figure: Annotated[
+        Path | None, typer.Option("--figure", help="Side-by-side PNG (default <workspace>/bench/car_fidelity.png).")
+    ] = None,
+    markdown: Annotated[
+        Path | None, typer.Option("--markdown", help="Also write the results as a markdown report to this file.")
+    ] = None,
+) -> None:
+    """Inserted-car fidelity against ground truth on the synthetic world (lighting and harmonization off and on, at
+    lateral offsets 0, 0.5, 1 m) and view synthesis on real frames (a recorded frame warped to a later frame's pose,
+    per depth method)."""
+    worlds: dict[str, Path] = {}
+    for item in real_world or []:
+        method, sep, folder = item.partition("=")
+        if not sep or not (Path(folder) / "world.json").is_file():
+            raise ConfigError(f"--real-world {item!r}: expected METHOD=WORLD_DIR with a built world there")
+        worlds[method] = Path(folder)
+    from drivesim.bench.car_fidelity import car_fidelity_markdown, run_car_fidelity
+
+    figure_path = figure if figure is not None else workspace().root / "bench" / "car_fidelity.png"
+    with progress_bar("car fidelity", total=None):
+        result = run_car_fidelity(worlds, figure_path, frames=frames, seed=seed)
+    command = f"drivesim bench car-fidelity --frames {frames} --seed {seed}"
+    command += "".join(f" --real-world {m}={p}" for m, p in worlds.items())
+    report = car_fidelity_markdown(result, machine_line(), command)
+    if markdown is not None:
+        markdown.parent.mkdir(parents=True, exist_ok=True)
+        markdown.write_text(report)
+    if as_json:
+        print(json.dumps(dataclasses.asdict(result), indent=2))
+        return
+    console.print(report)
