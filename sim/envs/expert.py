@@ -17,9 +17,9 @@ from drivesim.sim.agents import pure_pursuit_curvature
 if TYPE_CHECKING:
     from drivesim.sim.envs.base import DrivingEnv
 
-EXPERT_CLEARANCE_M = 0.9
-EXPERT_LOOKAHEAD_M = 6.0
-EXPERT_LOOKAHEAD_S = 0.8
+EXPERT_CLEARANCE_M = 1.0
+EXPERT_LOOKAHEAD_M = 4.0
+EXPERT_LOOKAHEAD_S = 0.4
 
 
 def expert_target_offset(env: DrivingEnv) -> float:
