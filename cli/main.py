@@ -10,6 +10,7 @@ import typer
 
 from drivesim.cli import bench, config_show, export, ingest, meshes, preprocess, run, status, synth, train, world
 from drivesim.cli import eval as eval_cmd
+from drivesim.cli import sim as sim_cmd
 from drivesim.cli.common import err_console, state
 from drivesim.pipeline.errors import DrivesimError
 
@@ -59,6 +60,7 @@ app.command("status", help="Every stage as fresh / stale / missing, with a summa
 app.command("config", help="Show a stage's config keys with their values, units and meaning.")(
     config_show.config_command
 )
+app.add_typer(sim_cmd.sim_app, name="sim", help="Look at the simulator: render an episode driven by the expert.")
 app.add_typer(bench.bench_app, name="bench", help="Measure the simulator against ground truth (fidelity).")
 
 
