@@ -59,6 +59,15 @@ def load_vehicles(meshes: Any) -> Any:
     return VehicleLibrary.procedural() if meshes is None else VehicleLibrary.load(meshes)
 
 
+def default_roi(width_px: int, height_px: int, config: EnvConfig) -> tuple[int, int, int, int]:
+    """The largest region with the observation's aspect, centred across, at the bottom of the image."""
+    aspect = config.out_width_px / config.out_height_px
+    w, h = width_px, round(width_px / aspect)
+    if h > height_px:
+        w, h = round(height_px * aspect), height_px
+    return ((width_px - w) // 2, height_px - h, w, h)
+
+
 class DrivingEnv(gymnasium.Env):
     """Base of the drivesim tasks (see the subclasses for the task documentation)."""
 
@@ -106,10 +115,9 @@ class DrivingEnv(gymnasium.Env):
     # --- episode start -------------------------------------------------------------------------------------------
     def _renderer(self, world_index: int) -> Any:
         if world_index not in self._renderers:
-            c = self.config
-            self._renderers[world_index] = make_view_synthesizer(
-                self.worlds[world_index], c.roi_px, c.out_width_px, c.out_height_px
-            )
+            c, world = self.config, self.worlds[world_index]
+            roi = c.roi_px if c.roi_px is not None else default_roi(world.width_px, world.height_px, c)
+            self._renderers[world_index] = make_view_synthesizer(world, roi, c.out_width_px, c.out_height_px)
         return self._renderers[world_index]
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:

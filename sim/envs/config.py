@@ -66,8 +66,9 @@ class EnvConfig(BaseModel):
     """Weight of R_collision = -|Dilate(P_ego) ∩ P_other| / |P_ego|."""
     weight_comfort: float = 0.01
     """Weight of R_comfort = -|δ̈| (rad/s²)."""
-    roi_px: tuple[int, int, int, int] = (0, 72, 320, 128)
-    """(x0, y0, w, h) region of the world's sim image that the policy sees, pixels."""
+    roi_px: tuple[int, int, int, int] | None = None
+    """(x0, y0, w, h) region of the world's sim image that the policy sees, pixels; None: the largest region with
+    the observation's aspect, centred across and at the bottom of the image ((0, 72, 320, 128) at 320 x 200)."""
     out_width_px: int = 160
     """Width of the observation, pixels."""
     out_height_px: int = 64
