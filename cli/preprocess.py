@@ -18,8 +18,8 @@ def preprocess_command(config: ConfigOption = None, set_: SetOption = None, forc
     if result.skipped:
         console.print(f"preprocessed is fresh, nothing to do ({result.path}); --force redoes it", soft_wrap=True)
         return
-    depth = f"median {s.depth_median_m} m" if s.get("depth_median_m") is not None else "no near depth"
-    residual = f", residual {s.residual_m} m" if s.get("residual_m") is not None else ""
+    depth = f"median {s.depth_median_m} m" if s.depth_median_m is not None else "no near depth"
+    residual = f", residual {s.residual_m} m" if s.residual_m is not None else ""
     console.print(
         f"[green]preprocessed[/] {s.frame_count} frames, {s.path_length_m:.1f} m of path "
         f"(poses: {s.pose_source}{residual}); depth {s.depth_method}: {depth}, "

@@ -34,7 +34,3 @@ class ConfigError(DrivesimError):
 
 class MissingArtifactError(DrivesimError):
     """A stage needs an artifact that the workspace does not have yet."""
-
-
-class NotBuiltError(DrivesimError):
-    """The command exists in the design but is not built yet."""

@@ -35,11 +35,11 @@ def test_help_lists_every_stage(tmp_path: Path) -> None:
         assert f" {stage} " in result.stdout, stage
 
 
-def test_unbuilt_stage_says_so_and_exits_2(tmp_path: Path) -> None:
-    result = _drivesim("meshes", "build", cwd=tmp_path)  # the one command still to be built (MESHES)
+def test_stage_without_its_input_says_what_to_run_and_exits_2(tmp_path: Path) -> None:
+    result = _drivesim("train", "overtake", cwd=tmp_path)
     assert result.returncode == 2
     lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and "not built yet" in lines[0]
+    assert len(lines) == 1 and "no world artifact" in lines[0] and "drivesim build-world" in lines[0]
 
 
 def test_status_json_on_empty_workspace(tmp_path: Path) -> None:
