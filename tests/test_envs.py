@@ -173,3 +173,17 @@ def test_bad_worlds_and_meshes_are_one_line(world_dir: Path, tmp_path: Path) -> 
         _make(old, "lane")
     with pytest.raises(FileNotFoundError, match="frames.npy: missing"):
         _make(tmp_path / "nothing", "lane")
+
+
+def test_render_episode_writes_the_video_strip_and_plot(world_dir: Path, tmp_path: Path) -> None:
+    """`drivesim sim render`'s work: an MP4 with every step, a strip of 80x50 frames and the bird's-eye PNG."""
+    import cv2
+
+    from drivesim.sim.envs.render_episode import render_episode
+
+    summary = render_episode("overtake", world_dir, None, tmp_path / "out", seed=2)
+    video = cv2.VideoCapture(str(tmp_path / "out" / "episode.mp4"))
+    assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == summary["steps"] + 1
+    strip = cv2.imread(str(tmp_path / "out" / "strip.png"))
+    assert strip.shape[0] == 50 and strip.shape[1] % 80 == 0 and strip.shape[1] >= 80
+    assert cv2.imread(str(tmp_path / "out" / "birdseye.png")).shape[0] > 300

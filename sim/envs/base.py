@@ -293,9 +293,13 @@ class DrivingEnv(gymnasium.Env):
             else:
                 ego_pose, other_pose = (s.x_m, s.y_m, s.yaw_rad), (o.x_m, o.y_m, o.yaw_rad)
                 ego_size, other_size = (ego.length_m, ego.width_m), (other.length_m, other.width_m)
-                m["clearance_m"] = clearance_m(footprint(*ego_pose, *ego_size), footprint(*other_pose, *other_size))
-                m["overlap_frac"] = collision_overlap(ego_pose, ego_size, other_pose, other_size, dilate=False)
-                m["dilated_overlap"] = collision_overlap(ego_pose, ego_size, other_pose, other_size, dilate=True)
+                m["clearance_m"] = clearance = clearance_m(
+                    footprint(*ego_pose, *ego_size), footprint(*other_pose, *other_size)
+                )
+                # The dilated ego reaches at most 0.5 m further than the ego: beyond that no overlap to compute.
+                if clearance < 0.6:
+                    m["overlap_frac"] = collision_overlap(ego_pose, ego_size, other_pose, other_size, dilate=False)
+                    m["dilated_overlap"] = collision_overlap(ego_pose, ego_size, other_pose, other_size, dilate=True)
             if self.task == "follow":
                 m["tracking_error_m"] = ego.lateral_m - other.profile(ego.arc_m)
         self._m = m
