@@ -112,7 +112,8 @@ def main() -> None:
     agg = runs[0]["metrics"]["aggregate"]
     for key, label, pattern in TABLE_ROWS:
         garage, outdoor = PAPER_TABLE_I[key]
-        lines.append(f"| {label} | {_estimate(agg[key], pattern)} | {garage} | {outdoor} |")
+        paper = f"{pattern.format(garage)} | {pattern.format(outdoor)}"
+        lines.append(f"| {label} | {_estimate(agg[key], pattern)} | {paper} |")
     causes = runs[0]["metrics"]["intervention_causes"]
     lines += [
         f"| success rate | {_estimate(agg['success'])} | — | — |",
