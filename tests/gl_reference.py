@@ -273,8 +273,11 @@ def _cylinder_y(
 def car_meshes(
     object_id: int = 0, body_rgb: tuple[float, float, float] = (0.7, 0.1, 0.1), body_quads: int = 18
 ) -> list[Mesh]:
-    """A car-like object of about 5k triangles in the vehicle frame (x forward, y left, z up, ground at z = 0):
-    rounded body, rounded cabin, four wheels; three materials (glossy paint, glass-like cabin, rubber)."""
+    """Test fixture, not a vehicle model: a car-sized object of about 5k triangles in the vehicle frame (x forward,
+    y left, z up, ground at z = 0) made of superellipsoid patches with smooth per-vertex normals, so the rasterizer
+    is checked against OpenGL on curved shading, textures-free materials and a high triangle count; three materials
+    (glossy paint, glass-like cabin, rubber). The simulator's vehicles come from `sim.vehicles.build_vehicle_meshes`
+    (flat-shaded, closed; compared against OpenGL in tests/test_vehicles.py)."""
     body = _superellipsoid_patch(np.array([2.2, 0.9, 0.45]), np.array([0.0, 0.0, 0.8]), body_quads, 6.0)
     cabin = _superellipsoid_patch(np.array([1.2, 0.8, 0.35]), np.array([-0.3, 0.0, 1.4]), body_quads // 2, 4.0)
     wheels = [_cylinder_y(0.35, 0.25, np.array([x, y, 0.35]), 32) for x in (-1.4, 1.4) for y in (-0.85, 0.85)]

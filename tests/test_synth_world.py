@@ -139,6 +139,9 @@ def test_view_distance_culls_far_surfaces_only(world, small_cfg):
     _, depth_all = world.render(T, cam.K, W, H)
     _, depth_near = near_world.render(T, cam.K, W, H)
     close = depth_all < 30.0
-    assert np.allclose(depth_near[close], depth_all[close], rtol=1e-4)
+    # identical but for float rounding, which can differ by millimetres on a pixel at a car's silhouette when the
+    # rasterizer gets another set of triangles
+    assert np.isclose(depth_near[close], depth_all[close], rtol=1e-4).mean() > 0.999
+    assert np.allclose(depth_near[close], depth_all[close], rtol=1e-3)
     assert np.isinf(depth_near).sum() > np.isinf(depth_all).sum()
     assert np.nanmax(np.where(np.isinf(depth_near), np.nan, depth_near)) < 60.0 + 2 * 90.0

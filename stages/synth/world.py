@@ -19,9 +19,10 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert
+from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert, pose_2d
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.raster import Lighting, Rasterizer
+from drivesim.sim.vehicles import GROUP_NAMES, VehicleShape, build_vehicle_meshes
 from drivesim.stages.synth import textures
 from drivesim.stages.synth.config import CameraConfig, SynthConfig, SynthWorldConfig
 from drivesim.stages.synth.primitives import MeshBuffer, box, icosphere, prism, quad_faces
@@ -37,6 +38,7 @@ from drivesim.stages.synth.scenery import (
 
 SEMANTIC_IDS = {"road": 0, "sidewalk": 1, "ground": 2, "building": 3, "vegetation": 4, "car": 5}
 ROAD_STATION_M = 1.5
+PARKED_CAR_HEIGHT_M = 1.45
 GROUND_TILE_M = 10.0
 FAR_TILE_M = 100.0
 FAR_EXTENT_M = 1500.0
@@ -450,40 +452,32 @@ def _tree_meshes(layout: Layout, rng: np.random.Generator) -> list[Mesh]:
 
 
 def _car_meshes(layout: Layout) -> list[Mesh]:
-    """Parked cars: a painted body box, a cabin with dark windows and a painted roof, four wheels."""
-    bodies = MeshBuffer()
-    wheels = MeshBuffer()
-    glass_rgb = np.array([0.10, 0.12, 0.15])
+    """Parked cars: sedans from the vehicle builder (`sim.vehicles`) at each car's size and paint colour, merged into
+    one mesh per material group (body paint colour per vertex)."""
+    white_paint = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.05, 0.05, 0.05), shininess=96.0, roughness=0.25)
+    groups: list[list[Mesh]] = [[] for _ in GROUP_NAMES]
     for car in layout.cars:
-        c, s = np.cos(car.yaw_rad), np.sin(car.yaw_rad)
-        centre = np.array([car.x_m, car.y_m])
-        fwd = np.array([c, s])
-        v, f = box(centre, car.yaw_rad, car.length_m, car.width_m, 0.32, 0.98)
-        bodies.add(v[:20], f[:10], rgb=np.array(car.rgb))
-        cabin_len = car.length_m * 0.5
-        cv, cf = box(centre - 0.05 * car.length_m * fwd, car.yaw_rad, cabin_len, car.width_m * 0.86, 0.98, 1.45)
-        # taper the cabin top inwards (windscreen and rear window slope)
-        top = cv[:, 2] > 1.2
-        local = (cv[:, :2] - centre) @ np.array([[c, -s], [s, c]])
-        local[top, 0] *= 0.72
-        local[top, 1] *= 0.9
-        cv[:, :2] = local @ np.array([[c, s], [-s, c]]) + centre
-        rgb = np.tile(glass_rgb, (24, 1))
-        rgb[16:20] = car.rgb  # roof
-        bodies.add(cv[:20], cf[:10], rgb=rgb[:20])
-        for end, light_rgb in ((0.5, (0.95, 0.93, 0.80)), (-0.5, (0.75, 0.05, 0.04))):
-            for side in (0.33, -0.33):
-                p = centre + (end * car.length_m + np.sign(end) * 0.02) * fwd + side * car.width_m * np.array([-s, c])
-                lv, lf = box(p, car.yaw_rad, 0.06, 0.34, 0.72, 0.86)
-                bodies.add(lv[:20], lf[:10], rgb=np.array(light_rgb))
-        for ax in (0.34, -0.34):
-            for side in (0.5, -0.5):
-                p = centre + ax * car.length_m * fwd + side * (car.width_m - 0.2) * np.array([-s, c])
-                wv, wf, wn = prism(np.array([p[0], p[1], 0.32]), 0.32, 0.22, 10, axis="y", yaw_rad=car.yaw_rad)
-                wheels.add(wv, wf, rgb=np.array([0.06, 0.06, 0.06]), normals=wn)
-    paint = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.5, 0.5, 0.5), shininess=96.0, roughness=0.25)
-    rubber = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.05, 0.05, 0.05), roughness=0.9)
-    return [
-        bodies.build(paint, SEMANTIC_IDS["car"], coloured=True),
-        wheels.build(rubber, SEMANTIC_IDS["car"], smooth=True, coloured=True),
-    ]
+        shape = VehicleShape(
+            body_type="sedan", length_m=car.length_m, width_m=car.width_m, height_m=PARKED_CAR_HEIGHT_M,
+            hood_fraction=0.28, cabin_fraction=0.5, trunk_fraction=0.22, wheel_radius_m=0.32,
+            belt_fraction=0.68, windscreen_rake=1.3, rear_rake=1.1,
+        )  # fmt: skip
+        meshes = build_vehicle_meshes(shape, white_paint, "light", SEMANTIC_IDS["car"])
+        meshes[0].vertex_rgb = np.tile(np.asarray(car.rgb, np.float32), (len(meshes[0].vertices_m), 1))
+        T = pose_2d(car.x_m, car.y_m, car.yaw_rad)
+        for group, mesh in zip(groups, meshes, strict=True):
+            group.append(mesh.transformed(T))
+    return [_merged(group) for group in groups if group]
+
+
+def _merged(meshes: list[Mesh]) -> Mesh:
+    """Meshes of one material (and object id) as one mesh."""
+    offsets = np.cumsum([0] + [len(m.vertices_m) for m in meshes[:-1]])
+    coloured = all(m.vertex_rgb is not None for m in meshes)
+    return Mesh(
+        vertices_m=np.concatenate([m.vertices_m for m in meshes]),
+        faces=np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)]),
+        vertex_rgb=np.concatenate([m.vertex_rgb for m in meshes]) if coloured else None,
+        material=meshes[0].material,
+        object_id=meshes[0].object_id,
+    )
