@@ -1,4 +1,4 @@
-# `make demo`: the main job on the embedded demo drive; `make test`: the test suite. Both set up on first use.
+# `make demo`: the main job, `drivesim run` on the embedded demo drive (about 30 min on 2 cores); `make test`: the test suite. Both set up on first use.
 VENV ?= .venv
 STAMP := $(VENV)/.drivesim-installed
 WORKSPACE ?= drivesim-work
@@ -10,11 +10,7 @@ $(STAMP): pyproject.toml scripts/setup.sh
 	touch $@
 
 demo: $(STAMP)
-	$(VENV)/bin/drivesim --workspace $(WORKSPACE) synth --seed 0 --duration-s 8 --output $(WORKSPACE)/recordings/demo.mcap --preview
-	$(VENV)/bin/drivesim --workspace $(WORKSPACE) ingest $(WORKSPACE)/recordings/demo.mcap
-	$(VENV)/bin/drivesim --workspace $(WORKSPACE) preprocess
-	$(VENV)/bin/drivesim --workspace $(WORKSPACE) build-world
-	$(VENV)/bin/drivesim --workspace $(WORKSPACE) status
+	$(VENV)/bin/drivesim --workspace $(WORKSPACE) run --preset demo
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q

@@ -7,9 +7,9 @@ of that stage's config, on top of the stage's own preset:
     preprocess: {depth: {method: mvs}}
     train: {total_steps: 20000}
 
-Most stages run as `run_stage(ws, SPEC, cfg)`; the few whose artifact is one of many or that read a recording get
-a small runner here (ingest: the recording; train: a new run folder unless a finished run of the same config and
-world exists; eval and export: the run that train made).
+Most stages run as `run_stage(ws, SPEC, cfg)`; the few whose artifact is one of many or that read files outside the
+workspace get a small runner here (ingest: the recording; meshes: imported mesh files; train: a new run folder
+unless a finished run of the same config and world exists; eval and export: the run that train made).
 """
 
 from __future__ import annotations
@@ -180,12 +180,19 @@ def _run_export(walk: _Walk, spec: StageSpec, cfg: StageConfig) -> StageResult:
     return run_export(walk.ws, cfg, force=walk.force)  # type: ignore[arg-type]
 
 
+def _run_meshes(walk: _Walk, spec: StageSpec, cfg: StageConfig) -> StageResult:
+    from drivesim.stages.meshes.stage import run_meshes  # imported mesh files are its external inputs
+
+    return run_meshes(walk.ws, cfg, force=walk.force)  # type: ignore[arg-type]
+
+
 def _run_default(walk: _Walk, spec: StageSpec, cfg: StageConfig) -> StageResult:
     return run_stage(walk.ws, spec, cfg, force=walk.force, make_hints=walk.hints)
 
 
 RUNNERS: dict[str, Callable[[_Walk, StageSpec, StageConfig], StageResult]] = {
     "ingest": _run_ingest,
+    "meshes": _run_meshes,
     "train": _run_train,
     "eval": _run_eval,
     "export": _run_export,
