@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -24,6 +23,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
+
+from drivesim.bench.machine import machine_line
 
 RESULTS = Path(__file__).resolve().parent / "results" / "depth.md"
 WIDTH_PX, HEIGHT_PX = 960, 600
@@ -114,7 +115,7 @@ def main() -> None:
     lines = [
         "# Per-frame depth: speed, memory, accuracy",
         "",
-        f"- machine: 2-core CPU, no GPU ({platform.processor() or platform.machine()}, torch CPU)",
+        f"- machine: {machine_line()}, torch CPU",
         f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}; load average at the start {load_1min:.1f} "
         "(timings on a shared machine vary up to 3x with its load)",
         f"- command: `{command}`",

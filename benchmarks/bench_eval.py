@@ -21,6 +21,7 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
+from drivesim.bench.machine import machine_line
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.evaluate.config import EvalConfig
 from drivesim.stages.evaluate.report import PAPER_TABLE_I, TABLE_ROWS
@@ -83,7 +84,7 @@ def main() -> None:
     lines = [
         f"# eval: closed-loop evaluation ({args.task}, expert policy)",
         "",
-        f"Machine: 2-core CPU, no GPU, shared (load average {load_start:.1f} at start, {load_end:.1f} at the end). "
+        f"Machine: {machine_line()} (load average {load_start:.1f} at start, {load_end:.1f} at the end). "
         f"Date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}. World: {world}. Reproduce: `{cmd}`.",
         "",
         "| workers | episodes | wall, end to end | episodes / min (episode loop) | episodes / min (end to end) | "

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import shutil
 import subprocess
@@ -31,10 +30,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))
-
-from recordings import (  # noqa: E402  (tests/ holds the recording writers shared with the tests)
+from drivesim.bench.machine import machine_line
+from drivesim.bench.recordings import (  # the recording writers shared with the tests
     START_NS,
     T_FOOTPRINT_LINK,
     T_LINK_CAMERA,
@@ -48,6 +45,8 @@ from recordings import (  # noqa: E402  (tests/ holds the recording writers shar
     twist_values,
     write_recording,
 )
+
+REPO = Path(__file__).resolve().parents[1]
 
 WIDTH, HEIGHT = 960, 600
 K = np.array([[600.0, 0.0, 479.5], [0.0, 600.0, 299.5], [0.0, 0.0, 1.0]])
@@ -221,7 +220,7 @@ def main() -> None:
     lines = [
         "# Ingest throughput",
         "",
-        f"Machine: 2-core CPU, no GPU ({platform.processor() or platform.machine()}); "
+        f"Machine: {machine_line()}; "
         f"date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}; "
         f"command: `python benchmarks/bench_ingest.py{' --quick' if args.quick else ''}`.",
         "",

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drivesim.bench.machine import machine_line
 from drivesim.stages.preprocess.poses import PoseConfig, enu_transformer, fuse_gps_imu
 from drivesim.stages.preprocess.series import GpsSeries, ImuSeries, SensorSeries, SpeedSeries
 
@@ -83,7 +84,7 @@ def main() -> None:
         [
             "## Poses: GPS + IMU + speed fusion (CTRV EKF + RTS smoother)",
             "",
-            f"Machine: 2-core CPU, no GPU. Date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC. Command: `{command}`.",
+            f"Machine: {machine_line()}. Date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC. Command: `{command}`.",
             "Simulated winding drive with stops: GPS 10 Hz with 1 m noise, IMU 100 Hz with a 0.01 rad/s gyro bias, "
             "wheel speed 50 Hz, camera 10 Hz; IMU and speed averaged to 25 Hz (`poses.imu_rate_hz`) before fusion. "
             "Error: distance of the per-frame fused position to the truth.",

@@ -21,7 +21,6 @@ import argparse
 import hashlib
 import json
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -30,6 +29,8 @@ import time
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+
+from drivesim.bench.machine import machine_line
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "preprocess_world.md"
@@ -151,8 +152,7 @@ def write_results(rows: list[dict], resolution: str, quick: bool) -> None:
     lines = [
         "## preprocess and build-world: seconds per 1000 frames",
         "",
-        f"Machine: 2-core CPU, no GPU ({platform.processor() or platform.machine()}). Date: {now}. "
-        f"Reproduce: `{command}`.",
+        f"Machine: {machine_line()}. Date: {now}. Reproduce: `{command}`.",
         f"Input: a synthetic drive, trace at {resolution}; world at 320 px wide (default config). "
         "Each figure is one CLI run in its own process. wall s: the whole process (interpreter start and imports "
         "included); stage s: the stage's own time from its manifest summary. s per 1000 frames: the marginal stage "

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -24,16 +23,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from drivesim.bench.gl_reference import GLRenderer, car_meshes, create_context
+from drivesim.bench.machine import machine_line
+from drivesim.sim import geometry as g
+from drivesim.sim import warp as warp_module
+from drivesim.sim.mesh import Material, Mesh
+from drivesim.sim.raster import Rasterizer, pack_meshes
+from drivesim.sim.warp import forward_warp
+
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent / "tests"))
-
-from gl_reference import GLRenderer, car_meshes, create_context  # noqa: E402
-
-from drivesim.sim import geometry as g  # noqa: E402
-from drivesim.sim import warp as warp_module  # noqa: E402
-from drivesim.sim.mesh import Material, Mesh  # noqa: E402
-from drivesim.sim.raster import Rasterizer, pack_meshes  # noqa: E402
-from drivesim.sim.warp import forward_warp  # noqa: E402
 
 CAR_POSES = [(8, 0.8, 0.6), (14, -3, 0.1), (20, 3.5, -0.2), (11, -6, 1.2), (25, 0, 0), (30, -3.5, 0), (17, 6, 0.4),
              (35, 3, 0.1)]  # fmt: skip
@@ -238,7 +236,7 @@ def main() -> None:
         [
             "## Rendering (rasterizer and forward warp)",
             "",
-            f"Machine: 2-core CPU, no GPU. Date: {dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M} UTC. "
+            f"Machine: {machine_line()}. Date: {dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M} UTC. "
             f"Command: `{command}`. torch {torch.__version__}, {args.threads} thread(s); "
             f"OpenGL reference: moderngl on EGL, {gl_info} (default thread count), timed including the read-back of "
             f"colour and depth. ms per frame, median and p90 of wall time over {runs} runs after 5 warm-up runs; "

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drivesim.bench.machine import machine_line
 from drivesim.stages.synth.config import SynthConfig
 from drivesim.stages.synth.drive import Trajectory
 from drivesim.stages.synth.synthesize import resolve_config, single_torch_thread, synthesize
@@ -91,7 +92,7 @@ def main() -> None:
     lines = [
         "# synth: procedural drive with ground truth",
         "",
-        f"Machine: 2-core CPU, no GPU (load average {load:.1f} at start). Date: "
+        f"Machine: {machine_line()} (load average {load:.1f} at start). Date: "
         f"{datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}. Reproduce: `{cmd}`.",
         "",
         "| measure | value |",

@@ -180,7 +180,6 @@ def test_bad_input_is_one_line_and_no_report(tmp_path, case):
 
 
 def test_onnx_with_wrong_inputs_is_one_line(tmp_path):
-    pytest.importorskip("drivesim.stages.onnx_policy", reason="OnnxPolicy (EXPORT engineer) not built yet")
     import onnx
     from onnx import TensorProto, helper
 
@@ -312,7 +311,6 @@ def test_resume_into_fewer_episodes_keeps_only_those(tmp_path, monkeypatch):
 
 
 def test_onnx_policy_gives_the_torch_policy_metrics(tmp_path):
-    pytest.importorskip("drivesim.stages.onnx_policy", reason="OnnxPolicy (EXPORT engineer) not built yet")
     from drivesim.stages.export.onnx_export import export_onnx
     from drivesim.stages.policy import load_policy
 

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 from cli_helpers import REAL_DATA
-from recordings import START_NS, Msg, drive_messages, navsat_values, textured_image, write_recording
 
+from drivesim.bench.recordings import START_NS, Msg, drive_messages, navsat_values, textured_image, write_recording
 from drivesim.cli.main import main
 
 REAL = REAL_DATA

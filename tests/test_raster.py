@@ -5,8 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from gl_reference import GLRenderer, car_meshes, checker_texture, create_context, ground_plane, textured_quad
 
+from drivesim.bench.gl_reference import (
+    GLRenderer,
+    car_meshes,
+    checker_texture,
+    create_context,
+    ground_plane,
+    textured_quad,
+)
 from drivesim.sim import geometry as g
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.raster import Lighting, PackedScene, Rasterizer, pack_meshes

@@ -2,7 +2,8 @@
 
 A recording is a list of `Msg(topic, msgtype, t_ns, values)`; `values` are nested dicts with ROS2 field names
 (`k`, `d`, ...) that `build_msg` maps onto either typestore (ROS1 names `K`, `D` match case-insensitively).
-Also used by benchmarks/bench_ingest.py to generate large recordings.
+Shared by the tests and by benchmarks/bench_ingest.py (large recordings); a fixture builder, not part of drivesim's
+stages.
 """
 
 from __future__ import annotations
