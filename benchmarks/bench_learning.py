@@ -15,6 +15,7 @@ Writes benchmarks/results/learning.md and the curves as benchmarks/results/learn
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import shutil
@@ -26,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drivesim.bench.machine import machine_line
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.policy import load_policy
@@ -143,32 +145,56 @@ def _rate(r: dict) -> str:
     return f"{r['successes'] / r['episodes']:.0%} ({lo:.0%}–{hi:.0%})"
 
 
-def write_results(
-    rows: list[tuple[Scenario, Path, dict]], loads: list[tuple[float, float, float]], episodes: int
-) -> None:
+def scenario_row(scenario: Scenario, world: Path, r: dict, load_1min: float, episodes: int) -> dict:
+    """One scenario's figures as plain JSON (kept per scenario, so scenarios can be run one at a time)."""
+    s, trained = r["summary"], r["trained"]
+    return {
+        "scenario": scenario.name,
+        "warm_start": scenario.warm_start,
+        "world": str(world),
+        "target": scenario.target,
+        "trained_min": s.wall_s / 60,
+        "steps": s.steps,
+        "steps_per_s": s.steps_per_s,
+        "trained": trained,
+        "random": r["random"],
+        "curves": r["curves"].name,
+        "run": str(r["run"]),
+        "load_1min": load_1min,
+        "episodes": episodes,
+        "measured_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "machine": machine_line(),
+    }
+
+
+def write_results() -> None:
+    """benchmarks/results/learning.md from every scenario's JSON in benchmarks/results."""
+    rows = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("learning_*.json"))]
+    rows.sort(key=lambda r: list(SCENARIOS).index(r["scenario"]) if r["scenario"] in SCENARIOS else 99)
     lines = [
         "# Learning: success on held-back seeds after a wall-clock training budget",
         "",
-        f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {os.cpu_count()} cores; load average "
-        f"(1 min) before each scenario: {', '.join(f'{x[0]:.2f}' for x in loads)} (the machine may have been "
-        f"shared). {episodes} evaluation episodes per policy (seeds {HELD_BACK_SEED}+, eval mode: any overlap is "
-        "a collision); success = lane/follow: the time limit without intervention, overtake: passed and back in "
-        "the lane without intervention. 95 % Wilson intervals in brackets. "
-        "`python benchmarks/bench_learning.py` redoes it.",
+        f"Evaluation episodes per policy: seeds {HELD_BACK_SEED}+, eval mode (any overlap is a collision); success = "
+        "lane/follow: the time limit without intervention, overtake: passed and back in the lane without "
+        "intervention. 95 % Wilson intervals in brackets. `python benchmarks/bench_learning.py --only NAME` redoes "
+        "one scenario.",
         "",
-        "| scenario | world | trained | env steps | env steps/s | success (trained) | success (random) | target | "
-        "interventions of the trained policy | curves |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---|---|",
+        "| scenario | measured | world | trained | env steps | env steps/s | success (trained) | success (random) | "
+        "target | interventions of the trained policy | curves |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---|---|",
     ]
-    for scenario, world, r in rows:
-        s, trained = r["summary"], r["trained"]
+    for r in rows:
+        trained = r["trained"]
         causes = ", ".join(f"{k} {v}" for k, v in sorted(trained["causes"].items()) if v and k != "time_limit")
-        met = "met" if trained["successes"] / trained["episodes"] >= scenario.target else "not met"
+        met = "met" if trained["successes"] / trained["episodes"] >= r["target"] else "not met"
         lines.append(
-            f"| {scenario.name}{' (warm start)' if scenario.warm_start else ''} | {world} | {s.wall_s / 60:.1f} min | "
-            f"{s.steps} | {s.steps_per_s:.0f} | {_rate(trained)} | {_rate(r['random'])} | "
-            f"≥ {scenario.target:.0%} ({met}) | {causes or 'none'} | {r['curves'].name} |"
+            f"| {r['scenario']}{' (warm start)' if r['warm_start'] else ''} | {r['measured_utc']}, load "
+            f"{r['load_1min']:.1f} | `{r['world']}` | {r['trained_min']:.1f} min | {r['steps']} | "
+            f"{r['steps_per_s']:.0f} | {_rate(trained)} | {_rate(r['random'])} | ≥ {r['target']:.0%} ({met}) | "
+            f"{causes or 'none'} | {r['curves']} |"
         )
+    if rows:
+        lines += ["", f"Machine: {rows[-1]['machine']}."]
     (RESULTS / "learning.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {RESULTS / 'learning.md'}")
 
@@ -193,7 +219,6 @@ def main() -> None:
     )
     args = parser.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
-    rows, loads = [], []
     for name in args.only or list(SCENARIOS):
         scenario = SCENARIOS[name]
         world = args.demo_world if scenario.world_kind == "demo" else args.kitti_world
@@ -202,12 +227,13 @@ def main() -> None:
         if world is None or not (world / "manifest.json").is_file():
             print(f"skipping {name}: no world at {world} (build one and pass --kitti-world / --demo-world)")
             continue
-        loads.append(os.getloadavg())
+        load_1min = os.getloadavg()[0]
         minutes = args.minutes if args.minutes is not None else scenario.minutes
         result = run_scenario(scenario, world, minutes, args.episodes, args.scratch)
         print(f"{name}: trained {_rate(result['trained'])}, random {_rate(result['random'])}")
-        rows.append((scenario, world, result))
-    write_results(rows, loads, args.episodes)
+        row = scenario_row(scenario, world, result, load_1min, args.episodes)
+        (RESULTS / f"learning_{name}.json").write_text(json.dumps(row, indent=1))
+        write_results()
 
 
 if __name__ == "__main__":

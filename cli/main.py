@@ -61,7 +61,7 @@ app.command("config", help="Show a stage's config keys with their values, units 
     config_show.config_command
 )
 app.add_typer(sim_cmd.sim_app, name="sim", help="Look at the simulator: render an episode driven by the expert.")
-app.add_typer(bench.bench_app, name="bench", help="Measure the simulator against ground truth (fidelity).")
+app.add_typer(bench.bench_app, name="bench", help="Measure the simulator: fidelity against ground truth, and speed.")
 
 
 _INTERRUPTED = "interrupted: no artifact was written; run the command again to redo it"
