@@ -9,55 +9,22 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 
 from drivesim.sim.agents import Agent, ReferencePath
 from drivesim.sim.dynamics import rk3_step, steering_for_curvature, steering_rate_command
+from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer
 from drivesim.sim.world import World
 
 TIMING_KEYS = ("dynamics", "association", "warp", "raster", "composite", "lighting", "harmonize", "rewards")
 
 
-@dataclass
-class SimpleViewBatch:
-    """Views without inserted cars (the stand-in while `sim/view.py` is absent)."""
-
-    rgb: np.ndarray
-    car_mask: np.ndarray
-    timings_ms: dict[str, float]
-
-
-class RecordedFrameView:
-    """Stand-in renderer used only when `sim/view.py` is not importable: the associated recorded frame's region of
-    interest, without warp or inserted cars. It keeps the env usable while the view synthesizer is built."""
-
-    def __init__(self, world: World, roi_px: tuple[int, int, int, int], out_width_px: int, out_height_px: int):
-        self.world, self.roi, self.size = world, roi_px, (out_width_px, out_height_px)
-
-    def render(self, frame_index, x_m, y_m, yaw_rad, cars) -> SimpleViewBatch:  # noqa: ANN001 (ViewSynthesizer's)
-        """The region of interest of each recorded frame, resized to the output size."""
-        start = time.perf_counter()
-        x0, y0, w, h = self.roi
-        rgb = np.stack(
-            [
-                cv2.resize(np.asarray(self.world.frames[int(i), y0 : y0 + h, x0 : x0 + w]), self.size, cv2.INTER_AREA)
-                for i in frame_index
-            ]
-        )
-        mask = np.zeros(rgb.shape[:3], dtype=bool)
-        return SimpleViewBatch(rgb, mask, {"warp": 1e3 * (time.perf_counter() - start)})
-
-
-def make_view_synthesizer(world: World, roi_px, out_width_px: int, out_height_px: int, **view_options: Any) -> Any:  # noqa: ANN001
-    """`sim/view.py::ViewSynthesizer` for the world, or the recorded-frame stand-in when it is not there yet."""
-    try:
-        from drivesim.sim.view import ViewConfig, ViewSynthesizer
-    except ImportError:
-        return RecordedFrameView(world, tuple(roi_px), out_width_px, out_height_px)
+def make_view_synthesizer(
+    world: World, roi_px: tuple[int, int, int, int], out_width_px: int, out_height_px: int, **view_options: Any
+) -> ViewSynthesizer:
+    """The world's view synthesizer for a region of interest resized to the policy's observation size."""
     config = ViewConfig(roi_px=tuple(roi_px), out_width_px=out_width_px, out_height_px=out_height_px, **view_options)
     return ViewSynthesizer(world, config)
 
@@ -119,10 +86,8 @@ class Simulator:
 
     def placements(self, viewer: int) -> list[Any]:
         """Every other agent as a CarPlacement for the viewer's camera (empty without vehicle models)."""
-        if not self.models or isinstance(self.renderer, RecordedFrameView):
+        if not self.models:
             return []
-        from drivesim.sim.view import CarPlacement
-
         return [
             CarPlacement(model=self.models[j], x_m=a.state.x_m, y_m=a.state.y_m, yaw_rad=a.state.yaw_rad, object_id=j)
             for j, a in enumerate(self.agents)

@@ -49,13 +49,11 @@ def load_worlds(world: Any, min_length_m: float) -> list[World]:
 
 
 def load_vehicles(meshes: Any) -> Any:
-    """The vehicle library from a `meshes/` folder, the procedural one for None, or None before it exists."""
+    """The vehicle library from a `meshes/` folder, or the procedural one for None."""
     if meshes is not None and not Path(meshes).exists():
         raise FileNotFoundError(f"{meshes}: no such meshes folder; run `drivesim meshes build` or pass meshes=None")
-    try:
-        from drivesim.sim.vehicle_library import VehicleLibrary
-    except ImportError:
-        return None
+    from drivesim.sim.vehicle_library import VehicleLibrary  # trimesh: only for tasks with other cars
+
     return VehicleLibrary.procedural() if meshes is None else VehicleLibrary.load(meshes)
 
 
