@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -174,6 +175,7 @@ def car_fidelity_markdown(result: CarFidelityResult, machine: str, command: str)
         "# Inserted-car fidelity and real-frame view synthesis",
         "",
         f"- machine: {machine}",
+        f"- date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
         f"- command: `{command}`",
         "",
         f"## (a) Synthetic world: simulator view vs true render with the car {CAR_AHEAD_M:.0f} m ahead",

@@ -10,6 +10,7 @@ from __future__ import annotations
 import multiprocessing
 import time
 from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -169,6 +170,7 @@ def sim_speed_markdown(result: SimSpeedResult, command: str) -> str:
         "# Simulator speed",
         "",
         f"- machine: {result.machine}",
+        f"- date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
         f"- world: `{result.world}`, {result.steps} expert steps per measurement, default observation",
         f"- command: `{command}`",
         "",
