@@ -9,7 +9,24 @@ from __future__ import annotations
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-ORDER = ["ingest", "render", "synth", "poses", "depth", "preprocess_world", "fidelity"]
+ORDER = [
+    "targets",
+    "demo",
+    "sim",
+    "vista",
+    "car_fidelity",
+    "meshes",
+    "train_speed",
+    "learning",
+    "eval",
+    "ingest",
+    "render",
+    "synth",
+    "poses",
+    "depth",
+    "preprocess_world",
+    "fidelity",
+]
 
 
 def main() -> None:
