@@ -48,24 +48,7 @@ def pass_record(
         if stop_at_overlap and ego.intersection(other).area > 0:
             overlap_seen = True
             break
-    a = np.array(rows)
-    n = len(a)
-    traj = {
-        "t_s": a[:, 0],
-        "ego_x_m": a[:, 1],
-        "ego_y_m": a[:, 2],
-        "ego_yaw_rad": a[:, 3],
-        "q_lat_m": a[:, 2],
-        "q_rot_rad": a[:, 3],
-        "frame_index": np.floor(a[:, 1]),
-        "arc_length_m": a[:, 1],
-        "road_curvature_1pm": np.zeros(n),
-        "other_x_m": a[:, 4],
-        "other_y_m": a[:, 5],
-        "other_yaw_rad": a[:, 6],
-        "tracking_error_m": np.full(n, np.nan),
-        "action": np.zeros(n),
-    }
+    traj = _trajectory(np.array(rows))
     termination = {"off_lane": False, "over_rotation": False, "collision": overlap_seen, "end_of_data": False}
     termination["time_limit"] = not overlap_seen
     return EpisodeRecord(
@@ -91,8 +74,17 @@ def lane_departure_record(seed: int = 0, drift_mps: float = 0.6, limit_m: float 
         if y > limit_m:
             break
     a = np.array(rows)
+    far_ahead = np.column_stack([a[:, 1] + 60.0, np.zeros((len(a), 2))])  # never near
+    traj = _trajectory(np.column_stack([a, far_ahead]))
+    termination = {"off_lane": True, "over_rotation": False, "collision": False, "end_of_data": False}
+    return EpisodeRecord(seed, "overtake", _episode_info(seed, 1.5), traj, termination, success=False)
+
+
+def _trajectory(a: np.ndarray) -> dict[str, np.ndarray]:
+    """An episode's trajectory on a straight road along x from rows (t, ego x, y, yaw, other x, y, yaw): the lane
+    centre is y = 0, one recorded frame per metre."""
     n = len(a)
-    traj = {
+    return {
         "t_s": a[:, 0],
         "ego_x_m": a[:, 1],
         "ego_y_m": a[:, 2],
@@ -102,14 +94,12 @@ def lane_departure_record(seed: int = 0, drift_mps: float = 0.6, limit_m: float 
         "frame_index": np.floor(a[:, 1]),
         "arc_length_m": a[:, 1],
         "road_curvature_1pm": np.zeros(n),
-        "other_x_m": a[:, 1] + 60.0,  # far ahead: never near
-        "other_y_m": np.zeros(n),
-        "other_yaw_rad": np.zeros(n),
+        "other_x_m": a[:, 4],
+        "other_y_m": a[:, 5],
+        "other_yaw_rad": a[:, 6],
         "tracking_error_m": np.full(n, np.nan),
         "action": np.zeros(n),
     }
-    termination = {"off_lane": True, "over_rotation": False, "collision": False, "end_of_data": False}
-    return EpisodeRecord(seed, "overtake", _episode_info(seed, 1.5), traj, termination, success=False)
 
 
 def _ramp(gap_m: float, lateral_m: float, ramp_m: float) -> tuple[float, float]:
