@@ -180,7 +180,7 @@ def write_results() -> None:
         "one scenario.",
         "",
         "| scenario | measured | world | trained | env steps | env steps/s | success (trained) | success (random) | "
-        "target | interventions of the trained policy | curves |",
+        "target | how the trained policy's episodes ended (besides the time limit) | curves |",
         "|---|---|---|---:|---:|---:|---:|---:|---:|---|---|",
     ]
     for r in rows:
