@@ -247,17 +247,24 @@ def real_env_rows(world: Path, steps: int, envs: int) -> list[Row]:
     from drivesim.stages.train.run import build_model
 
     rows = []
-    for epochs in (4, 10):
+    # The preset (envs batched in the learner's process), the paper's 10 epochs, and one env per core in
+    # subprocesses (each worker one torch thread) as the alternative.
+    for epochs, vec_env, count in ((4, "batched", envs), (10, "batched", envs), (4, "subproc", 2)):
         cfg = load_config(
             TrainConfig,
             preset="train/overtake",
-            overrides=[f"ppo.epochs={epochs}", f"envs.count={envs}", f"ppo.buffer_steps={steps}"],
+            overrides=[
+                f"ppo.epochs={epochs}",
+                f"envs.count={count}",
+                f"envs.vec_env={vec_env}",
+                f"ppo.buffer_steps={steps}",
+            ],
         )
         source = EnvSource(task="overtake", worlds=[world])
         venv = source.make_vec(cfg.envs.count, cfg.envs.vec_env, seed=0)
         rows.append(
             measure(
-                f"overtake, real simulator ({cfg.envs.vec_env}, {envs} envs), {epochs} epochs, buffer "
+                f"overtake, real simulator ({cfg.envs.vec_env}, {count} envs), {epochs} epochs, buffer "
                 f"{cfg.ppo.buffer_steps}",
                 lambda env, cfg=cfg: build_model(cfg, env),
                 steps,
@@ -297,7 +304,7 @@ def write_results(
     when = (
         f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {platform.node()} "
         f"({os.cpu_count()} cores), torch {torch.__version__}; load average before: {load[0]:.2f} / {load[1]:.2f} "
-        f"/ {load[2]:.2f} (1/5/15 min; the machine was shared, so figures are noisy)."
+        f"/ {load[2]:.2f} (1/5/15 min)."
     )
     sections = _sections()
     if learner:
@@ -317,7 +324,7 @@ def write_results(
             [
                 f"## {REAL}",
                 "",
-                when + f" The overtake preset (batched env, {args.envs} envs) on {args.world}, "
+                when + f" The overtake preset on {args.world}, "
                 f"{args.real_steps} env steps per run, the buffer cut to that. `python benchmarks/bench_train_speed.py "
                 "--only-real --world WORLD` redoes it.",
                 "",
@@ -343,10 +350,9 @@ def main() -> None:
     parser.add_argument("--only-real", action="store_true", help="only the real-env runs")
     args = parser.parse_args()
     load = os.getloadavg()
-    rows = [] if args.only_real else learner_variants(args.steps, args.epochs, not args.skip_slow)
-    if args.world is not None:
-        rows += real_env_rows(args.world, args.real_steps, args.envs)
-    write_results(rows, args, load)
+    learner = [] if args.only_real else learner_variants(args.steps, args.epochs, not args.skip_slow)
+    real = [] if args.world is None else real_env_rows(args.world, args.real_steps, args.envs)
+    write_results(learner, real, args, load)
 
 
 if __name__ == "__main__":
