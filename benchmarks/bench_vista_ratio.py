@@ -19,6 +19,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -107,6 +108,7 @@ def main() -> None:
         "# drivesim vs VISTA 2.0.6: ms per simulation step",
         "",
         f"- machine: {machine_line()} (load average {load_before:.1f} at the start)",
+        f"- date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
         f"- drive: KITTI 2011_09_26_drive_0001; our world `{args.world}`; camera 200 x 320 on both sides (ours: "
         f"region {camera['roi_px']} of the world's image)",
         f"- VISTA: its own venv in `{args.vista_dir}` (bench_vista.py, dynamics + sensor, median over {args.steps} "
