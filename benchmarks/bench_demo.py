@@ -18,6 +18,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from drivesim.bench.machine import machine_line
+from drivesim.bench.report import write_markdown
 
 RESULTS = Path(__file__).resolve().parent / "results" / "demo.md"
 STAGE_LINE = re.compile(r"^(?P<stage>[a-z-]+): (?:done in (?P<s>[0-9.]+) s|(?P<skipped>fresh, skipped))")
@@ -79,9 +80,7 @@ def main() -> None:
         "stops at the preset's `total_steps` or its 15-min training time limit, whichever comes first.",
         "",
     ]
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_markdown(RESULTS, lines)
 
 
 if __name__ == "__main__":

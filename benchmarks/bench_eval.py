@@ -22,6 +22,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from drivesim.bench.machine import machine_line
+from drivesim.bench.report import write_markdown
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.evaluate.config import EvalConfig
 from drivesim.stages.evaluate.report import PAPER_TABLE_I, TABLE_ROWS
@@ -157,9 +158,7 @@ def main() -> None:
         "expert here is the privileged controller that sees the true state, a reference for the env.",
         "",
     ]
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_markdown(RESULTS, lines)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from drivesim.bench.machine import machine_line
+from drivesim.bench.report import write_markdown
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.export.config import ExportConfig
 from drivesim.stages.export.stage import run_export
@@ -52,9 +53,7 @@ def main() -> None:
         f"| export and checks | {s.export_s:.1f} s |",
         "",
     ]
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_markdown(RESULTS, lines)
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from drivesim.bench.machine import machine_line
+from drivesim.bench.report import write_markdown
 from drivesim.stages.synth.config import SynthConfig
 from drivesim.stages.synth.drive import Trajectory
 from drivesim.stages.synth.synthesize import resolve_config, single_torch_thread, synthesize
@@ -109,9 +110,7 @@ def main() -> None:
         "in-process; the CLI adds about 2 s of imports.",
         "",
     ]
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_markdown(RESULTS, lines)
 
 
 if __name__ == "__main__":
