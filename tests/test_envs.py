@@ -119,6 +119,35 @@ def test_each_termination_flag(world_dir: Path, flag: str, where: str) -> None:
     assert [k for k, v in info["termination"].items() if v] == [flag]
 
 
+def test_training_overtake_goes_on_after_the_pass(world_dir: Path) -> None:
+    """In training the episode outlives the pass, so R_pass is paid per step ahead; evaluation ends at the pass."""
+    for seed in range(10):
+        trained = _make(world_dir, "overtake", mode="train", episode_steps=300).unwrapped
+        evaluated = _make(world_dir, "overtake", mode="eval", episode_steps=300).unwrapped
+        trained.reset_state(seed)
+        evaluated.reset_state(seed)
+        eval_steps = 0
+        while True:
+            _, terminated, truncated, eval_info = evaluated.advance(evaluated.expert_action())
+            eval_steps += 1
+            if terminated or truncated:
+                break
+        if not eval_info["success"]:
+            continue
+        pass_rewards, steps = 0.0, 0
+        while True:
+            _, terminated, truncated, info = trained.advance(trained.expert_action())
+            pass_rewards += info["rewards"]["pass"]
+            steps += 1
+            if terminated or truncated:
+                break
+        assert steps > eval_steps + 10  # it went on well past the step where evaluation ended it
+        assert pass_rewards > 10.0  # and paid R_pass for the steps ahead
+        assert info["success"] == (not any(info["termination"][k] for k in ("off_lane", "over_rotation", "collision")))
+        return
+    pytest.fail("the expert passed in none of 10 episodes")
+
+
 def test_time_limit_truncates(world_dir: Path) -> None:
     env = _make(world_dir, "lane", episode_steps=4)
     env.reset(seed=0)

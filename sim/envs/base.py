@@ -164,6 +164,7 @@ class DrivingEnv(gymnasium.Env):
         self._assoc = self._associate()
         self._u_steer = 0.0
         self._t = 0
+        self._succeeded = False
         self._episode = {
             "seed": seed,
             "world": str(world.root),
@@ -231,11 +232,17 @@ class DrivingEnv(gymnasium.Env):
             c.max_lateral_m, c.max_rotation_rad, c.end_margin_m,
         )  # fmt: skip
         intervention = flags["off_lane"] or flags["over_rotation"] or flags["collision"]
-        success = self._success(intervention)
-        terminated = any(flags.values()) or (self.task == "overtake" and success)
+        succeeded_now = self._success(intervention)
+        self._succeeded |= succeeded_now
+        end_on_success = self.mode == "eval" or c.end_on_success_in_training
+        terminated = any(flags.values()) or (self.task == "overtake" and succeeded_now and end_on_success)
         truncated = (not terminated) and self._t >= c.episode_steps
         flags["time_limit"] = truncated
-        if self.task != "overtake":
+        if self.task == "overtake" and end_on_success:
+            success = succeeded_now
+        elif self.task == "overtake":  # a training episode that went on after the pass: no intervention since
+            success = self._succeeded and (terminated or truncated) and not intervention
+        else:
             success = (terminated or truncated) and not intervention
         info = self._info(reset=False)
         info["rewards"] = terms

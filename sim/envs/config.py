@@ -46,6 +46,11 @@ class EnvConfig(BaseModel):
     """Z_pass: the ego has passed when it is this far ahead of the front car (centre to centre along the road), m."""
     return_lateral_m: float = 0.75
     """Overtake succeeds once passed and back within this lateral offset of the lane centre, metres."""
+    end_on_success_in_training: bool = False
+    """Whether a training (mode "train") overtake episode ends at its success. Off (the default), it goes on to the
+    time limit, so R_pass, paid per step once ahead, makes passing worth more than following the slow car in the
+    lane; ended at the pass, an episode that stays behind collects more R_lane and the policy learns not to pass.
+    Evaluation always ends at the success (its metric)."""
     collision_overlap_train: float = 0.05
     """Overlap of the undilated footprints (fraction of the ego's area) above which training counts a collision."""
     collision_overlap_eval: float = 0.0

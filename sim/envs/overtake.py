@@ -26,9 +26,12 @@ class OvertakeEnv(DrivingEnv):
     pursuit (gain 0.8, lookahead 5 m) at its lateral offset.
 
     ## Episode end
-    Terminated on success (pass_margin_m > Z_pass = pass_distance_m and |q_lat| < return_lateral_m), or on
-    off_lane, over_rotation, collision (undilated overlap > 5 % of the ego's area in training, > 0 % in
-    evaluation) or end_of_data. Truncated: time_limit after episode_steps steps.
+    Success: pass_margin_m > Z_pass = pass_distance_m and |q_lat| < return_lateral_m, without intervention. In
+    evaluation the episode is terminated at the success; in training it goes on (R_pass is paid for every step
+    ahead) and info["success"] at its end says whether it succeeded and had no intervention since
+    (`end_on_success_in_training` ends it at the success instead). Terminated on off_lane, over_rotation, collision
+    (undilated overlap > 5 % of the ego's area in training, > 0 % in evaluation) or end_of_data. Truncated:
+    time_limit after episode_steps steps.
     """
 
     task = "overtake"
