@@ -156,6 +156,8 @@ def scenario_row(scenario: Scenario, world: Path, r: dict, load_1min: float, epi
         "trained_min": s.wall_s / 60,
         "steps": s.steps,
         "steps_per_s": s.steps_per_s,
+        "policy_steps": s.policy_steps,
+        "policy_eval_success_rate": s.policy_eval_success_rate,
         "trained": trained,
         "random": r["random"],
         "curves": r["curves"].name,
@@ -165,6 +167,14 @@ def scenario_row(scenario: Scenario, world: Path, r: dict, load_1min: float, epi
         "measured_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": machine_line(),
     }
+
+
+def _policy_steps(r: dict) -> str:
+    steps = r.get("policy_steps")
+    if not steps:
+        return f"{r['steps']} (last)"
+    chosen = r.get("policy_eval_success_rate")
+    return f"{steps}" + ("" if chosen is None else f" ({chosen:.0%})")
 
 
 def write_results() -> None:
@@ -179,9 +189,9 @@ def write_results() -> None:
         "intervention. 95 % Wilson intervals in brackets. `python benchmarks/bench_learning.py --only NAME` redoes "
         "one scenario.",
         "",
-        "| scenario | measured | world | trained | env steps | env steps/s | success (trained) | success (random) | "
-        "target | how the trained policy's episodes ended (besides the time limit) | curves |",
-        "|---|---|---|---:|---:|---:|---:|---:|---:|---|---|",
+        "| scenario | measured | world | trained | env steps | env steps/s | policy of step | success (trained) | "
+        "success (random) | target | how the trained policy's episodes ended (besides the time limit) | curves |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|",
     ]
     for r in rows:
         trained = r["trained"]
@@ -190,11 +200,18 @@ def write_results() -> None:
         lines.append(
             f"| {r['scenario']}{' (warm start)' if r['warm_start'] else ''} | {r['measured_utc']}, load "
             f"{r['load_1min']:.1f} | `{r['world']}` | {r['trained_min']:.1f} min | {r['steps']} | "
-            f"{r['steps_per_s']:.0f} | {_rate(trained)} | {_rate(r['random'])} | ≥ {r['target']:.0%} ({met}) | "
-            f"{causes or 'none'} | {r['curves']} |"
+            f"{r['steps_per_s']:.0f} | {_policy_steps(r)} | {_rate(trained)} | {_rate(r['random'])} | "
+            f"≥ {r['target']:.0%} ({met}) | {causes or 'none'} | {r['curves']} |"
         )
     if rows:
-        lines += ["", f"Machine: {rows[-1]['machine']}."]
+        lines += [
+            "",
+            "Policy of step: the env steps of the weights evaluated: the run's best periodic evaluation on its own "
+            "held-back seeds (1000000+, `eval.keep_best`), with that evaluation's success in brackets; runs from "
+            "before keep_best: the last update's.",
+            "",
+            f"Machine: {rows[-1]['machine']}.",
+        ]
     (RESULTS / "learning.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {RESULTS / 'learning.md'}")
 

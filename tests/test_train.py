@@ -4,6 +4,7 @@ Learning itself is shown by benchmarks/bench_learning.py, not here."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -21,6 +22,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.policy import RunError, latest_run, load_policy
+from drivesim.stages.train.best import BestPolicy
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
 from drivesim.stages.train.recurrent import ChunkedRecurrentPPO
@@ -124,6 +126,7 @@ def test_run_folder_and_round_trip(finished_run: Path) -> None:
         "curves.png",
         "manifest.json",
         "checkpoints/last.pt",
+        "checkpoints/best.pt",
     ):
         assert (finished_run / name).is_file(), name
     assert list((finished_run / "tb").iterdir())
@@ -147,7 +150,10 @@ def test_run_folder_and_round_trip(finished_run: Path) -> None:
     cfg = small_config(512)
     venv = DummyVecEnv([lambda: CostFreeDrivingEnv(episode_steps=40) for _ in range(3)])
     model = build_model(cfg, venv)
-    checkpoint = torch.load(finished_run / "checkpoints" / "last.pt", weights_only=True)
+    # The run's policy is its best evaluation's weights (eval.keep_best), kept in checkpoints/best.pt.
+    summary = json.loads((finished_run / "manifest.json").read_text())["summary"]
+    checkpoint = torch.load(finished_run / "checkpoints" / "best.pt", weights_only=True)
+    assert checkpoint["num_timesteps"] == summary["policy_steps"] and summary["policy_eval_success_rate"] is not None
     model.policy.load_driving_net_state(checkpoint["policy"])
     export = loaded.export_module()
     rng = np.random.default_rng(1)
@@ -324,3 +330,25 @@ def test_ctrl_c_keeps_a_resumable_run(tmp_path: Path) -> None:
     assert "--resume" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     run_dir = next(ws.glob("runs/lane-*"))
     assert (run_dir / "checkpoints" / "last.pt").is_file() and not (run_dir / "manifest.json").exists()
+
+
+def test_best_policy_keeps_the_best_evaluation(tmp_path: Path) -> None:
+    """The kept weights are those of the highest success rate (ties: higher return), and survive a resume."""
+    best = BestPolicy(tmp_path / "best.pt")
+    assert not best.offer({"ep_return_mean": 3.0}, 100, lambda: {"policy": {"w": torch.zeros(1)}})  # no evaluation
+    assert best.offer(
+        {"eval_success_rate": 0.5, "eval_return_mean": 10.0}, 200, lambda: {"policy": {"w": torch.ones(1)}}
+    )
+    assert not best.offer(
+        {"eval_success_rate": 0.4, "eval_return_mean": 90.0}, 300, lambda: {"policy": {"w": torch.zeros(1)}}
+    )
+    assert not best.offer(
+        {"eval_success_rate": 0.5, "eval_return_mean": 9.0}, 400, lambda: {"policy": {"w": torch.zeros(1)}}
+    )
+    assert best.offer(
+        {"eval_success_rate": 0.5, "eval_return_mean": 11.0}, 500, lambda: {"policy": {"w": torch.full((1,), 2.0)}}
+    )
+    resumed = BestPolicy.load(tmp_path / "best.pt")
+    assert (resumed.success_rate, resumed.return_mean, resumed.steps) == (0.5, 11.0, 500)
+    assert float(resumed.weights()["policy"]["w"]) == 2.0
+    assert not resumed.offer({"eval_success_rate": 0.3, "eval_return_mean": 50.0}, 600, lambda: {"policy": {}})

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from stable_baselines3.common.callbacks import BaseCallback
 
+from drivesim.stages.train.best import BestPolicy
 from drivesim.stages.train.run_files import (
     CHECKPOINTS,
     LAST_CHECKPOINT,
@@ -112,6 +113,7 @@ class TrainingCallback(BaseCallback):
     :param timing: `timing() -> dict` of time spent so far (rollout, optimization, simulator) [s].
     :param time_limit_s: stop learn() once the run's training wall time exceeds this [s].
     :param extra_checkpoint: `extra_checkpoint() -> dict` of more to keep in each checkpoint (reward statistics).
+    :param best: keeps the weights of the best evaluation (checkpoints/best.pt), or None.
     """
 
     def __init__(
@@ -127,8 +129,10 @@ class TrainingCallback(BaseCallback):
         timing: Callable[[], dict] | None = None,
         time_limit_s: float | None = None,
         extra_checkpoint: Callable[[], dict] | None = None,
+        best: BestPolicy | None = None,
     ) -> None:
         super().__init__()
+        self.best = best
         self.time_limit_s = time_limit_s
         self.extra_checkpoint = extra_checkpoint or dict
         self.run_dir = run_dir
@@ -197,6 +201,8 @@ class TrainingCallback(BaseCallback):
         )
         if self.evaluate is not None and (due or steps >= self.total_steps):
             row.update(self.evaluate(self.model.policy))
+            if self.best is not None:
+                self.best.offer(row, steps, self.policy_checkpoint)
         for key, value in row.items():
             if isinstance(value, float | int) and key != "steps" and math.isfinite(float(value)):
                 self.model.logger.record(f"drivesim/{key}", float(value))
@@ -208,6 +214,10 @@ class TrainingCallback(BaseCallback):
 
     def _prev_steps(self) -> int:
         return int(self.state.rows[-1]["steps"]) if self.state.rows else 0
+
+    def policy_checkpoint(self) -> dict[str, Any]:
+        """What acting and resuming the policy needs: its weights and the reward statistics."""
+        return {"policy": self.model.policy.driving_net_state(), **self.extra_checkpoint()}
 
     def save_checkpoint(self) -> None:
         """checkpoints/last.pt (and a numbered copy when one is due): weights, optimizer, counters."""

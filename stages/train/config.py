@@ -92,6 +92,9 @@ class EvalConfig(_Section):
     """Episodes per evaluation."""
     seed: int = 1_000_000
     """First held-back seed (training episodes never use seeds at or above it)."""
+    keep_best: bool = True
+    """The run's policy is the weights of its best evaluation (success rate, then mean return; kept in
+    checkpoints/best.pt), not the last update's. Off: the last update's."""
 
 
 class WarmStartConfig(_Section):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -17,6 +17,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from drivesim.pipeline.errors import ConfigError, DrivesimError
 from drivesim.stages.policy import CONFIG_JSON, RUNS_DIR
+from drivesim.stages.train.best import BEST_CHECKPOINT, BestPolicy
 from drivesim.stages.train.callbacks import RunState, TrainingCallback
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.envs import EnvSource
@@ -57,6 +58,8 @@ class TrainOutcome:
     time_s: dict[str, float]
     last_row: dict[str, Any]
     warm_start: dict[str, float]
+    policy_steps: int = 0
+    policy_eval: dict[str, float] = field(default_factory=dict)
 
 
 def new_run_dir(workspace_root: Path, task: str) -> Path:
@@ -226,6 +229,7 @@ def train_in_folder(
                     {"policy": model.policy.driving_net_state(), "wall_s": state.wall_s, **return_stats(venv)},
                 )
             model.num_timesteps = 0
+        best = BestPolicy.load(run_dir / CHECKPOINTS / BEST_CHECKPOINT) if evaluator is not None else None
         callback = TrainingCallback(
             run_dir,
             cfg.envs.count,
@@ -238,6 +242,7 @@ def train_in_folder(
             timing=lambda: {**model.time_s, "simulator": timed.step_time_s},
             time_limit_s=cfg.time_limit_s,
             extra_checkpoint=lambda: return_stats(venv),
+            best=best,
         )
         remaining = cfg.total_steps - model.num_timesteps
         start_steps, start = model.num_timesteps, time.perf_counter()
@@ -254,14 +259,25 @@ def train_in_folder(
         if evaluator is not None and state.rows and "eval_success_rate" not in state.rows[-1]:
             state.rows[-1].update(evaluator(model.policy))  # stopped by the time limit: evaluate the final policy
             write_progress(run_dir / PROGRESS_CSV, state.rows)
+            if best is not None:
+                best.offer(state.rows[-1], int(model.num_timesteps), callback.policy_checkpoint)
+        chosen = {"policy": model.policy.driving_net_state(), **return_stats(venv)}
+        policy_steps = int(model.num_timesteps)
+        if cfg.eval.keep_best and best is not None and best.success_rate is not None:
+            chosen, policy_steps = best.weights(), best.steps
+            report(
+                f"policy: the weights of step {best.steps} (best evaluation: success {best.success_rate:.0%}, "
+                f"return {best.return_mean:.1f}); the last update's are in checkpoints/{LAST_CHECKPOINT}"
+            )
+        statistics = {k: chosen[k] for k in ("return_mean", "return_var", "return_count") if k in chosen}
         write_policy_files(
             run_dir,
             cfg.task,
             tuple(venv.observation_space.shape),
             model.policy.arch,
-            model.policy.driving_net_state(),
+            chosen["policy"],
             max_curvature,
-            reward_normalization={"enabled": cfg.ppo.normalize_reward, "gamma": cfg.ppo.gamma, **return_stats(venv)},
+            reward_normalization={"enabled": cfg.ppo.normalize_reward, "gamma": cfg.ppo.gamma, **statistics},
         )
         if state.rows:
             plot_curves(state.rows, run_dir / CURVES_PNG, f"{cfg.task}: {run_dir.name}")
@@ -274,6 +290,12 @@ def train_in_folder(
             time_s={**model.time_s, "simulator": timed.step_time_s},
             last_row=state.rows[-1] if state.rows else {},
             warm_start=figures,
+            policy_steps=policy_steps,
+            policy_eval=(
+                {"success_rate": best.success_rate, "return_mean": best.return_mean}
+                if cfg.eval.keep_best and best is not None and best.success_rate is not None
+                else {}
+            ),
         )
     finally:
         venv.close()

@@ -51,6 +51,10 @@ class TrainSummary(StageSummary):
     """Success rate of the last evaluation on held-back seeds."""
     eval_return_mean: float | None = None
     """Mean return of the last evaluation."""
+    policy_steps: int = 0
+    """Env steps of the weights in the run's policy files (the best evaluation's with eval.keep_best)."""
+    policy_eval_success_rate: float | None = None
+    """Success rate on held-back seeds of those weights (None: the last update's weights, not chosen by evaluation)."""
     warm_start: bool = False
     """Whether the policy was warm-started from the expert."""
     worlds: list[str] = []
@@ -118,6 +122,8 @@ def _build(ctx: BuildContext) -> TrainSummary:
         time_optimization_s=round(outcome.time_s.get("optimization", 0.0), 1),
         eval_success_rate=row.get("eval_success_rate"),
         eval_return_mean=row.get("eval_return_mean"),
+        policy_steps=outcome.policy_steps,
+        policy_eval_success_rate=outcome.policy_eval.get("success_rate"),
         warm_start=cfg.warm_start.method != "none",
         worlds=[str(w) for w in source.worlds],
     )
