@@ -301,6 +301,8 @@ class Rasterizer:
     :param cull_back_faces: skip triangles seen from behind. Only for closed meshes with faces
         counter-clockwise seen from outside (the `Mesh` convention), such as vehicles: about halves their cost.
         Off by default: open surfaces (ground, facades) are drawn from both sides.
+    :param use_kernel: on CPU, run the depth test in the compiled kernel (raster_kernel.py, same result); False:
+        the torch path, which is what runs on a GPU.
     """
 
     def __init__(
@@ -310,12 +312,14 @@ class Rasterizer:
         device: str | torch.device = "cpu",
         near_m: float = 0.05,
         cull_back_faces: bool = False,
+        use_kernel: bool = True,
     ):
         self.width_px = int(width_px)
         self.height_px = int(height_px)
         self.device = torch.device(device)
         self.near_m = float(near_m)
         self.cull_back_faces = bool(cull_back_faces)
+        self.use_kernel = bool(use_kernel) and self.device.type == "cpu"
         self._pack_cache: list[tuple[list[Mesh], PackedScene]] = []
 
     # ------------------------------------------------------------------ packing
@@ -483,6 +487,9 @@ class Rasterizer:
             tri_camera, tri_source = owner[idx], idx
         bw = bbox[:, 2] - bbox[:, 0] + 1
         bh = bbox[:, 3] - bbox[:, 1] + 1
+        if self.use_kernel:
+            zbuf = self._depth_test_kernel(cols, bbox, tri_camera, B)
+            return self._resolve(zbuf, scene, cols, tri_camera, tri_source, B, K, R_cam_world, lighting, background_rgb)
         base_pix = tri_camera * (H * W) + bbox[:, 1] * W + bbox[:, 0]
         # Slack after the image: padded tile pixels past the last row land there instead of being clamped.
         zbuf = torch.full((B * H * W + _TILE_PX * (W + 1),), _EMPTY_KEY, dtype=torch.int64, device=dev)
@@ -499,6 +506,30 @@ class Rasterizer:
         if members.numel():
             self._raster_tiles(zbuf, cols, bw, bh, base_pix, members, _TILE_PX, _TILE_PX)
         return self._resolve(zbuf, scene, cols, tri_camera, tri_source, B, K, R_cam_world, lighting, background_rgb)
+
+    def _depth_test_kernel(
+        self, cols: torch.Tensor, bbox: torch.Tensor, tri_camera: torch.Tensor, B: int
+    ) -> torch.Tensor:
+        """The z-buffer of packed keys (as the torch path makes it) from the compiled CPU depth test."""
+        from drivesim.sim import raster_kernel  # numba compiles (or loads its cache) on first import
+
+        size = B * self.height_px * self.width_px
+        depth = np.full(size, np.inf, dtype=np.float32)
+        winner = np.full(size, -1, dtype=np.int64)
+        raster_kernel.depth_test(
+            np.ascontiguousarray(cols.numpy()),
+            np.ascontiguousarray(bbox.numpy()),
+            np.ascontiguousarray(tri_camera.numpy()),
+            self.width_px,
+            self.height_px,
+            self.near_m,
+            depth,
+            winner,
+        )
+        keys = np.full(size, _EMPTY_KEY, dtype=np.int64)
+        covered = winner >= 0
+        keys[covered] = (depth[covered].view(np.int32).astype(np.int64) << 32) | winner[covered]
+        return torch.from_numpy(keys)
 
     def _raster_pairs(
         self, zbuf: torch.Tensor, rows: torch.Tensor, base_pix: torch.Tensor, counts: torch.Tensor, ids: torch.Tensor

@@ -216,6 +216,7 @@ def forward_warp(
     out_height_px: int,
     roi: tuple[int, int, int, int] | None = None,
     fill_holes: bool = True,
+    use_kernel: bool = True,
 ) -> WarpResult:
     """Warp B RGB-D source frames into B destination cameras.
 
@@ -227,6 +228,8 @@ def forward_warp(
     :param K_dst: (3, 3) destination intrinsics for the full out_width_px x out_height_px image.
     :param roi: (x0, y0, w, h) region of the destination image to render (default: all of it).
     :param fill_holes: fill 1-2 px cracks (never large disocclusions).
+    :param use_kernel: on CPU, run the compiled kernel (warp_kernel.py, same result); False: the torch path, which
+        is what runs on a GPU.
     :returns: WarpResult of size (B, h, w) of the region.
     """
     caller_tensors = (rgb, depth_m)
@@ -249,6 +252,20 @@ def forward_warp(
     ex1, ey1 = min(x0 + w + margin, out_width_px), min(y0 + h + margin, out_height_px)
     ew, eh = ex1 - ex0, ey1 - ey0
 
+    if use_kernel and device.type == "cpu":
+        result = _warp_with_kernel(
+            rgb,
+            depth_m,
+            K_src,
+            T_dst_src,
+            K_dst,
+            (ex0, ey0, ew, eh),
+            (x0, y0, w, h),
+            fill_holes,
+            caller_tensors,
+            partial=(ew, eh) != (out_width_px, out_height_px),
+        )
+        return WarpResult(rgb=result.rgb[0], depth_m=result.depth_m[0], valid=result.valid[0]) if squeeze else result
     K_s = _as_tensor(K_src, device)
     source = _prepare_source(rgb, depth_m, K_s, caller_tensors)
     K_d = _as_tensor(K_dst, device)
@@ -320,3 +337,76 @@ def forward_warp(
     if squeeze:
         result = WarpResult(rgb=result.rgb[0], depth_m=result.depth_m[0], valid=result.valid[0])
     return result
+
+
+def _min_depth(depth_m: torch.Tensor, caller_tensors: tuple[torch.Tensor, torch.Tensor]) -> float:
+    """The smallest finite positive depth of the frames (inf when none), cached like the torch path's constants."""
+    rgb_in, depth_in = caller_tensors
+    key = ("min", id(depth_in), depth_in._version, id(rgb_in), rgb_in._version)
+    cached = _SOURCE_CACHE.get(key)
+    if cached is not None:
+        _SOURCE_CACHE.move_to_end(key)
+        return cached[2]
+    z = depth_m.numpy()
+    finite = z[(z > 0) & np.isfinite(z)]
+    min_depth = float(finite.min()) if finite.size else float("inf")
+    _SOURCE_CACHE[key] = (rgb_in, depth_in, min_depth)
+    if len(_SOURCE_CACHE) > _SOURCE_CACHE_SIZE:
+        _SOURCE_CACHE.popitem(last=False)
+    return min_depth
+
+
+def _warp_with_kernel(
+    rgb: torch.Tensor,
+    depth_m: torch.Tensor,
+    K_src: np.ndarray | torch.Tensor,
+    T_dst_src: np.ndarray | torch.Tensor,
+    K_dst: np.ndarray | torch.Tensor,
+    rendered: tuple[int, int, int, int],
+    roi: tuple[int, int, int, int],
+    fill_holes: bool,
+    caller_tensors: tuple[torch.Tensor, torch.Tensor],
+    partial: bool,
+) -> WarpResult:
+    """forward_warp's CPU path for (B, H, W) frames: each frame through warp_kernel (splat, crack filling, colour
+    gather), with no per-frame preparation but the smallest depth (for the source window).
+
+    :param rendered: (ex0, ey0, ew, eh) the rendered region (the ROI plus the hole-filling margin).
+    :param roi: (x0, y0, w, h) the region returned.
+    :param partial: whether the rendered region is smaller than the destination image (then a source window).
+    """
+    from drivesim.sim import warp_kernel  # numba compiles (or loads its cache) on first import
+
+    ex0, ey0, ew, eh = rendered
+    x0, y0, w, h = roi
+    B, H, W = depth_m.shape
+    K_s = np.asarray(K_src.cpu().numpy() if isinstance(K_src, torch.Tensor) else K_src, dtype=np.float64)
+    K_d = np.asarray(K_dst.cpu().numpy() if isinstance(K_dst, torch.Tensor) else K_dst, dtype=np.float64)
+    T = np.asarray(T_dst_src.cpu().numpy() if isinstance(T_dst_src, torch.Tensor) else T_dst_src, dtype=np.float64)
+    T = np.broadcast_to(T, (B, 4, 4)) if T.ndim == 2 else T
+    rays = _rays(H, W, torch.from_numpy(K_s)).numpy()
+    window = None
+    if partial:  # only the source pixels that can land in the region: a rectangle of the source frame
+        window = _source_window(
+            _min_depth(depth_m, caller_tensors), K_s, (H, W), T, K_d, (ex0, ey0, ex0 + ew, ey0 + eh)
+        )
+    window_np = np.asarray(window if window is not None else (0, 0, W, H), dtype=np.int64)
+    # q = K_dst (R P + t finite): finite points move with the camera, points at infinity only turn.
+    M = (K_d @ T[:, :3, :3]).astype(np.float32)
+    c = (K_d @ T[:, :3, 3:])[..., 0].astype(np.float32)
+    depth_src = depth_m.reshape(B, H * W).to(torch.float32).numpy()
+    colour = rgb.reshape(B, H * W, 3).numpy()
+    depth_out = np.empty((B, h, w), dtype=np.float32)
+    valid = np.empty((B, h, w), dtype=bool)
+    rgb_out = np.empty((B, h, w, 3), dtype=colour.dtype)
+    region = (slice(y0 - ey0, y0 - ey0 + h), slice(x0 - ex0, x0 - ex0 + w))
+    for b in range(B):
+        depth = np.full((eh, ew), np.inf, dtype=np.float32)
+        index = np.full((eh, ew), -1, dtype=np.int64)
+        warp_kernel.splat(rays, depth_src[b], _NEAR_M, M[b], c[b], window_np, W, ex0, ey0, depth, index)
+        if fill_holes:
+            depth, index = warp_kernel.fill_cracks(depth, index, _FILL_RADIUS_PX)
+        depth_out[b] = depth[region]
+        valid[b] = index[region] >= 0
+        warp_kernel.gather_colour(index, colour[b], y0 - ey0, x0 - ex0, rgb_out[b])
+    return WarpResult(rgb=torch.from_numpy(rgb_out), depth_m=torch.from_numpy(depth_out), valid=torch.from_numpy(valid))

@@ -199,6 +199,33 @@ def test_source_window_only_skips_pixels_that_cannot_land(T_dst_src, monkeypatch
     assert torch.equal(windowed.depth_m, everything.depth_m)
 
 
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.float32])
+@pytest.mark.parametrize(
+    ("T_dst_src", "roi"),
+    [
+        (g.se3(g.rot_y(0.03), [0.3, 0.0, -1.0]), (80, 100, 160, 64)),
+        (g.se3(g.rot_y(-0.2) @ g.rot_x(0.05), [-0.8, 0.1, 0.5]), None),
+        (g.se3(g.rot_y(0.1), [0.0, 0.0, -3.0]), (0, 60, 320, 128)),
+    ],
+)
+def test_cpu_kernel_matches_the_torch_path(T_dst_src, roi, dtype):
+    """The compiled CPU kernel and the torch path (the one a GPU runs) give the same view: the same pixels, depths and
+    colours, up to float rounding at pixel borders."""
+    rgb_src, depth_src = render_from(g.pose_2d(0.0, 0.0, 0.0), plane_world())
+    depth_src[:, :30] = torch.inf  # a band of sky (points at infinity)
+    rgb = (rgb_src * 255).to(torch.uint8) if dtype == torch.uint8 else rgb_src
+    kernel = forward_warp(rgb, depth_src, K, T_dst_src, K, W, H, roi=roi)
+    reference = forward_warp(rgb, depth_src, K, T_dst_src, K, W, H, roi=roi, use_kernel=False)
+    assert kernel.rgb.dtype == reference.rgb.dtype == dtype
+    assert reference.valid.float().mean() > 0.5
+    assert (kernel.valid == reference.valid).float().mean() > 0.999
+    same = (kernel.rgb == reference.rgb).all(-1) & kernel.valid & reference.valid
+    assert same.float().sum() > 0.99 * reference.valid.float().sum()
+    both = kernel.valid & reference.valid & torch.isfinite(reference.depth_m)
+    assert (kernel.depth_m[both] - reference.depth_m[both]).abs().max() < 1e-3
+    assert torch.equal(torch.isinf(kernel.depth_m) & kernel.valid, torch.isinf(reference.depth_m) & reference.valid)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_cuda_matches_cpu():
     rgb_src, depth_src = render_from(g.pose_2d(0.0, 0.0, 0.0), plane_world())
