@@ -15,6 +15,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 import drivesim.sim.envs  # noqa: F401  (registers the envs)
 from drivesim.sim.dynamics import BicycleState
+from drivesim.sim.envs.augment import Augmentation
 from drivesim.sim.envs.vector import BatchedVecEnv
 
 TASKS = {"lane": "drivesim/Lane-v0", "follow": "drivesim/Follow-v0", "overtake": "drivesim/Overtake-v0"}
@@ -216,3 +217,20 @@ def test_render_episode_writes_the_video_strip_and_plot(world_dir: Path, tmp_pat
     strip = cv2.imread(str(tmp_path / "out" / "strip.png"))
     assert strip.shape[0] == 50 and strip.shape[1] % 80 == 0 and strip.shape[1] >= 80
     assert cv2.imread(str(tmp_path / "out" / "birdseye.png")).shape[0] > 300
+
+
+def test_augmentation_follows_its_formula() -> None:
+    """Gamma, brightness and contrast per channel value, then saturation toward the grey value, rounded."""
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (2, 8, 10, 3), dtype=np.uint8)
+    aug = Augmentation(gamma=1.3, brightness=0.05, contrast=1.2, saturation=0.6)
+    v = ((image / 255.0) ** 1.3 + 0.05 - 0.5) * 1.2 + 0.5
+    toned = np.clip(np.rint(v * 255.0), 0, 255)
+    grey = toned @ np.array([0.299, 0.587, 0.114])
+    expected = np.clip(np.rint(grey[..., None] + 0.6 * (toned - grey[..., None])), 0, 255)
+    out = aug.apply(image)
+    assert out.dtype == np.uint8 and out.shape == image.shape
+    assert np.abs(out.astype(int) - expected).max() <= 1
+    assert Augmentation().apply(image) is image  # the identity draw costs nothing
+    grey_only = Augmentation(saturation=0.0).apply(image)
+    assert np.abs(grey_only.astype(int) - grey_only[..., :1]).max() <= 1  # no saturation: grey
