@@ -15,6 +15,9 @@ What depends on the camera model alone (the rays K^-1 p) is cached per intrinsic
 frame (its back-projected points, packed colours) is cached per source tensor object and version counter, so warping
 one recorded frame to many agents' poses pays for it once. An in-place torch change of a frame invalidates its entry;
 writing into the numpy array under a `torch.from_numpy` tensor does not (pass a new tensor for a new frame).
+On CPU the transform, z-buffer, crack filling and colour gather run as one compiled kernel per frame
+(`warp_kernel.py`, numba) with the same arithmetic and z-buffer order; the torch path below is what runs on a GPU
+(and on CPU with `use_kernel=False`). The two give the same image up to float rounding at pixel borders.
 Conventions: pixel centres at integer coordinates (see geometry.scale_intrinsics), depth = z along the optical axis.
 """
 
