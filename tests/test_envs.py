@@ -16,6 +16,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 import drivesim.sim.envs  # noqa: F401  (registers the envs)
 from drivesim.sim.dynamics import BicycleState
 from drivesim.sim.envs.augment import Augmentation
+from drivesim.sim.envs.parallel import ProcessBatchedVecEnv
 from drivesim.sim.envs.vector import BatchedVecEnv
 
 TASKS = {"lane": "drivesim/Lane-v0", "follow": "drivesim/Follow-v0", "overtake": "drivesim/Overtake-v0"}
@@ -189,6 +190,31 @@ def test_batched_vec_env_equals_single_envs(world_dir: Path) -> None:
             if "terminal_observation" in is_:
                 assert np.array_equal(ib["terminal_observation"], is_["terminal_observation"])
     assert batched.expert_actions().shape == (2, 1)
+
+
+def test_process_batched_vec_env_equals_one_batched_env(world_dir: Path) -> None:
+    """Episodes split over two worker processes give what one BatchedVecEnv of them all gives (episode i: seed
+    7 + i)."""
+    config = {**SMALL_VIEW, "episode_steps": 4}
+    one = BatchedVecEnv("overtake", 3, str(world_dir), None, "train", config, seed=7)
+    split = ProcessBatchedVecEnv("overtake", 3, str(world_dir), None, "train", config, seed=7, workers=2)
+    try:
+        assert split.num_envs == 3 and split.observation_space == one.observation_space
+        assert np.array_equal(split.reset(), one.reset())
+        actions = np.array([[0.2], [-0.4], [0.0]], np.float32)
+        for _ in range(5):  # crosses the time limit: automatic reset with terminal_observation
+            obs_a, rew_a, done_a, info_a = split.step(actions)
+            obs_b, rew_b, done_b, info_b = one.step(actions)
+            assert np.array_equal(obs_a, obs_b) and np.allclose(rew_a, rew_b) and np.array_equal(done_a, done_b)
+            for ia, ib in zip(info_a, info_b, strict=True):
+                assert ia["state"] == pytest.approx(ib["state"], nan_ok=True)
+                assert ("terminal_observation" in ia) == ("terminal_observation" in ib)
+        assert np.array_equal(split.expert_actions(), one.expert_actions())
+        assert split.get_attr("task") == ["overtake"] * 3
+    finally:
+        split.close()
+    with pytest.raises(ValueError, match="too short"):
+        ProcessBatchedVecEnv("overtake", 2, str(write_test_world(world_dir.parent / "short", length_m=40.0)), workers=2)
 
 
 def test_bad_worlds_and_meshes_are_one_line(world_dir: Path, tmp_path: Path) -> None:

@@ -75,8 +75,11 @@ class EnvsConfig(_Section):
     count: int = 2
     """Episodes simulated at once (one per core with subprocesses; any number with `batched`)."""
     vec_env: Literal["batched", "subproc", "dummy"] = "batched"
-    """batched: drivesim's BatchedVecEnv (one process, one batched render call); subproc: one process per env;
-    dummy: all in this process, one after the other."""
+    """batched: drivesim's BatchedVecEnv (one batched render call per process, see `processes`); subproc: one
+    process per env; dummy: all in this process, one after the other."""
+    processes: int = 1
+    """batched: worker processes the episodes are split over, stepping in parallel (1: in the learner's process;
+    the number of cores is a good choice when the simulator dominates)."""
     config: dict[str, Any] = Field(default_factory=dict)
     """Overrides of the env config (sim/envs/config.py EnvConfig), e.g. {episode_steps: 300}."""
     worker_threads: int = 1

@@ -32,6 +32,7 @@ class EnvSource:
     :param overrides: env config overrides (EnvsConfig.config).
     :param cost_free: use `CostFreeDrivingEnv` instead of the simulator (speed of the learner alone; tests).
     :param worker_threads: torch threads in each subprocess worker.
+    :param processes: worker processes of the batched envs (1: in this process).
     """
 
     task: str
@@ -40,6 +41,7 @@ class EnvSource:
     overrides: dict[str, Any] = field(default_factory=dict)
     cost_free: bool = False
     worker_threads: int = 1
+    processes: int = 1
 
     def _world_arg(self) -> Any:
         return str(self.worlds[0]) if len(self.worlds) == 1 else [str(w) for w in self.worlds]
@@ -54,6 +56,20 @@ class EnvSource:
 
     def make_vec(self, count: int, kind: str, seed: int, mode: str = "train") -> VecEnv:
         """`count` envs as an SB3 VecEnv; kind batched | subproc | dummy (batched needs the simulator)."""
+        if kind == "batched" and not self.cost_free and self.processes > 1 and count > 1:
+            from drivesim.sim.envs.parallel import ProcessBatchedVecEnv
+
+            return ProcessBatchedVecEnv(
+                self.task,
+                count,
+                self._world_arg(),
+                None if self.meshes is None else str(self.meshes),
+                mode,
+                self.overrides or None,
+                seed,
+                workers=self.processes,
+                worker_threads=self.worker_threads,
+            )
         if kind == "batched" and not self.cost_free:
             from drivesim.sim.envs.vector import BatchedVecEnv
 

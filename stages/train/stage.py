@@ -102,6 +102,7 @@ def _build(ctx: BuildContext) -> TrainSummary:
         overrides=dict(cfg.envs.config),
         cost_free=cost_free,
         worker_threads=cfg.envs.worker_threads,
+        processes=cfg.envs.processes,
     )
     with progress_bar("train", total=cfg.total_steps) as bar:
         outcome = train_in_folder(run_dir, cfg, source, report=ctx.notes.append, progress=bar)
