@@ -247,9 +247,11 @@ def real_env_rows(world: Path, steps: int, envs: int) -> list[Row]:
     from drivesim.stages.train.run import build_model
 
     rows = []
-    # The preset (envs batched in the learner's process), the paper's 10 epochs, and one env per core in
-    # subprocesses (each worker one torch thread) as the alternative.
-    for epochs, vec_env, count in ((4, "batched", envs), (10, "batched", envs), (4, "subproc", 2)):
+    # Batched envs in the learner's process (`envs` of them, then 8), 8 split over 2 worker processes that step in
+    # parallel (the preset), the same with the paper's 10 epochs, and SB3's one process per env as the alternative.
+    variants = ((4, "batched", envs, 1), (4, "batched", 8, 1), (4, "batched", 8, 2), (10, "batched", 8, 2),
+                (4, "subproc", 2, 1))  # fmt: skip
+    for epochs, vec_env, count, processes in variants:
         cfg = load_config(
             TrainConfig,
             preset="train/overtake",
@@ -257,15 +259,17 @@ def real_env_rows(world: Path, steps: int, envs: int) -> list[Row]:
                 f"ppo.epochs={epochs}",
                 f"envs.count={count}",
                 f"envs.vec_env={vec_env}",
+                f"envs.processes={processes}",
                 f"ppo.buffer_steps={steps}",
             ],
         )
-        source = EnvSource(task="overtake", worlds=[world])
+        source = EnvSource(task="overtake", worlds=[world], processes=cfg.envs.processes)
         venv = source.make_vec(cfg.envs.count, cfg.envs.vec_env, seed=0)
+        where = f"{processes} worker processes" if processes > 1 else "in the learner's process"
         rows.append(
             measure(
-                f"overtake, real simulator ({cfg.envs.vec_env}, {count} envs), {epochs} epochs, buffer "
-                f"{cfg.ppo.buffer_steps}",
+                f"overtake, real simulator ({cfg.envs.vec_env}, {count} envs"
+                f"{', ' + where if vec_env == 'batched' else ''}), {epochs} epochs, buffer {cfg.ppo.buffer_steps}",
                 lambda env, cfg=cfg: build_model(cfg, env),
                 steps,
                 venv,

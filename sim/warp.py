@@ -23,6 +23,7 @@ Conventions: pixel centres at integer coordinates (see geometry.scale_intrinsics
 
 from __future__ import annotations
 
+import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -73,6 +74,10 @@ class _Source:
 
 _SOURCE_CACHE: OrderedDict[tuple, tuple[torch.Tensor, torch.Tensor, _Source]] = OrderedDict()
 _RAYS_CACHE: OrderedDict[tuple, torch.Tensor] = OrderedDict()
+# The kernel path keeps only a float per frame, for as many frames as the view synthesizer keeps; weak references
+# (a dead tensor's id may come back for another one) so that the cache never holds frames alive.
+_MIN_DEPTH_CACHE: OrderedDict[tuple, tuple[weakref.ref, weakref.ref, float]] = OrderedDict()
+_MIN_DEPTH_CACHE_SIZE = 2048
 _NEVER = 3.0e38  # a z no point reaches (finite, so that 0 * _NEVER stays 0)
 
 
@@ -345,17 +350,17 @@ def forward_warp(
 def _min_depth(depth_m: torch.Tensor, caller_tensors: tuple[torch.Tensor, torch.Tensor]) -> float:
     """The smallest finite positive depth of the frames (inf when none), cached like the torch path's constants."""
     rgb_in, depth_in = caller_tensors
-    key = ("min", id(depth_in), depth_in._version, id(rgb_in), rgb_in._version)
-    cached = _SOURCE_CACHE.get(key)
-    if cached is not None:
-        _SOURCE_CACHE.move_to_end(key)
+    key = (id(depth_in), depth_in._version, id(rgb_in), rgb_in._version)
+    cached = _MIN_DEPTH_CACHE.get(key)
+    if cached is not None and cached[0]() is rgb_in and cached[1]() is depth_in:
+        _MIN_DEPTH_CACHE.move_to_end(key)
         return cached[2]
     z = depth_m.numpy()
     finite = z[(z > 0) & np.isfinite(z)]
     min_depth = float(finite.min()) if finite.size else float("inf")
-    _SOURCE_CACHE[key] = (rgb_in, depth_in, min_depth)
-    if len(_SOURCE_CACHE) > _SOURCE_CACHE_SIZE:
-        _SOURCE_CACHE.popitem(last=False)
+    _MIN_DEPTH_CACHE[key] = (weakref.ref(rgb_in), weakref.ref(depth_in), min_depth)
+    if len(_MIN_DEPTH_CACHE) > _MIN_DEPTH_CACHE_SIZE:
+        _MIN_DEPTH_CACHE.popitem(last=False)
     return min_depth
 
 

@@ -42,33 +42,38 @@ def splat(
     off_v = np.float32(0.5 - ey0)
     inf = np.float32(np.inf)
     near = np.float32(near_m)
+    zero = np.float32(0.0)
+    ew_f, eh_f = np.float32(ew), np.float32(eh)
     for sy in range(window[1], window[3]):
-        for sx in range(window[0], window[2]):
-            i = sy * width_src + sx
+        row_start = sy * width_src
+        for i in range(row_start + window[0], row_start + window[2]):
             z = depth_src[i]
-            if not z > 0:
+            if not z > zero:
                 continue
-            sky = z == inf
-            if sky:
-                px, py, pz, f, z_min = rays[0, i], rays[1, i], rays[2, i], np.float32(0.0), np.float32(0.0)
+            if z == inf:  # sky: the ray turns with the camera, no translation
+                px, py, pz = rays[0, i], rays[1, i], rays[2, i]
+                qz = M[2, 0] * px + M[2, 1] * py + M[2, 2] * pz
+                if not qz > zero:
+                    continue
+                qx = M[0, 0] * px + M[0, 1] * py + M[0, 2] * pz
+                qy = M[1, 0] * px + M[1, 1] * py + M[1, 2] * pz
             else:
-                px, py, pz, f, z_min = rays[0, i] * z, rays[1, i] * z, rays[2, i] * z, np.float32(1.0), near
-            qz = c[2] * f + M[2, 0] * px + M[2, 1] * py + M[2, 2] * pz
-            if not qz > z_min:
-                continue
+                px, py, pz = rays[0, i] * z, rays[1, i] * z, rays[2, i] * z
+                qz = c[2] + M[2, 0] * px + M[2, 1] * py + M[2, 2] * pz
+                if not qz > near:
+                    continue
+                qx = c[0] + M[0, 0] * px + M[0, 1] * py + M[0, 2] * pz
+                qy = c[1] + M[1, 0] * px + M[1, 1] * py + M[1, 2] * pz
             inv_z = np.float32(1.0) / qz
-            qx = c[0] * f + M[0, 0] * px + M[0, 1] * py + M[0, 2] * pz
-            u = np.floor(off_u + qx * inv_z)
-            if not (u >= 0 and u < ew):
+            u = off_u + qx * inv_z
+            v = off_v + qy * inv_z
+            # In range, int() truncates like floor (the comparisons also reject NaN).
+            if not (u >= zero and u < ew_f and v >= zero and v < eh_f):
                 continue
-            qy = c[1] * f + M[1, 0] * px + M[1, 1] * py + M[1, 2] * pz
-            v = np.floor(off_v + qy * inv_z)
-            if not (v >= 0 and v < eh):
-                continue
-            zd = inf if sky else qz
+            zd = inf if z == inf else qz
             row, col = int(v), int(u)
-            old_z, old_i = depth[row, col], index[row, col]
-            if zd < old_z or (zd == old_z and (old_i < 0 or i < old_i)):
+            old_z = depth[row, col]
+            if zd < old_z or (zd == old_z and (index[row, col] < 0 or i < index[row, col])):
                 depth[row, col] = zd
                 index[row, col] = i
 
@@ -77,39 +82,51 @@ def splat(
 def fill_cracks(depth: np.ndarray, index: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
     """Empty pixels (index -1) with warped pixels on both sides along a row, column or diagonal within r px take
     the nearest surface of their (2r+1)^2 neighbourhood, for r = 1, then 2, ... `radius` (warp._fill_cracks's
-    rule)."""
+    rule). Changes the arrays in place and returns them."""
     h, w = depth.shape
+    # The empty pixels, once; each pass visits only those still empty and applies its fills after deciding all of
+    # them (a fill never feeds another fill of the same pass, as in the torch path).
+    empty = np.flatnonzero(index.ravel() < 0)
+    fill_z = np.empty(len(empty), dtype=np.float32)
+    fill_i = np.empty(len(empty), dtype=np.int64)
     for r in range(1, radius + 1):
-        out_depth, out_index = depth.copy(), index.copy()
-        for y in range(h):
-            for x in range(w):
-                if index[y, x] >= 0:
-                    continue
-                enclosed = False
-                for k in range(4):
-                    dy = 0 if k == 0 else 1
-                    dx = 1 if k == 0 else (0 if k == 1 else (1 if k == 2 else -1))
-                    side_a = False
-                    side_b = False
-                    for d in range(1, r + 1):
-                        ya, xa, yb, xb = y + d * dy, x + d * dx, y - d * dy, x - d * dx
-                        if 0 <= ya < h and 0 <= xa < w and index[ya, xa] >= 0:
-                            side_a = True
-                        if 0 <= yb < h and 0 <= xb < w and index[yb, xb] >= 0:
-                            side_b = True
-                    if side_a and side_b:
-                        enclosed = True
-                        break
-                if not enclosed:
-                    continue
-                best_z, best_i = np.float32(np.inf), np.int64(-1)
-                for yy in range(max(y - r, 0), min(y + r + 1, h)):
-                    for xx in range(max(x - r, 0), min(x + r + 1, w)):
-                        z, i = depth[yy, xx], index[yy, xx]
-                        if i >= 0 and (best_i < 0 or z < best_z or (z == best_z and i < best_i)):
-                            best_z, best_i = z, i
-                out_depth[y, x], out_index[y, x] = best_z, best_i
-        depth, index = out_depth, out_index
+        filled = np.zeros(len(empty), dtype=np.bool_)
+        for n in range(len(empty)):
+            y, x = empty[n] // w, empty[n] % w
+            enclosed = False
+            for k in range(4):
+                dy = 0 if k == 0 else 1
+                dx = 1 if k == 0 else (0 if k == 1 else (1 if k == 2 else -1))
+                side_a = False
+                side_b = False
+                for d in range(1, r + 1):
+                    ya, xa, yb, xb = y + d * dy, x + d * dx, y - d * dy, x - d * dx
+                    if 0 <= ya < h and 0 <= xa < w and index[ya, xa] >= 0:
+                        side_a = True
+                    if 0 <= yb < h and 0 <= xb < w and index[yb, xb] >= 0:
+                        side_b = True
+                if side_a and side_b:
+                    enclosed = True
+                    break
+            if not enclosed:
+                continue
+            best_z, best_i = np.float32(np.inf), np.int64(-1)
+            for yy in range(max(y - r, 0), min(y + r + 1, h)):
+                for xx in range(max(x - r, 0), min(x + r + 1, w)):
+                    z, i = depth[yy, xx], index[yy, xx]
+                    if i >= 0 and (best_i < 0 or z < best_z or (z == best_z and i < best_i)):
+                        best_z, best_i = z, i
+            filled[n] = True
+            fill_z[n], fill_i[n] = best_z, best_i
+        kept = 0
+        for n in range(len(empty)):
+            if filled[n]:
+                y, x = empty[n] // w, empty[n] % w
+                depth[y, x], index[y, x] = fill_z[n], fill_i[n]
+            else:
+                empty[kept] = empty[n]
+                kept += 1
+        empty = empty[:kept]
     return depth, index
 
 
