@@ -19,6 +19,7 @@ ORDER = [
     "train_speed",
     "learning",
     "eval",
+    "ray",
     "ingest",
     "render",
     "synth",

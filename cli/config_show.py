@@ -53,5 +53,7 @@ def config_command(
         value = resolved
         for part in key.split("."):
             value = value.get(part) if isinstance(value, dict) else None
+        if "." not in key and key not in resolved:  # a key kept out of the artifact's identity (workers, backend)
+            value = getattr(cfg, key, None)
         table.add_row(key, type_name, str(value), doc)
     console.print(table)

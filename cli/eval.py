@@ -9,6 +9,7 @@ import typer
 
 from drivesim.cli.common import ConfigOption, ForceOption, SetOption, console, workspace
 from drivesim.pipeline.config import load_config
+from drivesim.pipeline.errors import ConfigError
 
 
 def eval_command(
@@ -28,7 +29,31 @@ def eval_command(
         int | None, typer.Option("--episodes", help="Episodes to run (default 1000).", show_default=False)
     ] = None,
     workers: Annotated[
-        int | None, typer.Option("--workers", help="Worker processes (default: one per core).", show_default=False)
+        int | None,
+        typer.Option(
+            "--workers",
+            help="Worker processes, or Ray actors with --backend ray (default: one per core, of the cluster).",
+            show_default=False,
+        ),
+    ] = None,
+    backend: Annotated[
+        str | None,
+        typer.Option(
+            "--backend",
+            help="local: worker processes on this machine (default); ray: Ray actors over a cluster's workers, "
+            "one world loaded per actor (needs `pip install 'drivesim\\[ray]'`). Same seeds, same numbers.",
+            show_default=False,
+        ),
+    ] = None,
+    address: Annotated[
+        str | None,
+        typer.Option(
+            "--address",
+            help="With --backend ray: the cluster, 'auto' (started by `ray start` on this machine) or the head's "
+            "host:port. Default: start Ray on this machine for this evaluation. Every node needs drivesim and the "
+            "world, meshes and policy at the same paths.",
+            show_default=False,
+        ),
     ] = None,
     seed: Annotated[
         int | None, typer.Option("--seed", help="Seed of episode 0; episode i uses seed + i.", show_default=False)
@@ -78,6 +103,14 @@ def eval_command(
             cfg.policy = str(newest)
     if workers is not None:
         cfg.workers = workers
+    if backend is not None:
+        if backend not in ("local", "ray"):
+            raise ConfigError(f"--backend {backend!r}: choose local or ray")
+        cfg.backend = backend
+    if address is not None:
+        cfg.address = address
+    if cfg.address is not None and cfg.backend != "ray":
+        raise ConfigError("--address is the Ray cluster's address: give it with --backend ray")
     if name is not None:
         cfg.name = name
     console.print(
@@ -95,7 +128,8 @@ def eval_command(
     def show(value: float | None) -> str:
         return "n/a" if value is None else f"{value:.3f}"
 
-    speed = f", {s.episodes_per_min:.1f} episodes/min with {s.workers} workers" if s.episodes_per_min else ""
+    unit = "Ray actors" if cfg.backend == "ray" else "workers"
+    speed = f", {s.episodes_per_min:.1f} episodes/min with {s.workers} {unit}" if s.episodes_per_min else ""
     console.print(
         f"[green]eval[/] {s.episodes} episodes of {s.policy}: intervention {s.intervention:.3f} "
         f"(collision {s.collision:.3f}, off lane {s.off_lane:.3f}, over-rotation {s.over_rotation:.3f}), "

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 
 from drivesim.cli import bench, config_show, export, ingest, meshes, preprocess, run, status, synth, train, world
 from drivesim.cli import eval as eval_cmd
@@ -77,7 +78,8 @@ def main() -> None:
                 err_console.print(_INTERRUPTED, highlight=False)
             sys.exit(code)
     except DrivesimError as e:
-        err_console.print(f"[bold red]error:[/] {e.one_line()}", highlight=False, soft_wrap=True)
+        # escape: a message's own brackets (`pip install 'drivesim[ray]'`, paths) are text, not rich markup
+        err_console.print(f"[bold red]error:[/] {escape(e.one_line())}", highlight=False, soft_wrap=True)
         sys.exit(e.exit_code)
     except KeyboardInterrupt:
         err_console.print(_INTERRUPTED, highlight=False)

@@ -31,6 +31,25 @@ def train_command(
         int | None, typer.Option("--total-steps", help="Env steps to train for (overrides the preset).")
     ] = None,
     envs: Annotated[int | None, typer.Option("--envs", help="Episodes simulated at once.")] = None,
+    backend: Annotated[
+        str | None,
+        typer.Option(
+            "--backend",
+            help="local: the envs run on this machine (default); ray: each env in a Ray actor spread over a "
+            "cluster, so --envs may exceed this machine's cores (needs `pip install 'drivesim\\[ray]'`).",
+            show_default=False,
+        ),
+    ] = None,
+    address: Annotated[
+        str | None,
+        typer.Option(
+            "--address",
+            help="With --backend ray: the cluster, 'auto' (started by `ray start` on this machine) or the head's "
+            "host:port. Default: start Ray on this machine for the run. Every node needs drivesim and the worlds "
+            "at the same paths.",
+            show_default=False,
+        ),
+    ] = None,
     resume: Annotated[
         Path | None,
         typer.Option("--resume", help="Continue an unfinished run folder (runs/<task>-<time>, or just its name)."),
@@ -92,6 +111,18 @@ def train_command(
         cfg = load_config(
             TrainConfig, preset=f"train/{task}", config_file=config, overrides=[f"task={task}", *overrides]
         )
+    if backend is not None:
+        if backend not in ("local", "ray"):
+            raise ConfigError(f"--backend {backend!r}: choose local or ray")
+        cfg.envs.backend = backend
+    if address is not None:
+        cfg.envs.address = address
+    if cfg.envs.address is not None and cfg.envs.backend != "ray":
+        raise ConfigError("--address is the Ray cluster's address: give it with --backend ray")
+    if cfg.envs.backend == "ray":
+        from drivesim.stages.ray_cluster import import_ray
+
+        import_ray()  # a missing Ray is one line before anything runs
     result = run_training(ws, cfg, worlds=worlds or None, resume=run_dir)
     for note in result.notes:
         console.print(note, highlight=False, soft_wrap=True)

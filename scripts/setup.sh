@@ -23,4 +23,5 @@ fi
 "$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null
 # torch first and pinned: the local CPU build of 2.13.0; pyproject caps torch below 2.14 so nothing pulls CUDA.
 "$VENV/bin/python" -m pip install -q "torch==2.13.0"
-"$VENV/bin/python" -m pip install -q -e ".[test]"
+# test: pytest, moderngl, ruff; ray: the Ray backend, so its tests run rather than skip.
+"$VENV/bin/python" -m pip install -q -e ".[test,ray]"

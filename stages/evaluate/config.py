@@ -35,6 +35,13 @@ class EvalConfig(StageConfig):
     env_entry_point: str | None = None
     """`module:Class` registering `env_id` first when it is not registered yet."""
     workers: int | None = Field(None, ge=1, exclude=True)
-    """Worker processes; null = one per core. Not part of the artifact's identity (same seeds, same numbers)."""
+    """Worker processes (Ray actors with backend ray); null = one per core (of the cluster). Not part of the
+    artifact's identity (same seeds, same numbers)."""
+    backend: Literal["local", "ray"] = Field("local", exclude=True)
+    """local: worker processes on this machine; ray: Ray actors over a cluster's workers (`pip install
+    'drivesim[ray]'`). Not part of the artifact's identity (same seeds, same numbers)."""
+    address: str | None = Field(None, exclude=True)
+    """With backend ray: the cluster, "auto" (started by `ray start` on this machine) or the head's host:port; null =
+    start Ray on this machine for the evaluation. Not part of the artifact's identity."""
     name: str | None = Field(None, exclude=True)
     """The evaluation's folder name under eval/; null = `<task>-<policy>`. Not part of the artifact's identity."""

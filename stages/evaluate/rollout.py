@@ -220,12 +220,12 @@ _WORKER: dict[str, Any] = {}
 
 
 def _init_worker(env_factory: EnvFactory, policy_spec: PolicySpec, task: str, folder: str) -> None:
-    _limit_threads()
+    limit_worker_threads()
     env = env_factory()
     _WORKER.update(env=env, policy=policy_spec.load(env), task=task, folder=Path(folder), limits=env_limits(env))
 
 
-def _limit_threads() -> None:
+def limit_worker_threads() -> None:
     """One thread per worker: workers already use every core, and one thread keeps the numbers identical."""
     os.environ["OMP_NUM_THREADS"] = "1"
     try:

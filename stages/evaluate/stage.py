@@ -59,7 +59,7 @@ class EvalSummary(StageSummary):
     episodes_per_min: float | None
     """Episodes run per minute in this session (None when all were resumed) [1/min]."""
     workers: int
-    """Worker processes used."""
+    """Worker processes used (Ray actors with the ray backend)."""
     videos: list[str] = []
     """MP4 files rendered."""
 
@@ -276,7 +276,20 @@ def _build(ctx: BuildContext) -> EvalSummary:
         def on_episode(done: Any) -> None:
             progress.update(task, advance=1, description=rate.add(done))
 
-        ran = run_episodes(factory, policy_spec, cfg.task, seeds, episodes_dir, workers=workers, on_episode=on_episode)
+        if cfg.backend == "ray":
+            from drivesim.stages.evaluate.ray_backend import run_episodes_ray
+
+            outcome = run_episodes_ray(
+                factory, policy_spec, cfg.task, seeds, episodes_dir, cfg.address, cfg.workers, on_episode
+            )
+            ran, workers = outcome.episodes_run, outcome.actors or workers
+            ctx.notes.append(f"ray: {outcome.actors} actors on {outcome.nodes} node(s)")
+            if outcome.resubmitted:
+                ctx.notes.append(f"ray: {outcome.resubmitted} episodes resubmitted after their worker died")
+        else:
+            ran = run_episodes(
+                factory, policy_spec, cfg.task, seeds, episodes_dir, workers=workers, on_episode=on_episode
+            )
     elapsed = time.perf_counter() - started
 
     results = []
@@ -295,6 +308,7 @@ def _build(ctx: BuildContext) -> EvalSummary:
         "meshes": str(meshes) if meshes else "procedural",
         "seed": cfg.seed,
         "workers": workers,
+        "backend": cfg.backend,
         "episodes_per_min": round(60 * ran / elapsed, 2) if ran else None,
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
     }
@@ -337,9 +351,13 @@ def run_eval(ws: Workspace, cfg: EvalConfig, force: bool = False) -> StageResult
     """Evaluate `cfg.policy` into `eval/<name>/` (resuming an interrupted evaluation of the same settings).
 
     :param ws: the workspace (its world/ and meshes/ are the defaults).
-    :param cfg: the eval config; `name` and `workers` do not change the artifact's identity.
+    :param cfg: the eval config; `name`, `workers`, `backend` and `address` do not change the artifact's identity.
     :param force: evaluate again even when `eval/<name>/` is fresh.
     """
+    if cfg.backend == "ray":
+        from drivesim.stages.ray_cluster import import_ray
+
+        import_ray()  # a missing Ray is one line before anything runs
     cfg, plan = resolve(ws, cfg)
     external: dict[str, Path] = {}
     if not plan.world_in_workspace:

@@ -84,6 +84,12 @@ class EnvsConfig(_Section):
     """Overrides of the env config (sim/envs/config.py EnvConfig), e.g. {episode_steps: 300}."""
     worker_threads: int = 1
     """torch threads in each env worker process."""
+    backend: Literal["local", "ray"] = "local"
+    """local: the envs run on this machine as `vec_env` says; ray: each env in a Ray actor spread over a cluster
+    (RayVecEnv), so `count` may exceed this machine's cores (`pip install 'drivesim[ray]'`)."""
+    address: str | None = None
+    """With backend ray: the cluster, "auto" (started by `ray start` on this machine) or the head's host:port;
+    null = start Ray on this machine for the run."""
 
 
 class EvalConfig(_Section):

@@ -54,8 +54,15 @@ class EnvSource:
         """One env in this process."""
         return self.env_fn(mode)()
 
-    def make_vec(self, count: int, kind: str, seed: int, mode: str = "train") -> VecEnv:
-        """`count` envs as an SB3 VecEnv; kind batched | subproc | dummy (batched needs the simulator)."""
+    def make_vec(self, count: int, kind: str, seed: int, mode: str = "train", address: str | None = None) -> VecEnv:
+        """`count` envs as an SB3 VecEnv; kind batched | subproc | dummy | ray (batched needs the simulator; ray
+        puts each env in a Ray actor on the cluster at `address`, None = Ray started on this machine)."""
+        if kind == "ray":
+            from drivesim.stages.train.ray_vecenv import RayVecEnv
+
+            venv = RayVecEnv([self.env_fn(mode) for _ in range(count)], address=address)
+            venv.seed(seed)
+            return venv
         if kind == "batched" and not self.cost_free and self.processes > 1 and count > 1:
             from drivesim.sim.envs.parallel import ProcessBatchedVecEnv
 

@@ -186,7 +186,8 @@ def train_in_folder(
     if last.is_file():
         done_steps = int(torch.load(last, map_location="cpu", weights_only=True).get("num_timesteps", 0))
     try:
-        timed = TimedVecEnv(source.make_vec(cfg.envs.count, cfg.envs.vec_env, cfg.seed + done_steps))
+        kind = "ray" if cfg.envs.backend == "ray" else cfg.envs.vec_env
+        timed = TimedVecEnv(source.make_vec(cfg.envs.count, kind, cfg.seed + done_steps, address=cfg.envs.address))
     except (ValueError, FileNotFoundError) as e:  # the envs' one-line errors (short world, missing meshes, ...)
         raise DrivesimError(f"cannot make the {cfg.task} env: {str(e).splitlines()[0]}") from e
     venv = VecNormalize(timed, norm_obs=False, norm_reward=cfg.ppo.normalize_reward, gamma=cfg.ppo.gamma)
