@@ -17,7 +17,17 @@ import numpy as np
 
 from drivesim.bench.machine import machine_line, usable_cores
 
-TASKS = ("lane", "follow", "overtake")
+# "overtake:eval": evaluation episodes, which end at the pass, so the other car is in view at nearly every step; a
+# training episode drives on after the pass with the car behind, out of view (cheaper steps).
+TASKS = ("lane", "follow", "overtake", "overtake:eval")
+
+
+def _task_mode(task: str) -> tuple[str, str]:
+    """("overtake", "eval") from "overtake:eval"; the mode is "train" when none is given."""
+    name, _, mode = task.partition(":")
+    return name, mode or "train"
+
+
 PARTS = ("dynamics", "association", "warp", "raster", "composite", "lighting", "harmonize", "rewards")
 
 
@@ -57,7 +67,8 @@ def _env_loop(task: str, world: str, meshes: str | None, steps: int, seed: int) 
     import drivesim.sim.envs  # noqa: F401  (registers the envs)
 
     torch.set_num_threads(1)
-    env = gymnasium.make(f"drivesim/{task.capitalize()}-v0", world=world, meshes=meshes)
+    name, mode = _task_mode(task)
+    env = gymnasium.make(f"drivesim/{name.capitalize()}-v0", world=world, meshes=meshes, mode=mode)
     env.reset(seed=seed)
     env.unwrapped.expert_action()
     for _ in range(5):  # warm the caches (frames, packed meshes) before timing
@@ -86,7 +97,8 @@ def _batched_loop(task: str, world: str, meshes: str | None, steps: int, n_envs:
     from drivesim.sim.envs.vector import BatchedVecEnv
 
     torch.set_num_threads(1)
-    venv = BatchedVecEnv(task, n_envs, world, meshes, "train", None, seed)
+    name, mode = _task_mode(task)
+    venv = BatchedVecEnv(name, n_envs, world, meshes, mode, None, seed)
     venv.reset()
     actions = np.zeros((n_envs, 1), dtype=np.float32)
     for _ in range(3):
@@ -180,6 +192,11 @@ def sim_speed_markdown(result: SimSpeedResult, command: str) -> str:
     for t in result.tasks:
         batched = f"{t.batched_steps_per_s:.0f} ({t.batched_envs} envs)" if t.batched_envs else "-"
         lines.append(f"| {t.task} | {t.steps_per_s:.0f} | {t.steps_per_s_all_cores:.0f} ({t.processes}) | {batched} |")
+    lines += [
+        "",
+        "overtake: training episodes (they drive on after the pass, the other car behind and out of view); "
+        "overtake:eval: evaluation episodes (they end at the pass: the car is in view at nearly every step).",
+    ]
     lines += ["", "ms per step, one process:", "", "| task | " + " | ".join((*PARTS, "other", "total")) + " |"]
     lines.append("|---|" + "---:|" * (len(PARTS) + 2))
     for t in result.tasks:

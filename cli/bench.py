@@ -147,7 +147,9 @@ def sim_command(
         Path | None, typer.Option("--world", help="World folder (default: the workspace's world/).")
     ] = None,
     steps: Annotated[int, typer.Option("--steps", help="Env steps per measurement.", min=10)] = 300,
-    tasks: Annotated[str, typer.Option("--tasks", help="Comma-separated tasks.")] = "lane,follow,overtake",
+    tasks: Annotated[
+        str, typer.Option("--tasks", help="Comma-separated tasks (overtake:eval: episodes that end at the pass).")
+    ] = "lane,follow,overtake,overtake:eval",
     markdown: Annotated[
         Path | None, typer.Option("--markdown", help="Also write the results as a markdown report to this file.")
     ] = None,
