@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
@@ -35,3 +35,29 @@ ForceOption = Annotated[bool, typer.Option("--force", help="Redo the stage even 
 def workspace() -> Workspace:
     """The workspace chosen with `--workspace` (default ./drivesim-work)."""
     return Workspace(state.workspace)
+
+
+AddressOption = Annotated[
+    str | None,
+    typer.Option(
+        "--address",
+        help="With --backend ray: the cluster, 'auto' (started by `ray start` on this machine) or the head's "
+        "host:port. Default: start Ray on this machine for this command. Every node needs drivesim and the world "
+        "(and meshes and policy) at the same paths.",
+        show_default=False,
+    ),
+]
+
+
+def choose_backend(backend: str | None, address: str | None, config: Any) -> None:
+    """Set `config.backend` / `config.address` from --backend / --address, refusing a bad pair with one line."""
+    from drivesim.pipeline.errors import ConfigError
+
+    if backend is not None:
+        if backend not in ("local", "ray"):
+            raise ConfigError(f"--backend {backend!r}: choose local or ray")
+        config.backend = backend
+    if address is not None:
+        config.address = address
+    if config.address is not None and config.backend != "ray":
+        raise ConfigError("--address is the Ray cluster's address: give it with --backend ray")

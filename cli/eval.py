@@ -7,9 +7,8 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli.common import ConfigOption, ForceOption, SetOption, console, workspace
+from drivesim.cli.common import AddressOption, ConfigOption, ForceOption, SetOption, choose_backend, console, workspace
 from drivesim.pipeline.config import load_config
-from drivesim.pipeline.errors import ConfigError
 
 
 def eval_command(
@@ -45,16 +44,7 @@ def eval_command(
             show_default=False,
         ),
     ] = None,
-    address: Annotated[
-        str | None,
-        typer.Option(
-            "--address",
-            help="With --backend ray: the cluster, 'auto' (started by `ray start` on this machine) or the head's "
-            "host:port. Default: start Ray on this machine for this evaluation. Every node needs drivesim and the "
-            "world, meshes and policy at the same paths.",
-            show_default=False,
-        ),
-    ] = None,
+    address: AddressOption = None,
     seed: Annotated[
         int | None, typer.Option("--seed", help="Seed of episode 0; episode i uses seed + i.", show_default=False)
     ] = None,
@@ -103,14 +93,7 @@ def eval_command(
             cfg.policy = str(newest)
     if workers is not None:
         cfg.workers = workers
-    if backend is not None:
-        if backend not in ("local", "ray"):
-            raise ConfigError(f"--backend {backend!r}: choose local or ray")
-        cfg.backend = backend
-    if address is not None:
-        cfg.address = address
-    if cfg.address is not None and cfg.backend != "ray":
-        raise ConfigError("--address is the Ray cluster's address: give it with --backend ray")
+    choose_backend(backend, address, cfg)
     if name is not None:
         cfg.name = name
     console.print(

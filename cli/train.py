@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli.common import ConfigOption, SetOption, console, workspace
+from drivesim.cli.common import AddressOption, ConfigOption, SetOption, choose_backend, console, workspace
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError, DrivesimError
 
@@ -40,16 +40,7 @@ def train_command(
             show_default=False,
         ),
     ] = None,
-    address: Annotated[
-        str | None,
-        typer.Option(
-            "--address",
-            help="With --backend ray: the cluster, 'auto' (started by `ray start` on this machine) or the head's "
-            "host:port. Default: start Ray on this machine for the run. Every node needs drivesim and the worlds "
-            "at the same paths.",
-            show_default=False,
-        ),
-    ] = None,
+    address: AddressOption = None,
     resume: Annotated[
         Path | None,
         typer.Option("--resume", help="Continue an unfinished run folder (runs/<task>-<time>, or just its name)."),
@@ -111,14 +102,7 @@ def train_command(
         cfg = load_config(
             TrainConfig, preset=f"train/{task}", config_file=config, overrides=[f"task={task}", *overrides]
         )
-    if backend is not None:
-        if backend not in ("local", "ray"):
-            raise ConfigError(f"--backend {backend!r}: choose local or ray")
-        cfg.envs.backend = backend
-    if address is not None:
-        cfg.envs.address = address
-    if cfg.envs.address is not None and cfg.envs.backend != "ray":
-        raise ConfigError("--address is the Ray cluster's address: give it with --backend ray")
+    choose_backend(backend, address, cfg.envs)
     if cfg.envs.backend == "ray":
         from drivesim.stages.ray_cluster import import_ray
 
