@@ -116,9 +116,11 @@ def build_kitti_world(scratch: Path) -> Path | None:
     return ws / "world"
 
 
-def run_scenario(scenario: Scenario, world: Path, minutes: float, episodes: int, scratch: Path) -> dict:
+def run_scenario(
+    scenario: Scenario, world: Path, minutes: float, episodes: int, scratch: Path, extra: list[str] | None = None
+) -> dict:
     ws = Workspace(scratch / scenario.name)
-    overrides = [f"time_limit_s={minutes * 60:.0f}", "total_steps=100000000"]
+    overrides = [f"time_limit_s={minutes * 60:.0f}", "total_steps=100000000", *(extra or [])]
     if scenario.warm_start:
         overrides.append("warm_start.method=expert")
     cfg = load_config(TrainConfig, preset=f"train/{scenario.task}", overrides=overrides)
@@ -198,7 +200,8 @@ def write_results() -> None:
         causes = ", ".join(f"{k} {v}" for k, v in sorted(trained["causes"].items()) if v and k != "time_limit")
         met = "met" if trained["successes"] / trained["episodes"] >= r["target"] else "not met"
         lines.append(
-            f"| {r['scenario']}{' (warm start)' if r['warm_start'] else ''} | {r['measured_utc']}, load "
+            f"| {r['scenario']}{' (warm start)' if r['warm_start'] else ''}"
+            f"{''.join(f', `{o}`' for o in r.get('overrides', []))} | {r['measured_utc']}, load "
             f"{r['load_1min']:.1f} | `{r['world']}` | {r['trained_min']:.1f} min | {r['steps']} | "
             f"{r['steps_per_s']:.0f} | {_policy_steps(r)} | {_rate(trained)} | {_rate(r['random'])} | "
             f"≥ {r['target']:.0%} ({met}) | {causes or 'none'} | {r['curves']} |"
@@ -221,6 +224,9 @@ def main() -> None:
     parser.add_argument("--only", action="append", choices=sorted(SCENARIOS), help="run only these scenarios")
     parser.add_argument("--minutes", type=float, default=None, help="override every scenario's training budget")
     parser.add_argument("--episodes", type=int, default=50, help="evaluation episodes per policy")
+    parser.add_argument(
+        "--set", action="append", default=None, help="a train config override on top of the preset (repeatable)"
+    )
     parser.add_argument("--demo-world", type=Path, default=Path("/tmp/ws-demo/world"))
     parser.add_argument(
         "--kitti-world",
@@ -246,9 +252,10 @@ def main() -> None:
             continue
         load_1min = os.getloadavg()[0]
         minutes = args.minutes if args.minutes is not None else scenario.minutes
-        result = run_scenario(scenario, world, minutes, args.episodes, args.scratch)
+        result = run_scenario(scenario, world, minutes, args.episodes, args.scratch, args.set)
         print(f"{name}: trained {_rate(result['trained'])}, random {_rate(result['random'])}")
         row = scenario_row(scenario, world, result, load_1min, args.episodes)
+        row["overrides"] = args.set or []
         (RESULTS / f"learning_{name}.json").write_text(json.dumps(row, indent=1))
         write_results()
 
