@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -20,3 +21,10 @@ def drivesim_ok(ws: Path, *args: str, timeout_s: float = 300) -> subprocess.Comp
     )
     assert result.returncode == 0, f"drivesim {' '.join(args)} failed:\n{result.stdout}\n{result.stderr}"
     return result
+
+
+def interruptible() -> None:
+    """Popen's preexec_fn for a child the test will Ctrl-C: SIGINT back to its default. A shell starting a job in the
+    background (`cmd &` without job control) ignores SIGINT in it, and an ignored signal stays ignored across exec,
+    so the child would never see the test's SIGINT."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

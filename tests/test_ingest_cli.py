@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
-from cli_helpers import REAL_DATA
+from cli_helpers import REAL_DATA, interruptible
 
 from drivesim.bench.recordings import START_NS, Msg, drive_messages, navsat_values, textured_image, write_recording
 from drivesim.cli.main import main
@@ -123,7 +123,7 @@ def test_ctrl_c_leaves_no_artifact_and_the_next_run_succeeds(tmp_path: Path) -> 
     rec = write_recording(tmp_path / "big.mcap", "mcap", msgs, mcap_compression="none")
     ws = tmp_path / "ws"
     cmd = [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), "ingest", str(rec)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=interruptible)
     # wait until frames are being written into the temporary artifact, then interrupt
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
