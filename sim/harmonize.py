@@ -15,6 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Protocol
 
+import cv2
 import numpy as np
 import torch
 from torch.nn.functional import max_pool2d
@@ -56,6 +57,35 @@ class StatisticalHarmonizer:
         out = rgb.clone()
         out[:, y0:y1, x0:x1] = self._harmonize(rgb[:, y0:y1, x0:x1], mask[:, y0:y1, x0:x1])
         return out
+
+    def harmonize_view_uint8_(self, rgb: np.ndarray, mask: np.ndarray) -> None:
+        """The same transfer on one view, in place: `rgb` (h, w, 3) uint8 changes under `mask` (h, w) bool.
+
+        The CPU path of the simulator: OpenCV's masked dilation and mean / standard deviation over the car's box do
+        in tens of microseconds what the batched torch path does in about half a millisecond of per-call costs."""
+        ys, xs = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+        if ys.size == 0:
+            return
+        r = self.ring_px
+        y0, y1 = max(int(ys[0]) - r, 0), int(ys[-1]) + r + 1
+        x0, x1 = max(int(xs[0]) - r, 0), int(xs[-1]) + r + 1
+        box = rgb[y0:y1, x0:x1]
+        car = mask[y0:y1, x0:x1].view(np.uint8)
+        ring = cv2.dilate(car, np.ones((2 * r + 1, 2 * r + 1), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        ring -= car
+        if not ring.any():
+            return
+        car_mean, car_std = (v[:, 0] / 255.0 for v in cv2.meanStdDev(box, mask=car))
+        ring_mean, ring_std = (v[:, 0] / 255.0 for v in cv2.meanStdDev(box, mask=ring))
+        # As in the torch path: spreads floored at 1e-4 (a flat car or ring), the gain bounded.
+        ratio = np.maximum(ring_std, 1e-4) / np.maximum(car_std, 1e-4)
+        gain = np.clip(ratio, 1.0 / self.max_gain, self.max_gain)
+        gain = 1.0 + self.strength * (gain - 1.0)
+        target_mean = car_mean + self.strength * (ring_mean - car_mean)
+        inside = car.astype(bool)
+        pixels = box[inside].astype(np.float32) * np.float32(1.0 / 255.0)
+        adjusted = (pixels - car_mean.astype(np.float32)) * gain.astype(np.float32) + target_mean.astype(np.float32)
+        box[inside] = (np.clip(adjusted, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
     def _harmonize(self, rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         m = mask.to(rgb.dtype)[:, None]  # (B, 1, h, w)

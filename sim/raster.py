@@ -301,8 +301,9 @@ class Rasterizer:
     :param cull_back_faces: skip triangles seen from behind. Only for closed meshes with faces
         counter-clockwise seen from outside (the `Mesh` convention), such as vehicles: about halves their cost.
         Off by default: open surfaces (ground, facades) are drawn from both sides.
-    :param use_kernel: on CPU, run the depth test in the compiled kernel (raster_kernel.py, same result); False:
-        the torch path, which is what runs on a GPU.
+    :param use_kernel: on CPU, run the compiled kernels (raster_kernel.py, same result): the whole render for
+        untextured scenes (vehicles), the depth test for textured ones; False: the torch path, which is what runs on
+        a GPU.
     """
 
     def __init__(
@@ -360,6 +361,8 @@ class Rasterizer:
         T = _as_poses(T_camera_world)
         B = T.shape[0]
         per_camera = isinstance(meshes, list) and len(meshes) > 0 and not isinstance(meshes[0], Mesh)
+        if per_camera and all(m is meshes[0] for m in meshes):  # the same scene for every camera: one packing
+            meshes, per_camera = meshes[0], False
         if per_camera:
             if len(meshes) != B:
                 raise ValueError(f"got {len(meshes)} per-camera mesh lists for {B} cameras")
@@ -478,6 +481,8 @@ class Rasterizer:
         background_rgb: tuple[float, float, float] | np.ndarray | None,
     ) -> RenderResult:
         W, H, dev = self.width_px, self.height_px, self.device
+        if self.use_kernel and not scene.textured:
+            return self._rasterize_kernel(scene, vc, owner, B, K, R_cam_world, lighting, background_rgb)
         idx, cols, bbox = self._setup(vc, K)
         if owner is None:  # shared scene: candidate n is triangle n % T seen by camera n // T
             T_count = max(scene.triangle_count, 1)
@@ -506,6 +511,63 @@ class Rasterizer:
         if members.numel():
             self._raster_tiles(zbuf, cols, bw, bh, base_pix, members, _TILE_PX, _TILE_PX)
         return self._resolve(zbuf, scene, cols, tri_camera, tri_source, B, K, R_cam_world, lighting, background_rgb)
+
+    def _rasterize_kernel(
+        self,
+        scene: PackedScene,
+        vc: torch.Tensor,
+        owner: torch.Tensor | None,
+        B: int,
+        K: torch.Tensor,
+        R_cam_world: torch.Tensor,
+        lighting: Lighting | list[Lighting] | None,
+        background_rgb: tuple[float, float, float] | np.ndarray | None,
+    ) -> RenderResult:
+        """The whole render of an untextured scene in the compiled CPU kernels (set-up, depth test, shading): the
+        torch path's formulas without its per-call costs, which dominate for a car of a few hundred triangles."""
+        from drivesim.sim import raster_kernel  # numba compiles (or loads its cache) on first import
+
+        W, H = self.width_px, self.height_px
+        N = vc.shape[2]
+        K_np = K.cpu().numpy()
+        table = np.empty((13, N), dtype=np.float32)
+        bbox = np.empty((N, 4), dtype=np.int64)
+        index = np.empty(N, dtype=np.int64)
+        n = raster_kernel.setup(
+            np.ascontiguousarray(vc.reshape(9, N).numpy()),
+            float(K_np[0, 0]), float(K_np[1, 1]), float(K_np[0, 2]), float(K_np[1, 2]),
+            W, H, self.near_m, self.cull_back_faces, table, bbox, index,
+        )  # fmt: skip
+        table, bbox, index = np.ascontiguousarray(table[:, :n]), bbox[:n], index[:n]
+        if owner is None:  # shared scene: candidate n is triangle n % T seen by camera n // T
+            camera = index // max(scene.triangle_count, 1)
+            source = index - camera * max(scene.triangle_count, 1)
+        else:
+            camera, source = owner.numpy()[index], index
+        size = B * H * W
+        depth = np.full(size, np.inf, dtype=np.float32)
+        winner = np.full(size, -1, dtype=np.int64)
+        raster_kernel.depth_test(table, bbox, camera, W, H, self.near_m, depth, winner)
+
+        rgb = np.empty((size, 3), dtype=np.float32)
+        rgb[:] = np.zeros(3) if background_rgb is None else np.asarray(background_rgb, dtype=np.float32)
+        depth_out = np.full(size, np.inf, dtype=np.float32)
+        object_id = np.full(size, -1, dtype=np.int32)
+        normal = np.zeros((size, 3), dtype=np.float32)
+        amb, ldir, lrgb = _lighting_tensors(lighting, B, torch.device("cpu"))
+        raster_kernel.shade(
+            depth, winner, table, source,
+            scene.attribute_table.numpy(), scene.material.numpy(), scene.object_id.numpy(),
+            np.ascontiguousarray(R_cam_world.numpy()), np.linalg.inv(K_np).astype(np.float32),
+            np.ascontiguousarray(torch.cat([amb, ldir, lrgb], dim=1).numpy()),
+            W, H, rgb, depth_out, object_id, normal,
+        )  # fmt: skip
+        return RenderResult(
+            rgb=torch.from_numpy(rgb.reshape(B, H, W, 3)),
+            depth_m=torch.from_numpy(depth_out.reshape(B, H, W)),
+            object_id=torch.from_numpy(object_id.reshape(B, H, W)),
+            normal_cam=torch.from_numpy(normal.reshape(B, H, W, 3)),
+        )
 
     def _depth_test_kernel(
         self, cols: torch.Tensor, bbox: torch.Tensor, tri_camera: torch.Tensor, B: int

@@ -1,12 +1,12 @@
-"""The rasterizer's CPU kernel: the depth test of every (triangle, pixel) of the triangles' bounding boxes in one
-compiled loop (numba), for `raster.Rasterizer` on CPU.
+"""The rasterizer's CPU kernels (numba), for `raster.Rasterizer` on CPU: the per-triangle set-up, the depth test of
+every (triangle, pixel) of the triangles' bounding boxes, and the per-pixel shading, each one compiled loop.
 
-Why a kernel of our own: the torch path expands triangles into (triangle, pixel) pairs and 8 x 8 tiles and
-scatters packed keys, a chain of whole-array operations whose fixed costs dominate for the few hundred small
-triangles of a car in the policy's region of interest. The loop evaluates the same edge functions in the same
-float32 arithmetic (w_i = c_i + a_i x + b_i y from the bbox corner, inside when all w_i >= 0, depth = |det| / sum w,
-at or beyond the near plane), and keeps per pixel the nearest depth, then the smallest candidate, as the torch
-path's packed key does.
+Why kernels of our own: the torch path expands triangles into (triangle, pixel) pairs and 8 x 8 tiles, scatters
+packed keys and shades through channel-major gathers, a chain of whole-array operations whose fixed costs dominate
+for the few hundred small triangles of a car in the policy's region of interest. The loops evaluate the same
+formulas in the same float32 arithmetic (w_i = c_i + a_i x + b_i y from the bbox corner, inside when all w_i >= 0,
+depth = |det| / sum w, at or beyond the near plane), keep per pixel the nearest depth, then the smallest candidate,
+as the torch path's packed key does, and shade with `shading.py`'s formula.
 """
 
 from __future__ import annotations
@@ -58,3 +58,193 @@ def depth_test(
                 if z < depth[p] or (z == depth[p] and t < winner[p]):
                     depth[p] = z
                     winner[p] = t
+
+
+@njit(cache=True, nogil=True)
+def setup(
+    vc: np.ndarray,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width_px: int,
+    height_px: int,
+    near_m: float,
+    cull_back_faces: bool,
+    table: np.ndarray,
+    bbox: np.ndarray,
+    index: np.ndarray,
+) -> int:
+    """`Rasterizer._setup` as one loop: from camera-frame vertices vc (9, N) float32 (row 3 * xyz + corner), fill the
+    first n columns of table (13, N), rows of bbox (N, 4) and entries of index (N,) with the kept candidates; returns n.
+
+    Same float32 formulas as the torch path: bbox of the projected corners (of the polygon clipped at z = near for a
+    triangle crossing it), edge coefficients re-based at the bbox corner, degenerate and (optionally) back faces
+    dropped.
+    """
+    f32 = np.float32
+    near = f32(near_m)
+    fx32, fy32, cx32, cy32 = f32(fx), f32(fy), f32(cx), f32(cy)
+    limit = f32(width_px + height_px)
+    n = 0
+    px = np.empty(6, np.float32)
+    py = np.empty(6, np.float32)
+    pz = np.empty(6, np.float32)
+    for t in range(vc.shape[1]):
+        x0, x1, x2 = vc[0, t], vc[1, t], vc[2, t]
+        y0, y1, y2 = vc[3, t], vc[4, t], vc[5, t]
+        z0, z1, z2 = vc[6, t], vc[7, t], vc[8, t]
+        n_front = int(z0 >= near) + int(z1 >= near) + int(z2 >= near)
+        if n_front == 0:
+            continue
+        # Candidate points of the bbox: the corners, plus the edge/near-plane intersections of a crossing triangle
+        # (whose corners behind the plane are then left out).
+        px[0], px[1], px[2] = x0, x1, x2
+        py[0], py[1], py[2] = y0, y1, y2
+        pz[0], pz[1], pz[2] = z0, z1, z2
+        count = 3
+        if n_front < 3:
+            count = 0
+            for i in range(3):
+                if pz[i] >= near:
+                    px[count], py[count], pz[count] = px[i], py[i], pz[i]
+                    count += 1
+            xs = (x0, x1, x2)
+            ys = (y0, y1, y2)
+            zs = (z0, z1, z2)
+            for i in range(3):
+                j = (i + 1) % 3
+                zi, zj = zs[i], zs[j]
+                if (zi - near) * (zj - near) < 0:
+                    s = min(max((near - zi) / (zj - zi), f32(0.0)), f32(1.0))
+                    px[count] = xs[i] + s * (xs[j] - xs[i])
+                    py[count] = ys[i] + s * (ys[j] - ys[i])
+                    pz[count] = zi + s * (zj - zi)
+                    count += 1
+        u_lo = v_lo = np.inf
+        u_hi = v_hi = -np.inf
+        for i in range(count):
+            z = max(pz[i], near)
+            u = px[i] / z * fx32 + cx32
+            v = py[i] / z * fy32 + cy32
+            u_lo, u_hi = min(u_lo, u), max(u_hi, u)
+            v_lo, v_hi = min(v_lo, v), max(v_hi, v)
+        lo_x = max(np.ceil(min(max(f32(u_lo), f32(-1.0)), limit)), f32(0.0))
+        lo_y = max(np.ceil(min(max(f32(v_lo), f32(-1.0)), limit)), f32(0.0))
+        hi_x = min(np.floor(min(max(f32(u_hi), f32(-1.0)), limit)), f32(width_px - 1))
+        hi_y = min(np.floor(min(max(f32(v_hi), f32(-1.0)), limit)), f32(height_px - 1))
+        if hi_x < lo_x or hi_y < lo_y:
+            continue
+        cx0, cy0, cz0 = y1 * z2 - z1 * y2, z1 * x2 - x1 * z2, x1 * y2 - y1 * x2  # P1 x P2
+        cx1, cy1, cz1 = y2 * z0 - z2 * y0, z2 * x0 - x2 * z0, x2 * y0 - y2 * x0  # P2 x P0
+        cx2, cy2, cz2 = y0 * z1 - z0 * y1, z0 * x1 - x0 * z1, x0 * y1 - y0 * x1  # P0 x P1
+        det = x0 * cx0 + y0 * cy0 + z0 * cz0
+        abs_det = abs(det)
+        scale = (abs(x0) + abs(y0) + abs(z0) + abs(x1) + abs(y1) + abs(z1) + abs(x2) + abs(y2) + abs(z2)) / f32(3.0)
+        if not abs_det > f32(1e-9) * scale * scale * scale:  # seen edge-on or degenerate: covers nothing
+            continue
+        if cull_back_faces and not det < 0:  # det < 0: the front (counter-clockwise) side faces the camera
+            continue
+        sign = f32(1.0) if det > 0 else f32(-1.0)
+        table[0, n] = hi_x - lo_x + 1
+        edges = ((cx0, cy0, cz0), (cx1, cy1, cz1), (cx2, cy2, cz2))
+        for i in range(3):
+            ex, ey, ez = edges[i]
+            a = ex * (sign / fx32)
+            b = ey * (sign / fy32)
+            table[1 + 3 * i, n] = a
+            table[2 + 3 * i, n] = b
+            table[3 + 3 * i, n] = ez * sign + a * (lo_x - cx32) + b * (lo_y - cy32)
+        table[10, n] = abs_det
+        table[11, n] = lo_x
+        table[12, n] = lo_y
+        bbox[n, 0], bbox[n, 1], bbox[n, 2], bbox[n, 3] = int(lo_x), int(lo_y), int(hi_x), int(hi_y)
+        index[n] = t
+        n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _normalized(x: float, y: float, z: float) -> tuple[float, float, float]:
+    inv = np.float32(1.0) / np.sqrt(max(x * x + y * y + z * z, np.float32(1e-30)))
+    return x * inv, y * inv, z * inv
+
+
+@njit(cache=True, nogil=True)
+def shade(
+    depth: np.ndarray,
+    winner: np.ndarray,
+    table: np.ndarray,
+    source: np.ndarray,
+    attributes: np.ndarray,
+    material: np.ndarray,
+    object_ids: np.ndarray,
+    R_cam_world: np.ndarray,
+    K_inv: np.ndarray,
+    lights: np.ndarray,
+    width_px: int,
+    height_px: int,
+    rgb_out: np.ndarray,
+    depth_out: np.ndarray,
+    id_out: np.ndarray,
+    normal_out: np.ndarray,
+) -> None:
+    """`Rasterizer._resolve` for untextured scenes as one loop: per covered pixel of the z-buffer (depth, winner), the
+    winner's perspective-correct barycentrics, its interpolated normal and colour, and the shading of `shading.py`.
+
+    source (n,) the scene triangle of each candidate; attributes (24, T), material (7, T), object_ids (T,) the packed
+    scene's tables; R_cam_world (B, 3, 3); K_inv (3, 3); lights (B, 9) ambient, unit direction, light colour.
+    Outputs (B*H*W, ...) are written only where a surface is drawn.
+    """
+    f32 = np.float32
+    plane = width_px * height_px
+    for p in range(winner.shape[0]):
+        t = winner[p]
+        if t < 0:
+            continue
+        cam = p // plane
+        rest = p - cam * plane
+        y = rest // width_px
+        x = rest - y * width_px
+        xo = f32(x) - table[11, t]
+        yo = f32(y) - table[12, t]
+        w0 = table[3, t] + table[1, t] * xo + table[2, t] * yo
+        w1 = table[6, t] + table[4, t] * xo + table[5, t] * yo
+        w2 = table[9, t] + table[7, t] * xo + table[8, t] * yo
+        inv_sum = f32(1.0) / (w0 + w1 + w2)
+        b0, b1, b2 = w0 * inv_sum, w1 * inv_sum, w2 * inv_sum
+        s = source[t]
+        nw0 = attributes[0, s] * b0 + attributes[8, s] * b1 + attributes[16, s] * b2
+        nw1 = attributes[1, s] * b0 + attributes[9, s] * b1 + attributes[17, s] * b2
+        nw2 = attributes[2, s] * b0 + attributes[10, s] * b1 + attributes[18, s] * b2
+        R = R_cam_world[cam]
+        n0, n1, n2 = _normalized(
+            R[0, 0] * nw0 + R[0, 1] * nw1 + R[0, 2] * nw2,
+            R[1, 0] * nw0 + R[1, 1] * nw1 + R[1, 2] * nw2,
+            R[2, 0] * nw0 + R[2, 1] * nw1 + R[2, 2] * nw2,
+        )
+        fx, fy = f32(x), f32(y)
+        v0, v1, v2 = _normalized(
+            -(K_inv[0, 0] * fx + K_inv[0, 1] * fy + K_inv[0, 2]),
+            -(K_inv[1, 0] * fx + K_inv[1, 1] * fy + K_inv[1, 2]),
+            -(K_inv[2, 0] * fx + K_inv[2, 1] * fy + K_inv[2, 2]),
+        )
+        if n0 * v0 + n1 * v1 + n2 * v2 < 0:  # two-sided: the normal turned towards the viewer
+            n0, n1, n2 = -n0, -n1, -n2
+        l0, l1, l2 = -lights[cam, 3], -lights[cam, 4], -lights[cam, 5]
+        h0, h1, h2 = _normalized(v0 + l0, v1 + l1, v2 + l2)
+        n_dot_l = max(n0 * l0 + n1 * l1 + n2 * l2, f32(0.0))
+        n_dot_h = max(n0 * h0 + n1 * h1 + n2 * h2, f32(0.0))
+        metalness, roughness, unlit = material[4, s], material[5, s], material[6, s]
+        exponent = f32(1.0) + material[3, s] * (f32(1.0) - roughness) ** 2
+        highlight = n_dot_h**exponent if n_dot_l > 0 else f32(0.0)
+        diffuse_weight = f32(1.0) - metalness
+        for c in range(3):
+            base = attributes[3 + c, s] * b0 + attributes[11 + c, s] * b1 + attributes[19 + c, s] * b2
+            f0 = diffuse_weight * material[c, s] + metalness * base
+            light = f0 * highlight + diffuse_weight * base * n_dot_l
+            lit = lights[cam, c] * base + lights[cam, 6 + c] * light
+            rgb_out[p, c] = min(max(lit + unlit * (base - lit), f32(0.0)), f32(1.0))
+        normal_out[p, 0], normal_out[p, 1], normal_out[p, 2] = n0, n1, n2
+        depth_out[p] = depth[p]
+        id_out[p] = object_ids[s]

@@ -32,7 +32,7 @@ import torch
 
 from drivesim.sim.geometry import invert, scale_intrinsics
 from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer
-from drivesim.sim.raster import PackedScene, Rasterizer, composite, merge_scenes
+from drivesim.sim.raster import PackedScene, Rasterizer, RenderResult, composite, merge_scenes
 from drivesim.sim.shading import Lighting
 from drivesim.sim.warp import WarpResult, forward_warp
 from drivesim.sim.world import World, relative_pose
@@ -92,7 +92,7 @@ class CarPlacement:
 
     :param model: a `vehicle_library.VehicleModel` (anything with `full`, `light` mesh lists and `length_m`,
         `width_m`, `height_m`). :param x_m, y_m: world position. :param yaw_rad: world heading.
-    :param object_id: id of the car in the views (for callers that tell cars apart).
+    :param object_id: id of the car (the simulator passes its agent index; views report one mask of all cars).
     """
 
     model: Any
@@ -292,33 +292,74 @@ class ViewSynthesizer:
         depth_out = torch.stack(depth_views)
         timings["warp"] = 1e3 * (time.perf_counter() - start)
 
-        car_mask = torch.zeros((B, cfg.out_height_px, cfg.out_width_px), dtype=torch.bool, device=self.device)
         start = time.perf_counter()
-        scenes, viewers, lights = [], [], []
+        scenes, poses, viewers, lights = [], [], [], []
         for b in range(B):
             placed = self._placed_cars(b, int(frame_index[b]), T_camera_world[b], cars[b])
+            if len(placed) == 1:  # one car: rendered from its own frame, no copy of its mesh moved into the camera's
+                scenes.append(placed[0][0])
+                poses.append(placed[0][1])
+            elif placed:
+                scenes.append(merge_scenes([scene.transformed(T) for scene, T in placed]))
+                poses.append(np.eye(4))
             if placed:
-                scenes.append(merge_scenes(placed))
                 viewers.append(b)
                 lights.append(self._lighting(int(frame_index[b])))
         timings["lighting"] = 1e3 * (time.perf_counter() - start)
-        if viewers:
+        if not viewers:
+            car_mask = np.zeros((B, cfg.out_height_px, cfg.out_width_px), dtype=bool)
+            return ViewBatch(rgb=rgb_out.cpu().numpy(), car_mask=car_mask, timings_ms=timings)
+        start = time.perf_counter()
+        drawn = self.rasterizer.render(scenes, np.stack(poses), self.K_view, lighting=lights)
+        timings["raster"] = 1e3 * (time.perf_counter() - start)
+        insert = self._insert_cpu if self.device.type == "cpu" else self._insert_torch
+        rgb, car_mask = insert(rgb_out, depth_out, drawn, viewers, timings)
+        return ViewBatch(rgb=rgb, car_mask=car_mask, timings_ms=timings)
+
+    def _insert_cpu(
+        self, rgb: torch.Tensor, depth: torch.Tensor, drawn: RenderResult, viewers: list[int], timings: dict
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Composite (per-pixel depth test) and harmonize the drawn cars into the views, in numpy, view by view: at
+        the policy's few thousand pixels, per-call costs are what matters, and numpy's and OpenCV's are the lowest."""
+        start = time.perf_counter()
+        rgb_np, depth_np = rgb.numpy(), depth.numpy()
+        car_mask = np.zeros(depth_np.shape, dtype=bool)
+        car_rgb, car_depth = drawn.rgb.numpy(), drawn.depth_m.numpy()
+        for i, b in enumerate(viewers):
+            front = np.less(car_depth[i], depth_np[b], out=car_mask[b])
+            rgb_np[b][front] = (car_rgb[i][front] * 255.0 + 0.5).astype(np.uint8)
+        timings["composite"] = 1e3 * (time.perf_counter() - start)
+        if self.config.harmonization:
             start = time.perf_counter()
-            identity = np.repeat(np.eye(4)[None], len(viewers), axis=0)
-            drawn = self.rasterizer.render(scenes, identity, self.K_view, lighting=lights)
-            timings["raster"] = 1e3 * (time.perf_counter() - start)
+            in_place = getattr(self.harmonizer, "harmonize_view_uint8_", None)
+            if in_place is not None:
+                for b in viewers:
+                    in_place(rgb_np[b], car_mask[b])
+            else:
+                index = torch.as_tensor(viewers)
+                mask = torch.from_numpy(car_mask).index_select(0, index)
+                views = rgb.index_select(0, index)
+                harmonized = self.harmonizer(views.to(torch.float32) / 255.0, mask)
+                rgb_np[viewers] = _harmonized_uint8(views, harmonized, mask).numpy()
+            timings["harmonize"] = 1e3 * (time.perf_counter() - start)
+        return rgb_np, car_mask
+
+    def _insert_torch(
+        self, rgb: torch.Tensor, depth: torch.Tensor, drawn: RenderResult, viewers: list[int], timings: dict
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Composite and harmonize the drawn cars into the views as batched torch operations (the GPU path)."""
+        B, h, w = depth.shape
+        start = time.perf_counter()
+        index = torch.as_tensor(viewers, device=self.device)
+        rgb_c, _, front = composite(rgb.index_select(0, index), depth.index_select(0, index), drawn)
+        timings["composite"] = 1e3 * (time.perf_counter() - start)
+        if self.config.harmonization and bool(front.any()):
             start = time.perf_counter()
-            index = torch.as_tensor(viewers, device=self.device)
-            rgb_c, _, front = composite(rgb_out.index_select(0, index), depth_out.index_select(0, index), drawn)
-            timings["composite"] = 1e3 * (time.perf_counter() - start)
-            if cfg.harmonization and bool(front.any()):
-                start = time.perf_counter()
-                harmonized = self.harmonizer(rgb_c.to(torch.float32) / 255.0, front)
-                rgb_c = torch.where(front[..., None], (harmonized * 255.0 + 0.5).clamp_(0, 255).to(torch.uint8), rgb_c)
-                timings["harmonize"] = 1e3 * (time.perf_counter() - start)
-            rgb_out = rgb_out.index_copy(0, index, rgb_c)
-            car_mask = car_mask.index_copy(0, index, front)
-        return ViewBatch(rgb=rgb_out.cpu().numpy(), car_mask=car_mask.cpu().numpy(), timings_ms=timings)
+            harmonized = self.harmonizer(rgb_c.to(torch.float32) / 255.0, front)
+            rgb_c = _harmonized_uint8(rgb_c, harmonized, front)
+            timings["harmonize"] = 1e3 * (time.perf_counter() - start)
+        car_mask = torch.zeros((B, h, w), dtype=torch.bool, device=self.device).index_copy(0, index, front)
+        return rgb.index_copy(0, index, rgb_c).cpu().numpy(), car_mask.cpu().numpy()
 
     def _lighting(self, frame: int) -> Lighting:
         """Ambient = the scene's mean colour, directional light from the viewpoint at infinity; or unlit colours."""
@@ -333,8 +374,9 @@ class ViewSynthesizer:
 
     def _placed_cars(
         self, b: int, frame: int, T_camera_world: np.ndarray, cars: list[CarPlacement]
-    ) -> list[PackedScene]:
-        """The visible cars of view b as packed scenes in its camera frame (origin = camera)."""
+    ) -> list[tuple[PackedScene, np.ndarray]]:
+        """The visible cars of view b: each car's packed mesh (in its own frame, at the level of detail its projected
+        size asks for) and its pose in the camera frame, T_camera_car."""
         if not cars:
             return []
         x = np.array([c.x_m for c in cars], dtype=np.float64)
@@ -350,8 +392,13 @@ class ViewSynthesizer:
             full, light = self._model_scenes(car.model)
             size_px = fx * max(float(car.model.length_m), float(car.model.height_m)) / max(float(T[2, 3]), 0.1)
             scene = full if size_px >= self.config.full_detail_min_px else light
-            placed.append(scene.transformed(T, object_id=car.object_id))
+            placed.append((scene, T))
         return placed
+
+
+def _harmonized_uint8(rgb: torch.Tensor, harmonized: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """uint8 views taking a harmonizer's float output [0, 1] under `mask`."""
+    return torch.where(mask[..., None], (harmonized * 255.0 + 0.5).clamp_(0, 255).to(torch.uint8), rgb)
 
 
 def _warp(
