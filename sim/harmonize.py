@@ -82,10 +82,12 @@ class StatisticalHarmonizer:
         gain = np.clip(ratio, 1.0 / self.max_gain, self.max_gain)
         gain = 1.0 + self.strength * (gain - 1.0)
         target_mean = car_mean + self.strength * (ring_mean - car_mean)
-        inside = car.astype(bool)
-        pixels = box[inside].astype(np.float32) * np.float32(1.0 / 255.0)
-        adjusted = (pixels - car_mean.astype(np.float32)) * gain.astype(np.float32) + target_mean.astype(np.float32)
-        box[inside] = (np.clip(adjusted, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        # (p - car_mean) * gain + target_mean per channel, on 0-255 values: one affine colour transform, which
+        # OpenCV rounds and saturates to uint8 as the torch path's clamp and rounding do; copied under the mask.
+        affine = np.zeros((3, 4))
+        affine[:, :3] = np.diag(gain)
+        affine[:, 3] = 255.0 * (target_mean - car_mean * gain)
+        cv2.copyTo(cv2.transform(box, affine), car, box)
 
     def _harmonize(self, rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         m = mask.to(rgb.dtype)[:, None]  # (B, 1, h, w)

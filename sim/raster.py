@@ -380,10 +380,15 @@ class Rasterizer:
     def _to_camera(self, scene: PackedScene, T: np.ndarray) -> torch.Tensor:
         """Camera-frame vertices of `scene` seen from poses T (B, 4, 4), component-major: (3 xyz, 3 corners, B * T)
         with candidate n = camera * T + triangle (contiguous rows make the per-triangle setup fast)."""
+        B, n_tri = T.shape[0], scene.triangle_count
+        if self.use_kernel:  # CPU: one numpy matrix product, without torch's per-op costs
+            M_np = (T @ _translation(scene.origin_m))[:, :3, :].astype(np.float32)  # (B, 3, 4)
+            V = scene.vertex_components.numpy().reshape(3, 3 * n_tri)
+            cam = M_np[:, :, :3] @ V + M_np[:, :, 3:]  # (B, 3 xyz, 3 corners * T)
+            return torch.from_numpy(cam.reshape(B, 3, 3, n_tri).transpose(1, 2, 0, 3).reshape(3, 3, B * n_tri))
         T_cam_scene = torch.as_tensor((T @ _translation(scene.origin_m))[:, :3, :], dtype=torch.float32)
         M = T_cam_scene.to(self.device)[:, :, :, None]  # (B, 3, 4, 1): broadcasts over (corner, B, T)
         X, Y, Z = scene.vertex_components[:, :, None, :]  # each (3 corners, 1, T)
-        B, n_tri = T.shape[0], scene.triangle_count
         out = torch.empty((3, 3, B, n_tri), dtype=torch.float32, device=self.device)
         for c in range(3):
             torch.mul(X, M[:, c, 0], out=out[c])
@@ -550,16 +555,16 @@ class Rasterizer:
         raster_kernel.depth_test(table, bbox, camera, W, H, self.near_m, depth, winner)
 
         rgb = np.empty((size, 3), dtype=np.float32)
-        rgb[:] = np.zeros(3) if background_rgb is None else np.asarray(background_rgb, dtype=np.float32)
-        depth_out = np.full(size, np.inf, dtype=np.float32)
-        object_id = np.full(size, -1, dtype=np.int32)
-        normal = np.zeros((size, 3), dtype=np.float32)
+        depth_out = np.empty(size, dtype=np.float32)
+        object_id = np.empty(size, dtype=np.int32)
+        normal = np.empty((size, 3), dtype=np.float32)
+        bg = np.zeros(3, dtype=np.float32) if background_rgb is None else np.asarray(background_rgb, np.float32)
         amb, ldir, lrgb = _lighting_tensors(lighting, B, torch.device("cpu"))
         raster_kernel.shade(
             depth, winner, table, source,
             scene.attribute_table.numpy(), scene.material.numpy(), scene.object_id.numpy(),
             np.ascontiguousarray(R_cam_world.numpy()), np.linalg.inv(K_np).astype(np.float32),
-            np.ascontiguousarray(torch.cat([amb, ldir, lrgb], dim=1).numpy()),
+            np.ascontiguousarray(torch.cat([amb, ldir, lrgb], dim=1).numpy()), bg,
             W, H, rgb, depth_out, object_id, normal,
         )  # fmt: skip
         return RenderResult(

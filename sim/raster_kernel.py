@@ -182,6 +182,7 @@ def shade(
     R_cam_world: np.ndarray,
     K_inv: np.ndarray,
     lights: np.ndarray,
+    background_rgb: np.ndarray,
     width_px: int,
     height_px: int,
     rgb_out: np.ndarray,
@@ -194,13 +195,19 @@ def shade(
 
     source (n,) the scene triangle of each candidate; attributes (24, T), material (7, T), object_ids (T,) the packed
     scene's tables; R_cam_world (B, 3, 3); K_inv (3, 3); lights (B, 9) ambient, unit direction, light colour.
-    Outputs (B*H*W, ...) are written only where a surface is drawn.
+    Every pixel of the outputs (B*H*W, ...) is written: where nothing is drawn, background_rgb (3,), depth +inf,
+    id -1 and a zero normal.
     """
     f32 = np.float32
     plane = width_px * height_px
     for p in range(winner.shape[0]):
         t = winner[p]
         if t < 0:
+            for c in range(3):
+                rgb_out[p, c] = background_rgb[c]
+                normal_out[p, c] = 0.0
+            depth_out[p] = np.inf
+            id_out[p] = -1
             continue
         cam = p // plane
         rest = p - cam * plane
@@ -248,3 +255,20 @@ def shade(
         normal_out[p, 0], normal_out[p, 1], normal_out[p, 2] = n0, n1, n2
         depth_out[p] = depth[p]
         id_out[p] = object_ids[s]
+
+
+@njit(cache=True, nogil=True)
+def composite_uint8(
+    rgb: np.ndarray, depth: np.ndarray, car_rgb: np.ndarray, car_depth: np.ndarray, front: np.ndarray
+) -> None:
+    """`raster.composite` for one uint8 view, in place: where the drawn car (car_rgb (h, w, 3) float [0, 1],
+    car_depth (h, w)) is nearer than the view's depth (h, w), its colour replaces the view's (rgb (h, w, 3) uint8);
+    front (h, w) bool receives where."""
+    h, w = depth.shape
+    for y in range(h):
+        for x in range(w):
+            nearer = car_depth[y, x] < depth[y, x]
+            front[y, x] = nearer
+            if nearer:
+                for c in range(3):
+                    rgb[y, x, c] = np.uint8(car_rgb[y, x, c] * np.float32(255.0) + np.float32(0.5))

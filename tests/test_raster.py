@@ -171,6 +171,14 @@ def test_batch_of_cameras_equals_single_renders():
         torch.testing.assert_close(batch.rgb[b], single.rgb[0])
 
 
+def assert_depths_agree(a: torch.Tensor, b: torch.Tensor) -> None:
+    """Depths of the kernel and the torch path: within 1 mm on 99 % of pixels and 1 cm everywhere (triangles that
+    cross the near plane have large edge coefficients, where float32 rounding reaches a few mm)."""
+    error_m = (a - b).abs()
+    assert error_m.max() < 0.01
+    assert (error_m < 1e-3).float().mean() > 0.99
+
+
 def test_cpu_kernel_matches_the_torch_path():
     """The compiled CPU kernels and the torch path (the one a GPU runs) draw the same surfaces with the same depth,
     colour and normals: the street scene (small car triangles, a ground plane through the camera) from three cameras
@@ -182,7 +190,7 @@ def test_cpu_kernel_matches_the_torch_path():
     assert (reference.object_id == 0).sum() > 3000  # the car is in view
     assert (kernel.object_id == reference.object_id).float().mean() > 0.999
     both = kernel.mask & reference.mask
-    assert (kernel.depth_m[both] - reference.depth_m[both]).abs().max() < 1e-3
+    assert_depths_agree(kernel.depth_m[both], reference.depth_m[both])
     same = (kernel.rgb - reference.rgb).abs().amax(-1) < 1e-3
     assert same[both].float().mean() > 0.999
     same_normal = (kernel.normal_cam - reference.normal_cam).abs().amax(-1) < 1e-3
@@ -204,9 +212,7 @@ def test_cpu_kernel_matches_the_torch_path_for_placed_cars():
     assert (reference.object_id[0] >= 0).sum() > 1000 and (reference.object_id[1] >= 0).sum() > 4000
     assert (kernel.object_id == reference.object_id).float().mean() > 0.999
     both = kernel.mask & reference.mask
-    # Triangles crossing the near plane have large edge coefficients: float32 rounding reaches a few mm there.
-    assert (kernel.depth_m[both] - reference.depth_m[both]).abs().max() < 0.01
-    assert ((kernel.depth_m[both] - reference.depth_m[both]).abs() < 1e-3).float().mean() > 0.99
+    assert_depths_agree(kernel.depth_m[both], reference.depth_m[both])
     assert ((kernel.rgb - reference.rgb).abs().amax(-1) < 1e-3)[both].float().mean() > 0.999
     assert not torch.equal(kernel.rgb[0][both[0]].mean(0), kernel.rgb[1][both[1]].mean(0)), "lighting differs"
 
