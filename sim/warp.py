@@ -23,6 +23,8 @@ Conventions: pixel centres at integer coordinates (see geometry.scale_intrinsics
 
 from __future__ import annotations
 
+import functools
+
 import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -151,15 +153,14 @@ def _source_window(
     into the convex hull of their projections.
     """
     H, W = src_size
-    rx0, ry0, rx1, ry1 = region
-    corners_src = np.array([[-0.5, -0.5, 1], [W - 0.5, -0.5, 1], [-0.5, H - 0.5, 1], [W - 0.5, H - 0.5, 1]])
-    K_src_inv, K_dst_inv = np.linalg.inv(K_src), np.linalg.inv(K_dst)
-    corners_dst = np.array([[rx0 - 1.5, ry0 - 1.5, 1], [rx1 + 0.5, ry0 - 1.5, 1], [rx0 - 1.5, ry1 + 0.5, 1],
-                            [rx1 + 0.5, ry1 + 0.5, 1]]) @ K_dst_inv.T  # fmt: skip
+    rays_src, corners_dst = _window_rays(
+        np.asarray(K_src, dtype=np.float64).tobytes(), np.asarray(K_dst, dtype=np.float64).tobytes(),
+        tuple(src_size), tuple(int(v) for v in region),
+    )  # fmt: skip
     lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
     for T in T_dst_src:
         R, t = T[:3, :3], T[:3, 3]
-        m = (corners_src @ K_src_inv.T @ R[2]).min()
+        m = (rays_src @ R[2]).min()
         d_lo = min_depth_m * m + t[2] if np.isfinite(min_depth_m) else np.inf
         if m <= 0 or d_lo < 0.1:
             return None
@@ -174,6 +175,23 @@ def _source_window(
     x0, y0 = max(int(np.floor(lo[0])) - 2, 0), max(int(np.floor(lo[1])) - 2, 0)
     x1, y1 = min(int(np.ceil(hi[0])) + 3, W), min(int(np.ceil(hi[1])) + 3, H)
     return (x0, y0, max(x1, x0), max(y1, y0))
+
+
+@functools.lru_cache(maxsize=64)
+def _window_rays(
+    K_src: bytes, K_dst: bytes, src_size: tuple[int, int], region: tuple[int, int, int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """_source_window's constants (the same for every step of a view): rays K_src^-1 p of the source image's corners
+    and K_dst^-1 p of the destination region's corners (with a pixel of margin), each (4, 3). Intrinsics as the bytes
+    of float64 (3, 3) arrays, so that they can key the cache."""
+    H, W = src_size
+    rx0, ry0, rx1, ry1 = region
+    K_src_inv = np.linalg.inv(np.frombuffer(K_src, dtype=np.float64).reshape(3, 3))
+    K_dst_inv = np.linalg.inv(np.frombuffer(K_dst, dtype=np.float64).reshape(3, 3))
+    corners_src = np.array([[-0.5, -0.5, 1], [W - 0.5, -0.5, 1], [-0.5, H - 0.5, 1], [W - 0.5, H - 0.5, 1]])
+    corners_dst = np.array([[rx0 - 1.5, ry0 - 1.5, 1], [rx1 + 0.5, ry0 - 1.5, 1], [rx0 - 1.5, ry1 + 0.5, 1],
+                            [rx1 + 0.5, ry1 + 0.5, 1]])  # fmt: skip
+    return corners_src @ K_src_inv.T, corners_dst @ K_dst_inv.T
 
 
 def _as_tensor(x: np.ndarray | torch.Tensor, device: torch.device) -> torch.Tensor:
