@@ -13,6 +13,7 @@ ORDER = [
     "targets",
     "demo",
     "sim",
+    "sim_previous_code",
     "vista",
     "car_fidelity",
     "meshes",
