@@ -24,7 +24,6 @@ Conventions: pixel centres at integer coordinates (see geometry.scale_intrinsics
 from __future__ import annotations
 
 import functools
-
 import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
