@@ -13,9 +13,12 @@ One `ViewSynthesizer.render` call produces B views:
 4. harmonization of the inserted cars under their mask (`harmonize.py`).
 
 Speed: recorded frames are turned into torch tensors once and kept in a small cache (so the warp's per-source cache
-hits while an agent stays near a frame), vehicles are packed once per model and level of detail and placed with
-`PackedScene.transformed`, cars outside the region's frustum are skipped before rasterization, and all views with cars
-are rasterized in one call.
+hits while an agent stays near a frame), vehicles are packed once per model and level of detail, a view with one car
+renders it from the car's own frame (several cars are moved into the camera's with `PackedScene.transformed` and
+merged), cars outside the region's frustum are skipped before rasterization, and all views with cars are rasterized
+in one call. On CPU the raster is compiled end to end (`raster_kernel.py`), and compositing and the statistical
+harmonization run view by view in place on the uint8 views (a compiled loop and OpenCV); on a GPU both stay batched
+torch operations.
 """
 
 from __future__ import annotations
