@@ -7,7 +7,8 @@ available offline) plugs in as an ONNX graph through `OnnxHarmonizer`.
 
 Why not a library call: scikit-image's `exposure.match_histograms` matches whole images without masks and fully
 (a red car would become road-grey); what is needed here is a partial, masked, batched transfer of mean and spread
-toward a ring around the car, which is a few torch operations.
+toward a ring around the car, which is a few torch operations (batched), or OpenCV's masked dilation, mean / standard
+deviation and colour transform on one uint8 view in place (the simulator's CPU path).
 """
 
 from __future__ import annotations

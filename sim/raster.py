@@ -17,6 +17,9 @@ How it works (DESIGN §4):
 - CPU speed notes (torch 2.x): 1-D `index_select` per table row beats 2-D gathers several times over, so per-triangle
   tables are channel-major; `torch.where` and length-3 reductions are slow and avoided in the hot paths; broadcasts
   keep the long axis innermost.
+- On CPU (`use_kernel`, the default there) the same formulas run as compiled loops (`raster_kernel.py`): set-up,
+  depth test and shading for untextured scenes such as vehicles, the depth test for textured ones; the torch path
+  below is what a GPU runs.
 - Static geometry is packed once into a `PackedScene` (per-triangle vertex attributes on the device); the rasterizer
   caches the packing of the mesh lists it is given, so rendering the same world from many poses does not re-pack.
 """
