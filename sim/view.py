@@ -69,6 +69,9 @@ class ViewConfig(pydantic.BaseModel):
     """Harmonize inserted cars toward their surroundings (the harmonizer; statistical by default)."""
     directional_gain: float = pydantic.Field(0.8, ge=0.0)
     """Directional light colour as a multiple of the scene's mean colour (unitless)."""
+    light_elevation_deg: float = pydantic.Field(0.0, ge=0.0, le=90.0)
+    """Where the directional light comes from: 0 = the viewpoint at infinity (the paper); larger angles tilt it up
+    towards overhead (90), as a high sun would light the roof and bonnet rather than the car's back."""
     full_detail_min_px: float = pydantic.Field(80.0, ge=0.0)
     """A car whose projected size (largest dimension, px of the policy's image) reaches this is drawn with the full
     mesh; smaller ones with the light mesh."""
@@ -370,9 +373,11 @@ class ViewSynthesizer:
         if not self.config.lighting:
             return Lighting(ambient_rgb=np.ones(3), light_dir_cam=np.array([0.0, 0.0, 1.0]), light_rgb=np.zeros(3))
         mean_rgb = self._frame(frame)[2]
+        elevation_rad = np.deg2rad(self.config.light_elevation_deg)
         return Lighting(
             ambient_rgb=mean_rgb,
-            light_dir_cam=np.array([0.0, 0.0, 1.0]),
+            # The light travels forward and, when raised, downward: +z and +y of the optical frame.
+            light_dir_cam=np.array([0.0, np.sin(elevation_rad), np.cos(elevation_rad)]),
             light_rgb=self.config.directional_gain * mean_rgb,
         )
 

@@ -163,6 +163,17 @@ def test_lighting_follows_the_scene_mean(tmp_path):
     assert car[0] == pytest.approx(255 * 0.5 * mean_bright * (1 + cfg.directional_gain), rel=0.05)
 
 
+def test_raised_light_dims_the_face_towards_the_viewer(tmp_path):
+    """With the light raised by 60 degrees the rear face (normal towards the viewer) gets cos(60) of it."""
+    world = make_world(tmp_path)
+    cars = [CarPlacement(box_model(rgb=(0.5, 0.5, 0.5)), 10.0, 0.0, 0.0)]
+    cfg = ViewConfig(harmonization=False, light_elevation_deg=60.0)
+    view = render_one(ViewSynthesizer(world, cfg), cars)
+    rear = view.rgb[0][view.car_mask[0]].astype(float)
+    mean = world.frames[0].reshape(-1, 3).mean(0) / 255
+    assert np.median(rear, axis=0) == pytest.approx(255 * 0.5 * mean * (1 + 0.5 * cfg.directional_gain), rel=0.05)
+
+
 def test_harmonization_moves_car_statistics_toward_surroundings(tmp_path):
     world = make_world(tmp_path, rgb_scale=(0.6, 0.7, 1.0))
     model = box_model(rgb=(0.9, 0.9, 0.1))
