@@ -1,4 +1,4 @@
-# `make demo`: the main job, `drivesim run` on the embedded demo drive (about 17 min on 2 cores, venv set-up included); `make test`: the test suite. Both set up on first use.
+# `make demo`: the main job, `drivesim run` on the embedded demo drive (about 10 min on 2 cores, venv set-up included); `make test`: the test suite. Both set up on first use.
 VENV ?= .venv
 STAMP := $(VENV)/.drivesim-installed
 WORKSPACE ?= drivesim-work

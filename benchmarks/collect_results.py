@@ -14,6 +14,7 @@ ORDER = [
     "demo",
     "sim",
     "sim_previous_code",
+    "sim_second_machine",
     "vista",
     "car_fidelity",
     "meshes",

@@ -21,7 +21,7 @@ def run_command(
     ] = None,
     preset: Annotated[
         str,
-        typer.Option("--preset", help="Run preset in configs/run/: demo (about 16 min on 2 cores) or full."),
+        typer.Option("--preset", help="Run preset in configs/run/: demo (about 9 min on 2 cores) or full."),
     ] = "demo",
     config: Annotated[
         Path | None,
