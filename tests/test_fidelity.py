@@ -1,4 +1,5 @@
-"""The fidelity bench on a tiny synthetic drive: mvs must beat the ground plane, numbers in sane ranges."""
+"""The fidelity benches on a tiny synthetic drive: mvs must beat the ground plane, the inserted car must sit where the
+true one is and harmonization must bring it closer to the truth; numbers in sane ranges."""
 
 from __future__ import annotations
 
@@ -75,3 +76,19 @@ def test_bench_fidelity_cli_json(tmp_path) -> None:
     assert figure.is_file() and "| lat +1.0 m | mvs |" in report.read_text()
     bad = CliRunner().invoke(app, ["-w", str(tmp_path), "bench", "fidelity", "--set", "mvs.bogus=1"])
     assert isinstance(bad.exception, ConfigError) and "mvs.bogus" in str(bad.exception)
+
+
+def test_car_fidelity_places_the_car_and_harmonization_helps() -> None:
+    """The inserted car covers the true car's pixels, and harmonization brings it closer to the truth."""
+    from drivesim.bench.car_fidelity import OFFSETS_M, VARIANTS, synthetic_rows
+
+    rows, images = synthetic_rows(frames=1, seed=0)
+    assert {(r["offset_m"], r["variant"]) for r in rows} == {(o, v) for o in OFFSETS_M for v in VARIANTS}
+    assert set(images) == {"truth", *VARIANTS}
+    by = {(r["offset_m"], r["variant"]): r for r in rows}
+    for offset in OFFSETS_M:
+        assert by[offset, "none"]["car_iou"] > 0.9  # right size, right place
+        assert by[offset, "harmonization"]["psnr_car_db"] > by[offset, "none"]["psnr_car_db"] + 1.0
+        assert by[offset, "harmonization"]["ssim_car"] > by[offset, "none"]["ssim_car"]
+        # The scene's sun is high: a light raised towards it matches the truth better than the unlit car.
+        assert by[offset, "lighting 45 deg up"]["psnr_car_db"] > by[offset, "none"]["psnr_car_db"] + 1.0
