@@ -208,7 +208,7 @@ def write_results() -> None:
         )
         lines.append(
             f"| {r['scenario']}{' (warm start)' if r['warm_start'] else ''}"
-            f"{''.join(f', `{o}`' for o in r.get('overrides', []))} | {r['measured_utc']}, load "
+            f"{''.join(f', `{o}`' for o in r.get('overrides', []))} | {r['measured_utc']}, {_cpu(r)}, load "
             f"{r['load_1min']:.1f} | `{r['world']}` | {r['trained_min']:.1f} min | {r['steps']} | "
             f"{r['steps_per_s']:.0f} | {_policy_steps(r)} | {_rate(trained)} | {full_cell} | {_rate(r['random'])} | "
             f"≥ {r['target']:.0%} ({met}) | {causes or 'none'} | {r['curves']} |"
@@ -222,10 +222,20 @@ def write_results() -> None:
             "(`drivesim eval --episodes 1000`, seeds 0+, 95 % Wilson interval), attached with `--attach-eval`; where "
             "it exists it decides whether the target is met.",
             "",
-            f"Machine: {rows[-1]['machine']}.",
+            "Machines (the CPU of each run is in its row; speeds of runs on different CPUs do not compare): "
+            + "; ".join(sorted({r["machine"].split(", load average")[0] for r in rows}))
+            + ".",
         ]
     (RESULTS / "learning.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {RESULTS / 'learning.md'}")
+
+
+def _cpu(row: dict) -> str:
+    """The CPU model of a row's machine line ("2-core CPU (AMD EPYC), no GPU, ..." -> "AMD EPYC")."""
+    machine = row["machine"]
+    start = machine.find("(") + 1
+    end = machine.find("),", start)  # the model itself may hold brackets: "Intel(R) Xeon(R) Processor"
+    return machine[start:end] if start and end > 0 else machine
 
 
 def attach_eval(result_json: Path, metrics_json: Path) -> None:
