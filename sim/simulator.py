@@ -89,7 +89,7 @@ class Simulator:
         if not self.models:
             return []
         return [
-            CarPlacement(model=self.models[j], x_m=a.state.x_m, y_m=a.state.y_m, yaw_rad=a.state.yaw_rad, object_id=j)
+            CarPlacement(model=self.models[j], x_m=a.state.x_m, y_m=a.state.y_m, yaw_rad=a.state.yaw_rad)
             for j, a in enumerate(self.agents)
             if j != viewer and self.models[j] is not None
         ]

@@ -99,14 +99,13 @@ class CarPlacement:
 
     :param model: a `vehicle_library.VehicleModel` (anything with `full`, `light` mesh lists and `length_m`,
         `width_m`, `height_m`). :param x_m, y_m: world position. :param yaw_rad: world heading.
-    :param object_id: id of the car (the simulator passes its agent index; views report one mask of all cars).
+    Views report one mask of all inserted cars, so a placement carries no id.
     """
 
     model: Any
     x_m: float
     y_m: float
     yaw_rad: float
-    object_id: int = 1
 
 
 @dataclass

@@ -298,7 +298,7 @@ def _batch_request(world: World):
     cars = [
         [CarPlacement(model_a, 10.0, 0.5, 0.1)],
         [],
-        [CarPlacement(model_a, 14.0, 1.0, 0.0), CarPlacement(model_b, 18.0, -2.0, -0.2, object_id=2)],
+        [CarPlacement(model_a, 14.0, 1.0, 0.0), CarPlacement(model_b, 18.0, -2.0, -0.2)],
     ]
     return frames, x, y, yaw, cars
 
