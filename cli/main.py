@@ -1,7 +1,16 @@
-"""The `drivesim` command: one thin sub-command per stage of the chain."""
+"""The `drivesim` command: one thin sub-command per stage of the chain.
+
+`main` is the CLI's one error boundary: every command raises and none catches. A `DrivesimError` (bad input, a
+missing artifact), a pydantic `ValidationError`, an `OSError` (disk full, permission denied) becomes one line on
+stderr and an exit code (2 for input errors); Ctrl-C and SIGTERM print what was kept and how to continue (130, 143).
+A real bug still shows its traceback.
+"""
 
 from __future__ import annotations
 
+import errno
+import shutil
+import signal
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -13,9 +22,29 @@ from drivesim.cli import bench, config_show, export, ingest, meshes, preprocess,
 from drivesim.cli import eval as eval_cmd
 from drivesim.cli import sim as sim_cmd
 from drivesim.cli.common import err_console, state
-from drivesim.pipeline.errors import DrivesimError
+from drivesim.pipeline.errors import DrivesimError, Interrupted, Terminated
+
+
+class _StoppedError(Exception):
+    """Carries a KeyboardInterrupt out of click, which would turn it into a bare exit code 130 and lose its text."""
+
+    def __init__(self, interrupt: KeyboardInterrupt) -> None:
+        super().__init__(str(interrupt))
+        self.interrupt = interrupt
+
+
+class _Group(typer.core.TyperGroup):
+    """The top-level command group: hands an interrupt to `main` with its message."""
+
+    def invoke(self, ctx: typer.Context) -> object:  # noqa: D102
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as e:
+            raise _StoppedError(e) from e
+
 
 app = typer.Typer(
+    cls=_Group,
     name="drivesim",
     help="Turn a real vehicle recording into a data-driven driving simulator; train, evaluate and export a policy.",
     no_args_is_help=True,
@@ -66,28 +95,98 @@ app.add_typer(bench.bench_app, name="bench", help="Measure the simulator: fideli
 
 
 _INTERRUPTED = "interrupted: no artifact was written; run the command again to redo it"
+_TERMINATED = "terminated (SIGTERM): no artifact was written; run the command again to redo it"
+SIGTERM_EXIT_CODE = 128 + signal.SIGTERM
+SIGINT_EXIT_CODE = 128 + signal.SIGINT
+
+
+class _Signals:
+    """Which signal stopped the command (the exit code depends on it)."""
+
+    terminated = False
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    """SIGTERM as Ctrl-C: the same cleanup (temporary folders, worker processes), then exit 143."""
+    _Signals.terminated = True
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the process at once
+    raise Terminated()
+
+
+def _print_error(text: str) -> None:
+    # escape: a message's own brackets (`pip install 'drivesim[ray]'`, paths) are text, not rich markup
+    err_console.print(f"[bold red]error:[/] {escape(text)}", highlight=False, soft_wrap=True)
+
+
+def _os_error_line(e: OSError) -> str:
+    """One line for an OS error: which path, and for a full disk how much space is left there."""
+    path = e.filename if e.filename is not None else None
+    if e.errno == errno.ENOSPC:
+        folder = Path(path).parent if path is not None else Path(state.workspace).absolute()
+        return f"disk full: no space left on the device of {folder}{_free_space(folder)}; free some space and run again"
+    if e.errno in (errno.EACCES, errno.EPERM):
+        return f"permission denied: {path if path is not None else 'a file this command needed'}"
+    if e.errno == errno.EROFS:
+        return f"read-only file system: cannot write {path if path is not None else state.workspace}"
+    reason = e.strerror or type(e).__name__
+    return f"{reason}: {path}" if path is not None else f"{reason} ({type(e).__name__})"
+
+
+def _free_space(folder: Path) -> str:
+    probe = folder
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    try:
+        return f" ({shutil.disk_usage(probe).free / 1e6:.1f} MB free there)"
+    except OSError:
+        return ""
+
+
+def _stop(interrupt: KeyboardInterrupt) -> None:
+    """Exit after Ctrl-C (130) or SIGTERM (143) with one line saying what was kept and how to continue."""
+    code = SIGTERM_EXIT_CODE if _Signals.terminated or isinstance(interrupt, Terminated) else SIGINT_EXIT_CODE
+    if isinstance(interrupt, Interrupted):
+        text = interrupt.message
+        if code == SIGTERM_EXIT_CODE:
+            text = "terminated (SIGTERM): " + text.removeprefix("interrupted ").removeprefix("interrupted: ")
+    else:
+        text = _TERMINATED if code == SIGTERM_EXIT_CODE else _INTERRUPTED
+    err_console.print(escape(text), highlight=False, soft_wrap=True)
+    sys.exit(code)
 
 
 def main() -> None:
-    """Entry point: run the app; user errors become one line on stderr and exit code 2."""
+    """Entry point: run the app; every user or OS error becomes one line on stderr (the CLI's one error boundary)."""
+    from pydantic import ValidationError
+
+    from drivesim.pipeline.config import validation_line
+
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         code = app(standalone_mode=False)
-        # Outside standalone mode click returns (not raises) the exit code of an aborted command (Ctrl-C).
+        # Outside standalone mode click returns (not raises) the exit code of an aborted command.
         if isinstance(code, int) and code != 0:
-            if code == 130:
-                err_console.print(_INTERRUPTED, highlight=False)
+            if code == SIGINT_EXIT_CODE:
+                _stop(KeyboardInterrupt())
             sys.exit(code)
     except DrivesimError as e:
-        # escape: a message's own brackets (`pip install 'drivesim[ray]'`, paths) are text, not rich markup
-        err_console.print(f"[bold red]error:[/] {escape(e.one_line())}", highlight=False, soft_wrap=True)
+        _print_error(e.one_line())
         sys.exit(e.exit_code)
-    except KeyboardInterrupt:
-        err_console.print(_INTERRUPTED, highlight=False)
-        sys.exit(130)
+    except _StoppedError as e:
+        _stop(e.interrupt)
+    except KeyboardInterrupt as e:
+        _stop(e)
+    except ValidationError as e:
+        _print_error(validation_line(e))
+        sys.exit(2)
+    except OSError as e:
+        _print_error(_os_error_line(e))
+        sys.exit(1)
     except typer.Exit as e:
         sys.exit(e.exit_code)
     except typer.Abort:
-        sys.exit(130)
+        _stop(KeyboardInterrupt())
     except typer.TyperException as e:  # usage errors (unknown option, missing argument)
         show = getattr(e, "show", None)
         if show is not None:

@@ -18,10 +18,77 @@ from drivesim.pipeline.errors import ConfigError
 ConfigT = TypeVar("ConfigT", bound="StageConfig")
 
 
-class StageConfig(BaseModel):
-    """Base of every stage config: strict keys, docstrings as field descriptions."""
+STRICT_MODEL_CONFIG = ConfigDict(
+    extra="forbid", use_attribute_docstrings=True, validate_assignment=True, allow_inf_nan=False
+)
+"""What every config model (stage configs and their sections) shares: unknown keys refused, docstrings as field
+descriptions, assignments validated, and no NaN or infinite float anywhere (`.nan`/`.inf` in YAML)."""
 
-    model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True, validate_assignment=True)
+
+class StageConfig(BaseModel):
+    """Base of every stage config: strict keys, finite floats, docstrings as field descriptions."""
+
+    model_config = STRICT_MODEL_CONFIG
+
+
+class ConfigSection(BaseModel):
+    """Base of a nested section of a stage config (`ppo`, `policy`, ...): the same strict rules."""
+
+    model_config = STRICT_MODEL_CONFIG
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A YAML safe loader that refuses a mapping holding the same key twice (PyYAML keeps the last one silently)."""
+
+
+def _construct_unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
+    loader.flatten_mapping(node)
+    seen: dict[Any, int] = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        try:
+            hash(key)
+        except TypeError:
+            continue  # an unhashable key: construct_mapping below reports it
+        if key in seen:
+            raise yaml.constructor.ConstructorError(
+                None,
+                None,
+                f"duplicate key {key!r} (first on line {seen[key] + 1})",
+                key_node.start_mark,
+            )
+        seen[key] = key_node.start_mark.line
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_unique_mapping)
+
+
+def load_yaml_text(text: str) -> Any:
+    """Parse YAML like `yaml.safe_load`, but a duplicate key is an error (yaml.YAMLError)."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506  (a SafeLoader subclass)
+
+
+def read_config_text(path: Path) -> str:
+    """The text of a config file the user named, or ConfigError (one line) for a folder, a binary file, a file
+    that does not exist or cannot be read."""
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError("is a folder; --config takes a YAML file", path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError as e:
+        raise ConfigError("config file not found", path) from e
+    except PermissionError as e:
+        raise ConfigError("permission denied reading the config file", path) from e
+    except OSError as e:
+        raise ConfigError(f"cannot read the config file: {e.strerror or e}", path) from e
+    if b"\0" in raw[:8192]:
+        raise ConfigError("is a binary file, not a YAML config", path)
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"is not UTF-8 text (byte {e.start}); --config takes a YAML file", path) from e
 
 
 def preset_path(name: str) -> Path:
@@ -32,25 +99,32 @@ def preset_path(name: str) -> Path:
 def parse_override(text: str) -> tuple[list[str], Any]:
     """Split `a.b=c` into (["a", "b"], value), the value parsed as YAML (numbers, booleans, lists)."""
     if "=" not in text:
-        raise ConfigError(f"--set {text!r}: expected KEY=VALUE, e.g. --set image.width_px=640")
+        raise ConfigError(f"--set {text!r}: expected KEY=VALUE (`drivesim config STAGE` lists the keys)")
     key, raw = text.split("=", 1)
     key = key.strip()
     if not key:
         raise ConfigError(f"--set {text!r}: the key is empty")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
+        value = load_yaml_text(raw) if raw.strip() else ""
     except yaml.YAMLError:
         value = raw
     return key.split("."), value
 
 
+def _yaml_error_line(error: yaml.YAMLError) -> str:
+    problem = getattr(error, "problem", None)
+    mark = getattr(error, "problem_mark", None)
+    if problem:
+        return f"{problem} (line {mark.line + 1})" if mark is not None else str(problem)
+    return str(error).splitlines()[0]
+
+
 def _read_yaml(path: Path) -> dict[str, Any]:
+    text = read_config_text(path)
     try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except FileNotFoundError as e:
-        raise ConfigError("config file not found", path) from e
+        data = load_yaml_text(text) or {}
     except yaml.YAMLError as e:
-        raise ConfigError(f"not valid YAML: {str(e).splitlines()[0]}", path) from e
+        raise ConfigError(f"not valid YAML: {_yaml_error_line(e)}", path) from e
     if not isinstance(data, dict):
         raise ConfigError("a config file must hold a mapping of keys to values", path)
     return data
@@ -90,15 +164,26 @@ def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel]:
     return current
 
 
-def _friendly(error: ValidationError, model: type[BaseModel], source: str) -> ConfigError:
-    first = error.errors()[0]
+def validation_line(error: ValidationError, model: type[BaseModel] | None = None, source: str = "") -> str:
+    """A pydantic ValidationError as one line: the first bad key, what is wrong, and how many more are."""
+    errors = error.errors()
+    first = errors[0]
     loc = tuple(first["loc"])
     dotted = ".".join(str(p) for p in loc)
-    if first["type"] == "extra_forbidden":
+    where = f" ({source})" if source else ""
+    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    msg = str(first["msg"]).removeprefix("Value error, ")
+    if first["type"] == "extra_forbidden" and model is not None:
         parent = _model_at(model, loc[:-1])
         valid = ", ".join(sorted(parent.model_fields))
-        return ConfigError(f"unknown config key {dotted!r} ({source}); valid keys here: {valid}")
-    return ConfigError(f"config key {dotted!r} ({source}): {first['msg']}")
+        return f"unknown config key {dotted!r}{where}; valid keys here: {valid}"
+    if not dotted:
+        return f"config{where}: {msg}{more}"
+    return f"config key {dotted!r}{where}: {msg}{more}"
+
+
+def _friendly(error: ValidationError, model: type[BaseModel], source: str) -> ConfigError:
+    return ConfigError(validation_line(error, model, source))
 
 
 def load_config(

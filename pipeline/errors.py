@@ -34,3 +34,27 @@ class ConfigError(DrivesimError):
 
 class MissingArtifactError(DrivesimError):
     """A stage needs an artifact that the workspace does not have yet."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C or SIGTERM stopped a command: not an error. The message says what was kept and how to continue.
+
+    A KeyboardInterrupt, so every `except BaseException` cleanup (temporary folders, worker processes) runs as for a
+    plain Ctrl-C.
+
+    :param message: what was kept and the command that continues, e.g. "continue with `drivesim train --resume R`".
+    """
+
+    def __init__(self, message: str) -> None:
+        self.message = message
+        super().__init__(message)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (what `timeout`, Slurm and `docker stop` send), raised in the main thread and handled like Ctrl-C."""
+
+
+class DiskFullError(DrivesimError):
+    """The disk filled up while an artifact was written (errno ENOSPC); nothing half-written was kept."""
+
+    exit_code = 1

@@ -43,7 +43,7 @@ def stale_reasons(ws: Workspace, manifest: dict[str, Any]) -> list[str]:
     folder = ws.artifact_dir(manifest.get("artifact", ""))
     for rel, meta in manifest.get("outputs", {}).items():
         file = folder / rel
-        if not file.is_file() or file.stat().st_size != meta["size_bytes"]:
+        if not file.is_file() or file.stat().st_size != meta.get("size_bytes"):
             reasons.append(f"file {rel} is missing or changed")
             break
     return reasons
@@ -70,6 +70,18 @@ def status_report(ws: Workspace, chain: Sequence[StageSpec]) -> dict[str, Any]:
     for spec in chain:
         artifact = (newest_complete(ws, spec.artifact) or spec.artifact) if spec.collection else spec.artifact
         manifest = ws.read_manifest(artifact)
+        if manifest is None and ws.manifest_unreadable(artifact):
+            stages.append(
+                {
+                    "stage": spec.name,
+                    "artifact": artifact,
+                    "state": "stale",
+                    "reasons": [f"manifest unreadable; rebuild it with `{spec.command}`"],
+                    "created_utc": None,
+                    "summary": {},
+                }
+            )
+            continue
         if manifest is None:
             stages.append(
                 {

@@ -21,19 +21,20 @@ Layout (DESIGN §2): `trace/`, `preprocessed/`, `world/`, `meshes/`, `runs/<task
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
 import shutil
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from drivesim.pipeline.errors import DrivesimError, MissingArtifactError
+from drivesim.pipeline.errors import DiskFullError, DrivesimError, MissingArtifactError
 from drivesim.pipeline.hashing import fingerprint_external, sha256_file, sha256_json
 from drivesim.pipeline.version import code_version
 
@@ -91,16 +92,26 @@ class Workspace:
         return self.root / name
 
     def read_manifest(self, name: str) -> dict[str, Any] | None:
-        """The manifest of artifact `name`, or None when it is missing or unreadable."""
+        """The manifest of artifact `name`, or None when it is missing or unreadable (see `manifest_unreadable`)."""
         path = self.artifact_dir(name) / MANIFEST_NAME
         try:
-            return json.loads(path.read_text())
-        except (FileNotFoundError, json.JSONDecodeError):
+            manifest = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
             return None
+        return manifest if manifest_is_valid(manifest) else None
+
+    def manifest_unreadable(self, name: str) -> bool:
+        """True when artifact `name` has a manifest.json that is damaged (not JSON, or not a manifest's shape)."""
+        return (self.artifact_dir(name) / MANIFEST_NAME).exists() and self.read_manifest(name) is None
 
     def require(self, name: str, how_to_make: str) -> Path:
         """The folder of an artifact a stage needs, or a clear error saying which command makes it."""
         if self.read_manifest(name) is None:
+            if self.manifest_unreadable(name):
+                raise MissingArtifactError(
+                    f"the {name} artifact's {MANIFEST_NAME} is unreadable (damaged); rebuild it with `{how_to_make}`",
+                    self.artifact_dir(name),
+                )
             raise MissingArtifactError(f"no {name} artifact in workspace {self.root}; run `{how_to_make}` first")
         return self.artifact_dir(name)
 
@@ -108,7 +119,7 @@ class Workspace:
         """An InputRef to artifact `name` for a downstream manifest."""
         manifest = self.read_manifest(name)
         if manifest is None:
-            raise MissingArtifactError(f"no {name} artifact in workspace {self.root}")
+            raise MissingArtifactError(f"no readable {name} artifact in workspace {self.root}; rebuild it")
         return InputRef(kind="artifact", path=name, hash=manifest["artifact_hash"])
 
     @staticmethod
@@ -168,6 +179,17 @@ class Workspace:
             manifest = self._manifest(name, stage, config, inputs, build)
             (tmp / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2, default=str) + "\n")
             self._move_into_place(tmp, self.artifact_dir(name))
+        except OSError as e:
+            written = _folder_bytes(tmp)
+            shutil.rmtree(tmp, ignore_errors=True)
+            if e.errno == errno.ENOSPC:
+                raise DiskFullError(
+                    f"disk full while writing the {name} artifact: {written / 1e6:.1f} MB were written when the disk "
+                    f"filled, {_free_bytes(self.root) / 1e6:.1f} MB are free there now; free at least that much more "
+                    "space (or use --workspace on another disk) and run again; nothing was kept",
+                    self.root,
+                ) from e
+            raise
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
@@ -211,6 +233,42 @@ class Workspace:
             raise DrivesimError(f"could not move the new artifact into place: {e}", final) from e
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+
+
+def manifest_is_valid(manifest: Any) -> bool:
+    """True when `manifest` has the shape described in this module's docstring (the keys readers index)."""
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("artifact_hash"), str):
+        return False
+    outputs, inputs = manifest.get("outputs", {}), manifest.get("inputs", {})
+    if not isinstance(outputs, dict) or not isinstance(inputs, dict):
+        return False
+    if not all(isinstance(m, dict) and isinstance(m.get("size_bytes"), int) for m in outputs.values()):
+        return False
+    if not all(
+        isinstance(ref, dict) and all(isinstance(ref.get(k), str) for k in ("kind", "path", "hash"))
+        for ref in inputs.values()
+    ):
+        return False
+    return all(
+        isinstance(manifest.get(k, default), t)
+        for k, t, default in (("summary", dict, {}), ("key", str, ""), ("stage", str, ""), ("artifact", str, ""))
+    )
+
+
+def _folder_bytes(folder: Path) -> int:
+    """Bytes in the files under `folder` (0 when it cannot be read)."""
+    total = 0
+    for path in folder.rglob("*"):
+        with suppress(OSError):
+            total += path.stat().st_size if path.is_file() else 0
+    return total
+
+
+def _free_bytes(folder: Path) -> int:
+    try:
+        return shutil.disk_usage(folder).free
+    except OSError:
+        return 0
 
 
 def _pid_alive(pid: int) -> bool:
