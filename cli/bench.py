@@ -232,3 +232,59 @@ def car_fidelity_command(
         print(json.dumps(dataclasses.asdict(result), indent=2))
         return
     console.print(report)
+
+
+@bench_app.command("stereo")
+def stereo_command(
+    folder: Annotated[
+        Path, typer.Argument(help="KITTI odometry stereo folder: image_l/, image_r/, calib.txt, poses.txt.")
+    ],
+    world: Annotated[
+        list[Path] | None, typer.Option("--world", help="A world built from this folder: its depth is a row too.")
+    ] = None,
+    methods: Annotated[
+        str, typer.Option("--methods", help="Comma-separated depth methods run on the left frames alone.")
+    ] = "plane,mvs",
+    as_json: Annotated[bool, typer.Option("--json", help="Print the results as JSON instead of a report.")] = False,
+    figure: Annotated[
+        Path | None, typer.Option("--figure", help="Worst-frame PNG (default <workspace>/bench/stereo_worst.png).")
+    ] = None,
+    markdown: Annotated[
+        Path | None, typer.Option("--markdown", help="Also write the results as a markdown report to this file.")
+    ] = None,
+    config: ConfigOption = None,
+    set_: SetOption = None,
+) -> None:
+    """Real lateral views: each left frame warped with its depth into the right camera, against the real right image.
+
+    Rows: identity (left as right), each depth method on the left frames alone, each --world's stored depth, and
+    SGBM depth from the true pair (a reference that sees the answer). PSNR and SSIM over filled pixels, the filled
+    fraction, and whole-image PSNR with holes counted. `--set` and `--config` take depth config keys.
+    """
+    from drivesim.bench.stereo import run_stereo_bench, stereo_markdown
+    from drivesim.stages.preprocess.depth import DEPTH_METHODS
+
+    cfg = load_config(DepthConfig, preset=None, config_file=config, overrides=set_)
+    chosen = tuple(m.strip() for m in methods.split(",") if m.strip())
+    usable = [m for m in DEPTH_METHODS if m not in ("lidar", "stereo", "auto")]
+    if any(m not in usable for m in chosen):
+        raise ConfigError(f"--methods {methods!r}: choose from {', '.join(usable)} (the pair's SGBM is always a row)")
+    for w in world or []:
+        if not (w / "world.json").is_file():
+            raise ConfigError(f"--world {w}: no world here; build one with `drivesim build-world`")
+    figure_path = figure if figure is not None else workspace().root / "bench" / "stereo_worst.png"
+    with progress_bar("stereo bench", total=None) as (progress, task):
+        result = run_stereo_bench(
+            folder, chosen, tuple(world or ()), depth_config=cfg, figure_path=figure_path,
+            progress=lambda phase: progress.update(task, description=phase),
+        )  # fmt: skip
+    command = f"drivesim bench stereo {folder} --methods {','.join(chosen)}"
+    command += "".join(f" --world {w}" for w in world or []) + "".join(f" --set {o}" for o in set_ or [])
+    report = stereo_markdown(result, machine_line(), command, datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"))
+    if markdown is not None:
+        markdown.parent.mkdir(parents=True, exist_ok=True)
+        markdown.write_text(report)
+    if as_json:
+        print(json.dumps(result.to_json(), indent=2))
+        return
+    console.print(report)

@@ -121,6 +121,25 @@ class LidarConfig(StageConfig):
     """What pixels with no point nearby get: the ground-plane depth, or max_depth_m."""
 
 
+class StereoConfig(StageConfig):
+    """Semi-global block matching on a rectified stereo pair (method `stereo`)."""
+
+    min_depth_m: float = Field(2.0, gt=0.0)
+    """Nearest depth matched (m): sets the disparity range fx * baseline / min_depth_m."""
+    block_size_px: int = Field(5, ge=1, le=21)
+    """Side of SGBM's matching block (px at the working resolution, odd)."""
+    uniqueness_ratio: int = Field(10, ge=0, le=100)
+    """A match must beat the second best by this many percent of its cost, else the pixel is left unmatched."""
+    speckle_window_px: int = Field(100, ge=0)
+    """Connected disparity blobs smaller than this (px) are discarded as speckles; 0 disables the filter."""
+
+    @model_validator(mode="after")
+    def _check(self) -> StereoConfig:
+        if self.block_size_px % 2 == 0:
+            raise ValueError("stereo.block_size_px must be odd")
+        return self
+
+
 class DepthConfig(StageConfig):
     """Per-frame depth estimation."""
 
@@ -133,6 +152,8 @@ class DepthConfig(StageConfig):
     """Multi-view stereo settings."""
     lidar: LidarConfig = Field(default_factory=LidarConfig)
     """Point-cloud settings."""
+    stereo: StereoConfig = Field(default_factory=StereoConfig)
+    """Stereo-pair settings."""
 
     @model_validator(mode="after")
     def _check(self) -> DepthConfig:

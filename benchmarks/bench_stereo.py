@@ -1,0 +1,53 @@
+"""Real lateral views on the shared KITTI stereo snippet: every depth method against the real right camera.
+
+    python benchmarks/bench_stereo.py                      # writes benchmarks/results/stereo.md and stereo_worst.png
+    python benchmarks/bench_stereo.py --methods plane,mvs  # a subset of the methods
+
+See `drivesim.bench.stereo` for what is measured; `drivesim bench stereo FOLDER` runs the same on any stereo folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+from datetime import UTC, datetime
+from pathlib import Path
+
+from drivesim.bench.machine import machine_line
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results" / "stereo.md"
+FOLDER = HERE.parents[1] / "shared" / "data" / "real" / "kitti_odometry_stereo"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--folder", type=Path, default=FOLDER)
+    parser.add_argument("--methods", default="plane,mvs,mvs_plane_fused")
+    parser.add_argument("--output", type=Path, default=RESULTS)
+    args = parser.parse_args()
+
+    from drivesim.bench.stereo import run_stereo_bench, stereo_markdown
+    from drivesim.stages.preprocess.depth import DEPTH_METHODS
+
+    methods = tuple(m for m in args.methods.split(",") if m in DEPTH_METHODS)
+    load_before = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    result = run_stereo_bench(
+        args.folder, methods, figure_path=args.output.with_name("stereo_worst.png"), progress=print
+    )
+    load_after = os.getloadavg()
+    command = f"python benchmarks/bench_stereo.py --methods {','.join(methods)}"
+    report = stereo_markdown(result, machine_line(), command, datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"))
+    report += (
+        f"\nLoad (the machine is shared; s / frame vary with it): before `{load_before}`; 1/5/15-min load average "
+        f"after {load_after[0]:.2f} / {load_after[1]:.2f} / {load_after[2]:.2f}.\n"
+    )
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(report)
+    print(report)
+    print(f"wrote {args.output}")
+
+
+if __name__ == "__main__":
+    main()
