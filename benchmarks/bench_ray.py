@@ -25,10 +25,10 @@ from bench_eval import build_demo_world
 
 from drivesim.bench.machine import machine_line, usable_cores
 from drivesim.bench.report import write_markdown
+from drivesim.sim.envs.registry import task_spec
 from drivesim.stages.evaluate.metrics import evaluate_episode
 from drivesim.stages.evaluate.ray_backend import run_episodes_ray
 from drivesim.stages.evaluate.rollout import (
-    TASK_ENV_IDS,
     EnvFactory,
     PolicySpec,
     read_episode,
@@ -155,7 +155,7 @@ def measure(args: argparse.Namespace, world: Path, tmp: Path) -> Measured:
     """Both backends on the same seeds, Ray's start, and the per-episode transfer and driver cost."""
     seeds = list(range(args.episodes))
     meshes = None if args.meshes is None else str(args.meshes.absolute())
-    factory = EnvFactory(TASK_ENV_IDS["overtake"], {"world": str(world), "meshes": meshes, "mode": "eval"})
+    factory = EnvFactory(task_spec("overtake").env_id, {"world": str(world), "meshes": meshes, "mode": "eval"})
     load_start = os.getloadavg()[0]
     local = run_local(factory, seeds, tmp / "local", args.workers)
     print(f"local: {args.episodes} episodes in {local.wall_s:.1f} s", flush=True)

@@ -36,8 +36,8 @@ def full_camera(world: str) -> dict:
     camera = json.loads((Path(world) / "camera.json").read_text())
     width, height = int(camera["width_px"]), int(camera["height_px"])
     w, h = min(CAMERA_W_PX, width), min(CAMERA_H_PX, height)
-    return {"roi_px": ((width - w) // 2, (height - h) // 2, w, h), "out_width_px": CAMERA_W_PX,
-            "out_height_px": CAMERA_H_PX}  # fmt: skip
+    return {"roi_px": ((width - w) // 2, (height - h) // 2, w, h), "observation_width_px": CAMERA_W_PX,
+            "observation_height_px": CAMERA_H_PX}  # fmt: skip
 
 
 def ours_ms_per_step(world: str, task: str, steps: int, config: dict | None) -> dict[str, float]:

@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 
 from drivesim.cli.common import console, workspace
+from drivesim.sim.envs.registry import TASK_NAMES
 
 sim_app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
 
@@ -15,7 +16,7 @@ sim_app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_excepti
 @sim_app.command("render")
 def render_command(
     out: Annotated[Path, typer.Option("--out", help="Folder for episode.mp4, strip.png and birdseye.png.")],
-    task: Annotated[str, typer.Option("--task", help="lane, follow or overtake.")] = "overtake",
+    task: Annotated[str, typer.Option("--task", help=f"One of {', '.join(TASK_NAMES)}.")] = "overtake",
     policy: Annotated[str, typer.Option("--policy", help="Who drives: expert (the privileged expert).")] = "expert",
     world: Annotated[
         Path | None, typer.Option("--world", help="World folder (default: <workspace>/world).", show_default=False)

@@ -1,4 +1,4 @@
-"""`drivesim train lane|follow|overtake`: PPO with a CNN and an LSTM in the simulator."""
+"""`drivesim train TASK`: PPO with a CNN and an LSTM in the simulator (the tasks: sim/envs/registry.py)."""
 
 from __future__ import annotations
 
@@ -10,10 +10,11 @@ import typer
 from drivesim.cli.common import AddressOption, ConfigOption, SetOption, choose_backend, console, workspace
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError, DrivesimError
+from drivesim.sim.envs.registry import TASK_NAMES, task_help
 
 TaskArgument = Annotated[
     str | None,
-    typer.Argument(help="lane, follow or overtake (taken from the run with --resume).", show_default=False),
+    typer.Argument(help=f"The task ({task_help()}); taken from the run with --resume.", show_default=False),
 ]
 
 
@@ -57,7 +58,7 @@ def train_command(
     Ctrl-C keeps everything up to the last update; `--resume RUN` continues it. Presets: configs/train/<task>.yaml.
     """
     # Imported here so `drivesim --help` stays fast (training pulls in torch and stable-baselines3).
-    from drivesim.stages.train.config import TASKS, TrainConfig
+    from drivesim.stages.train.config import TrainConfig
     from drivesim.stages.train.run import read_run_config
     from drivesim.stages.train.stage import run_training
 
@@ -96,9 +97,9 @@ def train_command(
         worlds = worlds or saved_worlds
     else:
         if task is None:
-            raise ConfigError(f"give a task to train: {', '.join(TASKS)} (or --resume RUN)")
-        if task not in TASKS:
-            raise ConfigError(f"task {task!r}: choose one of {', '.join(TASKS)}")
+            raise ConfigError(f"give a task to train: {', '.join(TASK_NAMES)} (or --resume RUN)")
+        if task not in TASK_NAMES:
+            raise ConfigError(f"task {task!r}: choose one of {', '.join(TASK_NAMES)}")
         cfg = load_config(
             TrainConfig, preset=f"train/{task}", config_file=config, overrides=[f"task={task}", *overrides]
         )

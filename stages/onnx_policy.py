@@ -35,7 +35,7 @@ def _metadata(session: Any, path: Path) -> dict[str, Any]:
                 meta[key[len(METADATA_PREFIX) :]] = json.loads(value)
             except json.JSONDecodeError as e:
                 raise OnnxPolicyError(f"metadata {key} is not JSON; export the policy again", path) from e
-    missing = [k for k in ("format", "input_shape", "lstm_layers", "hidden_size") if k not in meta]
+    missing = [k for k in ("format", "observation_shape", "lstm_layers", "hidden_size") if k not in meta]
     if missing:
         raise OnnxPolicyError(
             f"not a drivesim policy: metadata lacks {', '.join(METADATA_PREFIX + k for k in missing)}; "
@@ -75,7 +75,7 @@ class OnnxPolicy:
             )
         self.metadata = _metadata(self.session, self.path)
         self.task: str = str(self.metadata.get("task", ""))
-        self.observation_shape: tuple[int, int, int] = tuple(int(v) for v in self.metadata["input_shape"])  # type: ignore[assignment]
+        self.observation_shape: tuple[int, int, int] = tuple(int(v) for v in self.metadata["observation_shape"])  # type: ignore[assignment]
         self.lstm_layers = int(self.metadata["lstm_layers"])
         self.hidden_size = int(self.metadata["hidden_size"])
         self.config_hash = str(self.metadata.get("config_hash", ""))

@@ -12,7 +12,7 @@ from drivesim.sim.geometry import intrinsics_from_hfov
 
 WIDTH_PX, HEIGHT_PX = 80, 50
 # The env config for this world: a region of interest inside its 80 x 50 image and a small observation.
-SMALL_VIEW = {"roi_px": (0, 18, 80, 32), "out_width_px": 40, "out_height_px": 16}
+SMALL_VIEW = {"roi_px": (0, 18, 80, 32), "observation_width_px": 40, "observation_height_px": 16}
 
 
 def write_test_world(root: Path, length_m: float = 200.0, spacing_m: float = 1.0, curve_from_m: float = 120.0) -> Path:

@@ -319,7 +319,7 @@ def test_onnx_policy_gives_the_torch_policy_metrics(tmp_path):
     run = _make_run(tmp_path / "runs" / "overtake-1", "overtake")
     loaded = load_policy(run)
     onnx_path = tmp_path / "policy.onnx"
-    meta = {"task": "overtake", "input_shape": [3, 64, 160], "lstm_layers": 1, "hidden_size": 8, "env_config": {}}
+    meta = {"task": "overtake", "observation_shape": [3, 64, 160], "lstm_layers": 1, "hidden_size": 8, "env_config": {}}
     export_onnx(loaded.export_module(), (3, 64, 160), meta, onnx_path)
     ws = Workspace(tmp_path / "ws")
     by_torch = run_eval(ws, EvalConfig(episodes=4, world=str(world), workers=1, policy=str(run), **FAKE))

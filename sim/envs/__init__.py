@@ -1,14 +1,11 @@
-"""The driving tasks as gymnasium environments: drivesim/Lane-v0, drivesim/Follow-v0, drivesim/Overtake-v0."""
+"""The driving tasks as gymnasium environments (drivesim/Lane-v0, Follow-v0, Overtake-v0, CutIn-v0).
 
-from gymnasium.envs.registration import register, registry
+Importing this package registers them: `import drivesim.sim.envs`, then `gymnasium.make("drivesim/Overtake-v0",
+world=..., meshes=...)`. The list of tasks is `registry.TASKS`.
+"""
 
-ENV_IDS = {
-    "lane": ("drivesim/Lane-v0", "drivesim.sim.envs.lane:LaneEnv"),
-    "follow": ("drivesim/Follow-v0", "drivesim.sim.envs.follow:FollowEnv"),
-    "overtake": ("drivesim/Overtake-v0", "drivesim.sim.envs.overtake:OvertakeEnv"),
-}
+from drivesim.sim.envs.registry import TASK_NAMES, TASKS, register_envs, task_spec
 
-for _env_id, _entry in ENV_IDS.values():
-    if _env_id not in registry:
-        # The episode length is the env's own (config.episode_steps, reported as truncation): no TimeLimit wrapper.
-        register(id=_env_id, entry_point=_entry, disable_env_checker=True, order_enforce=False)
+__all__ = ["TASKS", "TASK_NAMES", "register_envs", "task_spec"]
+
+register_envs()

@@ -1,7 +1,9 @@
 """The common driving environment: one ego agent (the policy) and, for follow and overtake, one front car.
 
-Subclasses (`lane.py`, `follow.py`, `overtake.py`) set the task's start state, rewards and success; their class
-docstrings describe spaces, rewards, start and end in one place. The step is split into `advance` (dynamics,
+Subclasses (`lane.py`, `follow.py`, `overtake.py`, `cutin.py`, listed in `registry.py`) own their task through the
+hooks of `DrivingEnv` (start state of the other car, reward terms, success and whether it ends the episode,
+per-task measurements, the expert's target offset); the base never asks which task it is. Their class docstrings
+describe spaces, rewards, start and end in one place. The step is split into `advance` (dynamics,
 association, rewards) and `observation_from` (augmentation of a rendered view) so that `vector.py` can render many
 episodes in one call.
 """
@@ -21,7 +23,7 @@ from drivesim.sim.agents import Agent, LateralProfile, ReferencePath, pursue_pro
 from drivesim.sim.dynamics import BicycleState, curvature_of_steering
 from drivesim.sim.envs.augment import Augmentation
 from drivesim.sim.envs.config import EnvConfig
-from drivesim.sim.envs.rewards import collision_reward, comfort_reward, lane_reward, pass_reward
+from drivesim.sim.envs.rewards import collision_reward, comfort_reward, lane_reward
 from drivesim.sim.envs.termination import termination_flags
 from drivesim.sim.footprint import clearance_m, collision_overlap, footprint
 from drivesim.sim.simulator import TIMING_KEYS, Simulator, make_view_synthesizer, render_requests
@@ -59,7 +61,7 @@ def load_vehicles(meshes: Any) -> Any:
 
 def default_roi(width_px: int, height_px: int, config: EnvConfig) -> tuple[int, int, int, int]:
     """The largest region with the observation's aspect, centred across, at the bottom of the image."""
-    aspect = config.out_width_px / config.out_height_px
+    aspect = config.observation_width_px / config.observation_height_px
     w, h = width_px, round(width_px / aspect)
     if h > height_px:
         w, h = round(height_px * aspect), height_px
@@ -92,7 +94,7 @@ class DrivingEnv(gymnasium.Env):
         self.collision_threshold = c.collision_overlap_train if mode == "train" else c.collision_overlap_eval
         self._timings = dict.fromkeys(TIMING_KEYS, 0.0)
         self._renderers: dict[int, Any] = {}
-        self.observation_space = spaces.Box(0, 255, (3, c.out_height_px, c.out_width_px), np.uint8)
+        self.observation_space = spaces.Box(0, 255, c.observation_shape, np.uint8)
         self.action_space = spaces.Box(-1.0, 1.0, (1,), np.float32)
         self.step_count = 0
         self.sim: Simulator | None = None
@@ -111,11 +113,18 @@ class DrivingEnv(gymnasium.Env):
         self.step_count = 0
 
     # --- episode start -------------------------------------------------------------------------------------------
+    def roi_px_of(self, world_index: int = 0) -> tuple[int, int, int, int]:
+        """(x0, y0, w, h) of world `world_index`'s sim image that the policy sees: `roi_px`, else the default."""
+        c, world = self.config, self.worlds[world_index]
+        return tuple(c.roi_px) if c.roi_px is not None else default_roi(world.width_px, world.height_px, c)
+
     def _renderer(self, world_index: int) -> Any:
         if world_index not in self._renderers:
             c, world = self.config, self.worlds[world_index]
-            roi = c.roi_px if c.roi_px is not None else default_roi(world.width_px, world.height_px, c)
-            self._renderers[world_index] = make_view_synthesizer(world, roi, c.out_width_px, c.out_height_px)
+            roi = self.roi_px_of(world_index)
+            self._renderers[world_index] = make_view_synthesizer(
+                world, roi, c.observation_width_px, c.observation_height_px
+            )
         return self._renderers[world_index]
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
@@ -148,16 +157,13 @@ class DrivingEnv(gymnasium.Env):
         if self.has_other:
             model = self.vehicles.sample(rng) if self.vehicles is not None else None
             size = DEFAULT_OTHER_SIZE_M if model is None else (model.length_m, model.width_m)
-            gap = float(rng.uniform(*c.front_distance_m))
-            side = 1.0 if rng.uniform() < 0.5 else -1.0
-            lateral = side * float(rng.uniform(*c.front_lateral_m))
-            profile = self._other_profile(rng, start_arc + gap, lateral, ref)
-            ox, oy, oyaw = ref.pose(start_arc + gap, lateral)
+            arc, lateral, profile = self._place_other(rng, start_arc, ref, ego_speed, other_speed)
+            ox, oy, oyaw = ref.pose(arc, profile(arc))
             other = Agent(BicycleState(ox, oy, oyaw, 0.0, other_speed), size[0], size[1], other_speed, profile)
-            other.arc_m, other.lateral_m = start_arc + gap, lateral
+            other.arc_m, other.lateral_m = arc, profile(arc)
             sim.agents.append(other)
             sim.models.append(model)
-            self._gap_m, self._other_lateral_m = gap, lateral
+            self._gap_m, self._other_lateral_m = arc - start_arc, lateral
         sim.associate()
         for agent in sim.agents:
             agent.frame_index = int(np.argmin(np.abs(ref.arc_m - agent.arc_m)))
@@ -165,32 +171,88 @@ class DrivingEnv(gymnasium.Env):
         self._u_steer = 0.0
         self._t = 0
         self._succeeded = False
+        # Only quantities the task has: NaN for an absent one would make equal infos compare unequal (NaN != NaN).
         self._episode = {
             "seed": seed,
             "world": str(world.root),
             "start_frame": int(sim.agents[0].frame_index),
             "ego_speed_mps": ego_speed,
-            "other_speed_mps": other_speed if self.has_other else NAN,
             "initial_lateral_m": (self._other_lateral_m - lat0) if self.has_other else lat0,
             "road_curvature_1pm": ref.mean_abs_curvature(start_arc, c.min_path_length_m),
             "ego_length_m": c.ego_length_m,
             "ego_width_m": c.ego_width_m,
-            "other_length_m": sim.agents[1].length_m if self.has_other else NAN,
-            "other_width_m": sim.agents[1].width_m if self.has_other else NAN,
         }
+        if self.has_other:
+            other = sim.agents[1]
+            self._episode.update(
+                other_speed_mps=other_speed, other_length_m=other.length_m, other_width_m=other.width_m
+            )
         aug_on = c.augment and self.mode == "train"
         self._augmentation = (
             Augmentation.sample(rng, c.gamma, c.brightness, c.contrast, c.saturation) if aug_on else Augmentation()
         )
         self._measure()
 
+    # --- task hooks (a task subclass overrides what it needs; the base never asks which task it is) -----------
     def _speeds(self, rng: np.random.Generator) -> tuple[float, float]:
+        """(ego, other) speeds of a new episode, m/s; the other's is unused without another car."""
         return float(rng.uniform(*self.config.ego_speed_mps)), NAN
+
+    def _place_other(
+        self,
+        rng: np.random.Generator,
+        ego_arc_m: float,
+        ref: ReferencePath,
+        ego_speed_mps: float,
+        other_speed_mps: float,
+    ) -> tuple[float, float, LateralProfile]:
+        """(arc_m, lateral_m, profile) of the other car at the start: by default a front car front_distance_m
+        ahead, front_lateral_m to a random side, keeping its offset (`_other_profile`)."""
+        c = self.config
+        arc = ego_arc_m + float(rng.uniform(*c.front_distance_m))
+        side = 1.0 if rng.uniform() < 0.5 else -1.0
+        lateral = side * float(rng.uniform(*c.front_lateral_m))
+        return arc, lateral, self._other_profile(rng, arc, lateral, ref)
 
     def _other_profile(
         self, rng: np.random.Generator, arc_m: float, lateral_m: float, ref: ReferencePath
     ) -> LateralProfile:
+        """The other car's lateral offset along the road (m, + = left) from its start."""
         return LateralProfile.constant(lateral_m)
+
+    def _reward_terms(self, steering_accel_radps2: float) -> dict[str, float]:
+        """The weighted reward terms by name (their sum is the reward); `pass` is 0 unless a task pays it."""
+        c, m = self.config, self._m
+        return {
+            "lane": c.weight_lane * lane_reward(self._lane_error(), c.max_lateral_m),
+            "pass": 0.0,
+            "collision": c.weight_collision * collision_reward(m["dilated_overlap"]),
+            "comfort": c.weight_comfort * comfort_reward(steering_accel_radps2),
+        }
+
+    def _lane_error(self) -> float:
+        """The lateral error R_lane penalizes, m (the lane centre's by default)."""
+        return self._m["q_lat_m"]
+
+    def _success_now(self, intervention: bool) -> bool:
+        """Whether the task's goal is reached at this step (tasks whose success is the time limit: never)."""
+        return False
+
+    def _ends_at_success(self) -> bool:
+        """Whether reaching the goal ends the episode (tasks whose success is the time limit: no)."""
+        return False
+
+    def _episode_success(self, ended: bool, intervention: bool, succeeded_now: bool) -> bool:
+        """info["success"]: by default, the episode ended without an intervention."""
+        return ended and not intervention
+
+    def _task_measurements(self) -> dict[str, float]:
+        """Figures of `info["state"]` that only this task has (e.g. the pass margin of overtake)."""
+        return {}
+
+    def expert_target_offset(self) -> float:
+        """The lateral offset (m, + = left of the lane centre) the privileged expert steers to now."""
+        return 0.0
 
     # --- one step ------------------------------------------------------------------------------------------------
     def _associate(self) -> tuple[np.ndarray, ...]:
@@ -218,44 +280,25 @@ class DrivingEnv(gymnasium.Env):
         self.step_count += 1
         self._measure()
         m = self._m
-        terms = {
-            "lane": c.weight_lane * lane_reward(self._lane_error(), c.max_lateral_m),
-            "pass": c.weight_pass * pass_reward(m["pass_margin_m"], c.pass_distance_m)
-            if self.task == "overtake"
-            else 0.0,
-            "collision": c.weight_collision * collision_reward(m["dilated_overlap"]),
-            "comfort": c.weight_comfort * comfort_reward(steering_accel),
-        }
+        terms = self._reward_terms(steering_accel)
         arc_left = min(sim.reference.end_m - ag.arc_m for ag in sim.agents)
         flags = termination_flags(
             m["q_lat_m"], m["q_rot_rad"], m["overlap_frac"], self.collision_threshold, arc_left,
             c.max_lateral_m, c.max_rotation_rad, c.end_margin_m,
         )  # fmt: skip
         intervention = flags["off_lane"] or flags["over_rotation"] or flags["collision"]
-        succeeded_now = self._success(intervention)
+        succeeded_now = self._success_now(intervention)
         self._succeeded |= succeeded_now
-        end_on_success = self.mode == "eval" or c.end_on_success_in_training
-        terminated = any(flags.values()) or (self.task == "overtake" and succeeded_now and end_on_success)
+        terminated = any(flags.values()) or (succeeded_now and self._ends_at_success())
         truncated = (not terminated) and self._t >= c.episode_steps
         flags["time_limit"] = truncated
-        if self.task == "overtake" and end_on_success:
-            success = succeeded_now
-        elif self.task == "overtake":  # a training episode that went on after the pass: no intervention since
-            success = self._succeeded and (terminated or truncated) and not intervention
-        else:
-            success = (terminated or truncated) and not intervention
+        success = self._episode_success(terminated or truncated, intervention, succeeded_now)
         info = self._info(reset=False)
         info["rewards"] = terms
         info["termination"] = flags
         info["success"] = bool(success)
         self._timings["rewards"] += 1e3 * (time.perf_counter() - start)
         return float(sum(terms.values())), bool(terminated), bool(truncated), info
-
-    def _lane_error(self) -> float:
-        return self._m["q_lat_m"]
-
-    def _success(self, intervention: bool) -> bool:
-        return False
 
     def _measure(self) -> None:
         """The state figures of `info["state"]` for the current step."""
@@ -276,10 +319,7 @@ class DrivingEnv(gymnasium.Env):
             "arc_length_m": ego.arc_m,
             "road_curvature_1pm": sim.reference.curvature(ego.arc_m),
             "steering_curvature_1pm": curvature_of_steering(s.steering_rad, c.wheelbase_m),
-            "other_x_m": NAN, "other_y_m": NAN, "other_yaw_rad": NAN, "other_speed_mps": NAN,
-            "other_rel_x_m": NAN, "other_rel_y_m": NAN,
-            "clearance_m": math.inf, "overlap_frac": 0.0, "pass_margin_m": NAN, "tracking_error_m": NAN,
-            "dilated_overlap": 0.0,
+            "clearance_m": math.inf, "overlap_frac": 0.0, "dilated_overlap": 0.0,
         }  # fmt: skip
         if self.has_other:
             other = sim.agents[1]
@@ -289,7 +329,6 @@ class DrivingEnv(gymnasium.Env):
             m.update(other_x_m=o.x_m, other_y_m=o.y_m, other_yaw_rad=o.yaw_rad, other_speed_mps=o.speed_mps)
             m["other_rel_x_m"] = cy * dx + sy * dy
             m["other_rel_y_m"] = -sy * dx + cy * dy
-            m["pass_margin_m"] = ego.distance_m - other.distance_m - self._gap_m
             centre = math.hypot(dx, dy)
             if centre > c.far_clearance_m:
                 m["clearance_m"] = centre - 0.5 * (
@@ -305,9 +344,8 @@ class DrivingEnv(gymnasium.Env):
                 if clearance < 0.6:
                     m["overlap_frac"] = collision_overlap(ego_pose, ego_size, other_pose, other_size, dilate=False)
                     m["dilated_overlap"] = collision_overlap(ego_pose, ego_size, other_pose, other_size, dilate=True)
-            if self.task == "follow":
-                m["tracking_error_m"] = ego.lateral_m - other.profile(ego.arc_m)
         self._m = m
+        m.update(self._task_measurements())
 
     def _info(self, reset: bool) -> dict:
         state = {k: float(v) for k, v in self._m.items() if k != "dilated_overlap"}
@@ -339,7 +377,8 @@ class DrivingEnv(gymnasium.Env):
         return self._last_rgb
 
     def expert_action(self) -> np.ndarray:
-        """The privileged expert's action for the current state, (1,) float32."""
+        """The privileged expert's action for the current state, (1,) float32 (it steers to
+        `expert_target_offset()`)."""
         from drivesim.sim.envs.expert import expert_action
 
         return expert_action(self)

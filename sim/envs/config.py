@@ -2,91 +2,118 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict
+from typing import Annotated
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+NonNegative = Annotated[float, Field(ge=0.0)]
+Positive = Annotated[float, Field(gt=0.0)]
 
 
 class EnvConfig(BaseModel):
-    """Parameters of drivesim/Lane-v0, Follow-v0 and Overtake-v0."""
+    """Parameters of the driving tasks (sim/envs/registry.py lists them); units in each key's name and docstring.
 
-    model_config = ConfigDict(extra="forbid")
+    The train and eval configs hold it as `envs.config` and `env`, so `drivesim config train` lists every key and
+    a typo or an out-of-range value is refused when the config is loaded.
+    """
 
-    dt_s: float = 0.1
+    # As pipeline.config.STRICT_MODEL_CONFIG (not imported: the simulator does not depend on the stage framework).
+    model_config = ConfigDict(
+        extra="forbid", use_attribute_docstrings=True, validate_assignment=True, allow_inf_nan=False
+    )
+
+    dt_s: float = Field(0.1, gt=0.0, le=1.0)
     """Simulation step in seconds (10 Hz)."""
-    episode_steps: int = 300
+    episode_steps: int = Field(300, ge=1)
     """Time limit in steps; reaching it truncates the episode."""
-    wheelbase_m: float = 2.7
+    wheelbase_m: float = Field(2.7, gt=0.0)
     """Inter-axle distance L of every vehicle's bicycle model, metres."""
-    max_curvature_1pm: float = 0.15
+    max_curvature_1pm: float = Field(0.15, gt=0.0)
     """Curvature of a full steering action (a = ±1), 1/m."""
-    max_steering_rate_radps: float = 1.0
+    max_steering_rate_radps: float = Field(1.0, gt=0.0)
     """Steering-angle rate limit, rad/s."""
-    ego_length_m: float = 4.5
+    ego_length_m: float = Field(4.5, gt=0.0)
     """Length of the ego's footprint, metres."""
-    ego_width_m: float = 1.9
+    ego_width_m: float = Field(1.9, gt=0.0)
     """Width of the ego's footprint, metres."""
-    ego_speed_mps: tuple[float, float] = (4.0, 10.0)
+    ego_speed_mps: tuple[NonNegative, NonNegative] = (4.0, 10.0)
     """Range of the ego's speed (lane, overtake), m/s, drawn once per episode."""
-    other_speed_mps: tuple[float, float] = (0.0, 4.0)
+    other_speed_mps: tuple[NonNegative, NonNegative] = (0.0, 4.0)
     """Range of the front car's speed in overtake, m/s."""
-    follow_speed_mps: tuple[float, float] = (4.0, 8.0)
+    follow_speed_mps: tuple[NonNegative, NonNegative] = (4.0, 8.0)
     """Range of the common speed of both cars in follow, m/s."""
-    front_distance_m: tuple[float, float] = (6.0, 15.0)
+    front_distance_m: tuple[NonNegative, NonNegative] = (6.0, 15.0)
     """Range of the front car's start distance ahead of the ego (centre to centre, along the road), metres."""
-    front_lateral_m: tuple[float, float] = (1.0, 2.0)
+    front_lateral_m: tuple[NonNegative, NonNegative] = (1.0, 2.0)
     """Range of the front car's lateral shift from the lane centre (either side, drawn), metres."""
-    initial_lateral_m: float = 0.3
+    initial_lateral_m: float = Field(0.3, ge=0.0)
     """The ego starts within ± this lateral offset from the lane centre, metres."""
-    initial_yaw_rad: float = 0.05
+    initial_yaw_rad: float = Field(0.05, ge=0.0)
     """The ego starts within ± this heading offset from the road, radians."""
-    max_lateral_m: float = 2.5
+    max_lateral_m: float = Field(2.5, gt=0.0)
     """Z_lat: |q_lat| above it ends the episode (off_lane), and R_lane's scale, metres."""
-    max_rotation_rad: float = 0.5
+    max_rotation_rad: float = Field(0.5, gt=0.0)
     """Z_rot: |q_rot| above it ends the episode (over_rotation), radians."""
-    pass_distance_m: float = 6.0
+    pass_distance_m: float = Field(6.0, ge=0.0)
     """Z_pass: the ego has passed when it is this far ahead of the front car (centre to centre along the road), m."""
-    return_lateral_m: float = 0.75
+    return_lateral_m: float = Field(0.75, gt=0.0)
     """Overtake succeeds once passed and back within this lateral offset of the lane centre, metres."""
     end_on_success_in_training: bool = False
     """Whether a training (mode "train") overtake episode ends at its success. Off (the default), it goes on to the
     time limit, so R_pass, paid per step once ahead, makes passing worth more than following the slow car in the
     lane; ended at the pass, an episode that stays behind collects more R_lane and the policy learns not to pass.
     Evaluation always ends at the success (its metric)."""
-    collision_overlap_train: float = 0.05
+    collision_overlap_train: float = Field(0.05, ge=0.0, le=1.0)
     """Overlap of the undilated footprints (fraction of the ego's area) above which training counts a collision."""
-    collision_overlap_eval: float = 0.0
+    collision_overlap_eval: float = Field(0.0, ge=0.0, le=1.0)
     """The same threshold in evaluation (any overlap is an intervention)."""
-    pursuit_gain: float = 0.8
+    pursuit_gain: float = Field(0.8, gt=0.0)
     """Pure-pursuit gain of the other cars."""
-    pursuit_lookahead_m: float = 5.0
+    pursuit_lookahead_m: float = Field(5.0, gt=0.0)
     """Pure-pursuit lookahead of the other cars, metres."""
-    min_path_length_m: float = 60.0
+    min_path_length_m: float = Field(60.0, gt=0.0)
     """Road needed ahead of an episode's start, metres; a world shorter than it is refused."""
-    end_margin_m: float = 8.0
+    end_margin_m: float = Field(8.0, ge=0.0)
     """end_of_data when an agent is within this distance of the end of the recorded path, metres."""
-    weight_lane: float = 1.0
+    weight_lane: float = Field(1.0, ge=0.0)
     """Weight of R_lane = 1 - (q_lat / Z_lat)^2 (follow: q_lat from the front car's path)."""
-    weight_pass: float = 1.0
+    weight_pass: float = Field(1.0, ge=0.0)
     """Weight of R_pass (1 per step once the ego is Z_pass ahead)."""
-    weight_collision: float = 10.0
+    weight_collision: float = Field(10.0, ge=0.0)
     """Weight of R_collision = -|Dilate(P_ego) ∩ P_other| / |P_ego|."""
-    weight_comfort: float = 0.01
+    weight_comfort: float = Field(0.01, ge=0.0)
     """Weight of R_comfort = -|δ̈| (rad/s²)."""
     roi_px: tuple[int, int, int, int] | None = None
     """(x0, y0, w, h) region of the world's sim image that the policy sees, pixels; None: the largest region with
     the observation's aspect, centred across and at the bottom of the image ((0, 72, 320, 128) at 320 x 200)."""
-    out_width_px: int = 160
-    """Width of the observation, pixels."""
-    out_height_px: int = 64
-    """Height of the observation, pixels."""
+    observation_width_px: int = Field(160, ge=8, le=4096)
+    """Width of the observation (the policy's image), pixels; with the height, the `observation_shape`
+    (3, height, width) that the run config, the policy and the ONNX export record."""
+    observation_height_px: int = Field(64, ge=8, le=4096)
+    """Height of the observation (the policy's image), pixels."""
     augment: bool = True
     """Episode-level photometric augmentation in training (never in evaluation)."""
-    gamma: tuple[float, float] = (0.8, 1.25)
+    gamma: tuple[Positive, Positive] = (0.8, 1.25)
     """Range of the gamma exponent."""
     brightness: tuple[float, float] = (-0.1, 0.1)
     """Range of the added brightness, fraction of full scale."""
-    contrast: tuple[float, float] = (0.8, 1.2)
+    contrast: tuple[NonNegative, NonNegative] = (0.8, 1.2)
     """Range of the contrast factor around mid-grey."""
-    saturation: tuple[float, float] = (0.7, 1.3)
+    saturation: tuple[NonNegative, NonNegative] = (0.7, 1.3)
     """Range of the saturation factor."""
-    far_clearance_m: float = 10.0
+    far_clearance_m: float = Field(10.0, gt=0.0)
     """Beyond this centre distance the clearance is the centre distance minus both half-diagonals (no polygons)."""
+
+    @model_validator(mode="after")
+    def _check_ranges(self) -> EnvConfig:
+        for name, value in self:
+            if isinstance(value, tuple) and len(value) == 2 and value[0] > value[1]:
+                raise ValueError(f"{name}: the range ({value[0]}, {value[1]}) is reversed; give (low, high)")
+        if self.roi_px is not None and (min(self.roi_px) < 0 or self.roi_px[2] < 1 or self.roi_px[3] < 1):
+            raise ValueError(f"roi_px {self.roi_px}: give (x0, y0, width, height) with x0, y0 >= 0 and a size >= 1")
+        return self
+
+    @property
+    def observation_shape(self) -> tuple[int, int, int]:
+        """(channels, height, width) of the observation: the one name of the policy's image size."""
+        return (3, self.observation_height_px, self.observation_width_px)

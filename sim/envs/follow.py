@@ -6,6 +6,7 @@ import numpy as np
 
 from drivesim.sim.agents import LateralProfile, ReferencePath
 from drivesim.sim.envs.base import DrivingEnv
+from drivesim.sim.envs.expert import EXPERT_LOOKAHEAD_M
 
 
 class FollowEnv(DrivingEnv):
@@ -43,5 +44,14 @@ class FollowEnv(DrivingEnv):
     ) -> LateralProfile:
         return LateralProfile.lane_changes(rng, arc_m, ref.end_m, (lateral_m, 0.0, -lateral_m), lateral_m)
 
+    def _task_measurements(self) -> dict[str, float]:
+        ego, other = self.sim.agents[0], self.sim.agents[1]
+        return {"tracking_error_m": ego.lateral_m - other.profile(ego.arc_m)}
+
     def _lane_error(self) -> float:
         return self._m["tracking_error_m"]
+
+    def expert_target_offset(self) -> float:
+        """The front car's path, one expert lookahead ahead of the ego."""
+        ego, other = self.sim.agents[0], self.sim.agents[1]
+        return other.profile(ego.arc_m + EXPERT_LOOKAHEAD_M)

@@ -13,9 +13,9 @@ class LaneEnv(DrivingEnv):
     a · max_curvature_1pm (1/m, + = left), tracked through the steering rate u_δ under max_steering_rate_radps.
 
     ## Observation space
-    Box(0, 255, (3, out_height_px, out_width_px), uint8): the ego camera's region of interest `roi_px` of the
-    view synthesized at the ego's pose, scaled to the output size, channels first (RGB), with the episode's
-    photometric augmentation in training.
+    Box(0, 255, (3, observation_height_px, observation_width_px), uint8): the ego camera's region of interest
+    `roi_px` of the view synthesized at the ego's pose, scaled to the output size, channels first (RGB), with the
+    episode's photometric augmentation in training.
 
     ## Rewards (each weighted term by name in info["rewards"], their sum is the reward)
     lane = weight_lane · (1 - (q_lat / Z_lat)²); comfort = -weight_comfort · |δ̈|; pass and collision are 0.

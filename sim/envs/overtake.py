@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from drivesim.sim.envs.base import DrivingEnv
+from drivesim.sim.envs.expert import EXPERT_CLEARANCE_M
+from drivesim.sim.envs.rewards import pass_reward
 
 
 class OvertakeEnv(DrivingEnv):
@@ -41,6 +43,38 @@ class OvertakeEnv(DrivingEnv):
         c = self.config
         return float(rng.uniform(*c.ego_speed_mps)), float(rng.uniform(*c.other_speed_mps))
 
-    def _success(self, intervention: bool) -> bool:
+    def _task_measurements(self) -> dict[str, float]:
+        ego, other = self.sim.agents[0], self.sim.agents[1]
+        return {"pass_margin_m": ego.distance_m - other.distance_m - self._gap_m}
+
+    def _reward_terms(self, steering_accel_radps2: float) -> dict[str, float]:
+        terms = super()._reward_terms(steering_accel_radps2)
+        c = self.config
+        terms["pass"] = c.weight_pass * pass_reward(self._m["pass_margin_m"], c.pass_distance_m)
+        return terms
+
+    def _success_now(self, intervention: bool) -> bool:
         m, c = self._m, self.config
         return (not intervention) and m["pass_margin_m"] > c.pass_distance_m and abs(m["q_lat_m"]) < c.return_lateral_m
+
+    def _ends_at_success(self) -> bool:
+        return self.mode == "eval" or self.config.end_on_success_in_training
+
+    def _episode_success(self, ended: bool, intervention: bool, succeeded_now: bool) -> bool:
+        if self._ends_at_success():
+            return succeeded_now
+        # A training episode that went on after the pass: it succeeded if it passed and had no intervention since.
+        return self._succeeded and ended and not intervention
+
+    def expert_target_offset(self) -> float:
+        """Swerve to the side of the front car with more room, keeping EXPERT_CLEARANCE_M between the footprints,
+        until the ego is Z_pass ahead; then back to the lane centre."""
+        c, sim = self.config, self.sim
+        if self._m["pass_margin_m"] >= c.pass_distance_m:
+            return 0.0
+        ego, other = sim.agents[0], sim.agents[1]
+        half_widths = 0.5 * (ego.width_m + other.width_m) + EXPERT_CLEARANCE_M
+        o = other.lateral_m
+        limit = c.max_lateral_m - 0.5
+        target = o - half_widths if o >= 0.0 else o + half_widths
+        return float(np.clip(target, -limit, limit))

@@ -20,13 +20,19 @@ def render_episode(task: str, world: Path, meshes: Path | None, out: Path, seed:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from drivesim.sim.envs.vector import task_class
+    from drivesim.sim.envs.registry import task_spec
     from drivesim.sim.footprint import footprint
     from drivesim.sim.world import World
 
     w = World.load(world)
-    config = {"roi_px": (0, 0, w.width_px, w.height_px), "out_width_px": w.width_px, "out_height_px": w.height_px}
-    env = task_class(task)(world=w, meshes=None if meshes is None else str(meshes), mode="eval", config=config)
+    config = {
+        "roi_px": (0, 0, w.width_px, w.height_px),
+        "observation_width_px": w.width_px,
+        "observation_height_px": w.height_px,
+    }
+    env = task_spec(task).env_class()(
+        world=w, meshes=None if meshes is None else str(meshes), mode="eval", config=config
+    )
     obs, info = env.reset(seed=seed)
     frames, states = [np.ascontiguousarray(obs.transpose(1, 2, 0))], [info["state"]]
     while True:

@@ -15,27 +15,14 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvObs, VecEnvStepReturn
 
 from drivesim.sim.envs.base import DrivingEnv
+from drivesim.sim.envs.registry import task_spec
 from drivesim.sim.simulator import render_requests
-
-TASK_CLASSES = {
-    "lane": "drivesim.sim.envs.lane:LaneEnv",
-    "follow": "drivesim.sim.envs.follow:FollowEnv",
-    "overtake": "drivesim.sim.envs.overtake:OvertakeEnv",
-}
-
-
-def task_class(task: str) -> type[DrivingEnv]:
-    """The env class of a task name (lane, follow, overtake)."""
-    if task not in TASK_CLASSES:
-        raise ValueError(f"task: {task!r}; use one of {', '.join(TASK_CLASSES)}")
-    module, name = TASK_CLASSES[task].split(":")
-    return getattr(__import__(module, fromlist=[name]), name)
 
 
 class BatchedVecEnv(VecEnv):
     """`n_envs` episodes of `task` in this process (SB3 VecEnv); one batched render per world per step.
 
-    :param task: lane, follow or overtake. :param n_envs: number of episodes stepped together.
+    :param task: a task of the registry (sim/envs/registry.py). :param n_envs: number of episodes stepped together.
     :param world: a world folder, a World or a list of them. :param meshes: the meshes folder or None (procedural).
     :param mode: "train" or "eval". :param config: EnvConfig or a dict of overrides.
     :param seed: the first reset of episode i uses seed + i (None: random).
@@ -51,7 +38,7 @@ class BatchedVecEnv(VecEnv):
         config: Any = None,
         seed: int | None = None,
     ) -> None:
-        cls = task_class(task)
+        cls = task_spec(task).env_class()
         first = cls(world=world, meshes=meshes, mode=mode, config=config)
         self.envs: list[DrivingEnv] = [first]
         for _ in range(n_envs - 1):

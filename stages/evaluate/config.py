@@ -2,18 +2,20 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field
 
 from drivesim.pipeline.config import StageConfig
+from drivesim.sim.envs.config import EnvConfig
+from drivesim.sim.envs.registry import TaskName
 
 
 class EvalConfig(StageConfig):
     """`drivesim eval`: closed-loop episodes with fixed seeds, the paper's metrics, plots and an HTML report."""
 
-    task: Literal["lane", "follow", "overtake"] = "overtake"
-    """The task to evaluate (its drivesim env: drivesim/Lane-v0, Follow-v0 or Overtake-v0)."""
+    task: TaskName = "overtake"
+    """The task to evaluate (sim/envs/registry.py lists the tasks and their gymnasium ids)."""
     policy: str = "expert"
     """`expert` (the env's privileged expert), a run folder of `drivesim train`, or an exported `.onnx` file."""
     episodes: int = Field(1000, ge=1)
@@ -24,10 +26,14 @@ class EvalConfig(StageConfig):
     """World folder to evaluate in; null = the workspace's world/."""
     meshes: str | None = None
     """Vehicle mesh library folder; null = the workspace's meshes/ when built, else the procedural library."""
-    env: dict[str, Any] = {}
-    """Env config overrides (keys of the env's EnvConfig), applied over a run's training env config."""
+    env: EnvConfig = Field(default_factory=EnvConfig)
+    """The env config (keys listed below as env.*); the keys you set override a run's training env config, the
+    others come from the run (its view, its thresholds)."""
     video: int = Field(0, ge=0)
     """MP4s to render of chosen episodes (alternately the worst and the best)."""
+    record: Literal["failures", "all", "none"] | Annotated[int, Field(ge=0)] = "failures"
+    """Episodes written as Foxglove MCAP files, `recordings/<seed>.mcap`: failures = those with an intervention, the
+    first 50 by seed; all; N = the first N episodes; none or 0 = no recordings (stages/evaluate/record.py)."""
     clearance_histogram_max_m: float = Field(2.0, gt=0)
     """Upper end of the per-step clearance histogram (Fig. 5) [m]."""
     env_id: str | None = None
@@ -45,3 +51,7 @@ class EvalConfig(StageConfig):
     start Ray on this machine for the evaluation. Not part of the artifact's identity."""
     name: str | None = Field(None, exclude=True)
     """The evaluation's folder name under eval/; null = `<task>-<policy>`. Not part of the artifact's identity."""
+
+    def env_overrides(self) -> dict[str, Any]:
+        """The env keys the user set (preset, --config or --set), to apply over a run's training env config."""
+        return self.env.model_dump(mode="json", exclude_unset=True)

@@ -47,11 +47,10 @@ class ExportSummary(StageSummary):
 
 
 def roi_of(env_config: dict[str, Any]) -> list[int] | None:
-    """The region of interest (x0, y0, w, h) of the sim image the policy sees, when the env config records it."""
-    for holder in (env_config.get("view") or {}, env_config):
-        if isinstance(holder, dict) and holder.get("roi_px") is not None:
-            return [int(v) for v in holder["roi_px"]]
-    return None
+    """The region of interest (x0, y0, w, h) of the sim image the policy sees, as the run's env config records it
+    (training resolves it; null only for a run over worlds whose regions differ)."""
+    roi = env_config.get("roi_px")
+    return None if roi is None else [int(v) for v in roi]
 
 
 def policy_metadata(policy: Any) -> dict[str, Any]:
@@ -60,8 +59,8 @@ def policy_metadata(policy: Any) -> dict[str, Any]:
     return {
         "task": policy.task,
         "run": policy.run_dir.name,
-        "input_shape": list(policy.observation_shape),
-        "input_dtype": "uint8",
+        "observation_shape": list(policy.observation_shape),
+        "observation_dtype": "uint8",
         "roi_px": roi_of(policy.env_config),
         "action_scale": {
             "low": action.get("low", -1.0),

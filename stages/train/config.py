@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from drivesim.pipeline.config import StageConfig
-
-Task = Literal["lane", "follow", "overtake"]
-TASKS: tuple[str, ...] = ("lane", "follow", "overtake")
-ENV_IDS = {"lane": "drivesim/Lane-v0", "follow": "drivesim/Follow-v0", "overtake": "drivesim/Overtake-v0"}
+from drivesim.sim.envs.config import EnvConfig
+from drivesim.sim.envs.registry import TaskName
 
 
 class _Section(BaseModel):
@@ -80,8 +78,8 @@ class EnvsConfig(_Section):
     processes: int = 1
     """batched: worker processes the episodes are split over, stepping in parallel (1: in the learner's process;
     the number of cores is a good choice when the simulator dominates)."""
-    config: dict[str, Any] = Field(default_factory=dict)
-    """Overrides of the env config (sim/envs/config.py EnvConfig), e.g. {episode_steps: 300}."""
+    config: EnvConfig = Field(default_factory=EnvConfig)
+    """The env config of every training episode (sim/envs/config.py; its keys are listed below as envs.config.*)."""
     worker_threads: int = 1
     """torch threads in each env worker process."""
     backend: Literal["local", "ray"] = "local"
@@ -130,8 +128,8 @@ class WarmStartConfig(_Section):
 class TrainConfig(StageConfig):
     """`drivesim train`: PPO with a CNN and an LSTM (paper §III-C, §IV-A)."""
 
-    task: Task = "overtake"
-    """lane, follow or overtake."""
+    task: TaskName = "overtake"
+    """The task to train (sim/envs/registry.py)."""
     total_steps: int = 2_000_000
     """Env steps to train for (warm start not counted)."""
     time_limit_s: float | None = None

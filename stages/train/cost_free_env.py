@@ -15,6 +15,8 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
+from drivesim.sim.envs.config import EnvConfig
+
 
 class CostFreeDrivingEnv(gymnasium.Env):
     """Lane keeping on a one-stripe picture.
@@ -27,7 +29,10 @@ class CostFreeDrivingEnv(gymnasium.Env):
     metadata = {"render_modes": []}
 
     def __init__(
-        self, observation_shape: tuple[int, int, int] = (3, 64, 160), episode_steps: int = 200, drift: float = 0.02
+        self,
+        observation_shape: tuple[int, int, int] = EnvConfig().observation_shape,
+        episode_steps: int = 200,
+        drift: float = 0.02,
     ) -> None:
         self.observation_space = spaces.Box(0, 255, observation_shape, np.uint8)
         self.action_space = spaces.Box(-1.0, 1.0, (1,), np.float32)

@@ -11,9 +11,8 @@ import gymnasium
 import numpy as np
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
-from drivesim.stages.train.config import ENV_IDS
-
-COST_FREE_SHAPE = (3, 64, 160)
+from drivesim.sim.envs.config import EnvConfig
+from drivesim.sim.envs.registry import task_spec
 
 
 def _limit_worker_threads(threads: int) -> None:
@@ -26,10 +25,10 @@ def _limit_worker_threads(threads: int) -> None:
 class EnvSource:
     """Makes the training, vectorized and evaluation environments of a run.
 
-    :param task: lane, follow or overtake.
+    :param task: a task of the registry (sim/envs/registry.py).
     :param worlds: world folders (episodes are drawn from all of them); empty with `cost_free`.
     :param meshes: the vehicle mesh library folder, or None for the procedural one.
-    :param overrides: env config overrides (EnvsConfig.config).
+    :param overrides: the env config as a dict (EnvsConfig.config dumped; picklable for worker processes).
     :param cost_free: use `CostFreeDrivingEnv` instead of the simulator (speed of the learner alone; tests).
     :param worker_threads: torch threads in each subprocess worker.
     :param processes: worker processes of the batched envs (1: in this process).
@@ -98,11 +97,19 @@ class EnvSource:
         return venv
 
     def resolved_env_config(self, env: gymnasium.Env) -> dict[str, Any]:
-        """The full env config of a made env (its `config` when it has one), else the overrides."""
-        config = getattr(env.unwrapped, "config", None)
-        if hasattr(config, "model_dump"):
-            return config.model_dump(mode="json")
-        return dict(self.overrides)
+        """The full env config of a made env (its `config` when it has one), else the overrides; `roi_px` resolved
+        to the region the policy sees when every world of the run has the same one (else left null)."""
+        unwrapped = env.unwrapped
+        config = getattr(unwrapped, "config", None)
+        if not hasattr(config, "model_dump"):
+            return dict(self.overrides)
+        resolved = config.model_dump(mode="json")
+        roi_of = getattr(unwrapped, "roi_px_of", None)
+        if callable(roi_of):
+            rois = {tuple(int(v) for v in roi_of(i)) for i in range(len(unwrapped.worlds))}
+            if len(rois) == 1:
+                resolved["roi_px"] = list(rois.pop())
+        return resolved
 
     def max_curvature_1pm(self, env: gymnasium.Env) -> float | None:
         """The curvature of a full steering action, when the env config says it."""
@@ -121,14 +128,13 @@ class _EnvFn:
         if self.source.cost_free:
             from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
 
-            steps = int(self.source.overrides.get("episode_steps", 200))
-            drift = float(self.source.overrides.get("drift", 0.02))
-            return CostFreeDrivingEnv(COST_FREE_SHAPE, episode_steps=steps, drift=drift)
+            env_config = EnvConfig(**self.source.overrides)
+            return CostFreeDrivingEnv(env_config.observation_shape, episode_steps=env_config.episode_steps)
         import drivesim.sim.envs  # noqa: F401  (registers the drivesim envs)
 
         meshes = None if self.source.meshes is None else str(self.source.meshes)
         return gymnasium.make(
-            ENV_IDS[self.source.task],
+            task_spec(self.source.task).env_id,
             world=self.source._world_arg(),
             meshes=meshes,
             mode=self.mode,

@@ -73,13 +73,17 @@ def new_run_dir(workspace_root: Path, task: str) -> Path:
     return run_dir
 
 
-def write_run_config(run_dir: Path, cfg: TrainConfig, source: EnvSource, env_config: dict[str, Any]) -> None:
-    """config.json: the resolved train config, the env config, the worlds and the meshes of the run."""
+def write_run_config(
+    run_dir: Path, cfg: TrainConfig, source: EnvSource, env_config: dict[str, Any], observation_shape: tuple
+) -> None:
+    """config.json: the resolved train config, the env config (its ROI resolved), the observation shape, the worlds
+    and the meshes of the run."""
     write_json(
         run_dir / CONFIG_JSON,
         {
             "train": cfg.model_dump(mode="json"),
             "env_config": env_config,
+            "observation_shape": [int(v) for v in observation_shape],
             "worlds": [str(w) for w in source.worlds],
             "meshes": None if source.meshes is None else str(source.meshes),
         },
@@ -203,7 +207,7 @@ def train_in_folder(
                 lambda: source.make_vec(cfg.eval.episodes, kind, cfg.eval.seed, mode="eval"), cfg.eval.seed
             )
         probe.close()
-        write_run_config(run_dir, cfg, source, env_config)
+        write_run_config(run_dir, cfg, source, env_config, probe.observation_space.shape)
         model = build_model(cfg, venv)
         model.set_logger(configure(str(run_dir / "tb"), ["tensorboard"]))
         state = RunState()
