@@ -36,6 +36,10 @@ class MissingArtifactError(DrivesimError):
     """A stage needs an artifact that the workspace does not have yet."""
 
 
+class ArtifactConflictError(DrivesimError):
+    """An artifact made with other settings would be replaced; the user must say so (--force) or pick a new name."""
+
+
 class Interrupted(KeyboardInterrupt):
     """Ctrl-C or SIGTERM stopped a command: not an error. The message says what was kept and how to continue.
 

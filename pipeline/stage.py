@@ -24,6 +24,7 @@ from typing import Any, Generic, TypeVar
 from pydantic import BaseModel, ConfigDict
 
 from drivesim.pipeline.config import StageConfig
+from drivesim.pipeline.errors import ArtifactConflictError
 from drivesim.pipeline.workspace import InputRef, Workspace
 
 SummaryT = TypeVar("SummaryT", bound="StageSummary")
@@ -88,6 +89,8 @@ class StageSpec(Generic[SummaryT]):
         that importing the spec (the chain registry, `--help`) stays fast.
     :param collection: the artifact folder holds many artifacts (`runs/<task>-<timestamp>/`, `eval/<name>/`);
         `drivesim status` shows the newest complete one.
+    :param upstream_hints: each required artifact -> the command that makes it, for the one-line "run X first"
+        error (the stage says it itself; the chain registry checks these against its upstream stages' commands).
     """
 
     name: str
@@ -99,6 +102,7 @@ class StageSpec(Generic[SummaryT]):
     requires: tuple[str, ...]
     build: Callable[[BuildContext], SummaryT]
     collection: bool = False
+    upstream_hints: Mapping[str, str] = field(default_factory=dict)
 
 
 def run_stage(
@@ -110,6 +114,8 @@ def run_stage(
     external: Mapping[str, Path] | None = None,
     artifact: str | None = None,
     make_hints: Mapping[str, str] | None = None,
+    protect: bool = False,
+    protect_hint: str = "--force replaces it",
 ) -> StageResult[SummaryT]:
     """Run one stage under the contract: require -> fresh? -> build in a temp folder -> manifest -> move into place.
 
@@ -119,15 +125,26 @@ def run_stage(
     :param force: rebuild even when the artifact is fresh.
     :param external: external inputs (recordings outside the workspace), identified by a fast fingerprint.
     :param artifact: the artifact folder when it is not `spec.artifact` (one of many runs or evaluations).
-    :param make_hints: upstream artifact name -> the command that makes it, for the "run X first" error.
+    :param make_hints: upstream artifact name -> the command that makes it, for the "run X first" error (default:
+        each upstream stage's `StageSpec.make_hint` as given in `spec.upstream_hints`).
+    :param protect: refuse (one line) to replace an existing artifact that was made with other settings (a result the
+        user asked for, like a 1000-episode evaluation), unless `force`.
+    :param protect_hint: what the refusal suggests.
     """
     name = artifact or spec.artifact
-    hints = dict(make_hints or {})
+    hints = {**spec.upstream_hints, **(make_hints or {})}
     input_dirs = {up: ws.require(up, hints.get(up, f"drivesim {up}")) for up in spec.requires}
     refs: dict[str, InputRef] = {up: ws.artifact_input(up) for up in spec.requires}
     external_paths = {k: Path(v) for k, v in (external or {}).items()}
     refs.update({k: ws.external_input(p) for k, p in external_paths.items()})
     config_json: dict[str, Any] = cfg.model_dump(mode="json")
+    if protect and not force:
+        differences = ws.other_settings(name, config_json)
+        if differences:
+            raise ArtifactConflictError(
+                f"holds a result made with other settings ({differences}); not replaced: {protect_hint}",
+                ws.artifact_dir(name),
+            )
     manifest = None if force else ws.fresh_manifest(name, spec.name, config_json, refs)
     if manifest is not None:
         summary = spec.summary_model.model_validate(manifest.get("summary", {}))

@@ -145,6 +145,19 @@ class Workspace:
         key = artifact_key(stage, sha256_json(config), inputs)
         return self.read_manifest(name) if self.is_fresh(name, key) else None
 
+    def other_settings(self, name: str, config: dict[str, Any], limit: int = 3) -> str:
+        """How the config of the existing artifact `name` differs from `config` ("episodes: 1000, here 100"), or ""
+        when there is no readable artifact or it was made with the same config."""
+        manifest = self.read_manifest(name)
+        if manifest is None or not isinstance(manifest.get("config"), dict):
+            return ""
+        old = manifest["config"]
+        if sha256_json(old) == sha256_json(config):
+            return ""
+        keys = sorted(k for k in set(old) | set(config) if sha256_json(old.get(k)) != sha256_json(config.get(k)))
+        shown = [f"{k}: {_short(old.get(k))}, here {_short(config.get(k))}" for k in keys[:limit]]
+        return "; ".join(shown) + (f"; and {len(keys) - limit} more" if len(keys) > limit else "")
+
     def clean_stale_temporaries(self) -> None:
         """Remove temporary folders left by a process that was killed before it could clean up."""
         if not self.root.is_dir():
@@ -233,6 +246,11 @@ class Workspace:
             raise DrivesimError(f"could not move the new artifact into place: {e}", final) from e
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+
+
+def _short(value: Any, width: int = 40) -> str:
+    text = json.dumps(value, default=str)
+    return text if len(text) <= width else text[: width - 3] + "..."
 
 
 def manifest_is_valid(manifest: Any) -> bool:

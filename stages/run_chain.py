@@ -170,7 +170,9 @@ def _run_eval(walk: _Walk, spec: StageSpec, cfg: StageConfig) -> StageResult:
     from drivesim.stages.evaluate.stage import run_eval
 
     cfg = cfg.model_copy(update={"policy": str(_needs_run(walk, "eval"))})
-    return run_eval(walk.ws, cfg, force=walk.force)  # type: ignore[arg-type]
+    # An evaluation the user made in this workspace with other settings (`drivesim eval --episodes 1000`) is kept:
+    # the chain's own evaluation goes beside it.
+    return run_eval(walk.ws, cfg, force=walk.force, keep_other="beside")  # type: ignore[arg-type]
 
 
 def _run_export(walk: _Walk, spec: StageSpec, cfg: StageConfig) -> StageResult:

@@ -8,7 +8,7 @@ from drivesim.pipeline.progress import progress_bar
 from drivesim.pipeline.stage import BuildContext
 from drivesim.sim.vehicle_library import VehicleModel, procedural_models, save_library
 from drivesim.stages.meshes.config import MeshesConfig
-from drivesim.stages.meshes.stage import MeshesSummary
+from drivesim.stages.meshes.summary import MeshesSummary
 
 
 def build_meshes(ctx: BuildContext) -> MeshesSummary:

@@ -7,24 +7,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, StageSummary, run_stage
+from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, run_stage
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.meshes.config import MeshesConfig
-
-
-class MeshesSummary(StageSummary):
-    """What the meshes stage records in its manifest (and `drivesim status` shows)."""
-
-    model_count: int
-    """Vehicles in the library."""
-    imported_count: int
-    """Of which imported from user mesh files."""
-    full_triangles_mean: float
-    """Mean triangles per vehicle at the full level of detail."""
-    light_triangles_mean: float
-    """Mean triangles per vehicle at the light level of detail."""
-    seconds: float
-    """Wall time of the stage [s]."""
+from drivesim.stages.meshes.summary import MeshesSummary
 
 
 def _build(ctx: BuildContext) -> MeshesSummary:

@@ -25,7 +25,7 @@ from drivesim.stages.preprocess import poses as poses_mod
 from drivesim.stages.preprocess import series as series_mod
 from drivesim.stages.preprocess.artifact import POSE_ARRAYS_FLOAT
 from drivesim.stages.preprocess.config import PreprocessConfig
-from drivesim.stages.preprocess.stage import PreprocessSummary
+from drivesim.stages.preprocess.summary import PreprocessSummary
 
 
 class LidarPerFrame(Sequence[np.ndarray]):

@@ -6,38 +6,10 @@ stage runs.
 
 from __future__ import annotations
 
-from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, StageSummary, run_stage
+from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, run_stage
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.preprocess.config import PreprocessConfig
-
-
-class PreprocessSummary(StageSummary):
-    """What preprocess records in its manifest (and `drivesim status` shows)."""
-
-    pose_source: str
-    """Where the poses came from (gps_imu, odometry, sfm, ...)."""
-    frame_count: int
-    """Frames preprocessed."""
-    path_length_m: float
-    """Length of the fused path [m]."""
-    residual_m: float | None
-    """RMS residual of the pose fit [m] (None when the source has none)."""
-    depth_method: str
-    """plane, mvs or lidar."""
-    width_px: int
-    """Frame width [px]."""
-    height_px: int
-    """Frame height [px]."""
-    depth_median_m: float | None
-    """Median estimated (non-far) depth over up to 50 frames [m]."""
-    depth_p95_m: float | None
-    """95th percentile of the estimated depth [m]."""
-    depth_far_fraction: float
-    """Fraction of pixels at the far depth (sky, nothing estimated)."""
-    depth_seconds_per_frame: float | None
-    """Depth estimation time per frame [s]."""
-    seconds: float
-    """Wall time of the stage [s]."""
+from drivesim.stages.preprocess.summary import PreprocessSummary
 
 
 def _build(ctx: BuildContext) -> PreprocessSummary:
@@ -54,6 +26,7 @@ SPEC: StageSpec[PreprocessSummary] = StageSpec(
     preset="preprocess",
     summary_model=PreprocessSummary,
     requires=("trace",),
+    upstream_hints={"trace": "drivesim ingest PATH"},
     build=_build,
 )
 
@@ -63,6 +36,4 @@ def run_preprocess(ws: Workspace, cfg: PreprocessConfig, force: bool = False) ->
 
     Does nothing when the artifact is fresh for this config and trace, unless `force`.
     """
-    from drivesim.stages.chain import make_hints
-
-    return run_stage(ws, SPEC, cfg, force=force, make_hints=make_hints())
+    return run_stage(ws, SPEC, cfg, force=force)

@@ -17,48 +17,12 @@ from dataclasses import replace
 from pathlib import Path
 
 from drivesim.pipeline.errors import DrivesimError
-from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, StageSummary, run_stage
+from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, run_stage
 from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
 from drivesim.stages.train.config import TrainConfig
+from drivesim.stages.train.summary import TrainSummary
 
 _ACTIVE_RUN: ContextVar[Path | None] = ContextVar("drivesim_train_run", default=None)
-
-
-class TrainSummary(StageSummary):
-    """A finished training run."""
-
-    task: str
-    """lane, follow or overtake."""
-    run: str
-    """The run folder's name."""
-    steps: int
-    """Env steps trained (warm start not counted)."""
-    updates: int
-    """PPO gradient passes (epochs summed over updates)."""
-    episodes: int
-    """Training episodes finished."""
-    wall_s: float
-    """Training wall time across resumes [s]."""
-    steps_per_s: float
-    """Env steps per second of `learn()` in the last session [1/s]."""
-    time_rollout_s: float
-    """Time collecting rollouts in the last session (simulator included) [s]."""
-    time_simulator_s: float
-    """Time inside the envs' step in the last session [s]."""
-    time_optimization_s: float
-    """Time in PPO updates in the last session [s]."""
-    eval_success_rate: float | None = None
-    """Success rate of the last evaluation on held-back seeds."""
-    eval_return_mean: float | None = None
-    """Mean return of the last evaluation."""
-    policy_steps: int = 0
-    """Env steps of the weights in the run's policy files (the best evaluation's with eval.keep_best)."""
-    policy_eval_success_rate: float | None = None
-    """Success rate on held-back seeds of those weights (None: the last update's weights, not chosen by evaluation)."""
-    warm_start: bool = False
-    """Whether the policy was warm-started from the expert."""
-    worlds: list[str] = []
-    """World folders trained on."""
 
 
 @contextmanager
@@ -99,7 +63,7 @@ def _build(ctx: BuildContext) -> TrainSummary:
         task=cfg.task,
         worlds=[] if cost_free else _worlds_of(ctx),
         meshes=None if cost_free else _meshes_of(ctx.workspace),
-        overrides=dict(cfg.envs.config),
+        overrides=cfg.envs.config.model_dump(),
         cost_free=cost_free,
         worker_threads=cfg.envs.worker_threads,
         processes=cfg.envs.processes,
@@ -138,6 +102,7 @@ SPEC: StageSpec[TrainSummary] = StageSpec(
     preset="train/overtake",
     summary_model=TrainSummary,
     requires=("world",),
+    upstream_hints={"world": "drivesim build-world"},
     build=_build,
     collection=True,
 )
@@ -176,5 +141,4 @@ def run_training(
             force=True,
             external=external,
             artifact=f"runs/{run_dir.name}",
-            make_hints={"world": "drivesim build-world"},
         )

@@ -22,7 +22,7 @@ from drivesim.stages.preprocess.artifact import POSE_ARRAYS, load_preprocessed
 from drivesim.stages.world.birdseye import write_birdseye
 from drivesim.stages.world.config import WorldConfig
 from drivesim.stages.world.pointcloud import fuse_pointcloud, write_ply
-from drivesim.stages.world.stage import WorldSummary
+from drivesim.stages.world.summary import WorldSummary
 
 PREPROCESS_HINT = "drivesim preprocess"
 _CHUNK_FRAMES = 16

@@ -5,34 +5,10 @@ Light to import; the work is in `stages/world/build.py`, imported when the stage
 
 from __future__ import annotations
 
-from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, StageSummary, run_stage
+from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, run_stage
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.world.config import WorldConfig
-
-
-class WorldSummary(StageSummary):
-    """What build-world records in its manifest (and `drivesim status` shows)."""
-
-    frame_count: int
-    """Frames in the world."""
-    path_length_m: float
-    """Length of the recorded path [m]."""
-    curvature_min_1pm: float
-    """Smallest path curvature [1/m]."""
-    curvature_max_1pm: float
-    """Largest path curvature [1/m]."""
-    sim_width_px: int
-    """Simulated image width [px]."""
-    sim_height_px: int
-    """Simulated image height [px]."""
-    pointcloud_points: int
-    """Points in the fused point cloud (0 when disabled)."""
-    pose_source: str | None
-    """Where the preprocessed poses came from."""
-    depth_method: str | None
-    """How the preprocessed depth was estimated."""
-    seconds: float
-    """Wall time of the stage [s]."""
+from drivesim.stages.world.summary import WorldSummary
 
 
 def _build(ctx: BuildContext) -> WorldSummary:
@@ -49,12 +25,11 @@ SPEC: StageSpec[WorldSummary] = StageSpec(
     preset="world",
     summary_model=WorldSummary,
     requires=("trace", "preprocessed"),
+    upstream_hints={"trace": "drivesim ingest PATH", "preprocessed": "drivesim preprocess"},
     build=_build,
 )
 
 
 def run_build_world(ws: Workspace, cfg: WorldConfig, force: bool = False) -> StageResult[WorldSummary]:
     """Build `<ws>/world/` from the trace and the preprocessed poses and depth; no-op when fresh unless `force`."""
-    from drivesim.stages.chain import make_hints
-
-    return run_stage(ws, SPEC, cfg, force=force, make_hints=make_hints())
+    return run_stage(ws, SPEC, cfg, force=force)
