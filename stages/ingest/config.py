@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+import numpy as np
+from pydantic import Field, field_validator
 
 from drivesim.pipeline.config import StageConfig
+from drivesim.stages.ingest.extrinsics import rigid_problem
 
 TOPIC_ROLES = ("camera", "camera_info", "gps", "imu", "twist", "odometry", "lidar", "gt_depth", "gt_pose")
 
@@ -59,6 +61,16 @@ class ExtrinsicsConfig(StageConfig):
     """4x4 camera optical -> vehicle transform (m) used instead of /tf_static or KITTI calibration."""
     camera_height_m: float | None = Field(None, gt=0.0, lt=10.0)
     """Camera height above the ground (m) when the recording does not give it (no base_footprint frame)."""
+
+    @field_validator("T_vehicle_camera")
+    @classmethod
+    def _rigid(cls, value: list[list[float]] | None) -> list[list[float]] | None:
+        if value is None:
+            return value
+        problem = rigid_problem(np.asarray(value, dtype=float))
+        if problem:
+            raise ValueError(f"must be a finite rigid 4x4 transform (camera optical -> vehicle, metres); it {problem}")
+        return value
 
 
 class IngestConfig(StageConfig):

@@ -12,16 +12,37 @@ from drivesim.sim.geometry import invert, se3
 
 
 def transform_from_msg(translation: Any, rotation: Any) -> np.ndarray:
-    """4x4 from a geometry_msgs Transform's translation (Vector3) and rotation (Quaternion)."""
+    """4x4 from a geometry_msgs Transform's translation (Vector3) and rotation (Quaternion).
+
+    A zero quaternion (an unset field) is the identity; a non-finite one gives NaN, for the caller to refuse.
+    """
     quat = np.array([rotation.x, rotation.y, rotation.z, rotation.w], dtype=float)
-    if not np.all(np.isfinite(quat)) or np.linalg.norm(quat) < 1e-9:
+    t = np.array([translation.x, translation.y, translation.z], dtype=float)
+    if not np.all(np.isfinite(quat)):
+        return se3(np.full((3, 3), np.nan), t)
+    if np.linalg.norm(quat) < 1e-9:
         quat = np.array([0.0, 0.0, 0.0, 1.0])
-    return se3(Rotation.from_quat(quat).as_matrix(), np.array([translation.x, translation.y, translation.z]))
+    return se3(Rotation.from_quat(quat).as_matrix(), t)
 
 
 def pose_from_msg(position: Any, orientation: Any) -> np.ndarray:
     """4x4 from a geometry_msgs Pose's position (Point) and orientation (Quaternion)."""
     return transform_from_msg(position, orientation)
+
+
+def rigid_problem(T: np.ndarray) -> str | None:
+    """Why `T` is not a finite rigid 4x4 transform, or None when it is."""
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        return f"is {T.shape}, not 4x4"
+    if not np.all(np.isfinite(T)):
+        return "has non-finite values"
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        return "has a rotation part that is not a rotation (R R^T != I or det < 0)"
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+        return "has a last row other than 0 0 0 1"
+    return None
 
 
 def _strip(frame: str) -> str:

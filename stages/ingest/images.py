@@ -46,12 +46,18 @@ class EncodingError(ValueError):
     """The image encoding is not one drivesim can decode."""
 
 
+class CorruptImageError(EncodingError):
+    """One image message is damaged (empty, short or undecodable payload); the stream itself may be fine."""
+
+
 def _rows(data: bytes | np.ndarray, height: int, step: int, row_bytes: int) -> np.ndarray:
     """The image bytes as (height, row_bytes), dropping any row padding beyond the pixels."""
     buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data.view(np.uint8).ravel()
     step = step or row_bytes
+    if step < row_bytes:
+        raise CorruptImageError(f"image row step {step} is shorter than a row of pixels ({row_bytes} bytes)")
     if buf.size < height * step - (step - row_bytes):
-        raise EncodingError(f"image data is {buf.size} bytes, expected {height} rows of {step} bytes")
+        raise CorruptImageError(f"image data is {buf.size} bytes, expected {height} rows of {step} bytes")
     if step == row_bytes:
         return buf[: height * step].reshape(height, row_bytes)
     return np.lib.stride_tricks.as_strided(buf, shape=(height, row_bytes), strides=(step, 1))
@@ -124,13 +130,15 @@ def compressed_format_ok(fmt: str) -> bool:
 
 def decode_compressed(data: bytes | np.ndarray, reduce_factor: int = 1) -> np.ndarray:
     """RGB uint8 from a jpeg/png CompressedImage payload, optionally decoded at 1/2, 1/4 or 1/8 size."""
-    buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
+    buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data.view(np.uint8).ravel()
+    if buf.size == 0:  # cv2.imdecode raises a cv2.error (!buf.empty()) rather than returning None
+        raise CorruptImageError("compressed image is empty (0 bytes)")
     flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4}.get(
         reduce_factor, cv2.IMREAD_REDUCED_COLOR_8
     )
     bgr = cv2.imdecode(buf, flag)
     if bgr is None:
-        raise EncodingError("compressed image could not be decoded (not a valid jpeg/png)")
+        raise CorruptImageError("compressed image could not be decoded (not a valid jpeg/png)")
     # image_transport's compressed plugin encodes colour images from bgr8, so the decoded order is BGR.
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 

@@ -17,20 +17,30 @@ from drivesim.pipeline.errors import InputError
 from drivesim.pipeline.progress import progress_bar
 from drivesim.sim.geometry import camera_mount, invert, se3
 from drivesim.stages.ingest.config import IngestConfig
+from drivesim.stages.ingest.extrinsics import rigid_problem
 from drivesim.stages.ingest.images import CameraModel, FrameProcessor, working_size
-from drivesim.stages.ingest.output import (
-    FrameStore,
-    IngestResult,
-    OrderedPipeline,
-    empty_gps_series,
-    empty_imu_series,
-    empty_speed_series,
-    write_json,
-)
+from drivesim.stages.ingest.output import FrameStore, empty_gps_series, empty_imu_series, empty_speed_series
+from drivesim.stages.ingest.writer import Extrinsics, FrameStream, TraceWriter, config_extrinsics
 
 IMU_HEIGHT_M = 0.93
 KITTI_CAMERA_HEIGHT_M = 1.65
 _OXTS_FIELDS = 30
+
+
+def _names(path: Path) -> set[str]:
+    return {p.name for p in path.iterdir()} if path.is_dir() else set()
+
+
+def is_kitti_raw_drive(path: Path) -> bool:
+    """A KITTI raw `..._sync` drive folder (oxts/ and image_0X/)."""
+    names = _names(path)
+    return "oxts" in names and any(n.startswith("image_0") for n in names)
+
+
+def is_kitti_odometry(path: Path) -> bool:
+    """A KITTI odometry sequence folder (poses.txt or calib.txt beside the image folders)."""
+    names = _names(path)
+    return "poses.txt" in names or "calib.txt" in names
 
 
 def parse_calib_file(path: Path) -> dict[str, np.ndarray]:
@@ -56,6 +66,8 @@ def parse_calib_file(path: Path) -> dict[str, np.ndarray]:
 def _need(calib: dict[str, np.ndarray], key: str, size: int, path: Path) -> np.ndarray:
     if key not in calib or calib[key].size != size:
         raise InputError(f"KITTI calibration has no {key} with {size} values", path)
+    if not np.all(np.isfinite(calib[key])):
+        raise InputError(f"KITTI calibration {key} has non-finite values", path)
     return calib[key]
 
 
@@ -77,13 +89,24 @@ def _check_increasing(times_ns: np.ndarray, what: str, path: Path) -> None:
 
 
 def _read_rgb(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as e:
+        raise InputError(f"cannot read the image: {e.strerror}", path) from e
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if img is None:
-        raise InputError("unreadable image file", path)
+        raise InputError("unreadable image file (damaged or not a png/jpeg)", path)
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def _write_frames(files: list[Path], processor: FrameProcessor, out_dir: Path, label: str, keep: bool) -> None:
+def _write_frames(
+    trace: TraceWriter, files: list[Path], processor: FrameProcessor, label: str, keep: bool, stem: str = "frames"
+) -> int:
+    """Resize the image files into `<stem>.npy` in order; the rows written.
+
+    A damaged image file refuses the folder rather than being skipped: each file is one line of poses.txt and
+    times.txt, so a gap would shift every pose after it.
+    """
     expected = (processor.camera.height_px, processor.camera.width_px)
 
     def work(file: Path) -> tuple[np.ndarray, np.ndarray | None]:
@@ -93,21 +116,19 @@ def _write_frames(files: list[Path], processor: FrameProcessor, out_dir: Path, l
         return (processor.resize(rgb), rgb if keep else None)
 
     original_size = (processor.camera.width_px, processor.camera.height_px) if keep else None
-    store = FrameStore(out_dir, len(files), (processor.out_width, processor.out_height), original_size)
-
-    def sink(frames: tuple[np.ndarray, np.ndarray | None]) -> None:
-        store.write(frames)
-        progress.advance(task)
-
-    pipeline = OrderedPipeline(work, sink)
+    store = FrameStore(trace.out_dir, len(files), (processor.out_width, processor.out_height), original_size, stem)
+    stream = None
     try:
         with progress_bar(f"ingest {label}", total=len(files)) as (progress, task):
-            for file in files:
-                pipeline.submit(file)
-            pipeline.finish()
+            stream = FrameStream(trace, store, work, lambda: progress.advance(task))
+            for i, file in enumerate(files):
+                stream.submit(file, i)
+            stream.finish(label)
     finally:
-        pipeline.close()
+        if stream is not None:
+            stream.close()
         store.close()
+    return store.frames.rows_written
 
 
 def _image_files(folder: Path) -> list[Path]:
@@ -118,23 +139,24 @@ def _image_files(folder: Path) -> list[Path]:
 
 
 def _write_camera(
+    trace: TraceWriter,
     files: list[Path],
     times_ns: np.ndarray,
     P: np.ndarray,
-    source_size: tuple[int, int],
     cfg: IngestConfig,
-    out_dir: Path,
     label: str,
+    time_base: str,
 ) -> FrameProcessor:
     """Write a KITTI image folder's frames (at the working resolution) and their times; returns the processor used."""
-    source_w, source_h = source_size
+    source_w, source_h = _image_size(files[0])
     processor = FrameProcessor(
         _pinhole(P, source_w, source_h),
         working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale),
         cfg.image.interpolation,
     )
-    _write_frames(files, processor, out_dir, label, cfg.image.keep_original)
-    np.save(out_dir / "frame_times_ns.npy", times_ns)
+    trace.set_camera(label, processor, (source_w, source_h))
+    rows = _write_frames(trace, files, processor, label, cfg.image.keep_original)
+    trace.set_times(times_ns, time_base, frame_rows=rows)
     return processor
 
 
@@ -177,7 +199,10 @@ def kitti_raw_extrinsics(calib_dir: Path, cam_index: int) -> tuple[np.ndarray, n
     T_cam0_velo = se3(_need(velo, "R", 9, velo_path).reshape(3, 3), _need(velo, "T", 3, velo_path))
     T_velo_imu = se3(_need(imu, "R", 9, imu_path).reshape(3, 3), _need(imu, "T", 3, imu_path))
     # Rectified camera X sits at K^-1 P[:, 3] from rectified camera 0 (the stereo baseline).
-    T_camx_cam0 = se3(np.eye(3), np.linalg.solve(P[:, :3], P[:, 3]))
+    try:
+        T_camx_cam0 = se3(np.eye(3), np.linalg.solve(P[:, :3], P[:, 3]))
+    except np.linalg.LinAlgError:
+        raise InputError(f"P_rect_0{cam_index} has a singular 3x3 part (not a camera matrix)", cam_path) from None
     T_cam_imu = T_camx_cam0 @ R_rect @ T_cam0_velo @ T_velo_imu
     T_vehicle_imu = se3(np.eye(3), np.array([0.0, 0.0, IMU_HEIGHT_M]))
     return T_vehicle_imu @ invert(T_cam_imu), P, (int(size[0]), int(size[1]))
@@ -213,9 +238,15 @@ def read_oxts(drive: Path, step_ns: int, use_timestamps: bool) -> tuple[np.ndarr
     return times, np.stack(rows)
 
 
-def _save_oxts(out_dir: Path, times: np.ndarray, oxts: np.ndarray) -> dict[str, int]:
+def _save_oxts(trace: TraceWriter, times: np.ndarray, oxts: np.ndarray) -> dict[str, int]:
+    """gps.npz, imu.npz and speed.npz from the OXTS packets; packets with non-finite values are skipped and counted."""
+    used = list(range(0, 9)) + list(range(11, 14)) + list(range(17, 20)) + [23]
+    finite = np.all(np.isfinite(oxts[:, used]), axis=1)
+    for role in ("gps", "imu", "speed"):
+        trace.skip(role, int(np.count_nonzero(~finite)))
+    times, oxts = times[finite], oxts[finite]
     gps, imu, speed = empty_gps_series(), empty_imu_series(), empty_speed_series()
-    quats = Rotation.from_euler("ZYX", oxts[:, [5, 4, 3]]).as_quat()  # yaw, pitch, roll -> R_enu_imu
+    quats = Rotation.from_euler("ZYX", oxts[:, [5, 4, 3]]).as_quat() if len(oxts) else np.zeros((0, 4))
     for t, row, q in zip(times, oxts, quats, strict=True):
         acc_m = row[23]
         gps.append(
@@ -229,159 +260,182 @@ def _save_oxts(out_dir: Path, times: np.ndarray, oxts: np.ndarray) -> dict[str, 
         )
         imu.append(t_ns=t, angular_velocity_radps=row[17:20], linear_acceleration_mps2=row[11:14], orientation_xyzw=q)
         speed.append(t_ns=t, speed_mps=row[8])
-    return {
-        "gps": gps.save(out_dir / "gps.npz"),
-        "imu": imu.save(out_dir / "imu.npz"),
-        "speed": speed.save(out_dir / "speed.npz"),
-    }
+    out = trace.out_dir
+    return {"gps": gps.save(out / "gps.npz"), "imu": imu.save(out / "imu.npz"), "speed": speed.save(out / "speed.npz")}
 
 
-def ingest_kitti_raw(drive: Path, cfg: IngestConfig, out_dir: Path) -> IngestResult:
-    """Read a KITTI raw `..._sync` drive folder into the trace folder `out_dir`."""
+def _camera_times(stamps_path: Path, n_files: int, step_ns: int) -> tuple[np.ndarray, str]:
+    """(frame times ns, time base) from a raw drive camera's timestamps.txt, or every `step_ns` without one."""
+    if not stamps_path.is_file():
+        return np.arange(n_files, dtype=np.int64) * step_ns, "relative"
+    times = parse_timestamps(stamps_path)
+    if len(times) != n_files:
+        raise InputError(f"{len(times)} timestamps for {n_files} images", stamps_path)
+    return times, "unix"
+
+
+def ingest_kitti_raw(drive: Path, cfg: IngestConfig, trace: TraceWriter) -> None:
+    """Read a KITTI raw `..._sync` drive folder into `trace`."""
     cam_dir = _choose_camera(drive, cfg.topics.camera)
     cam_index = int(cam_dir.name[-1])
-    notes = [f"camera: {cam_dir.name} ({'chosen with --topic camera' if cfg.topics.camera else 'default choice'})"]
+    how = "chosen with --topic camera" if cfg.topics.camera else "default choice"
+    trace.notes.append(f"camera: {cam_dir.name} ({how})")
     files = _image_files(cam_dir / "data")
     T_vehicle_camera, P, rect_size = kitti_raw_extrinsics(drive.parent, cam_index)
-    source_w, source_h = _image_size(files[0])
-    if (source_w, source_h) != rect_size:
+    source_size = _image_size(files[0])
+    if source_size != rect_size:
         raise InputError(
-            f"images are {source_w}x{source_h} but S_rect_0{cam_index} says {rect_size[0]}x{rect_size[1]} "
+            f"images are {source_size[0]}x{source_size[1]} but S_rect_0{cam_index} says {rect_size[0]}x{rect_size[1]} "
             "(only rectified _sync drives are supported)",
             cam_dir,
         )
     step_ns = round(cfg.kitti_time_step_s * 1e9)
-    stamps_path = cam_dir / "timestamps.txt"
-    if stamps_path.is_file():
-        times = parse_timestamps(stamps_path)
-        time_base = "unix"
-        if len(times) != len(files):
-            raise InputError(f"{len(times)} timestamps for {len(files)} images", stamps_path)
-    else:
-        times = np.arange(len(files), dtype=np.int64) * step_ns
-        time_base = "relative"
-    _check_increasing(times, f"camera {cam_dir.name}", stamps_path)
-
+    times, time_base = _camera_times(cam_dir / "timestamps.txt", len(files), step_ns)
+    _check_increasing(times, f"camera {cam_dir.name}", cam_dir / "timestamps.txt")
     oxts_times, oxts = read_oxts(drive, step_ns, use_timestamps=time_base == "unix")
-
-    extrinsics_source = "kitti_calib"
-    height_m: float | None = float(T_vehicle_camera[2, 3])
-    if cfg.extrinsics.T_vehicle_camera is not None:
-        T_vehicle_camera = np.asarray(cfg.extrinsics.T_vehicle_camera, dtype=float)
-        extrinsics_source = "config"
-        height_m = cfg.extrinsics.camera_height_m
-    processor = _write_camera(files, times, P, (source_w, source_h), cfg, out_dir, cam_dir.name)
-    counts = _save_oxts(out_dir, oxts_times, oxts)
-    sensors = {
-        "camera": {"topic": cam_dir.name, "type": "png", "message_count": len(files)},
-        **{name: {"topic": "oxts", "type": "oxts", "message_count": n} for name, n in counts.items()},
-    }
-    return _finish(
-        out_dir, drive, "kitti_raw", cam_dir.name, processor, (source_w, source_h), T_vehicle_camera, height_m,
-        extrinsics_source, time_base, times, sensors, notes,
-    )  # fmt: skip
+    trace.set_extrinsics(
+        config_extrinsics(cfg) or Extrinsics(T_vehicle_camera, float(T_vehicle_camera[2, 3]), "kitti_calib")
+    )
+    _write_camera(trace, files, times, P, cfg, cam_dir.name, time_base)
+    trace.add_sensor("camera", cam_dir.name, "png", len(files))
+    for name, n in _save_oxts(trace, oxts_times, oxts).items():
+        trace.add_sensor(name, "oxts", "oxts", n)
 
 
-def ingest_kitti_odometry(folder: Path, cfg: IngestConfig, out_dir: Path) -> IngestResult:
-    """Read a KITTI odometry sequence folder (image_l/ or image_0X/, poses.txt, calib.txt) into `out_dir`."""
+def _odometry_camera(folder: Path, cfg: IngestConfig) -> Path:
     names = {p.name for p in folder.iterdir()}
     wanted = cfg.topics.camera
     if wanted is None:
         wanted = next((n for n in ("image_l", "image_0", "image_2") if n in names), None)
     if wanted is None or wanted.strip("/") not in names:
         raise InputError("KITTI odometry folder without an image folder (image_l/, image_0/ or image_2/)", folder)
-    cam_dir = folder / wanted.strip("/")
+    return folder / wanted.strip("/")
+
+
+def _odometry_poses(folder: Path, n_images: int, cfg: IngestConfig) -> np.ndarray | None:
+    """(N, 4, 4) T_world_camera from poses.txt, or None when there is none (and none is required)."""
+    poses_path = folder / "poses.txt"
+    if not poses_path.is_file():
+        if cfg.require_pose_source:
+            raise InputError("KITTI odometry folder without poses.txt: no pose source", folder)
+        return None
+    try:
+        rows = np.loadtxt(poses_path, ndmin=2)
+    except ValueError as e:
+        raise InputError(f"unreadable poses ({str(e).splitlines()[0]})", poses_path) from None
+    if rows.shape[1] != 12 or len(rows) != n_images:
+        raise InputError(f"{len(rows)} poses of {rows.shape[1]} values for {n_images} images", poses_path)
+    bad = np.flatnonzero(~np.all(np.isfinite(rows), axis=1))
+    if bad.size:
+        raise InputError(f"pose on line {int(bad[0]) + 1} has non-finite values", poses_path)
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    poses[:, :3, :] = rows.reshape(-1, 3, 4)
+    for i, T in enumerate(poses):
+        problem = rigid_problem(T)
+        if problem:
+            raise InputError(f"pose on line {i + 1} {problem}", poses_path)
+    return poses
+
+
+def _odometry_times(folder: Path, n_images: int, cfg: IngestConfig) -> tuple[np.ndarray, str]:
+    """Frame times from times.txt (seconds), else every kitti_time_step_s (10 Hz by default)."""
+    times_path = folder / "times.txt"
+    if not times_path.is_file():
+        return np.arange(n_images, dtype=np.int64) * round(cfg.kitti_time_step_s * 1e9), "no times.txt"
+    try:
+        seconds = np.loadtxt(times_path, ndmin=1)
+    except ValueError as e:
+        raise InputError(f"unreadable times ({str(e).splitlines()[0]})", times_path) from None
+    if seconds.ndim != 1 or len(seconds) != n_images:
+        raise InputError(f"{len(seconds)} times for {n_images} images", times_path)
+    if not np.all(np.isfinite(seconds)) or np.any(np.abs(seconds) > 1e9):
+        raise InputError("times must be finite seconds since the sequence start", times_path)
+    times = np.round(seconds * 1e9).astype(np.int64)
+    _check_increasing(times, "times.txt", times_path)
+    return times, "times.txt"
+
+
+def ingest_kitti_odometry(folder: Path, cfg: IngestConfig, trace: TraceWriter) -> None:
+    """Read a KITTI odometry sequence folder (image_l/ or image_0X/, poses.txt, calib.txt) into `trace`."""
+    _odometry(folder, cfg, trace)
+
+
+def _odometry(folder: Path, cfg: IngestConfig, trace: TraceWriter) -> tuple[Path, dict[str, np.ndarray], np.ndarray]:
+    """The odometry ingest; (camera folder, calib.txt values, frame times) for the stereo reader."""
+    cam_dir = _odometry_camera(folder, cfg)
     files = _image_files(cam_dir)
     calib_path = folder / "calib.txt"
     if not calib_path.is_file():
         raise InputError("KITTI odometry folder without calib.txt (needed for the intrinsics)", folder)
     calib = parse_calib_file(calib_path)
-    p_key = {"image_r": "P1", "image_1": "P1", "image_2": "P2", "image_3": "P3"}.get(cam_dir.name, "P0")
-    P = _need(calib, p_key, 12, calib_path).reshape(3, 4)
-
-    poses_path = folder / "poses.txt"
-    poses = None
-    if poses_path.is_file():
-        try:
-            rows = np.loadtxt(poses_path, ndmin=2)
-        except ValueError as e:
-            raise InputError(f"unreadable poses ({e})", poses_path) from e
-        if rows.shape[1] != 12 or len(rows) != len(files):
-            raise InputError(f"{len(rows)} poses of {rows.shape[1]} values for {len(files)} images", poses_path)
-        poses = np.tile(np.eye(4), (len(rows), 1, 1))
-        poses[:, :3, :] = rows.reshape(-1, 3, 4)
-    elif cfg.require_pose_source:
-        raise InputError("KITTI odometry folder without poses.txt: no pose source", folder)
-
-    times_path = folder / "times.txt"
-    if times_path.is_file():
-        times = np.round(np.loadtxt(times_path, ndmin=1) * 1e9).astype(np.int64)
-        if len(times) != len(files):
-            raise InputError(f"{len(times)} times for {len(files)} images", times_path)
-    else:
-        times = np.arange(len(files), dtype=np.int64) * round(cfg.kitti_time_step_s * 1e9)
-    _check_increasing(times, f"camera {cam_dir.name}", times_path)
-
-    source_w, source_h = _image_size(files[0])
-    processor = _write_camera(files, times, P, (source_w, source_h), cfg, out_dir, cam_dir.name)
-    sensors = {"camera": {"topic": cam_dir.name, "type": "png", "message_count": len(files)}}
+    P = _need(calib, _P_KEYS.get(cam_dir.name, "P0"), 12, calib_path).reshape(3, 4)
+    poses = _odometry_poses(folder, len(files), cfg)
+    times, times_from = _odometry_times(folder, len(files), cfg)
+    height_m = cfg.extrinsics.camera_height_m or KITTI_CAMERA_HEIGHT_M
+    trace.set_extrinsics(config_extrinsics(cfg) or Extrinsics(camera_mount(0.0, 0.0, height_m), height_m, "default"))
+    _write_camera(trace, files, times, P, cfg, cam_dir.name, "relative")
+    trace.add_sensor("camera", cam_dir.name, "png", len(files))
     if poses is not None:
-        np.savez(out_dir / "poses.npz", t_ns=times, T_world_camera=poses)
-        sensors["poses"] = {"topic": "poses.txt", "type": "kitti_poses", "message_count": len(poses)}
-
-    if cfg.extrinsics.T_vehicle_camera is not None:
-        T_vehicle_camera = np.asarray(cfg.extrinsics.T_vehicle_camera, dtype=float)
-        height_m, extrinsics_source = cfg.extrinsics.camera_height_m, "config"
-    else:
-        height_m = cfg.extrinsics.camera_height_m or KITTI_CAMERA_HEIGHT_M
-        T_vehicle_camera, extrinsics_source = camera_mount(0.0, 0.0, height_m), "default"
-    notes = [f"camera: {cam_dir.name}; no timestamps, frames at {cfg.kitti_time_step_s:g} s"]
-    return _finish(
-        out_dir, folder, "kitti_odometry", cam_dir.name, processor, (source_w, source_h), T_vehicle_camera, height_m,
-        extrinsics_source, "relative", times, sensors, notes,
-    )  # fmt: skip
+        np.savez(trace.out_dir / "poses.npz", t_ns=times, T_world_camera=poses)
+        trace.add_sensor("poses", "poses.txt", "kitti_poses", len(poses))
+    step = f"frames at {cfg.kitti_time_step_s:g} s" if times_from == "no times.txt" else "times from times.txt"
+    trace.notes.append(f"camera: {cam_dir.name}; {step}")
+    return cam_dir, calib, times
 
 
-def _finish(
-    out_dir: Path,
-    recording: Path,
-    fmt: str,
-    camera: str,
-    processor: FrameProcessor,
-    source_size: tuple[int, int],
-    T_vehicle_camera: np.ndarray,
-    height_m: float | None,
-    extrinsics_source: str,
-    time_base: str,
-    times: np.ndarray,
-    sensors: dict,
-    notes: list[str],
-) -> IngestResult:
-    write_json(
-        out_dir / "calibration.json",
-        {
-            "width_px": processor.out_width,
-            "height_px": processor.out_height,
-            "K": processor.K_out,
-            "K_source": processor.K_source,
-            "source_width_px": source_size[0],
-            "source_height_px": source_size[1],
-            "distortion_model": "none",
-            "T_vehicle_camera": T_vehicle_camera,
-            "camera_height_m": height_m,
-            "extrinsics_source": extrinsics_source,
-            "time_base": time_base,
-        },
+_P_KEYS = {"image_l": "P0", "image_0": "P0", "image_r": "P1", "image_1": "P1", "image_2": "P2", "image_3": "P3"}
+_STEREO_PAIRS = {"image_l": "image_r", "image_0": "image_1", "image_2": "image_3"}
+_MAX_STEREO_OFFSET_M = 0.01  # off-axis offset of the right camera a rectified pair may have (KITTI P2/P3: ~1 mm)
+
+
+def is_kitti_stereo(path: Path) -> bool:
+    """A KITTI odometry folder with a stereo pair: image_l/ + image_r/, image_0/ + image_1/ or image_2/ + image_3/."""
+    names = _names(path)
+    return is_kitti_odometry(path) and any(left in names and right in names for left, right in _STEREO_PAIRS.items())
+
+
+def stereo_baseline_m(P_left: np.ndarray, P_right: np.ndarray, path: Path) -> float:
+    """How far (m) the right camera sits along the left camera's +x, from the two rectified 3x4 projections.
+
+    Rectified cameras share K and differ by a translation t: P = K [I | t], so the right camera's centre in the
+    left camera's frame is t_left - t_right. Refused when the pair is not rectified (different K, an off-axis offset).
+    """
+    K = P_left[:, :3]
+    if not np.allclose(K, P_right[:, :3], rtol=1e-6, atol=1e-6):
+        raise InputError("not a rectified stereo pair: the two cameras' P have different intrinsics", path)
+    try:
+        offset = np.linalg.solve(K, P_left[:, 3]) - np.linalg.solve(K, P_right[:, 3])
+    except np.linalg.LinAlgError:
+        raise InputError("stereo calibration has a singular camera matrix", path) from None
+    if np.any(np.abs(offset[1:]) > _MAX_STEREO_OFFSET_M) or not offset[0] > 0:
+        raise InputError(f"not a rectified stereo pair: the right camera sits at {offset.round(4).tolist()} m", path)
+    return float(offset[0])
+
+
+def ingest_kitti_stereo(folder: Path, cfg: IngestConfig, trace: TraceWriter) -> None:
+    """A KITTI odometry stereo folder: the left camera as the trace's camera (as `ingest_kitti_odometry`), plus the
+    right camera's frames in frames_right.npy and the baseline in calibration.json (trace.py)."""
+    cam_dir, calib, times = _odometry(folder, cfg, trace)
+    right = _STEREO_PAIRS.get(cam_dir.name)
+    if right is None or not (folder / right).is_dir():
+        trace.notes.append(f"{cam_dir.name} is not the left camera of a stereo pair: the trace has one camera")
+        return
+    calib_path = folder / "calib.txt"
+    P_left = _need(calib, _P_KEYS[cam_dir.name], 12, calib_path).reshape(3, 4)
+    P_right = _need(calib, _P_KEYS[right], 12, calib_path).reshape(3, 4)
+    baseline_m = stereo_baseline_m(P_left, P_right, calib_path)
+    files = _image_files(folder / right)
+    if len(files) != len(times):
+        raise InputError(f"{len(files)} right images for {len(times)} left images", folder / right)
+    left_size = _image_size(_image_files(cam_dir)[0])
+    if _image_size(files[0]) != left_size:
+        raise InputError(f"right images are not {left_size[0]}x{left_size[1]} as the left ones", folder / right)
+    processor = FrameProcessor(
+        _pinhole(P_right, *left_size),
+        working_size(*left_size, cfg.image.width_px, cfg.image.upscale),
+        cfg.image.interpolation,
     )
-    write_json(
-        out_dir / "sources.json",
-        {"recording": str(recording), "format": fmt, "camera_topic": camera, "sensors": sensors},
-    )
-    summary = {
-        "frame_count": len(times),
-        "duration_s": round(float(times[-1] - times[0]) / 1e9, 3) if len(times) > 1 else 0.0,
-        "width_px": processor.out_width,
-        "height_px": processor.out_height,
-        "sensors": sensors,
-    }
-    return IngestResult(summary=summary, notes=notes)
+    _write_frames(trace, files, processor, right, keep=False, stem="frames_right")
+    trace.add_calibration(right_camera=right, baseline_m=round(baseline_m, 6))
+    trace.add_sensor("camera_right", right, "png", len(files))
+    trace.notes.append(f"stereo: {right} stored as frames_right.npy, baseline {baseline_m:.3f} m")

@@ -1,4 +1,5 @@
-"""Writing the trace files: frames streamed into .npy, growable series arrays, calibration and sources JSON."""
+"""Writing the trace files: frames streamed into .npy, growable series arrays, JSON (the trace's calibration and
+sources are assembled by writer.TraceWriter)."""
 
 from __future__ import annotations
 
@@ -25,15 +26,34 @@ class IngestResult:
 _NUMBER_LIST = re.compile(r"\[\s*((?:-?[\d.eE+-]+|null)(?:,\s*(?:-?[\d.eE+-]+|null))*)\s*\]")
 
 
+def npy_header(shape: tuple[int, ...], dtype: np.dtype, size_bytes: int) -> bytes:
+    """An .npy version 1.0 header for `shape` and `dtype`, padded to exactly `size_bytes` (a multiple of 64).
+
+    numpy's own writer pads to the next multiple of 64, so a header rewritten with a smaller row count could change
+    length and move the data; a fixed size lets a stream writer announce its rows up front and correct them at the end.
+    """
+    text = repr({"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False, "shape": shape}).encode()
+    padding = size_bytes - 10 - len(text) - 1
+    if padding < 0:
+        raise ValueError(f"an .npy header for {shape} does not fit in {size_bytes} bytes")
+    return b"\x93NUMPY\x01\x00" + (size_bytes - 10).to_bytes(2, "little") + text + b" " * padding + b"\n"
+
+
+def npy_header_size(shape: tuple[int, ...], dtype: np.dtype) -> int:
+    """The fixed header size (a multiple of 64 bytes) that fits `shape` and any smaller row count."""
+    return -(-(len(npy_header(shape, dtype, 4096).rstrip(b" \n")) + 1) // 64) * 64
+
+
 class NpyStreamWriter:
-    """Writes an (N, ...) array into an .npy file one row at a time, N known up front.
+    """Writes an (N, ...) array into an .npy file one row at a time, N announced up front.
 
     The header is written first and rows appended with plain file writes: a writable memmap would do the same
     I/O, but its dirty pages count toward the process's resident memory until the kernel writes them back,
-    which for an hour of frames is gigabytes; file writes keep memory flat.
+    which for an hour of frames is gigabytes; file writes keep memory flat. When fewer rows than announced were
+    written (frames skipped as unreadable), `close()` rewrites the header with the real row count.
 
     :param path: the .npy file to create.
-    :param shape: full array shape, first axis = row count.
+    :param shape: full array shape, first axis = the most rows that will be written.
     :param dtype: element type.
     """
 
@@ -43,9 +63,9 @@ class NpyStreamWriter:
         self.dtype = np.dtype(dtype)
         self.row_shape = shape[1:]
         self.rows_written = 0
+        self._header_bytes = npy_header_size(shape, self.dtype)
         self._file: BinaryIO = open(path, "wb")  # noqa: SIM115 (closed by close())
-        header = {"descr": np.lib.format.dtype_to_descr(self.dtype), "fortran_order": False, "shape": shape}
-        np.lib.format.write_array_header_1_0(self._file, header)
+        self._file.write(npy_header(shape, self.dtype, self._header_bytes))
 
     def write(self, row: np.ndarray) -> None:
         """Append the next row (must have the row shape and dtype)."""
@@ -57,7 +77,13 @@ class NpyStreamWriter:
         self.rows_written += 1
 
     def close(self) -> None:
-        """Close the file (an incomplete array is left to the caller to reject)."""
+        """Close the file; the header then says how many rows were written."""
+        if self._file.closed:
+            return
+        if self.rows_written != self.shape[0]:
+            self._file.seek(0)
+            shape = (self.rows_written, *self.row_shape)
+            self._file.write(npy_header(shape, self.dtype, self._header_bytes))
         self._file.close()
 
 
@@ -223,16 +249,22 @@ class FrameStore:
     :param n_frames: frame count.
     :param size: (width, height) of frames.npy.
     :param original_size: (width, height) of frames_original.npy, or None to not keep originals.
+    :param stem: file name stem: "frames", or "frames_right" for a stereo rig's second camera.
     """
 
     def __init__(
-        self, out_dir: Path, n_frames: int, size: tuple[int, int], original_size: tuple[int, int] | None
+        self,
+        out_dir: Path,
+        n_frames: int,
+        size: tuple[int, int],
+        original_size: tuple[int, int] | None,
+        stem: str = "frames",
     ) -> None:
-        self.frames = NpyStreamWriter(out_dir / "frames.npy", (n_frames, size[1], size[0], 3), np.uint8)
+        self.frames = NpyStreamWriter(out_dir / f"{stem}.npy", (n_frames, size[1], size[0], 3), np.uint8)
         self.originals = None
         if original_size is not None:
             shape = (n_frames, original_size[1], original_size[0], 3)
-            self.originals = NpyStreamWriter(out_dir / "frames_original.npy", shape, np.uint8)
+            self.originals = NpyStreamWriter(out_dir / f"{stem}_original.npy", shape, np.uint8)
 
     def write(self, frames: tuple[np.ndarray, np.ndarray | None]) -> None:
         """Append (working frame, original frame or None)."""

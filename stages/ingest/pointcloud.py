@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from drivesim.stages.ingest.output import GrowableArray
+from drivesim.stages.ingest.output import GrowableArray, npy_header
 
 # sensor_msgs/PointField datatypes
 _POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -87,11 +87,8 @@ class LidarWriter:
 
     def close(self) -> int:
         """Write the final .npy header and lidar_scans.npz; the number of scans."""
-        header = {"descr": "<f4", "fortran_order": False, "shape": (self.rows, 4)}
-        text = repr(header).encode("latin1")
-        body = text + b" " * (_HEADER_BYTES - 10 - len(text) - 1) + b"\n"
         self._file.seek(0)
-        self._file.write(b"\x93NUMPY\x01\x00" + len(body).to_bytes(2, "little") + body)
+        self._file.write(npy_header((self.rows, 4), np.dtype("<f4"), _HEADER_BYTES))
         self._file.close()
         np.savez(self.scans_path, t_ns=self.t_ns.array(), start=self.start.array(), count=self.count.array())
         return len(self.t_ns)

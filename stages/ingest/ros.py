@@ -2,11 +2,21 @@
 
 One pass over the recording in log-time order: camera frames are decoded, undistorted, resized and appended to
 frames.npy as they arrive; the series accumulate in growable arrays. Before that pass, the small topics that
-configure it are read once: /tf_static, the first CameraInfo and the first camera message.
+configure it are read once: /tf_static, the first CameraInfo and the first camera message. The trace's calibration
+and sources are written by the TraceWriter (writer.py), which checks them.
+
+Bad input, case by case (issue 22):
+- one damaged camera message (empty, short or undecodable payload): skipped and counted, as a camera driver drops
+  a frame; more than writer.MAX_SKIPPED_FRAME_FRACTION of them refuses the recording;
+- a non-finite GPS / IMU / odometry / twist / pose sample: skipped and counted (series.py);
+- everything the whole trace depends on (CameraInfo intrinsics, /tf_static extrinsics, camera stamps, image size,
+  the encoding, ground-truth depth that must match every frame): refused with one line, since no frame written
+  with it would be right.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +28,7 @@ from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.extrinsics import StaticTfTree
 from drivesim.stages.ingest.images import (
     CameraModel,
+    CorruptImageError,
     EncodingError,
     FrameProcessor,
     compressed_format_ok,
@@ -27,14 +38,7 @@ from drivesim.stages.ingest.images import (
     resize_depth_nearest,
     working_size,
 )
-from drivesim.stages.ingest.output import (
-    FrameStore,
-    GrowableArray,
-    IngestResult,
-    NpyStreamWriter,
-    OrderedPipeline,
-    write_json,
-)
+from drivesim.stages.ingest.output import FrameStore, GrowableArray, NpyStreamWriter
 from drivesim.stages.ingest.pointcloud import LidarWriter, PointCloudError, cloud_points
 from drivesim.stages.ingest.series import (
     GpsRecorder,
@@ -46,22 +50,24 @@ from drivesim.stages.ingest.series import (
     field_of,
     stamp_ns,
 )
-from drivesim.stages.ingest.sources import MessageSource, open_source
+from drivesim.stages.ingest.sources import MessageSource, TopicInfo, open_source
 from drivesim.stages.ingest.topics import TopicChoice, choose_topics, describe_topics
+from drivesim.stages.ingest.writer import Extrinsics, FrameStream, TraceWriter, config_extrinsics
 
-
-def _first(source: MessageSource, topic: str) -> Any | None:
-    for _, _, msg in source.messages([topic]):
-        return msg
-    return None
+_FIRST_IMAGE_TRIES = 8  # camera messages tried for the recorded image size when the first ones are damaged
 
 
 def camera_model_from_info(info: Any) -> CameraModel:
     """The camera model a CameraInfo message describes (ROS1 or ROS2 field names)."""
-    K = np.asarray(field_of(info, "k", "K"), dtype=float).reshape(3, 3)
-    D = np.asarray(field_of(info, "d", "D"), dtype=float).ravel()
-    R = np.asarray(field_of(info, "r", "R"), dtype=float).reshape(3, 3)
-    P = np.asarray(field_of(info, "p", "P"), dtype=float).reshape(3, 4)[:, :3]
+    try:
+        K = np.asarray(field_of(info, "k", "K"), dtype=float).reshape(3, 3)
+        D = np.asarray(field_of(info, "d", "D"), dtype=float).ravel()
+        R = np.asarray(field_of(info, "r", "R"), dtype=float).reshape(3, 3)
+        P = np.asarray(field_of(info, "p", "P"), dtype=float).reshape(3, 4)[:, :3]
+    except ValueError as e:
+        raise EncodingError(f"malformed CameraInfo ({e})") from None
+    if not np.all(np.isfinite(np.concatenate([K.ravel(), D, R.ravel(), P.ravel()]))):
+        raise EncodingError("CameraInfo has non-finite values in K, D, R or P: the intrinsics are unknown")
     if not np.any(R):
         R = np.eye(3)
     if not np.any(P) or P[0, 0] <= 0:
@@ -85,6 +91,8 @@ class _CameraDecoder:
         self.width, self.height = size
 
     def __call__(self, msg: Any) -> np.ndarray:
+        # A size other than the first image's is refused, not skipped: it is a reconfigured camera as often as a
+        # damaged message, and the CameraInfo intrinsics would not apply to it.
         if self.compressed:
             if not compressed_format_ok(msg.format):
                 raise EncodingError(f"unsupported CompressedImage format {msg.format!r} (jpeg and png are)")
@@ -102,54 +110,47 @@ class _CameraDecoder:
         )
 
 
-def _source_size(msg: Any, msgtype: str) -> tuple[int, int]:
-    if msgtype.endswith("CompressedImage"):
-        rgb = decode_compressed(msg.data)
-        return rgb.shape[1], rgb.shape[0]
-    return int(msg.width), int(msg.height)
+@dataclass
+class _Camera:
+    """The camera as the pre-pass found it: its topic, model, frame processing and optical frame name."""
+
+    topic: TopicInfo
+    info_topic: str
+    model: CameraModel
+    source_size: tuple[int, int]
+    processor: FrameProcessor
+    decode: _CameraDecoder
+    frame_id: str
 
 
-def _extrinsics(
-    cfg: IngestConfig, tf: StaticTfTree, camera_frame: str, notes: list[str]
-) -> tuple[np.ndarray, float | None, str, str | None]:
-    """(T_vehicle_camera, camera height m or None, source, vehicle frame name)."""
-    if cfg.extrinsics.T_vehicle_camera is not None:
-        T = np.asarray(cfg.extrinsics.T_vehicle_camera, dtype=float)
-        return T, cfg.extrinsics.camera_height_m, "config", None
-    for vehicle_frame in cfg.extrinsics.vehicle_frames:
-        T = tf.lookup(vehicle_frame, camera_frame) if camera_frame else None
-        if T is None:
+def _first(source: MessageSource, topic: str) -> Any | None:
+    for _, _, msg in source.messages([topic]):
+        return msg
+    return None
+
+
+def _first_image(source: MessageSource, camera: TopicInfo, path: Path) -> tuple[Any, tuple[int, int]]:
+    """The first camera message that decodes, and its (width, height)."""
+    problem = "no readable messages"
+    for i, (_, _, msg) in enumerate(source.messages([camera.name])):
+        if i >= _FIRST_IMAGE_TRIES:
+            break
+        if not camera.msgtype.endswith("CompressedImage"):
+            return msg, (int(msg.width), int(msg.height))
+        try:
+            rgb = decode_compressed(msg.data)
+        except CorruptImageError as e:
+            problem = str(e)
             continue
-        height_m = cfg.extrinsics.camera_height_m
-        if vehicle_frame == "base_footprint":
-            height_m = float(T[2, 3])
-        return T, height_m, "tf_static", vehicle_frame
-    notes.append(
-        f"no /tf_static path from {'/'.join(cfg.extrinsics.vehicle_frames)} to camera frame {camera_frame!r}: "
-        "camera assumed at the vehicle origin looking forward (set extrinsics.T_vehicle_camera to fix)"
-    )
-    from drivesim.sim.geometry import camera_mount
-
-    height_m = cfg.extrinsics.camera_height_m
-    return camera_mount(0.0, 0.0, height_m or 0.0), height_m, "default", None
+        return msg, (rgb.shape[1], rgb.shape[0])
+    raise InputError(f"camera topic {camera.name}: {problem}", path)
 
 
-def ingest_ros(path: Path, fmt: str, cfg: IngestConfig, out_dir: Path) -> IngestResult:
-    """Read a ROS1 bag / rosbag2 folder / MCAP file at `path` into the trace folder `out_dir`."""
-    source = open_source(path, fmt)
-    try:
-        return _ingest(source, path, fmt, cfg, out_dir)
-    except (EncodingError, PointCloudError) as e:
-        raise InputError(str(e), path) from None
-    finally:
-        source.close()
-
-
-def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_dir: Path) -> IngestResult:
-    notes: list[str] = []
+def _choose(source: MessageSource, path: Path, cfg: IngestConfig, trace: TraceWriter) -> TopicChoice:
+    """The topic of each role; refuses a recording without a camera or (when required) a pose source."""
     choice = choose_topics(source.topics, cfg.topics, path)
     camera = choice.roles["camera"]
-    notes.append(f"camera: {camera.name} ({choice.camera_reason})")
+    trace.notes.append(f"camera: {camera.name} ({choice.camera_reason})")
     pose_topics = "gps" in choice.roles or "odometry" in choice.roles
     if cfg.require_pose_source and not pose_topics and choice.tf is None:
         raise InputError(
@@ -159,26 +160,33 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
         )
     if camera.message_count == 0:
         raise InputError(f"camera topic {camera.name} has no messages", path)
+    return choice
 
+
+def _static_tf(source: MessageSource, choice: TopicChoice) -> StaticTfTree:
     tf = StaticTfTree()
     if choice.tf_static is not None:
         for _, _, msg in source.messages([choice.tf_static.name]):
             tf.add_message(msg)
+    return tf
 
-    first_image = _first(source, camera.name)
-    if first_image is None:
-        raise InputError(f"camera topic {camera.name} has no readable messages", path)
-    source_w, source_h = _source_size(first_image, camera.msgtype)
 
+def _camera(source: MessageSource, choice: TopicChoice, path: Path, cfg: IngestConfig) -> _Camera:
+    """Read the first image and the CameraInfo; check that they agree; set up decoding and undistortion."""
+    camera = choice.roles["camera"]
+    first_image, (source_w, source_h) = _first_image(source, camera, path)
     info_topic = choice.roles.get("camera_info")
     info = _first(source, info_topic.name) if info_topic is not None else None
-    if info is None:
+    if info_topic is None or info is None:
         raise InputError(
             f"no CameraInfo for camera {camera.name} (needed for the intrinsics K); "
             f"pass --topic camera_info=/... (found: {describe_topics(source.topics)})",
             path,
         )
-    model = camera_model_from_info(info)
+    try:
+        model = camera_model_from_info(info)
+    except EncodingError as e:
+        raise InputError(f"CameraInfo {info_topic.name}: {e}", path) from None
     if model.K[0, 0] <= 0 or model.K[1, 1] <= 0:
         raise InputError(f"CameraInfo {info_topic.name} has no focal length (uncalibrated camera)", path)
     if (model.width_px, model.height_px) != (source_w, source_h):
@@ -187,181 +195,233 @@ def _ingest(source: MessageSource, path: Path, fmt: str, cfg: IngestConfig, out_
             f"{camera.name} has {source_w}x{source_h}",
             path,
         )
-
     out_size = working_size(source_w, source_h, cfg.image.width_px, cfg.image.upscale)
     processor = FrameProcessor(model, out_size, cfg.image.interpolation)
     reduce_ok = cfg.image.reduced_jpeg_decode and not cfg.image.keep_original
     reduce = processor.reduce_factor_for(source_w) if reduce_ok else 1
     decode = _CameraDecoder(camera.msgtype, reduce, (source_w, source_h))
+    frame_id = (info.header.frame_id or first_image.header.frame_id or "").lstrip("/")
+    return _Camera(camera, info_topic.name, model, (source_w, source_h), processor, decode, frame_id)
 
-    camera_frame = (info.header.frame_id or first_image.header.frame_id or "").lstrip("/")
-    T_vehicle_camera, height_m, extrinsics_source, vehicle_frame = _extrinsics(cfg, tf, camera_frame, notes)
 
-    n_frames = camera.message_count
-    width, height = out_size
-    keep = cfg.image.keep_original
-    frames = FrameStore(out_dir, n_frames, out_size, (source_w, source_h) if keep else None)
-    frame_times = GrowableArray((), np.int64)
+def _extrinsics(
+    cfg: IngestConfig, tf: StaticTfTree, camera_frame: str, notes: list[str]
+) -> tuple[Extrinsics, str | None]:
+    """(where the camera sits, the vehicle frame's name in the tf tree or None)."""
+    configured = config_extrinsics(cfg)
+    if configured is not None:
+        return configured, None
+    for vehicle_frame in cfg.extrinsics.vehicle_frames:
+        T = tf.lookup(vehicle_frame, camera_frame) if camera_frame else None
+        if T is None:
+            continue
+        height_m = float(T[2, 3]) if vehicle_frame == "base_footprint" else cfg.extrinsics.camera_height_m
+        return Extrinsics(T, height_m, "tf_static"), vehicle_frame
+    notes.append(
+        f"no /tf_static path from {'/'.join(cfg.extrinsics.vehicle_frames)} to camera frame {camera_frame!r}: "
+        "camera assumed at the vehicle origin looking forward (set extrinsics.T_vehicle_camera to fix)"
+    )
+    from drivesim.sim.geometry import camera_mount
 
-    gt_depth_topic = choice.roles.get("gt_depth")
-    depth_writer = None
-    depth_times = GrowableArray((), np.int64)
-    if gt_depth_topic is not None:
-        depth_writer = NpyStreamWriter(out_dir / "gt_depth.npy", (n_frames, height, width), np.float32)
+    height_m = cfg.extrinsics.camera_height_m
+    return Extrinsics(camera_mount(0.0, 0.0, height_m or 0.0), height_m, "default"), None
 
-    handlers: dict[str, Any] = {}
-    last_t = [-1]
 
-    def on_camera(msg: Any, log_ns: int) -> None:
+class _Pass:
+    """The single pass over the recording: a handler per topic feeding the frame stream, depth, lidar and series."""
+
+    def __init__(
+        self, source: MessageSource, choice: TopicChoice, cam: _Camera, tf: StaticTfTree, vehicle_frame: str | None
+    ) -> None:
+        self.source, self.choice, self.cam, self.tf, self.vehicle_frame = source, choice, cam, tf, vehicle_frame
+        self.path = source.path
+        self.handlers: dict[str, Any] = {cam.topic.name: self.on_camera}
+        self.recorders: dict[str, Any] = {}
+        self.camera_messages = 0
+        self.last_t = -1
+        self.n_frames = cam.topic.message_count
+        self.depth: NpyStreamWriter | None = None
+        self.depth_times = GrowableArray((), np.int64)
+        self.lidar: LidarWriter | None = None
+        self.tf_poses: TfPoseRecorder | None = None
+        self.frames: FrameStream | None = None
+        self.out_dir = Path()
+        self.notes: list[str] = []
+
+    def add_recorders(self, vehicle_frames: list[str]) -> None:
+        """One recorder per series role present (GPS, IMU, twist / odometry speed, odometry, /tf, ground truth)."""
+        roles = self.choice.roles
+        if "gps" in roles:
+            self._record("gps", GpsRecorder())
+        if "imu" in roles:
+            self._record("imu", ImuRecorder(self.tf, self.vehicle_frame))
+        speed = SpeedRecorder() if "twist" in roles or "odometry" in roles else None
+        if "twist" in roles:
+            self._record("twist", speed)
+        elif speed is not None:
+            self.recorders["speed"] = speed
+        if "odometry" in roles:
+            self._record("odometry", OdometryRecorder(speed if "twist" not in roles else None))
+        if "gt_pose" in roles:
+            self._record("gt_pose", GroundTruthPoseRecorder())
+        if self.choice.tf is not None and "odometry" not in roles:
+            self.tf_poses = TfPoseRecorder(vehicle_frames)
+            self.handlers[self.choice.tf.name] = self.tf_poses
+        if "lidar" in roles:
+            self.handlers[roles["lidar"].name] = self.on_lidar
+
+    def _record(self, role: str, recorder: Any) -> None:
+        self.handlers[self.choice.roles[role].name] = recorder
+        self.recorders[role] = recorder
+
+    def open_depth(self) -> None:
+        """gt_depth.npy, one row per camera frame, when the recording has ground-truth depth."""
+        topic = self.choice.roles.get("gt_depth")
+        if topic is None:
+            return
+        width, height = self.cam.processor.out_width, self.cam.processor.out_height
+        self.depth = NpyStreamWriter(self.out_dir / "gt_depth.npy", (self.n_frames, height, width), np.float32)
+        self.handlers[topic.name] = self.on_depth
+
+    def on_camera(self, msg: Any, log_ns: int) -> None:
+        """Check the stamp order and queue the frame for decoding."""
         t = stamp_ns(msg, log_ns)
-        if t <= last_t[0]:
+        if t <= self.last_t:
             raise InputError(
-                f"camera {camera.name}: stamps not strictly increasing at frame {len(frame_times)} "
-                f"({last_t[0]} ns then {t} ns)",
-                path,
+                f"camera {self.cam.topic.name}: stamps not strictly increasing at frame {self.camera_messages} "
+                f"({self.last_t} ns then {t} ns)",
+                self.path,
             )
-        last_t[0] = t
-        frame_times.append(t)
-        pipeline.submit(msg)
+        self.last_t = t
+        self.camera_messages += 1
+        assert self.frames is not None
+        self.frames.submit(msg, t)
 
-    handlers[camera.name] = on_camera
+    def on_depth(self, msg: Any, log_ns: int) -> None:
+        """Decode one ground-truth depth image at the working resolution."""
+        assert self.depth is not None
+        if self.depth.rows_written >= self.n_frames:
+            topic = self.choice.roles["gt_depth"].name
+            raise InputError(f"{topic} has more messages than {self.cam.topic.name}", self.path)
+        depth_m = decode_depth(msg.data, msg.encoding, int(msg.height), int(msg.width), int(msg.step))
+        size = (self.cam.processor.out_width, self.cam.processor.out_height)
+        self.depth.write(np.ascontiguousarray(resize_depth_nearest(depth_m, size), dtype=np.float32))
+        self.depth_times.append(stamp_ns(msg, log_ns))
 
-    if depth_writer is not None:
-
-        def on_depth(msg: Any, log_ns: int) -> None:
-            if depth_writer.rows_written >= n_frames:
-                raise InputError(f"{gt_depth_topic.name} has more messages than {camera.name}", path)
-            depth_m = decode_depth(msg.data, msg.encoding, int(msg.height), int(msg.width), int(msg.step))
-            depth_writer.write(np.ascontiguousarray(resize_depth_nearest(depth_m, out_size), dtype=np.float32))
-            depth_times.append(stamp_ns(msg, log_ns))
-
-        handlers[gt_depth_topic.name] = on_depth
-
-    recorders: list[Any] = []
-
-    def record(role: str, recorder: Any) -> None:
-        handlers[choice.roles[role].name] = recorder
-        recorders.append(recorder)
-
-    if "gps" in choice.roles:
-        record("gps", GpsRecorder())
-    if "imu" in choice.roles:
-        record("imu", ImuRecorder(tf, vehicle_frame))
-    speed = SpeedRecorder() if "twist" in choice.roles or "odometry" in choice.roles else None
-    if "twist" in choice.roles:
-        record("twist", speed)
-    elif speed is not None:
-        recorders.append(speed)
-    if "odometry" in choice.roles:
-        record("odometry", OdometryRecorder(speed if "twist" not in choice.roles else None))
-    if "gt_pose" in choice.roles:
-        record("gt_pose", GroundTruthPoseRecorder())
-
-    lidar: LidarWriter | None = None
-    if "lidar" in choice.roles:
-
-        def on_lidar(msg: Any, log_ns: int) -> None:
-            nonlocal lidar
+    def on_lidar(self, msg: Any, log_ns: int) -> None:
+        """Append one scan in the vehicle frame (the writer is opened at the first scan)."""
+        if self.lidar is None:
             frame_id = msg.header.frame_id.lstrip("/")
-            if lidar is None:
-                T = tf.lookup(vehicle_frame, frame_id) if vehicle_frame and frame_id else None
-                if T is None:
-                    notes.append(f"lidar frame {frame_id!r} not in /tf_static: points taken as in the vehicle frame")
-                lidar = LidarWriter(out_dir, T)
-            lidar.add(stamp_ns(msg, log_ns), cloud_points(msg))
+            vf = self.vehicle_frame
+            T = self.tf.lookup(vf, frame_id) if vf and frame_id else None
+            if T is None:
+                self.notes.append(f"lidar frame {frame_id!r} not in /tf_static: points taken as in the vehicle frame")
+            elif not np.all(np.isfinite(T)):
+                raise InputError(f"/tf_static transform of lidar frame {frame_id!r} is not finite", self.path)
+            self.lidar = LidarWriter(self.out_dir, T)
+        self.lidar.add(stamp_ns(msg, log_ns), cloud_points(msg))
 
-        handlers[choice.roles["lidar"].name] = on_lidar
+    def _work(self, keep: bool) -> Any:
+        cam = self.cam
 
-    tf_poses: TfPoseRecorder | None = None
-    if choice.tf is not None and "odometry" not in choice.roles:
-        tf_poses = TfPoseRecorder(cfg.extrinsics.vehicle_frames)
-        handlers[choice.tf.name] = tf_poses
+        def work(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
+            rgb = cam.decode(msg)
+            return cam.processor.process_keeping_original(rgb) if keep else (cam.processor.process(rgb), None)
 
-    def sink_frame(frame: tuple[np.ndarray, np.ndarray | None]) -> None:
-        frames.write(frame)
-        progress.advance(task)
+        return work
 
-    def work(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
-        rgb = decode(msg)
-        return processor.process_keeping_original(rgb) if keep else (processor.process(rgb), None)
+    def run(self, trace: TraceWriter, cfg: IngestConfig) -> np.ndarray:
+        """Read every handled message in log-time order; the stamps of the frames written."""
+        self.out_dir = trace.out_dir
+        self.add_recorders(cfg.extrinsics.vehicle_frames)
+        self.open_depth()
+        keep = cfg.image.keep_original
+        size = (self.cam.processor.out_width, self.cam.processor.out_height)
+        store = FrameStore(trace.out_dir, self.n_frames, size, self.cam.source_size if keep else None)
+        try:
+            with progress_bar(f"ingest {self.cam.topic.name}", total=self.n_frames) as (progress, task):
+                self.frames = FrameStream(
+                    trace, store, self._work(keep), lambda: progress.advance(task), (CorruptImageError,)
+                )
+                for topic, log_ns, msg in self.source.messages(list(self.handlers)):
+                    self.handlers[topic](msg, log_ns)
+                times = self.frames.finish(self.cam.topic.name)
+            if self.lidar is not None:
+                self.lidar.close()
+        except BaseException:
+            if self.lidar is not None:
+                self.lidar.abort()
+            raise
+        finally:
+            if self.frames is not None:
+                self.frames.close()
+            store.close()
+            if self.depth is not None:
+                self.depth.close()
+        return times
 
-    pipeline = OrderedPipeline(work, sink_frame)
+    def check_counts(self, times: np.ndarray) -> None:
+        """Refuse a truncated camera stream and ground-truth depth that does not match the frames one to one."""
+        if self.camera_messages != self.n_frames:
+            raise InputError(
+                f"camera {self.cam.topic.name}: the index announces {self.n_frames} messages but "
+                f"{self.camera_messages} could be read (truncated recording?)",
+                self.path,
+            )
+        if self.depth is not None and (
+            self.depth.rows_written != len(times) or not np.array_equal(self.depth_times.array(), times)
+        ):
+            raise InputError(
+                f"{self.choice.roles['gt_depth'].name}: {self.depth.rows_written} depth images whose stamps do not "
+                f"match the {len(times)} frames of {self.cam.topic.name}",
+                self.path,
+            )
+
+    def save_series(self, cfg: IngestConfig, trace: TraceWriter) -> None:
+        """Write the series files; refuse when /tf was the only pose source and never moved the vehicle."""
+        pose_topics = "gps" in self.choice.roles or "odometry" in self.choice.roles
+        if self.tf_poses is not None and self.tf_poses.has_poses():
+            self.tf_poses.save(self.out_dir, self.tf, self.vehicle_frame)
+            assert self.choice.tf is not None
+            self.choice.roles["tf"] = self.choice.tf
+            trace.skip("tf", self.tf_poses.skipped)
+        elif cfg.require_pose_source and not pose_topics:
+            raise InputError(
+                f"camera {self.cam.topic.name} has no pose source: no NavSatFix or Odometry topic, and /tf never "
+                f"moves {' or '.join(cfg.extrinsics.vehicle_frames)} relative to a world frame",
+                self.path,
+            )
+        for role, recorder in self.recorders.items():
+            recorder.save(self.out_dir)
+            trace.skip(role, recorder.skipped)
+        trace.notes.extend(self.notes)
+
+
+def ingest_ros(path: Path, cfg: IngestConfig, trace: TraceWriter) -> None:
+    """Read a ROS1 bag / rosbag2 folder / MCAP file (`trace.format`) at `path` into `trace`."""
+    source = open_source(path, trace.format)
     try:
-        with progress_bar(f"ingest {camera.name}", total=n_frames) as (progress, task):
-            for topic, log_ns, msg in source.messages(list(handlers)):
-                handlers[topic](msg, log_ns)
-            pipeline.finish()
-        if lidar is not None:
-            lidar.close()
-    except BaseException:
-        if lidar is not None:
-            lidar.abort()
-        raise
+        _read(source, path, cfg, trace)
+    except (EncodingError, PointCloudError) as e:
+        raise InputError(str(e), path) from None
     finally:
-        pipeline.close()
-        frames.close()
-        if depth_writer is not None:
-            depth_writer.close()
+        source.close()
 
-    times = frame_times.array()
-    if len(times) != n_frames:
-        raise InputError(
-            f"camera {camera.name}: the index announces {n_frames} messages but {len(times)} could be read "
-            "(truncated recording?)",
-            path,
-        )
-    np.save(out_dir / "frame_times_ns.npy", times)
-    if depth_writer is not None and (
-        depth_writer.rows_written != n_frames or not np.array_equal(depth_times.array(), times)
-    ):
-        raise InputError(
-            f"{gt_depth_topic.name}: {depth_writer.rows_written} depth images whose stamps do not match the "
-            f"{n_frames} frames of {camera.name}",
-            path,
-        )
 
-    if tf_poses is not None and tf_poses.has_poses():
-        tf_poses.save(out_dir, tf, vehicle_frame)
-        choice.roles["tf"] = choice.tf
-    elif cfg.require_pose_source and not pose_topics:
-        raise InputError(
-            f"camera {camera.name} has no pose source: no NavSatFix or Odometry topic, and /tf never moves "
-            f"{' or '.join(cfg.extrinsics.vehicle_frames)} relative to a world frame",
-            path,
-        )
-    for recorder in recorders:
-        recorder.save(out_dir)
-
-    write_json(
-        out_dir / "calibration.json",
-        {
-            "width_px": width,
-            "height_px": height,
-            "K": processor.K_out,
-            "K_source": processor.K_source,
-            "source_width_px": source_w,
-            "source_height_px": source_h,
-            "distortion_model": model.model if model.distorted else "none",
-            "T_vehicle_camera": T_vehicle_camera,
-            "camera_height_m": height_m,
-            "extrinsics_source": extrinsics_source,
-            "time_base": "unix",
-        },
-    )
-    sensors = _sensors(choice)
-    write_json(
-        out_dir / "sources.json",
-        {"recording": str(path), "format": fmt, "camera_topic": camera.name, "sensors": sensors},
-    )
-    duration_s = float(times[-1] - times[0]) / 1e9 if len(times) > 1 else 0.0
-    summary = {
-        "frame_count": int(n_frames),
-        "duration_s": round(duration_s, 3),
-        "width_px": width,
-        "height_px": height,
-        "sensors": sensors,
-    }
-    return IngestResult(summary=summary, notes=notes)
+def _read(source: MessageSource, path: Path, cfg: IngestConfig, trace: TraceWriter) -> None:
+    choice = _choose(source, path, cfg, trace)
+    tf = _static_tf(source, choice)
+    cam = _camera(source, choice, path, cfg)
+    trace.set_camera(cam.topic.name, cam.processor, cam.source_size, cam.model.model if cam.model.distorted else "none")
+    extrinsics, vehicle_frame = _extrinsics(cfg, tf, cam.frame_id, trace.notes)
+    trace.set_extrinsics(extrinsics)  # checked before the long pass, not after it
+    one_pass = _Pass(source, choice, cam, tf, vehicle_frame)
+    times = one_pass.run(trace, cfg)
+    one_pass.check_counts(times)
+    one_pass.save_series(cfg, trace)
+    trace.set_times(times, "unix", frame_rows=len(times))
+    for role, topic in _sensors(choice).items():
+        trace.add_sensor(role, topic.name, topic.msgtype, topic.message_count)
 
 
 _SENSOR_ORDER = (
@@ -369,13 +429,9 @@ _SENSOR_ORDER = (
 )  # fmt: skip
 
 
-def _sensors(choice: TopicChoice) -> dict[str, dict[str, Any]]:
-    """{role: {topic, type, message_count}} in a fixed order, camera first."""
+def _sensors(choice: TopicChoice) -> dict[str, TopicInfo]:
+    """{role: topic} in a fixed order, camera first."""
     topics = dict(choice.roles)
     if choice.tf_static is not None:
         topics["tf_static"] = choice.tf_static
-    return {
-        role: {"topic": topics[role].name, "type": topics[role].msgtype, "message_count": topics[role].message_count}
-        for role in _SENSOR_ORDER
-        if role in topics
-    }
+    return {role: topics[role] for role in _SENSOR_ORDER if role in topics}

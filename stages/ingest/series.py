@@ -1,7 +1,10 @@
 """Recorders for the trace's time series: one per topic role, each fed decoded ROS messages and saved as an .npz.
 
 Every recorder is called as `recorder(msg, log_time_ns)` during the single pass over the recording and keeps its
-samples in growable numpy columns (output.Series), never in lists of message objects.
+samples in growable numpy columns (output.Series), never in lists of message objects. A message with a non-finite
+value the trace needs (NaN latitude, NaN pose, ...) is left out and counted in `skipped`: one bad sample among
+thousands is noise a driver can emit, and the later stages interpolate over the gap; writing it would poison every
+fused pose around it.
 """
 
 from __future__ import annotations
@@ -24,6 +27,10 @@ from drivesim.stages.ingest.output import (
 _NAN4 = np.full(4, np.nan)
 
 
+def _finite(*values: Any) -> bool:
+    return all(bool(np.all(np.isfinite(np.asarray(v, dtype=float)))) for v in values)
+
+
 def field_of(msg: Any, *names: str) -> Any:
     """A message field under its ROS2 or ROS1 name (CameraInfo `k` vs `K`)."""
     for name in names:
@@ -44,15 +51,20 @@ class GpsRecorder:
 
     def __init__(self) -> None:
         self.series = empty_gps_series()
+        self.skipped = 0
 
     def __call__(self, msg: Any, log_ns: int) -> None:
+        covariance = np.asarray(msg.position_covariance, dtype=float).reshape(3, 3)
+        if not _finite(msg.latitude, msg.longitude, msg.altitude, covariance):
+            self.skipped += 1
+            return
         self.series.append(
             t_ns=stamp_ns(msg, log_ns),
             lat_deg=msg.latitude,
             lon_deg=msg.longitude,
             alt_m=msg.altitude,
             status=msg.status.status,
-            covariance_m2=np.asarray(msg.position_covariance, dtype=float).reshape(3, 3),
+            covariance_m2=covariance,
             covariance_type=msg.position_covariance_type,
         )
 
@@ -74,6 +86,7 @@ class ImuRecorder:
         self._tf = tf
         self._vehicle_frame = vehicle_frame
         self._rotations: dict[str, tuple[np.ndarray, Rotation] | None] = {}
+        self.skipped = 0
 
     def _rotation(self, frame_id: str) -> tuple[np.ndarray, Rotation] | None:
         """(R_vehicle_imu, its inverse as a Rotation), or None when no rotation is needed or known."""
@@ -92,12 +105,17 @@ class ImuRecorder:
         q = msg.orientation
         has_orientation = float(field_of(msg, "orientation_covariance")[0]) != -1.0
         quat = np.array([q.x, q.y, q.z, q.w]) if has_orientation else _NAN4
+        if not _finite(quat):
+            quat = _NAN4  # the documented "no orientation"
         if rotation is not None:
             R, rot_imu_vehicle = rotation
             w, a = R @ w, R @ a
             if has_orientation and np.linalg.norm(quat) > 1e-9:
                 # orientation of the vehicle = orientation of the IMU composed with R_imu_vehicle
                 quat = (Rotation.from_quat(quat) * rot_imu_vehicle).as_quat()
+        if not _finite(w, a):
+            self.skipped += 1
+            return
         self.series.append(
             t_ns=stamp_ns(msg, log_ns), angular_velocity_radps=w, linear_acceleration_mps2=a, orientation_xyzw=quat
         )
@@ -113,6 +131,7 @@ class SpeedRecorder:
 
     def __init__(self) -> None:
         self.series = empty_speed_series()
+        self.skipped = 0
 
     def __call__(self, msg: Any, log_ns: int) -> None:
         twist = msg.twist.twist if hasattr(msg.twist, "twist") else msg.twist
@@ -120,6 +139,9 @@ class SpeedRecorder:
 
     def add(self, t_ns: int, speed_mps: float) -> None:
         """One speed sample from another source (odometry)."""
+        if not _finite(speed_mps):
+            self.skipped += 1
+            return
         self.series.append(t_ns=t_ns, speed_mps=speed_mps)
 
     def save(self, out_dir: Path) -> None:
@@ -137,11 +159,15 @@ class OdometryRecorder:
     def __init__(self, speed: SpeedRecorder | None) -> None:
         self.series = empty_odometry_series()
         self._speed = speed
+        self.skipped = 0
 
     def __call__(self, msg: Any, log_ns: int) -> None:
         t = stamp_ns(msg, log_ns)
         p, q = msg.pose.pose.position, msg.pose.pose.orientation
         v, w = msg.twist.twist.linear, msg.twist.twist.angular
+        if not _finite((p.x, p.y, p.z, q.x, q.y, q.z, q.w, v.x, v.y, v.z, w.x, w.y, w.z)):
+            self.skipped += 1
+            return
         self.series.append(
             t_ns=t,
             position_m=(p.x, p.y, p.z),
@@ -168,6 +194,7 @@ class TfPoseRecorder:
         self.series = Series({"T_parent_vehicle": ((4, 4), np.float64)})
         self._vehicle_frames = set(vehicle_frames)
         self.child: str | None = None
+        self.skipped = 0
 
     def __call__(self, msg: Any, log_ns: int) -> None:
         for transform in msg.transforms:
@@ -178,6 +205,9 @@ class TfPoseRecorder:
                 self.child = child
             if child == self.child:
                 T = transform_from_msg(transform.transform.translation, transform.transform.rotation)
+                if not _finite(T):
+                    self.skipped += 1
+                    continue
                 self.series.append(t_ns=stamp_ns(transform, log_ns), T_parent_vehicle=T)
 
     def has_poses(self) -> bool:
@@ -215,9 +245,13 @@ class GroundTruthPoseRecorder:
 
     def __init__(self) -> None:
         self.series = Series({"T_world_vehicle": ((4, 4), np.float64)})
+        self.skipped = 0
 
     def __call__(self, msg: Any, log_ns: int) -> None:
         T = pose_from_msg(msg.pose.position, msg.pose.orientation)
+        if not _finite(T):
+            self.skipped += 1
+            return
         self.series.append(t_ns=stamp_ns(msg, log_ns), T_world_vehicle=T)
 
     def save(self, out_dir: Path) -> None:

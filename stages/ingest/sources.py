@@ -54,41 +54,54 @@ def normalise_msgtype(name: str) -> str:
     return name
 
 
-def detect_format(path: Path) -> str:
-    """The recording kind at `path`: ros1, rosbag2, mcap, kitti_raw or kitti_odometry."""
+def _head(path: Path) -> bytes:
+    try:
+        with open(path, "rb") as f:
+            return f.read(16)
+    except OSError:
+        return b""
+
+
+def is_mcap_file(path: Path) -> bool:
+    """An MCAP file (by its magic bytes)."""
+    return path.is_file() and _head(path).startswith(_MCAP_MAGIC)
+
+
+def is_ros1_bag(path: Path) -> bool:
+    """A ROS1 bag v2.0 (by its magic line)."""
+    return path.is_file() and _head(path).startswith(_ROSBAG1_MAGIC)
+
+
+def is_rosbag2_folder(path: Path) -> bool:
+    """A rosbag2 recording folder (it has metadata.yaml)."""
+    return path.is_dir() and (path / "metadata.yaml").is_file()
+
+
+def unrecognised(path: Path) -> InputError:
+    """The one-line refusal for a path no format matched, saying what it looks like and what to pass instead."""
     if not path.exists():
-        raise InputError("no such file or folder", path)
+        return InputError("no such file or folder", path)
     if path.is_file():
         try:
             with open(path, "rb") as f:
-                head = f.read(16)
+                f.read(16)
         except OSError as e:
-            raise InputError(f"cannot read the file: {e.strerror}", path) from e
-        if head.startswith(_MCAP_MAGIC):
-            return "mcap"
-        if head.startswith(_ROSBAG1_MAGIC):
-            return "ros1"
+            return InputError(f"cannot read the file: {e.strerror}", path)
         if path.suffix == ".db3" or (path.suffix == ".mcap" and (path.parent / "metadata.yaml").is_file()):
-            raise InputError("this is one file of a rosbag2 recording; pass its folder instead", path)
-        raise InputError(
+            return InputError("this is one file of a rosbag2 recording; pass its folder instead", path)
+        return InputError(
             "not a recording drivesim can read (expected a ROS1 .bag, an .mcap file, a rosbag2 folder "
             "or a KITTI raw/odometry folder)",
             path,
         )
-    if (path / "metadata.yaml").is_file():
-        return "rosbag2"
     names = {p.name for p in path.iterdir()}
-    if "oxts" in names and any(n.startswith("image_0") for n in names):
-        return "kitti_raw"
-    if "poses.txt" in names or "calib.txt" in names:
-        return "kitti_odometry"
     if "calib_cam_to_cam.txt" in names:
         drives = sorted(n for n in names if n.endswith("_sync"))
         hint = f" (e.g. {path / drives[0]})" if drives else ""
-        raise InputError(f"this is a KITTI date folder; pass one drive folder inside it{hint}", path)
+        return InputError(f"this is a KITTI date folder; pass one drive folder inside it{hint}", path)
     if any(n.endswith((".db3", ".mcap")) for n in names):
-        raise InputError("rosbag2 folder without metadata.yaml (incomplete recording?)", path)
-    raise InputError(
+        return InputError("rosbag2 folder without metadata.yaml (incomplete recording?)", path)
+    return InputError(
         "folder is not a rosbag2 recording (no metadata.yaml) nor a KITTI raw drive (image_0X/ + oxts/) "
         "nor a KITTI odometry sequence (image_l/ + poses.txt + calib.txt)",
         path,

@@ -38,6 +38,8 @@ class IngestSummary(StageSummary):
     """Working frame height [px]."""
     sensors: dict[str, SensorSummary]
     """Sensor name -> where it came from and how many messages."""
+    skipped: dict[str, int] = {}
+    """Sensor name -> messages left out as unreadable or non-finite (a damaged frame, a NaN GPS fix)."""
 
 
 def _build(ctx: BuildContext) -> IngestSummary:
