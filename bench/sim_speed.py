@@ -16,10 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from drivesim.bench.machine import machine_line, usable_cores
+from drivesim.sim.envs.registry import TASK_NAMES
 
 # "overtake:eval": evaluation episodes, which end at the pass, so the other car is in view at nearly every step; a
 # training episode drives on after the pass with the car behind, out of view (cheaper steps).
-TASKS = ("lane", "follow", "overtake", "overtake:eval")
+TASKS = (*TASK_NAMES, "overtake:eval")
 
 
 def _task_mode(task: str) -> tuple[str, str]:

@@ -23,6 +23,7 @@ from drivesim.cli import eval as eval_cmd
 from drivesim.cli import sim as sim_cmd
 from drivesim.cli.common import err_console, state
 from drivesim.pipeline.errors import DrivesimError, Interrupted, Terminated
+from drivesim.sim.envs.registry import TASK_NAMES
 
 
 class _StoppedError(Exception):
@@ -78,7 +79,8 @@ app.command("synth", help="Render a procedural drive with ground truth and write
 )
 app.command(
     "train",
-    help="Train a driving policy with PPO, a CNN and an LSTM (tasks: lane, follow, overtake) into runs/<task>-<time>/; "
+    help=f"Train a driving policy with PPO, a CNN and an LSTM (tasks: {', '.join(TASK_NAMES)}) into "
+    "runs/<task>-<time>/; "
     "Ctrl-C keeps everything up to the last update and --resume RUN continues it.",
 )(train.train_command)
 app.command("eval", help="Offline closed-loop evaluation: metrics, plots, report.")(eval_cmd.eval_command)

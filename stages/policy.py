@@ -57,7 +57,7 @@ class LoadedPolicy:
     """A trained policy ready to act: `predict` steps N episodes at once, with explicit LSTM state.
 
     :param run_dir: the run folder.
-    :param task: lane, follow or overtake.
+    :param task: the task it was trained on (sim/envs/registry.py).
     :param observation_shape: (C, H, W) of the uint8 images it takes.
     :param env_config: the env config it was trained with (to build the same observations).
     :param config_hash: the run's config hash (from its manifest).

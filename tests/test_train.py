@@ -22,6 +22,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.workspace import Workspace
+from drivesim.sim.envs.registry import TASK_NAMES
 from drivesim.stages.policy import RunError, latest_run, load_policy
 from drivesim.stages.train.best import BestPolicy
 from drivesim.stages.train.config import TrainConfig
@@ -299,7 +300,7 @@ def test_warm_start_clones_the_expert() -> None:
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["train", "bogus"], "choose one of lane, follow, overtake"),
+        (["train", "bogus"], "choose one of " + ", ".join(TASK_NAMES)),
         (["train", "lane", "--world", "/nonexistent"], "not a world folder"),
         (["train", "lane"], "run `drivesim build-world` first"),
         (["train", "--resume", "nope"], "no such run folder"),

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Annotated
-
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-NonNegative = Annotated[float, Field(ge=0.0)]
-Positive = Annotated[float, Field(gt=0.0)]
+# Ranges (low, high) whose values are magnitudes (speeds, distances, factors): negative values are refused.
+_NON_NEGATIVE_RANGES = (
+    "ego_speed_mps", "other_speed_mps", "follow_speed_mps", "front_distance_m", "front_lateral_m", "gamma",
+    "contrast", "saturation",
+)  # fmt: skip
 
 
 class EnvConfig(BaseModel):
@@ -36,15 +37,15 @@ class EnvConfig(BaseModel):
     """Length of the ego's footprint, metres."""
     ego_width_m: float = Field(1.9, gt=0.0)
     """Width of the ego's footprint, metres."""
-    ego_speed_mps: tuple[NonNegative, NonNegative] = (4.0, 10.0)
+    ego_speed_mps: tuple[float, float] = (4.0, 10.0)
     """Range of the ego's speed (lane, overtake), m/s, drawn once per episode."""
-    other_speed_mps: tuple[NonNegative, NonNegative] = (0.0, 4.0)
+    other_speed_mps: tuple[float, float] = (0.0, 4.0)
     """Range of the front car's speed in overtake, m/s."""
-    follow_speed_mps: tuple[NonNegative, NonNegative] = (4.0, 8.0)
+    follow_speed_mps: tuple[float, float] = (4.0, 8.0)
     """Range of the common speed of both cars in follow, m/s."""
-    front_distance_m: tuple[NonNegative, NonNegative] = (6.0, 15.0)
+    front_distance_m: tuple[float, float] = (6.0, 15.0)
     """Range of the front car's start distance ahead of the ego (centre to centre, along the road), metres."""
-    front_lateral_m: tuple[NonNegative, NonNegative] = (1.0, 2.0)
+    front_lateral_m: tuple[float, float] = (1.0, 2.0)
     """Range of the front car's lateral shift from the lane centre (either side, drawn), metres."""
     initial_lateral_m: float = Field(0.3, ge=0.0)
     """The ego starts within ± this lateral offset from the lane centre, metres."""
@@ -93,13 +94,13 @@ class EnvConfig(BaseModel):
     """Height of the observation (the policy's image), pixels."""
     augment: bool = True
     """Episode-level photometric augmentation in training (never in evaluation)."""
-    gamma: tuple[Positive, Positive] = (0.8, 1.25)
+    gamma: tuple[float, float] = (0.8, 1.25)
     """Range of the gamma exponent."""
     brightness: tuple[float, float] = (-0.1, 0.1)
     """Range of the added brightness, fraction of full scale."""
-    contrast: tuple[NonNegative, NonNegative] = (0.8, 1.2)
+    contrast: tuple[float, float] = (0.8, 1.2)
     """Range of the contrast factor around mid-grey."""
-    saturation: tuple[NonNegative, NonNegative] = (0.7, 1.3)
+    saturation: tuple[float, float] = (0.7, 1.3)
     """Range of the saturation factor."""
     far_clearance_m: float = Field(10.0, gt=0.0)
     """Beyond this centre distance the clearance is the centre distance minus both half-diagonals (no polygons)."""
@@ -109,6 +110,10 @@ class EnvConfig(BaseModel):
         for name, value in self:
             if isinstance(value, tuple) and len(value) == 2 and value[0] > value[1]:
                 raise ValueError(f"{name}: the range ({value[0]}, {value[1]}) is reversed; give (low, high)")
+            if name in _NON_NEGATIVE_RANGES and value[0] < 0:
+                raise ValueError(f"{name}: ({value[0]}, {value[1]}) must not be negative")
+        if self.gamma[0] <= 0:
+            raise ValueError(f"gamma: ({self.gamma[0]}, {self.gamma[1]}) must be positive")
         if self.roi_px is not None and (min(self.roi_px) < 0 or self.roi_px[2] < 1 or self.roi_px[3] < 1):
             raise ValueError(f"roi_px {self.roi_px}: give (x0, y0, width, height) with x0, y0 >= 0 and a size >= 1")
         return self

@@ -65,7 +65,7 @@ def _worker(connection: Connection, kwargs: dict[str, Any], threads: int) -> Non
 class ProcessBatchedVecEnv(VecEnv):
     """`n_envs` episodes of `task` in `workers` processes, each a BatchedVecEnv of its share (SB3 VecEnv).
 
-    :param task: lane, follow or overtake. :param n_envs: number of episodes.
+    :param task: a task of sim/envs/registry.py. :param n_envs: number of episodes.
     :param world: a world folder or a list of them. :param meshes: the meshes folder or None (procedural).
     :param mode: "train" or "eval". :param config: a dict of EnvConfig overrides (picklable).
     :param seed: the first reset of episode i uses seed + i (None: random).

@@ -94,7 +94,7 @@ class EpisodeRecord:
     """One closed-loop episode as the rollout writes it (`episodes/<seed>.json`).
 
     :param seed: the reset seed.
-    :param task: "lane", "follow" or "overtake".
+    :param task: the task's name (sim/envs/registry.py).
     :param episode: `info["episode"]` at reset (initial conditions, vehicle sizes).
     :param trajectory: per-step arrays (`TRAJECTORY_FIELDS`), the reset state first; NaN where not applicable.
     :param termination: the env's termination flags at the last step.

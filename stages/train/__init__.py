@@ -1,1 +1,1 @@
-"""`drivesim train`: PPO with a CNN and an LSTM in the simulator (tasks lane, follow, overtake)."""
+"""`drivesim train`: PPO with a CNN and an LSTM in the simulator (the tasks of sim/envs/registry.py)."""
