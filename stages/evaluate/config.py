@@ -18,7 +18,7 @@ class EvalConfig(StageConfig):
     """The task to evaluate (sim/envs/registry.py lists the tasks and their gymnasium ids)."""
     policy: str = "expert"
     """`expert` (the env's privileged expert), a run folder of `drivesim train`, or an exported `.onnx` file."""
-    episodes: int = Field(1000, ge=1)
+    episodes: int = Field(1000, ge=1, le=10_000_000)
     """Number of episodes; episode i is reset with seed `seed + i`."""
     seed: int = Field(0, ge=0)
     """Seed of the first episode."""
@@ -29,7 +29,7 @@ class EvalConfig(StageConfig):
     env: EnvConfig = Field(default_factory=EnvConfig)
     """The env config (keys listed below as env.*); the keys you set override a run's training env config, the
     others come from the run (its view, its thresholds)."""
-    video: int = Field(0, ge=0)
+    video: int = Field(0, ge=0, le=1000)
     """MP4s to render of chosen episodes (alternately the worst and the best)."""
     record: Literal["failures", "all", "none"] | Annotated[int, Field(ge=0)] = "failures"
     """Episodes written as Foxglove MCAP files, `recordings/<seed>.mcap`: failures = those with an intervention, the
@@ -40,7 +40,7 @@ class EvalConfig(StageConfig):
     """Gymnasium id to evaluate in instead of the task's drivesim env (a user's own registered env)."""
     env_entry_point: str | None = None
     """`module:Class` registering `env_id` first when it is not registered yet."""
-    workers: int | None = Field(None, ge=1, exclude=True)
+    workers: int | None = Field(None, ge=1, le=4096, exclude=True)
     """Worker processes (Ray actors with backend ray); null = one per core (of the cluster). Not part of the
     artifact's identity (same seeds, same numbers)."""
     backend: Literal["local", "ray"] = Field("local", exclude=True)

@@ -2,65 +2,71 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, Field, model_validator
 
-from drivesim.pipeline.config import StageConfig
+from drivesim.pipeline.config import STRICT_MODEL_CONFIG, StageConfig
 from drivesim.sim.envs.config import EnvConfig
 from drivesim.sim.envs.registry import TaskName
+from drivesim.stages.net_size import check_network_size
+
+ConvLayer = tuple[
+    Annotated[int, Field(ge=1, le=4096)], Annotated[int, Field(ge=1, le=64)], Annotated[int, Field(ge=1, le=64)]
+]
+"""One convolution: (out_channels, kernel_px, stride_px), each at least 1."""
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True, validate_assignment=True)
+    model_config = STRICT_MODEL_CONFIG  # unknown keys refused, finite floats
 
 
 class PolicyConfig(_Section):
     """The CNN + LSTM (stages/policy_net.py)."""
 
-    conv_layers: list[tuple[int, int, int]] = Field(default_factory=lambda: [(16, 5, 2), (32, 3, 2), (64, 3, 1)])
+    conv_layers: list[ConvLayer] = Field(default_factory=lambda: [(16, 5, 2), (32, 3, 2), (64, 3, 1)], max_length=32)
     """Convolutions as (out_channels, kernel_px, stride_px), 'valid' padding, ReLU after each."""
-    input_pool: int = 2
+    input_pool: int = Field(2, ge=1, le=64)
     """Average-pool factor applied to the standardized image before the first convolution (1: none)."""
-    features_dim: int = 128
+    features_dim: int = Field(128, ge=1)
     """Size of the CNN's feature vector fed to the LSTM."""
-    lstm_hidden_size: int = 128
+    lstm_hidden_size: int = Field(128, ge=1)
     """LSTM cells per layer (one LSTM shared by the steering and the value heads)."""
-    lstm_layers: int = 1
+    lstm_layers: int = Field(1, ge=1, le=16)
     """LSTM layers."""
-    log_std_init: float = -1.0
+    log_std_init: float = Field(-1.0, ge=-20.0, le=5.0)
     """Initial log standard deviation of the Gaussian steering distribution (normalized steering units)."""
-    sequence_length_steps: int = 16
+    sequence_length_steps: int = Field(16, ge=1)
     """Length of the fixed sequence chunks the recurrent training pass runs over [env steps]."""
 
 
 class PPOConfig(_Section):
     """PPO (sb3-contrib RecurrentPPO); the paper: buffer 32000, minibatch 512, defaults otherwise."""
 
-    buffer_steps: int = 32000
+    buffer_steps: int = Field(32000, ge=1)
     """Transitions collected per update, over all envs [env steps]; rounded to whole chunks per env."""
-    minibatch_steps: int = 512
+    minibatch_steps: int = Field(512, ge=1)
     """Transitions per gradient step [env steps]; a multiple of the sequence length."""
-    epochs: int = 10
+    epochs: int = Field(10, ge=1, le=10_000)
     """Passes over the buffer per update."""
-    learning_rate: float = 3e-4
+    learning_rate: float = Field(3e-4, gt=0.0, le=1.0)
     """Adam learning rate."""
-    gamma: float = 0.99
+    gamma: float = Field(0.99, ge=0.0, le=1.0)
     """Discount factor per step."""
-    gae_lambda: float = 0.95
+    gae_lambda: float = Field(0.95, ge=0.0, le=1.0)
     """GAE lambda."""
-    clip_range: float = 0.2
+    clip_range: float = Field(0.2, gt=0.0)
     """PPO clipping of the probability ratio."""
-    ent_coef: float = 0.0
+    ent_coef: float = Field(0.0, ge=0.0)
     """Entropy bonus weight."""
-    vf_coef: float = 0.5
+    vf_coef: float = Field(0.5, ge=0.0)
     """Value loss weight."""
-    max_grad_norm: float = 0.5
+    max_grad_norm: float = Field(0.5, gt=0.0)
     """Gradient norm clip."""
     normalize_reward: bool = True
     """Divide rewards by the running std of the discounted return (SB3 VecNormalize), so the shared trunk's value
     loss stays of order 1 (without it lane keeping learned several times slower, benchmarks/results)."""
-    target_kl: float | None = None
+    target_kl: float | None = Field(None, gt=0.0)
     """Stop an update's epochs early when the KL divergence exceeds 1.5x this (None: never)."""
 
 
@@ -70,17 +76,17 @@ class EnvsConfig(_Section):
     source: Literal["simulator", "cost_free"] = "simulator"
     """simulator: drivesim's envs on the given worlds; cost_free: a stand-in env that costs nothing (a one-stripe
     picture; measures the learner alone and tests the training mechanics; needs no world)."""
-    count: int = 2
+    count: int = Field(2, ge=1, le=100_000)
     """Episodes simulated at once (one per core with subprocesses; any number with `batched`)."""
     vec_env: Literal["batched", "subproc", "dummy"] = "batched"
     """batched: drivesim's BatchedVecEnv (one batched render call per process, see `processes`); subproc: one
     process per env; dummy: all in this process, one after the other."""
-    processes: int = 1
+    processes: int = Field(1, ge=1, le=4096)
     """batched: worker processes the episodes are split over, stepping in parallel (1: in the learner's process;
     the number of cores is a good choice when the simulator dominates)."""
     config: EnvConfig = Field(default_factory=EnvConfig)
     """The env config of every training episode (sim/envs/config.py; its keys are listed below as envs.config.*)."""
-    worker_threads: int = 1
+    worker_threads: int = Field(1, ge=1, le=4096)
     """torch threads in each env worker process."""
     backend: Literal["local", "ray"] = "local"
     """local: the envs run on this machine as `vec_env` says; ray: each env in a Ray actor spread over a cluster
@@ -93,11 +99,11 @@ class EnvsConfig(_Section):
 class EvalConfig(_Section):
     """Periodic evaluation on held-back seeds (deterministic policy, eval mode: any overlap is a collision)."""
 
-    every_steps: int = 50000
+    every_steps: int = Field(50000, ge=0)
     """Evaluate every this many env steps (0: never)."""
-    episodes: int = 8
+    episodes: int = Field(8, ge=0)
     """Episodes per evaluation."""
-    seed: int = 1_000_000
+    seed: int = Field(1_000_000, ge=0)
     """First held-back seed (training episodes never use seeds at or above it)."""
     keep_best: bool = True
     """The run's policy is the weights of its best evaluation (success rate, then mean return; kept in
@@ -109,19 +115,19 @@ class WarmStartConfig(_Section):
 
     method: Literal["none", "expert"] = "none"
     """none: PPO from scratch; expert: DAgger from `env.unwrapped.expert_action()` first."""
-    iterations: int = 4
+    iterations: int = Field(4, ge=1, le=10_000)
     """DAgger rounds; round i acts with the expert with probability beta**i, else with the learner."""
-    beta: float = 0.5
+    beta: float = Field(0.5, ge=0.0, le=1.0)
     """Expert mixing decay per round (round 0 is all expert)."""
-    steps_per_iteration: int = 4096
+    steps_per_iteration: int = Field(4096, ge=1)
     """Env steps collected per round (all envs together)."""
-    epochs: int = 4
+    epochs: int = Field(4, ge=1, le=10_000)
     """Passes over the aggregated data after each round."""
-    learning_rate: float = 1e-3
+    learning_rate: float = Field(1e-3, gt=0.0, le=1.0)
     """Adam learning rate for cloning and for the value fit."""
-    value_fit_steps: int = 4096
+    value_fit_steps: int = Field(4096, ge=0)
     """Env steps of the cloned policy whose returns the value head is fitted to before PPO."""
-    value_fit_epochs: int = 10
+    value_fit_epochs: int = Field(10, ge=0)
     """Passes over those steps for the value head."""
 
 
@@ -130,15 +136,15 @@ class TrainConfig(StageConfig):
 
     task: TaskName = "overtake"
     """The task to train (sim/envs/registry.py)."""
-    total_steps: int = 2_000_000
+    total_steps: int = Field(2_000_000, ge=1)
     """Env steps to train for (warm start not counted)."""
-    time_limit_s: float | None = None
+    time_limit_s: float | None = Field(None, gt=0.0)
     """Stop after this much training wall time, at the end of an update, and finish the run [s] (None: no limit)."""
-    seed: int = 0
+    seed: int = Field(0, ge=0)
     """Seed of the policy's initialization and of the training episodes."""
-    learner_threads: int = 2
+    learner_threads: int = Field(2, ge=1, le=4096)
     """torch threads of the learner (this process)."""
-    checkpoint_every_steps: int = 100_000
+    checkpoint_every_steps: int = Field(100_000, ge=1)
     """Keep a numbered checkpoint every this many env steps (checkpoints/last.pt is rewritten after every update)."""
     policy: PolicyConfig = Field(default_factory=PolicyConfig)
     """The network."""
@@ -161,6 +167,15 @@ class TrainConfig(StageConfig):
             )
         if self.envs.count < 1:
             raise ValueError("envs.count must be at least 1")
+        pol = self.policy
+        check_network_size(
+            self.envs.config.observation_shape,
+            pol.conv_layers,
+            pol.features_dim,
+            pol.lstm_hidden_size,
+            pol.lstm_layers,
+            pol.input_pool,
+        )
         return self
 
     def steps_per_env(self) -> int:
