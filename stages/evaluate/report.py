@@ -24,6 +24,7 @@ from drivesim.stages.evaluate.metrics import (
     along_track,
     breakdowns,
 )
+from drivesim.stages.evaluate.record import recording_link, recordings_html
 
 # Paper Table I (offline overtaking, 1000 episodes each): garage / outdoor.
 PAPER_TABLE_I = {
@@ -106,7 +107,7 @@ def write_outputs(
     }
     (out_dir / "metrics.json").write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
     write_csv(out_dir / "episodes.csv", results)
-    (out_dir / "report.html").write_text(_html(data, agg, levels, figures, results))
+    (out_dir / "report.html").write_text(_html(data, agg, levels, figures, results, out_dir))
     return data
 
 
@@ -157,6 +158,7 @@ def _html(
     levels: Sequence[Any],
     figures: dict[str, Path],
     results: Sequence[EpisodeResult],
+    out_dir: Path | None = None,
 ) -> str:
     esc = html.escape
     meta_keys = ("task", "policy", "episodes", "seed", "world", "meshes", "created_utc")
@@ -194,7 +196,8 @@ def _html(
     worst_rows = "".join(
         f"<tr><td>{r.metrics.seed}</td><td>{'yes' if r.metrics.intervention else 'no'}</td>"
         f"<td>{_causes(r)}</td><td>{r.metrics.min_clearance_m:.3f}</td><td>{r.metrics.max_deviation_m:.3f}</td>"
-        f"<td>{r.metrics.max_yaw_rad:.3f}</td><td>{r.metrics.steps}</td></tr>"
+        f"<td>{r.metrics.max_yaw_rad:.3f}</td><td>{r.metrics.steps}</td>"
+        f"<td>{recording_link(out_dir, r.metrics.seed) if out_dir else '—'}</td></tr>"
         for r in worst
     )
     captions = {
@@ -229,9 +232,10 @@ these episodes (initial lateral difference: the smallest is the most challenging
 {images}
 <h2>Worst episodes</h2>
 <table><tr><th>seed</th><th>intervention</th><th>causes</th><th>min clearance (m)</th><th>max deviation (m)</th>
-<th>max yaw (rad)</th><th>steps</th></tr>{worst_rows}</table>
+<th>max yaw (rad)</th><th>steps</th><th>recording</th></tr>{worst_rows}</table>
 <p class=ci>Every episode: <code>episodes.csv</code>, per-step trajectories in <code>episodes/&lt;seed&gt;.json</code>;
 aggregates in <code>metrics.json</code>.</p>
+{recordings_html(out_dir, results) if out_dir else ""}
 </body></html>
 """
 
