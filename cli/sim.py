@@ -26,6 +26,13 @@ def render_command(
         typer.Option("--meshes", help="Vehicle library (default: <workspace>/meshes if built, else procedural)."),
     ] = None,
     seed: Annotated[int, typer.Option("--seed", help="Episode seed.")] = 0,
+    mcap: Annotated[
+        bool,
+        typer.Option(
+            "--mcap",
+            help="Also write episode.mcap for Foxglove (layout docs/foxglove_layout.json), as `eval --record`.",
+        ),
+    ] = False,
 ) -> None:
     """Drive one episode and write what the ego camera saw (full sim image, the car inserted) at 10 Hz as an MP4, a
     PNG strip of the frames while the ego passes the other car, and a bird's-eye plot of both trajectories with the
@@ -40,12 +47,13 @@ def render_command(
     if meshes is None and (ws.root / "meshes").is_dir():
         meshes = ws.root / "meshes"
     try:
-        summary = render_episode(task, world, meshes, out, seed)
+        summary = render_episode(task, world, meshes, out, seed, mcap=mcap)
     except (ValueError, FileNotFoundError) as exc:
         raise DrivesimError(str(exc)) from None
     console.print(
         f"[green]rendered[/] {summary['steps']} steps of {task} ({summary['outcome']}), min clearance "
-        f"{summary['min_clearance_m']:.2f} m -> {out}/episode.mp4, strip.png, birdseye.png",
+        f"{summary['min_clearance_m']:.2f} m -> {out}/episode.mp4, strip.png, birdseye.png"
+        + (", episode.mcap" if mcap else ""),
         highlight=False,
         soft_wrap=True,
     )

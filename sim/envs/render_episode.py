@@ -12,8 +12,11 @@ import numpy as np
 STRIP_FRAMES = 6
 
 
-def render_episode(task: str, world: Path, meshes: Path | None, out: Path, seed: int) -> dict[str, Any]:
-    """Drive one episode of `task` with the expert at the world's full image size; write the three files."""
+def render_episode(
+    task: str, world: Path, meshes: Path | None, out: Path, seed: int, mcap: bool = False
+) -> dict[str, Any]:
+    """Drive one episode of `task` with the expert at the world's full image size; write the three files, and with
+    `mcap` the episode for Foxglove as `episode.mcap` (sim/episode_mcap.py)."""
     import cv2
     import matplotlib
 
@@ -21,6 +24,7 @@ def render_episode(task: str, world: Path, meshes: Path | None, out: Path, seed:
     import matplotlib.pyplot as plt
 
     from drivesim.sim.envs.registry import task_spec
+    from drivesim.sim.episode_mcap import EpisodeCapture, Road, write_episode_mcap
     from drivesim.sim.footprint import footprint
     from drivesim.sim.world import World
 
@@ -35,8 +39,14 @@ def render_episode(task: str, world: Path, meshes: Path | None, out: Path, seed:
     )
     obs, info = env.reset(seed=seed)
     frames, states = [np.ascontiguousarray(obs.transpose(1, 2, 0))], [info["state"]]
+    capture = EpisodeCapture(seed, task) if mcap else None
+    if capture is not None:
+        capture.add(obs, info, 0.0)
     while True:
-        obs, _, terminated, truncated, info = env.step(env.expert_action())
+        action = env.expert_action()
+        obs, _, terminated, truncated, info = env.step(action)
+        if capture is not None:
+            capture.add(obs, info, float(action[0]))
         frames.append(np.ascontiguousarray(obs.transpose(1, 2, 0)))
         states.append(info["state"])
         if terminated or truncated:
@@ -93,6 +103,9 @@ def render_episode(task: str, world: Path, meshes: Path | None, out: Path, seed:
     clearance = min(s["clearance_m"] for s in states)
     summary = {"task": task, "seed": seed, "steps": len(states) - 1, "outcome": outcome, "min_clearance_m": clearance}
     (out / "summary.json").write_text(json.dumps({**summary, "min_clearance_m": _finite(clearance)}))
+    if capture is not None:
+        road = Road.from_world(world, env.config.max_lateral_m)
+        write_episode_mcap(capture, road, out / "episode.mcap", f"{task} seed {seed}")
     return summary
 
 
