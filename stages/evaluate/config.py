@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from drivesim.pipeline.config import StageConfig
 from drivesim.sim.envs.config import EnvConfig
@@ -51,6 +51,15 @@ class EvalConfig(StageConfig):
     start Ray on this machine for the evaluation. Not part of the artifact's identity."""
     name: str | None = Field(None, exclude=True)
     """The evaluation's folder name under eval/; null = `<task>-<policy>`. Not part of the artifact's identity."""
+
+    @field_validator("record", mode="before")
+    @classmethod
+    def _record_value(cls, value: Any) -> Any:
+        """One readable error for a --record value that is none of the modes (rather than one per union member)."""
+        text = str(value).strip().lower()
+        if text not in ("failures", "all", "none") and not text.isdigit():
+            raise ValueError(f"{value!r}: use failures, all, none or a number of episodes")
+        return int(text) if text.isdigit() else text
 
     def env_overrides(self) -> dict[str, Any]:
         """The env keys the user set (preset, --config or --set), to apply over a run's training env config."""
