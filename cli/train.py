@@ -9,7 +9,7 @@ import typer
 
 from drivesim.cli.common import AddressOption, ConfigOption, SetOption, choose_backend, console, workspace
 from drivesim.pipeline.config import load_config
-from drivesim.pipeline.errors import ConfigError, DrivesimError
+from drivesim.pipeline.errors import ConfigError
 from drivesim.sim.envs.registry import TASK_NAMES, task_help
 
 TaskArgument = Annotated[
@@ -59,7 +59,7 @@ def train_command(
     """
     # Imported here so `drivesim --help` stays fast (training pulls in torch and stable-baselines3).
     from drivesim.stages.train.config import TrainConfig
-    from drivesim.stages.train.run import read_run_config
+    from drivesim.stages.train.resume import plan_resume, reopen
     from drivesim.stages.train.stage import run_training
 
     ws = workspace()
@@ -72,29 +72,11 @@ def train_command(
         if warm_start not in ("expert", "none"):
             raise ConfigError(f"--warm-start {warm_start!r}: the only warm start is 'expert' (or 'none')")
         overrides.append(f"warm_start.method={warm_start}")
-    run_dir = None
+    plan = None
     worlds = list(world or [])
-    if resume is not None:
-        run_dir = resume if resume.is_dir() else ws.root / "runs" / resume
-        if not run_dir.is_dir():
-            raise DrivesimError("no such run folder to resume", resume)
-        if (run_dir / "manifest.json").is_file():
-            raise DrivesimError("this run is finished (it has a manifest); start a new run instead", run_dir)
-        saved, saved_worlds, _ = read_run_config(run_dir)
-        if task is not None and task != saved.task:
-            raise ConfigError(f"--resume {run_dir.name} is a {saved.task} run, not {task}")
-        cfg = load_config(TrainConfig, config_file=config, overrides=overrides) if (config or overrides) else None
-        merged = saved.model_dump(mode="json")
-        if cfg is not None:  # only what the user gave again on the command line changes
-            merged.update(
-                {
-                    k: v
-                    for k, v in cfg.model_dump(mode="json").items()
-                    if k in {o.split("=", 1)[0].split(".")[0] for o in overrides}
-                }
-            )
-        cfg = TrainConfig.model_validate(merged)
-        worlds = worlds or saved_worlds
+    if resume is not None:  # the run's own workspace, its saved config with the keys given again on top
+        plan = plan_resume(ws, resume, task, config, overrides, worlds)
+        ws, cfg, worlds = plan.workspace, plan.cfg, plan.worlds
     else:
         if task is None:
             raise ConfigError(f"give a task to train: {', '.join(TASK_NAMES)} (or --resume RUN)")
@@ -108,7 +90,21 @@ def train_command(
         from drivesim.stages.ray_cluster import import_ray
 
         import_ray()  # a missing Ray is one line before anything runs
-    result = run_training(ws, cfg, worlds=worlds or None, resume=run_dir)
+
+    def on_start(run_dir: Path) -> None:
+        if plan is not None:
+            reopen(plan)  # a finished run trained further is unfinished until its new manifest
+        what = "continuing" if plan is not None else "training"
+        console.print(
+            f"{what} {cfg.task} to {cfg.total_steps} env steps in {run_dir} "
+            f"(Ctrl-C keeps it; `drivesim train --resume {run_dir}` continues it)",
+            highlight=False,
+            soft_wrap=True,
+        )
+
+    result = run_training(
+        ws, cfg, worlds=worlds or None, resume=None if plan is None else plan.run_dir, on_start=on_start
+    )
     for note in result.notes:
         console.print(note, highlight=False, soft_wrap=True)
     s = result.summary

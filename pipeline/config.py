@@ -214,6 +214,27 @@ def load_config(
         raise _friendly(e, model, " + ".join(sources) or "defaults") from None
 
 
+def load_config_over(
+    model: type[ConfigT], base: dict[str, Any], config_file: Path | None = None, overrides: list[str] | None = None
+) -> ConfigT:
+    """A config from `base` (a saved config, e.g. a run's), then a user YAML file and `--set` overrides on top: only
+    the keys the user gives change."""
+    data = dict(base)
+    sources = ["saved config"]
+    if config_file is not None:
+        data = _merge(data, _read_yaml(Path(config_file)))
+        sources.append(str(config_file))
+    for text in overrides or []:
+        keys, value = parse_override(text)
+        _set_path(data, keys, value)
+    if overrides:
+        sources.append("--set")
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        raise _friendly(e, model, " + ".join(sources)) from None
+
+
 def _type_name(annotation: Any) -> str:
     if get_origin(annotation) is Literal:
         return " | ".join(str(arg) for arg in get_args(annotation))

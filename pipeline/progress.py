@@ -1,7 +1,8 @@
 """Progress bars for long work, shared by every stage so they look the same.
 
-On a terminal: a rich progress bar on stderr. Elsewhere (a log file, CI, `nohup`, Slurm): one plain line every
-`PROGRESS_LOG_INTERVAL_S` seconds (`DRIVESIM_PROGRESS_S` overrides it), so a logged run is never silent for long.
+On a terminal: a rich progress bar on stderr. Elsewhere (a log file, CI, `nohup`, Slurm): one plain line on stderr
+every `PROGRESS_LOG_INTERVAL_S` seconds (`DRIVESIM_PROGRESS_S` overrides it), so a logged run is never silent for
+long; stdout stays clean for what a command prints for scripts (`--json`).
 """
 
 from __future__ import annotations

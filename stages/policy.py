@@ -139,9 +139,19 @@ def _check_weights(run_dir: Path, manifest: dict[str, Any]) -> None:
 
 def build_net(info: dict[str, Any]) -> Any:
     """A `DrivingNet` with the architecture recorded in policy.json (random weights)."""
+    from drivesim.stages.net_size import check_network_size
     from drivesim.stages.policy_net import DrivingNet
 
     arch = info["architecture"]
+    # A damaged or hostile policy.json may describe a network larger than memory: refused before torch allocates it.
+    check_network_size(
+        info["observation_shape"],
+        arch["conv_layers"],
+        arch["features_dim"],
+        arch["lstm_hidden_size"],
+        arch["lstm_layers"],
+        arch.get("input_pool", 1),
+    )
     return DrivingNet(
         tuple(info["observation_shape"]),
         [tuple(layer) for layer in arch["conv_layers"]],
@@ -193,8 +203,10 @@ def load_policy(run_dir: Path | str) -> LoadedPolicy:
         net = build_net(info)
         observation_shape = tuple(int(v) for v in info["observation_shape"])
         task = str(info["task"])
-    except (KeyError, TypeError, ValueError) as e:
+    except (KeyError, TypeError) as e:
         raise RunError(f"{POLICY_JSON} lacks or garbles {e}; the run folder is damaged", run_dir) from e
+    except ValueError as e:
+        raise RunError(f"{POLICY_JSON}: {e}; the run folder is damaged or not from drivesim", run_dir) from e
     _check_weights(run_dir, manifest)
     load_weights(net, run_dir / POLICY_WEIGHTS)
     net.eval()

@@ -12,10 +12,12 @@ from typing import Any
 
 import numpy as np
 import torch
+from pydantic import ValidationError
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import VecNormalize
 
-from drivesim.pipeline.errors import ConfigError, DrivesimError
+from drivesim.pipeline.config import validation_line
+from drivesim.pipeline.errors import ConfigError, DrivesimError, Interrupted
 from drivesim.stages.policy import CONFIG_JSON, RUNS_DIR
 from drivesim.stages.train.best import BEST_CHECKPOINT, BestPolicy
 from drivesim.stages.train.callbacks import RunState, TrainingCallback
@@ -40,10 +42,9 @@ from drivesim.stages.train.sb3_policy import DrivingLstmPolicy
 from drivesim.stages.train.warm_start import warm_start
 
 
-class TrainingInterruptedError(DrivesimError):
-    """Ctrl-C during training: the run folder keeps everything up to the last update; --resume continues it."""
-
-    exit_code = 130
+class TrainingInterruptedError(Interrupted):
+    """Ctrl-C or SIGTERM during training: not an error; the run folder keeps everything up to the last update and
+    `--resume` continues it."""
 
 
 @dataclass
@@ -97,7 +98,9 @@ def read_run_config(run_dir: Path) -> tuple[TrainConfig, list[Path], Path | None
         cfg = TrainConfig.model_validate(data["train"])
     except FileNotFoundError as e:
         raise DrivesimError(f"no {CONFIG_JSON}: not a drivesim run folder, nothing to resume", run_dir) from e
-    except (json.JSONDecodeError, KeyError, ValueError) as e:
+    except ValidationError as e:
+        raise DrivesimError(f"{CONFIG_JSON} is refused: {validation_line(e)}; cannot resume this run", run_dir) from e
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as e:
         raise DrivesimError(f"{CONFIG_JSON} is damaged ({type(e).__name__}); cannot resume this run", run_dir) from e
     meshes = data.get("meshes")
     return cfg, [Path(w) for w in data.get("worlds", [])], None if meshes is None else Path(meshes)
@@ -152,9 +155,25 @@ def return_stats(venv: VecNormalize) -> dict[str, Any]:
     }
 
 
-def _restore(model: ChunkedRecurrentPPO, path: Path, venv: VecNormalize) -> dict[str, Any]:
+def read_checkpoint(path: Path) -> dict[str, Any]:
+    """A checkpoint as saved by training (tensors and plain values only: `weights_only`, so a pickle that would run
+    code is refused); DrivesimError (one line) for a damaged or refused file."""
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001  (any damage or a refused pickle: one line)
+        raise DrivesimError(
+            f"cannot read the checkpoint ({type(e).__name__}: {(str(e).splitlines() or [''])[0][:120]}); "
+            "delete it to resume from an older one",
+            path,
+        ) from e
+    if not isinstance(checkpoint, dict):
+        raise DrivesimError("the checkpoint does not hold a dict; delete it to resume from an older one", path)
+    return checkpoint
+
+
+def _restore(model: ChunkedRecurrentPPO, path: Path, venv: VecNormalize) -> dict[str, Any]:
+    checkpoint = read_checkpoint(path)
+    try:
         model.policy.load_driving_net_state(checkpoint["policy"])
         if "optimizer" in checkpoint:
             model.policy.optimizer.load_state_dict(checkpoint["optimizer"])
@@ -188,7 +207,7 @@ def train_in_folder(
     last = run_dir / CHECKPOINTS / LAST_CHECKPOINT
     done_steps = 0
     if last.is_file():
-        done_steps = int(torch.load(last, map_location="cpu", weights_only=True).get("num_timesteps", 0))
+        done_steps = int(read_checkpoint(last).get("num_timesteps", 0))
     try:
         kind = "ray" if cfg.envs.backend == "ray" else cfg.envs.vec_env
         timed = TimedVecEnv(source.make_vec(cfg.envs.count, kind, cfg.seed + done_steps, address=cfg.envs.address))
@@ -255,10 +274,10 @@ def train_in_folder(
             try:
                 model.learn(remaining, callback=callback, reset_num_timesteps=False)
             except KeyboardInterrupt:
+                kept = int(callback.state.rows[-1]["steps"]) if callback.state.rows else 0
                 raise TrainingInterruptedError(
-                    f"interrupted at {int(callback.state.rows[-1]['steps']) if callback.state.rows else 0} env steps "
-                    f"(kept up to the last update); continue with `drivesim train --resume {run_dir}`",
-                    run_dir,
+                    f"interrupted at {kept} env steps; the run keeps everything up to the last update in {run_dir}; "
+                    f"continue with `drivesim train --resume {run_dir}`"
                 ) from None
         elapsed = time.perf_counter() - start
         if evaluator is not None and state.rows and "eval_success_rate" not in state.rows[-1]:

@@ -10,7 +10,7 @@ folder into place. Callers that walk the chain pass `artifact=f"runs/{run_dir.na
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import replace
@@ -109,14 +109,20 @@ SPEC: StageSpec[TrainSummary] = StageSpec(
 
 
 def run_training(
-    ws: Workspace, cfg: TrainConfig, worlds: list[Path] | None = None, resume: Path | None = None
+    ws: Workspace,
+    cfg: TrainConfig,
+    worlds: list[Path] | None = None,
+    resume: Path | None = None,
+    on_start: Callable[[Path], None] | None = None,
 ) -> StageResult[TrainSummary]:
     """Train a policy in a new run folder (or continue the unfinished run `resume`) and finish it with a manifest.
 
     :param ws: the workspace (runs/ goes in it; its world/ is the default world).
     :param cfg: the resolved train config.
     :param worlds: world folders to train on (default: the workspace's world); ignored with the cost-free env.
-    :param resume: an unfinished run folder to continue.
+    :param resume: an unfinished run folder to continue (`stages.train.resume` finds it and reopens a finished one).
+    :param on_start: called with the run folder once the inputs are checked, right before training (the CLI
+        reopens a finished run to train it further, and prints its header).
     """
     from drivesim.stages.train.run import new_run_dir
 
@@ -133,6 +139,10 @@ def run_training(
                 )
         spec = replace(SPEC, requires=())
         external = {f"world_{i:02d}": Path(w).absolute() for i, w in enumerate(worlds)}
+    for upstream in spec.requires:  # a missing world is one line before the header names a run folder
+        ws.require(upstream, spec.upstream_hints.get(upstream, f"drivesim {upstream}"))
+    if on_start is not None:
+        on_start(run_dir)
     with active_run(run_dir):
         return run_stage(
             ws,
