@@ -8,7 +8,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from drivesim.pipeline.config import StageConfig
-from drivesim.stages.ingest.extrinsics import rigid_problem
+from drivesim.stages.ingest.trace import rigid_problem
 
 TOPIC_ROLES = ("camera", "camera_info", "gps", "imu", "twist", "odometry", "lidar", "gt_depth", "gt_pose")
 

@@ -30,21 +30,6 @@ def pose_from_msg(position: Any, orientation: Any) -> np.ndarray:
     return transform_from_msg(position, orientation)
 
 
-def rigid_problem(T: np.ndarray) -> str | None:
-    """Why `T` is not a finite rigid 4x4 transform, or None when it is."""
-    T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4):
-        return f"is {T.shape}, not 4x4"
-    if not np.all(np.isfinite(T)):
-        return "has non-finite values"
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
-        return "has a rotation part that is not a rotation (R R^T != I or det < 0)"
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
-        return "has a last row other than 0 0 0 1"
-    return None
-
-
 def _strip(frame: str) -> str:
     return frame.lstrip("/")
 

@@ -395,6 +395,13 @@ class _Pass:
             recorder.save(self.out_dir)
             trace.skip(role, recorder.skipped)
         trace.notes.extend(self.notes)
+        written = [n for n in ("gps.npz", "odometry.npz") if (self.out_dir / n).is_file()]
+        if cfg.require_pose_source and pose_topics and not written:
+            raise InputError(
+                f"camera {self.cam.topic.name} has no usable pose source: every GPS fix and odometry message has "
+                "non-finite values; set require_pose_source=false to rely on visual SfM",
+                self.path,
+            )
 
 
 def ingest_ros(path: Path, cfg: IngestConfig, trace: TraceWriter) -> None:

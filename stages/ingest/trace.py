@@ -21,13 +21,21 @@ Files (all arrays are .npy; N = frame count):
         "camera_height_m": float | null,          camera optical centre above the ground (null: unknown; the
                                                   z of T_vehicle_camera is then relative to base_link, not the ground)
         "extrinsics_source": "tf_static" | "kitti_calib" | "config" | "default",
-        "time_base": "unix" | "relative"
+        "time_base": "unix" | "relative",
+        "right_camera": str, "baseline_m": float  only with frames_right.npy (below)
     }
-    sources.json            {"recording": str, "format": "ros1" | "rosbag2" | "mcap" | "kitti_raw" | "kitti_odometry",
-                             "camera_topic": str, "sensors": {name: {"topic", "type", "message_count"}}}
+    sources.json            {"recording": str, "format": a name of run.FORMATS ("ros1" | "rosbag2" | "mcap" |
+                             "kitti_raw" | "kitti_odometry" | "kitti_odometry_stereo" | ...), "camera_topic": str,
+                             "sensors": {name: {"topic", "type", "message_count"}}}
                             (the same `sensors` as the manifest summary; KITTI "topics" are folder names)
     frames_original.npy     uint8   (N, Hs, Ws, 3) only with image.keep_original: undistorted frames at the
                             recorded resolution (intrinsics K_source)
+  Stereo (a KITTI odometry stereo folder, format "kitti_odometry_stereo"):
+    frames_right.npy        uint8   (N, H, W, 3)  the right camera of the rectified pair, frame i taken with frame i
+                            of frames.npy, at the same working resolution and with the same intrinsics K; the right
+                            camera's optical centre is `calibration.json:baseline_m` metres along the left camera's
+                            +x axis (x_right = x_left - baseline_m in left camera coordinates), same orientation.
+                            `right_camera` names its source folder (image_r). TraceInfo.baseline_m / right_frames().
   Optional series (present when the recording has them; each an .npz of equal-length arrays sorted by t_ns):
     gps.npz       t_ns int64 (M,); lat_deg, lon_deg, alt_m float64 (M,); status int8 (M,) (NavSatStatus:
                   -1 no fix, 0 fix, 1 SBAS, 2 GBAS); covariance_m2 float64 (M,3,3) ENU position covariance;
@@ -48,7 +56,11 @@ Files (all arrays are .npy; N = frame count):
                   ENU frame; depth at the frame times is in gt_depth.npy float32 (N,H,W) metres (inf = sky),
                   resized to the working resolution by nearest neighbour
 
-`validate_trace(path)` checks all of this (without reading the frames) and returns a `TraceInfo`.
+`validate_trace(path)` checks all of this (without reading the frames) and returns a `TraceInfo`: shapes and dtypes,
+finite intrinsics with positive focal lengths, a finite rigid T_vehicle_camera, strictly increasing frame times,
+finite series values (except imu orientation, NaN when absent) sorted by time, rigid given poses.
+The manifest summary (stage.IngestSummary) also counts, per sensor, the messages ingest skipped as unreadable or
+non-finite (`skipped`).
 """
 
 from __future__ import annotations
@@ -100,6 +112,25 @@ SERIES_COLUMNS: dict[str, dict[str, tuple[tuple[int, ...], str]]] = {
 }
 
 
+# Series columns that may hold NaN: "not measured" (IMU without orientation).
+NAN_ALLOWED = {("imu", "orientation_xyzw")}
+
+
+def rigid_problem(T: np.ndarray) -> str | None:
+    """Why `T` is not a finite rigid 4x4 transform, or None when it is."""
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        return f"is {T.shape}, not 4x4"
+    if not np.all(np.isfinite(T)):
+        return "has non-finite values"
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        return "has a rotation part that is not a rotation (R R^T != I or det < 0)"
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+        return "has a last row other than 0 0 0 1"
+    return None
+
+
 @dataclass(frozen=True)
 class TraceInfo:
     """What a valid trace holds, for later stages (arrays are opened lazily from `path`)."""
@@ -117,6 +148,8 @@ class TraceInfo:
     sources: dict[str, Any]
     series: tuple[str, ...]
     has_gt_depth: bool
+    baseline_m: float | None = None
+    """Stereo traces: the right camera's offset along the left camera's +x (m); None without frames_right.npy."""
 
     def frames(self) -> np.ndarray:
         """frames.npy memory-mapped read-only, uint8 (N, H, W, 3)."""
@@ -136,6 +169,10 @@ class TraceInfo:
     def lidar_points(self) -> np.ndarray | None:
         """lidar_points.npy memory-mapped read-only, float32 (P, 4), or None (scan rows: load_series("lidar_scans"))."""
         return np.load(self.path / "lidar_points.npy", mmap_mode="r") if "lidar_scans" in self.series else None
+
+    def right_frames(self) -> np.ndarray | None:
+        """frames_right.npy memory-mapped read-only, uint8 (N, H, W, 3), or None for a one-camera trace."""
+        return np.load(self.path / "frames_right.npy", mmap_mode="r") if self.baseline_m is not None else None
 
     def gt_depth(self) -> np.ndarray | None:
         """gt_depth.npy memory-mapped read-only, float32 (N, H, W) metres, or None."""
@@ -163,8 +200,111 @@ def _npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype, int]:
     return shape, dtype, data_offset
 
 
+def _check_calibration(path: Path, calibration: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """(K, T_vehicle_camera) after checking the keys, finite intrinsics and a rigid transform."""
+    file = path / "calibration.json"
+    missing = [k for k in CALIBRATION_KEYS if k not in calibration]
+    if missing:
+        raise _fail(file, f"missing keys {missing}")
+    try:
+        K = np.asarray(calibration["K"], dtype=float)
+        T = np.asarray(calibration["T_vehicle_camera"], dtype=float)
+    except (TypeError, ValueError) as e:
+        raise _fail(file, f"K and T_vehicle_camera must be numeric matrices ({e})") from None
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise _fail(file, f"K must be 3x3, finite, with positive focal lengths, got {K.tolist()}")
+    if rigid_problem(T) is not None:
+        raise _fail(file, f"T_vehicle_camera must be a 4x4 rigid transform (it {rigid_problem(T)})")
+    height = calibration["camera_height_m"]
+    if height is not None and not (isinstance(height, int | float) and np.isfinite(height)):
+        raise _fail(file, f"camera_height_m must be a finite number or null, got {height!r}")
+    return K, T
+
+
+def _check_frames(path: Path, width: int, height: int) -> tuple[int, np.ndarray]:
+    """(frame count, frame times) after checking frames.npy's header and the times."""
+    shape, dtype, _ = _npy_header(path / "frames.npy")
+    if dtype != np.uint8 or len(shape) != 4 or shape[1:] != (height, width, 3) or shape[0] < 1:
+        raise _fail(path / "frames.npy", f"expected uint8 (N >= 1, {height}, {width}, 3), got {dtype} {shape}")
+    n = shape[0]
+    times = np.load(path / "frame_times_ns.npy")
+    if times.dtype != np.int64 or times.shape != (n,):
+        raise _fail(path / "frame_times_ns.npy", f"expected int64 ({n},), got {times.dtype} {times.shape}")
+    if n > 1 and np.any(np.diff(times) <= 0):
+        raise _fail(path / "frame_times_ns.npy", "frame times are not strictly increasing")
+    return n, times
+
+
+def _check_series(path: Path) -> list[str]:
+    """The series present, after checking their columns' shapes, kinds, finiteness and time order."""
+    series = []
+    for name, columns in SERIES_COLUMNS.items():
+        file = path / f"{name}.npz"
+        if not file.is_file():
+            continue
+        with np.load(file) as data:
+            if "t_ns" not in data.files:
+                raise _fail(file, "no t_ns array")
+            m = len(data["t_ns"])
+            if m > 1 and np.any(np.diff(data["t_ns"]) < 0):
+                raise _fail(file, "t_ns is not sorted")
+            for col, (row_shape, kind) in columns.items():
+                if col not in data.files:
+                    raise _fail(file, f"no {col} array")
+                arr = data[col]
+                if arr.shape != (m, *row_shape) or arr.dtype.kind != kind:
+                    raise _fail(file, f"{col} is {arr.dtype} {arr.shape}, expected ({m}, {row_shape}) of kind {kind}")
+                if kind == "f" and (name, col) not in NAN_ALLOWED and not np.all(np.isfinite(arr)):
+                    raise _fail(file, f"{col} has non-finite values")
+        series.append(name)
+    return series
+
+
+def _check_extra_arrays(path: Path, calibration: dict[str, Any], n: int) -> tuple[list[str], bool, float | None]:
+    """Check the optional arrays (originals, lidar, ground-truth depth, right camera); (extra series, gt depth?,
+    stereo baseline or None)."""
+    width, height = int(calibration["width_px"]), int(calibration["height_px"])
+    if (path / "frames_original.npy").is_file():
+        o_shape, o_dtype, _ = _npy_header(path / "frames_original.npy")
+        source = (int(calibration["source_height_px"]), int(calibration["source_width_px"]), 3)
+        if o_dtype != np.uint8 or o_shape != (n, *source):
+            raise _fail(path / "frames_original.npy", f"expected uint8 ({n}, {source}), got {o_dtype} {o_shape}")
+    series = []
+    if (path / "lidar_points.npy").is_file() or (path / "lidar_scans.npz").is_file():
+        if not (path / "lidar_scans.npz").is_file():
+            raise _fail(path / "lidar_scans.npz", "missing file (lidar_points.npy needs it)")
+        p_shape, p_dtype, _ = _npy_header(path / "lidar_points.npy")
+        with np.load(path / "lidar_scans.npz") as scans:
+            end = int((scans["start"] + scans["count"]).max()) if len(scans["t_ns"]) else 0
+        if p_dtype != np.float32 or len(p_shape) != 2 or p_shape[1] != 4 or end > p_shape[0]:
+            raise _fail(path / "lidar_points.npy", f"expected float32 (>= {end}, 4), got {p_dtype} {p_shape}")
+        series.append("lidar_scans")
+    has_gt_depth = (path / "gt_depth.npy").is_file()
+    if has_gt_depth:
+        d_shape, d_dtype, _ = _npy_header(path / "gt_depth.npy")
+        if d_dtype != np.float32 or d_shape != (n, height, width):
+            raise _fail(path / "gt_depth.npy", f"expected float32 ({n}, {height}, {width}), got {d_dtype} {d_shape}")
+    return series, has_gt_depth, _check_right(path, calibration, n, width, height)
+
+
+def _check_right(path: Path, calibration: dict[str, Any], n: int, width: int, height: int) -> float | None:
+    has_right = (path / "frames_right.npy").is_file()
+    if not has_right and "baseline_m" not in calibration:
+        return None
+    if not has_right:
+        raise _fail(path / "frames_right.npy", "missing file (calibration.json gives a stereo baseline_m)")
+    r_shape, r_dtype, _ = _npy_header(path / "frames_right.npy")
+    if r_dtype != np.uint8 or r_shape != (n, height, width, 3):
+        raise _fail(path / "frames_right.npy", f"expected uint8 ({n}, {height}, {width}, 3), got {r_dtype} {r_shape}")
+    baseline = calibration.get("baseline_m")
+    if not isinstance(baseline, int | float) or not np.isfinite(baseline) or baseline <= 0:
+        raise _fail(path / "calibration.json", f"baseline_m must be a positive number of metres, got {baseline!r}")
+    return float(baseline)
+
+
 def validate_trace(path: Path | str) -> TraceInfo:
-    """Check a trace folder against the schema above (files, shapes, dtypes, increasing times); return its TraceInfo.
+    """Check a trace folder against the schema above (files, shapes, dtypes, finite values, increasing times);
+    return its TraceInfo.
 
     Raises InputError naming the file and the problem. Only headers and small arrays are read, never frames.
     """
@@ -175,73 +315,24 @@ def validate_trace(path: Path | str) -> TraceInfo:
     try:
         calibration = json.loads((path / "calibration.json").read_text())
         sources = json.loads((path / "sources.json").read_text())
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise _fail(path, f"unreadable JSON ({e})") from e
-    missing = [k for k in CALIBRATION_KEYS if k not in calibration]
-    if missing:
-        raise _fail(path / "calibration.json", f"missing keys {missing}")
-    width, height = int(calibration["width_px"]), int(calibration["height_px"])
-    K = np.asarray(calibration["K"], dtype=float)
-    T = np.asarray(calibration["T_vehicle_camera"], dtype=float)
-    if K.shape != (3, 3) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise _fail(path / "calibration.json", f"K must be 3x3 with positive focal lengths, got {K.tolist()}")
-    if T.shape != (4, 4) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-4):
-        raise _fail(path / "calibration.json", "T_vehicle_camera must be a 4x4 rigid transform")
-
-    shape, dtype, _ = _npy_header(path / "frames.npy")
-    if dtype != np.uint8 or len(shape) != 4 or shape[1:] != (height, width, 3):
-        raise _fail(path / "frames.npy", f"expected uint8 (N, {height}, {width}, 3), got {dtype} {shape}")
-    n = shape[0]
-    times = np.load(path / "frame_times_ns.npy")
-    if times.dtype != np.int64 or times.shape != (n,):
-        raise _fail(path / "frame_times_ns.npy", f"expected int64 ({n},), got {times.dtype} {times.shape}")
-    if n > 1 and np.any(np.diff(times) <= 0):
-        raise _fail(path / "frame_times_ns.npy", "frame times are not strictly increasing")
-
-    series = []
-    for name, columns in SERIES_COLUMNS.items():
-        file = path / f"{name}.npz"
-        if not file.is_file():
-            continue
-        with np.load(file) as data:
-            if "t_ns" not in data.files:
-                raise _fail(file, "no t_ns array")
-            m = len(data["t_ns"])
-            for col, (row_shape, kind) in columns.items():
-                if col not in data.files:
-                    raise _fail(file, f"no {col} array")
-                arr = data[col]
-                if arr.shape != (m, *row_shape) or arr.dtype.kind != kind:
-                    raise _fail(file, f"{col} is {arr.dtype} {arr.shape}, expected ({m}, {row_shape}) of kind {kind}")
-        series.append(name)
-
-    if (path / "frames_original.npy").is_file():
-        o_shape, o_dtype, _ = _npy_header(path / "frames_original.npy")
-        source = (int(calibration["source_height_px"]), int(calibration["source_width_px"]), 3)
-        if o_dtype != np.uint8 or o_shape != (n, *source):
-            raise _fail(path / "frames_original.npy", f"expected uint8 ({n}, {source}), got {o_dtype} {o_shape}")
-
-    if (path / "lidar_points.npy").is_file() or (path / "lidar_scans.npz").is_file():
-        if not (path / "lidar_scans.npz").is_file():
-            raise _fail(path / "lidar_scans.npz", "missing file (lidar_points.npy needs it)")
-        p_shape, p_dtype, _ = _npy_header(path / "lidar_points.npy")
-        with np.load(path / "lidar_scans.npz") as scans:
-            end = int((scans["start"] + scans["count"]).max()) if len(scans["t_ns"]) else 0
-        if p_dtype != np.float32 or len(p_shape) != 2 or p_shape[1] != 4 or end > p_shape[0]:
-            raise _fail(path / "lidar_points.npy", f"expected float32 (>= {end}, 4), got {p_dtype} {p_shape}")
-        series.append("lidar_scans")
-
-    has_gt_depth = (path / "gt_depth.npy").is_file()
-    if has_gt_depth:
-        d_shape, d_dtype, _ = _npy_header(path / "gt_depth.npy")
-        if d_dtype != np.float32 or d_shape != (n, height, width):
-            raise _fail(path / "gt_depth.npy", f"expected float32 ({n}, {height}, {width}), got {d_dtype} {d_shape}")
-
+    if not isinstance(calibration, dict) or not isinstance(sources, dict):
+        raise _fail(path, "calibration.json and sources.json must hold JSON objects")
+    K, T = _check_calibration(path, calibration)
+    n, times = _check_frames(path, int(calibration["width_px"]), int(calibration["height_px"]))
+    series = _check_series(path)
+    if "poses" in series:
+        with np.load(path / "poses.npz") as data:
+            problems = [rigid_problem(P) for P in data["T_world_camera"]]
+        if any(problems):
+            raise _fail(path / "poses.npz", f"T_world_camera {next(p for p in problems if p)}")
+    extra_series, has_gt_depth, baseline_m = _check_extra_arrays(path, calibration, n)
     return TraceInfo(
         path=path,
         frame_count=n,
-        width_px=width,
-        height_px=height,
+        width_px=int(calibration["width_px"]),
+        height_px=int(calibration["height_px"]),
         K=K,
         T_vehicle_camera=T,
         camera_height_m=calibration["camera_height_m"],
@@ -249,8 +340,9 @@ def validate_trace(path: Path | str) -> TraceInfo:
         time_base=calibration["time_base"],
         calibration=calibration,
         sources=sources,
-        series=tuple(series),
+        series=tuple(series + extra_series),
         has_gt_depth=has_gt_depth,
+        baseline_m=baseline_m,
     )
 
 

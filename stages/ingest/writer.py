@@ -21,9 +21,9 @@ import numpy as np
 
 from drivesim.pipeline.errors import InputError
 from drivesim.stages.ingest.config import IngestConfig
-from drivesim.stages.ingest.extrinsics import rigid_problem
 from drivesim.stages.ingest.images import FrameProcessor
 from drivesim.stages.ingest.output import FrameStore, IngestResult, OrderedPipeline, write_json
+from drivesim.stages.ingest.trace import rigid_problem
 
 # A recording whose camera loses more than this fraction of its messages is refused rather than ingested with gaps:
 # a few dropped frames happen on real drives; more means the stream itself is broken or not what it claims to be.
