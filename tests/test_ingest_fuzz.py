@@ -35,6 +35,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from kitti_fakes import kitti_stereo_folder
 
 from drivesim.bench.recordings import (
     START_NS,
@@ -59,28 +60,6 @@ KITTI_CFG = {"image": {"width_px": 160}}
 
 
 # ------------------------------------------------------------------ recordings the test makes
-
-
-def kitti_stereo_folder(folder: Path, n: int = N_FRAMES, width: int = 96, height: int = 32) -> Path:
-    """A small KITTI odometry stereo folder: image_l/, image_r/ (textured grey PNGs), calib.txt (P0, P1 with a
-    0.5 m baseline at fx 80), poses.txt (1 m forward per frame), no times.txt (10 Hz)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    for side, seed in (("image_l", 0), ("image_r", 1)):
-        (folder / side).mkdir(exist_ok=True)
-        for i in range(n):
-            grey = cv2.cvtColor(textured_image(width, height, i, seed=seed), cv2.COLOR_RGB2GRAY)
-            cv2.imwrite(str(folder / side / f"{i:06d}.png"), grey)
-    fx, cx, cy = 80.0, (width - 1) / 2, (height - 1) / 2
-    P0 = np.array([[fx, 0, cx, 0], [0, fx, cy, 0], [0, 0, 1, 0]])
-    P1 = P0.copy()
-    P1[0, 3] = -fx * 0.5
-    (folder / "calib.txt").write_text(
-        "".join(f"P{k}: " + " ".join(f"{v:.12e}" for v in P.ravel()) + "\n" for k, P in enumerate((P0, P1)))
-    )
-    poses = np.tile(np.eye(4)[:3], (n, 1, 1))
-    poses[:, 2, 3] = np.arange(n, dtype=float)
-    np.savetxt(folder / "poses.txt", poses.reshape(n, 12), fmt="%.6e")
-    return folder
 
 
 def _cut_kitti_odometry(src: Path, dst: Path, n: int = 4) -> Path:
