@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
 from pydantic import Field, field_validator
 
@@ -31,9 +31,10 @@ class EvalConfig(StageConfig):
     others come from the run (its view, its thresholds)."""
     video: int = Field(0, ge=0, le=1000)
     """MP4s to render of chosen episodes (alternately the worst and the best)."""
-    record: Literal["failures", "all", "none"] | Annotated[int, Field(ge=0)] = "failures"
+    record: str | int = "failures"
     """Episodes written as Foxglove MCAP files, `recordings/<seed>.mcap`: failures = those with an intervention, the
-    first 50 by seed; all; N = the first N episodes; none or 0 = no recordings (stages/evaluate/record.py)."""
+    first 50 by seed; all; N (a number) = the first N episodes; none or 0 = no recordings
+    (stages/evaluate/record.py)."""
     clearance_histogram_max_m: float = Field(2.0, gt=0)
     """Upper end of the per-step clearance histogram (Fig. 5) [m]."""
     env_id: str | None = None
