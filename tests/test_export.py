@@ -33,7 +33,7 @@ def make_run(folder: Path, task: str = "overtake", hidden: int = 16) -> Path:
         net.action_head.weight.mul_(20.0)
     folder.mkdir(parents=True)
     write_policy_files(folder, task, SHAPE, arch, net.state_dict(), 0.15)
-    env_config = {"view": {"roi_px": [40, 60, 240, 96]}, "episode_steps": 300}
+    env_config = {"roi_px": [40, 60, 240, 96], "episode_steps": 300}  # as training resolves it (run config)
     config = {"train": {"task": task}, "env_config": env_config, "worlds": [], "meshes": None}
     write_json(folder / "config.json", config)
     outputs = {"policy.pt": {"sha256": sha256_file(folder / "policy.pt")}}
@@ -126,7 +126,7 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path: Path) -> None:
     assert done.returncode == 2 and "drivesim train" in done.stderr and len(done.stderr.strip().splitlines()) == 1
     make_run(ws / "runs" / "lane-20260101-000000", task="lane")
     # A tolerance nothing can meet: the check fails and no export/ folder is left behind.
-    done = drivesim(ws, "export", "onnx", "--set", "tolerance=-1")
+    done = drivesim(ws, "export", "onnx", "--set", "tolerance=1e-15")
     assert done.returncode == 2 and "differs from torch" in done.stderr
     assert len(done.stderr.strip().splitlines()) == 1
     assert not (ws / "export").exists()
@@ -181,3 +181,57 @@ def test_onnx_policy_evaluates_like_the_trained_run(tmp_path: Path, monkeypatch:
             assert theirs["value"] == pytest.approx(value["value"], abs=1e-4, nan_ok=True), key
             compared.append(key)
     assert {"intervention", "min_clearance_m", "max_deviation_m", "max_yaw_rad"} <= set(compared)
+
+
+@pytest.mark.slow
+def test_a_real_runs_onnx_records_its_view_and_evaluates_like_the_run(tmp_path: Path) -> None:
+    """A short run in the simulator (default ROI): the export's metadata carries the ROI and observation shape
+    training used, and `drivesim eval` of the ONNX gives the run folder's metrics on 50 seeds."""
+    from sim_worlds import write_test_world
+
+    from drivesim.pipeline.config import load_config
+    from drivesim.stages.evaluate.config import EvalConfig
+    from drivesim.stages.evaluate.stage import run_eval
+    from drivesim.stages.export.config import ExportConfig
+    from drivesim.stages.export.stage import run_export
+    from drivesim.stages.train.config import TrainConfig
+    from drivesim.stages.train.stage import run_training
+
+    world = write_test_world(tmp_path / "world")  # 80 x 50 pixels
+    (world / "manifest.json").write_text(json.dumps({"outputs": {}, "config_hash": "test-world"}))
+    ws = Workspace(tmp_path / "ws")
+    small = [
+        "envs.count=2",
+        "envs.config.observation_width_px=40",
+        "envs.config.observation_height_px=16",
+        "envs.config.episode_steps=30",
+        "policy.input_pool=1",
+        "policy.conv_layers=[[8,3,2],[16,3,1]]",
+        "ppo.buffer_steps=128",
+        "ppo.minibatch_steps=64",
+        "ppo.epochs=1",
+        "eval.every_steps=0",
+        "total_steps=128",
+    ]
+    cfg = load_config(TrainConfig, preset="train/lane", overrides=small)
+    run = run_training(ws, cfg, worlds=[world]).path
+    run_config = json.loads((run / "config.json").read_text())
+    # The default ROI of an 80 x 50 image for a 40 x 16 observation: full width, the bottom 32 rows.
+    assert run_config["env_config"]["roi_px"] == [0, 18, 80, 32]
+    assert run_config["observation_shape"] == [3, 16, 40]
+
+    onnx_path = run_export(ws, ExportConfig(run=str(run), latency_steps=20)).path / "policy.onnx"
+    policy = OnnxPolicy(onnx_path)
+    assert policy.metadata["roi_px"] == [0, 18, 80, 32]
+    assert list(policy.observation_shape) == policy.metadata["observation_shape"] == [3, 16, 40]
+
+    metrics = {}
+    for name, chosen in (("run", str(run)), ("onnx", str(onnx_path))):
+        eval_cfg = EvalConfig(task="lane", policy=chosen, episodes=50, world=str(world), workers=1, name=name)
+        metrics[name] = json.loads((run_eval(ws, eval_cfg).path / "metrics.json").read_text())["aggregate"]
+    compared = 0
+    for key, value in metrics["run"].items():
+        if isinstance(value, dict) and isinstance(value.get("value"), float):
+            assert metrics["onnx"][key]["value"] == pytest.approx(value["value"], abs=1e-3, nan_ok=True), key
+            compared += 1
+    assert compared >= 5
