@@ -9,11 +9,13 @@ import typer
 
 from drivesim.cli.common import AddressOption, ConfigOption, ForceOption, SetOption, choose_backend, console, workspace
 from drivesim.pipeline.config import load_config
+from drivesim.sim.envs.registry import TASK_NAMES
 
 
 def eval_command(
     task: Annotated[
-        str | None, typer.Option("--task", help="lane, follow or overtake (default: overtake).", show_default=False)
+        str | None,
+        typer.Option("--task", help=f"One of {', '.join(TASK_NAMES)} (default: overtake).", show_default=False),
     ] = None,
     policy: Annotated[
         str | None,
@@ -58,6 +60,15 @@ def eval_command(
     video: Annotated[
         int | None, typer.Option("--video", help="Render MP4s of N episodes (the worst and the best).")
     ] = None,
+    record: Annotated[
+        str | None,
+        typer.Option(
+            "--record",
+            help="Episodes to write as Foxglove MCAP files in recordings/: failures (the default; those with an "
+            "intervention, the first 50), all, N (the first N episodes) or none. Layout: docs/foxglove_layout.json.",
+            show_default=False,
+        ),
+    ] = None,
     name: Annotated[
         str | None,
         typer.Option("--name", help="Folder name under eval/ (default: <task>-<policy>).", show_default=False),
@@ -73,24 +84,19 @@ def eval_command(
     """
     # Imported here so `drivesim --help` stays fast.
     from drivesim.stages.evaluate.config import EvalConfig
-    from drivesim.stages.evaluate.stage import run_eval
-    from drivesim.stages.policy import latest_run
+    from drivesim.stages.evaluate.stage import choose_policy, run_eval
 
     ws = workspace()
     overrides = list(set_ or [])
-    for key, value in (("task", task), ("episodes", episodes), ("seed", seed), ("video", video)):
+    for key, value in (("task", task), ("episodes", episodes), ("seed", seed), ("video", video), ("record", record)):
         if value is not None:
             overrides.append(f"{key}={value}")
     for key, value in (("world", world), ("meshes", meshes)):
         if value is not None:
             overrides.append(f"{key}={value.absolute()}")
     cfg = load_config(EvalConfig, preset="eval", config_file=config, overrides=overrides)
-    if policy is not None:
-        cfg.policy = policy
-    elif not any(o.startswith("policy=") for o in overrides) and cfg.policy == "expert" and config is None:
-        newest = latest_run(ws, cfg.task)
-        if newest is not None:
-            cfg.policy = str(newest)
+    user_chose = config is not None or any(o.startswith("policy=") for o in overrides)
+    cfg = choose_policy(ws, cfg, policy, user_chose)
     if workers is not None:
         cfg.workers = workers
     choose_backend(backend, address, cfg)
@@ -121,3 +127,11 @@ def eval_command(
         highlight=False,
         soft_wrap=True,
     )
+    recordings = sorted((result.path / "recordings").glob("*.mcap"))
+    if recordings:
+        console.print(
+            f"recordings: {len(recordings)} episodes in {result.path / 'recordings'} (Foxglove, layout "
+            "docs/foxglove_layout.json)",
+            highlight=False,
+            soft_wrap=True,
+        )

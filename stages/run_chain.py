@@ -20,7 +20,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from drivesim.pipeline.config import StageConfig, load_config, parse_override, preset_path
+from drivesim.pipeline.config import (
+    StageConfig,
+    load_config,
+    load_yaml_text,
+    parse_override,
+    preset_path,
+    read_config_text,
+)
 from drivesim.pipeline.errors import ConfigError, DrivesimError, InputError
 from drivesim.pipeline.stage import StageResult, StageSpec, run_stage
 from drivesim.pipeline.workspace import Workspace
@@ -92,10 +99,11 @@ def load_run_preset(name: str | None, config_file: Path | None = None, overrides
     if config_file is not None:
         paths.append(Path(config_file))
     for path in paths:
+        text = read_config_text(Path(path))  # a folder, a binary file: one line
         try:
-            loaded = yaml.safe_load(Path(path).read_text()) or {}
-        except (OSError, yaml.YAMLError) as e:
-            raise ConfigError(f"cannot read the run preset ({type(e).__name__})", path) from e
+            loaded = load_yaml_text(text) or {}
+        except yaml.YAMLError as e:
+            raise ConfigError(f"not a valid run preset: {str(e).splitlines()[0]}", path) from e
         if not isinstance(loaded, dict) or not all(isinstance(v, dict) for v in loaded.values()):
             raise ConfigError("a run preset maps stage names to their config overrides (a mapping each)", path)
         data = _deep_merge(data, loaded)

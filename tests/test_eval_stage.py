@@ -301,12 +301,14 @@ def test_resume_into_fewer_episodes_keeps_only_those(tmp_path, monkeypatch):
     result = run_eval(ws, EvalConfig(episodes=3, world=str(world), workers=1, **FAKE))
     assert result.summary.episodes_resumed == 3 and result.summary.episodes_per_min is None
     assert sorted(p.name for p in (result.path / "episodes").glob("*.json")) == ["0.json", "1.json", "2.json"]
-    # Another env config is another evaluation: the work folder starts afresh.
+    # Another env config is another evaluation: the work folder starts afresh. (force: the finished 3-episode
+    # evaluation of the same name was made with other settings, which only --force replaces.)
     with pytest.raises(KeyboardInterrupt):
         monkeypatch.setattr(rollout.RunningRate, "add", interrupt_at_five)
-        run_eval(ws, EvalConfig(episodes=8, world=str(world), workers=1, **FAKE))
+        run_eval(ws, EvalConfig(episodes=8, world=str(world), workers=1, **FAKE), force=True)
     monkeypatch.setattr(rollout.RunningRate, "add", original)
-    other = run_eval(ws, EvalConfig(episodes=3, world=str(world), workers=1, env={"x": 1}, **FAKE))
+    other_env = {"weight_comfort": 0.5}
+    other = run_eval(ws, EvalConfig(episodes=3, world=str(world), workers=1, env=other_env, **FAKE), force=True)
     assert other.summary.episodes_resumed == 0 and any("discarded" in note for note in other.notes)
 
 

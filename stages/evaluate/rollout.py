@@ -18,14 +18,18 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from drivesim.pipeline.errors import DrivesimError
+from drivesim.pipeline.processes import end_with_parent, stop_processes
 from drivesim.stages.evaluate.metrics import TRAJECTORY_FIELDS, EpisodeRecord, evaluate_episode
 
-TASK_ENV_IDS = {"lane": "drivesim/Lane-v0", "follow": "drivesim/Follow-v0", "overtake": "drivesim/Overtake-v0"}
+if TYPE_CHECKING:
+    from drivesim.sim.episode_mcap import EpisodeCapture
+    from drivesim.stages.evaluate.record import RecordPlan
+
 EPISODES_DIR = "episodes"
 
 
@@ -137,10 +141,18 @@ def env_limits(env: Any) -> dict[str, float]:
 
 
 def run_episode(
-    env: Any, policy: Policy, seed: int, task: str, limits: dict[str, float] | None = None
+    env: Any,
+    policy: Policy,
+    seed: int,
+    task: str,
+    limits: dict[str, float] | None = None,
+    capture: EpisodeCapture | None = None,
 ) -> EpisodeRecord:
-    """One closed-loop episode from `env.reset(seed=seed)` until the env ends it."""
+    """One closed-loop episode from `env.reset(seed=seed)` until the env ends it; `capture` (when given) keeps each
+    step's observation and info for a recording (`stages/evaluate/record.py`)."""
     obs, info = env.reset(seed=seed)
+    if capture is not None:
+        capture.add(obs, info, 0.0)
     rows = [_state_row(info.get("state", {}), 0.0)]
     state = policy.initial_state(1)
     episode_start = np.ones(1, dtype=bool)
@@ -152,6 +164,8 @@ def run_episode(
         obs, reward, terminated, truncated, step_info = env.step(action)
         total += float(reward)
         rows.append(_state_row(step_info.get("state", {}), float(action[0])))
+        if capture is not None:
+            capture.add(obs, step_info, float(action[0]))
         if terminated or truncated:
             break
     termination = {k: bool(v) for k, v in step_info.get("termination", {}).items()}
@@ -219,10 +233,23 @@ class EpisodeDone:
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(env_factory: EnvFactory, policy_spec: PolicySpec, task: str, folder: str) -> None:
+def _init_worker(
+    env_factory: EnvFactory,
+    policy_spec: PolicySpec,
+    task: str,
+    folder: str,
+    parent_pid: int | None = None,
+    record: RecordPlan | None = None,
+) -> None:
+    if parent_pid is not None:  # a worker process: it ends with the evaluation, whatever ends that
+        end_with_parent(parent_pid)
     limit_worker_threads()
     env = env_factory()
     _WORKER.update(env=env, policy=policy_spec.load(env), task=task, folder=Path(folder), limits=env_limits(env))
+    if record is not None:
+        from drivesim.stages.evaluate.record import EpisodeRecorder
+
+        _WORKER["recorder"] = EpisodeRecorder(record, task, _WORKER["limits"])
 
 
 def limit_worker_threads() -> None:
@@ -237,9 +264,14 @@ def limit_worker_threads() -> None:
 
 
 def _worker_episode(seed: int) -> EpisodeDone:
-    record = run_episode(_WORKER["env"], _WORKER["policy"], seed, _WORKER["task"], _WORKER["limits"])
+    recorder = _WORKER.get("recorder")
+    capture = recorder.begin(seed) if recorder is not None else None
+    record = run_episode(_WORKER["env"], _WORKER["policy"], seed, _WORKER["task"], _WORKER["limits"], capture)
+    intervention = evaluate_episode(record).metrics.intervention
+    if recorder is not None:  # the recording first: an episode on disk has its recording
+        recorder.end(capture, intervention)
     write_episode(_WORKER["folder"], record)
-    return EpisodeDone(seed, evaluate_episode(record).metrics.intervention, record.steps)
+    return EpisodeDone(seed, intervention, record.steps)
 
 
 def default_workers() -> int:
@@ -258,6 +290,7 @@ def run_episodes(
     folder: Path,
     workers: int = 1,
     on_episode: Callable[[EpisodeDone], None] | None = None,
+    record: RecordPlan | None = None,
 ) -> int:
     """Run every seed whose episode file is not in `folder` yet; returns how many episodes were run now.
 
@@ -268,12 +301,13 @@ def run_episodes(
     :param folder: where `<seed>.json` files go (and are found when resuming).
     :param workers: worker processes; 1 runs in this process.
     :param on_episode: called in this process after each episode (progress display).
+    :param record: which episodes the workers write as MCAP recordings (`stages/evaluate/record.py`); None: none.
     """
     todo = [s for s in seeds if s not in completed_seeds(folder, seeds)]
     if not todo:
         return 0
     if workers <= 1:
-        _init_worker(env_factory, policy_spec, task, str(folder))
+        _init_worker(env_factory, policy_spec, task, str(folder), record=record)
         try:
             for seed in todo:
                 done = _worker_episode(seed)
@@ -287,7 +321,7 @@ def run_episodes(
         max_workers=min(workers, len(todo)),
         mp_context=ctx,
         initializer=_init_worker,
-        initargs=(env_factory, policy_spec, task, str(folder)),
+        initargs=(env_factory, policy_spec, task, str(folder), os.getpid(), record),
     ) as pool:
         # A bounded number in flight, so Ctrl-C stops soon and the pool does not queue every seed up front.
         pending = set()
@@ -302,10 +336,22 @@ def run_episodes(
                     if on_episode:
                         on_episode(done)
         except BaseException:
+            # Ctrl-C, SIGTERM or an error: stop the workers now rather than wait for their episodes in flight.
             for future in pending:
                 future.cancel()
+            workers_alive = list(getattr(pool, "_processes", {}).values())  # the pool offers no public handle
+            pool.shutdown(wait=False, cancel_futures=True)
+            stop_processes(workers_alive)
             raise
     return len(todo)
+
+
+def remove_stale_temporaries(folder: Path) -> int:
+    """Remove the `.<seed>.json.<pid>.tmp` files a killed worker left half-written; returns how many."""
+    stale = list(folder.glob(".*.json.*.tmp")) if folder.is_dir() else []
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return len(stale)
 
 
 def _close_worker() -> None:

@@ -18,50 +18,16 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from drivesim.pipeline.errors import ConfigError, DrivesimError, InputError
+from drivesim.pipeline.errors import ConfigError, DrivesimError, InputError, Interrupted
 from drivesim.pipeline.hashing import sha256_json
-from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, StageSummary, run_stage
+from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, run_stage
 from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
 from drivesim.stages.evaluate.config import EvalConfig
+from drivesim.stages.evaluate.summary import EvalSummary
 
 EVAL_DIR = "eval"
 PARTIAL_PREFIX = ".partial-"
 WORLD_HINT = "drivesim build-world"
-
-
-class EvalSummary(StageSummary):
-    """A finished evaluation: the headline metrics (means and rates over its episodes)."""
-
-    task: str
-    """lane, follow or overtake."""
-    policy: str
-    """expert, a run folder's name or an ONNX file's name."""
-    episodes: int
-    """Episodes evaluated."""
-    intervention: float
-    """Intervention rate (collision, off lane or over-rotation)."""
-    collision: float
-    """Rate of episodes with a polygon overlap > 0."""
-    off_lane: float
-    """Rate of episodes that left the lane."""
-    over_rotation: float
-    """Rate of episodes that turned too far from the road heading."""
-    success: float
-    """Success rate."""
-    min_clearance_m: float | None
-    """Mean minimum clearance of the episodes without a collision [m]."""
-    max_deviation_m: float | None
-    """Mean maximum |lateral deviation| [m]."""
-    max_yaw_rad: float | None
-    """Mean maximum |yaw relative to the road| [rad]."""
-    episodes_resumed: int
-    """Episodes found on disk from an interrupted evaluation."""
-    episodes_per_min: float | None
-    """Episodes run per minute in this session (None when all were resumed) [1/min]."""
-    workers: int
-    """Worker processes used (Ray actors with the ray backend)."""
-    videos: list[str] = []
-    """MP4 files rendered."""
 
 
 @dataclass
@@ -157,7 +123,7 @@ def _open_and_check(cfg: EvalConfig, factory: Any, policy_spec: Any, world: Path
         env_config = dict(getattr(policy, "env_config", {}) or {})
         if env_config:  # the policy's own env settings (its view), then the user's overrides
             env.close()
-            factory = replace(factory, kwargs={**factory.kwargs, "config": {**env_config, **cfg.env} or None})
+            factory = replace(factory, kwargs={**factory.kwargs, "config": {**env_config, **cfg.env_overrides()}})
             env = _make_env(factory, world)
             policy = _load_policy(policy_spec, env)
         obs, _ = env.reset(seed=cfg.seed)
@@ -203,7 +169,7 @@ def _make_env(factory: Any, world: Path) -> Any:
 
 
 # Keys that do not change what an episode is: an interrupted evaluation of 100 episodes resumes into one of 1000.
-_REPORT_ONLY_KEYS = ("episodes", "video", "clearance_histogram_max_m")
+_REPORT_ONLY_KEYS = ("episodes", "video", "clearance_histogram_max_m", "record")  # record: missing ones are replayed
 
 
 def _partial_key(ctx: BuildContext, config_json: dict[str, Any]) -> str:
@@ -217,6 +183,8 @@ def _partial_key(ctx: BuildContext, config_json: dict[str, Any]) -> str:
 
 def _prepare_partial(folder: Path, key: str, notes: list[str]) -> Path:
     """The work folder's episodes/ folder, emptied first when it was made for something else."""
+    from drivesim.stages.evaluate.rollout import remove_stale_temporaries
+
     marker = folder / "partial.json"
     if folder.is_dir():
         try:
@@ -227,16 +195,18 @@ def _prepare_partial(folder: Path, key: str, notes: list[str]) -> Path:
             shutil.rmtree(folder)
             notes.append(f"discarded the episodes of an earlier evaluation with other settings in {folder}")
     (folder / "episodes").mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(folder / "episodes")  # half-written by a worker killed with its evaluation
     marker.write_text(json.dumps({"key": key}) + "\n")
     return folder / "episodes"
 
 
 def _build(ctx: BuildContext) -> EvalSummary:
     from drivesim.pipeline.progress import progress_bar
+    from drivesim.sim.envs.registry import task_spec
     from drivesim.stages.evaluate.metrics import evaluate_episode
+    from drivesim.stages.evaluate.record import RECORDINGS_DIR, finish_recordings, record_plan
     from drivesim.stages.evaluate.report import Track, write_outputs
     from drivesim.stages.evaluate.rollout import (
-        TASK_ENV_IDS,
         EnvFactory,
         PolicySpec,
         RunningRate,
@@ -253,9 +223,9 @@ def _build(ctx: BuildContext) -> EvalSummary:
     meshes = ctx.external.get("meshes")
     policy_spec = PolicySpec.parse(cfg.policy)
     factory = EnvFactory(
-        env_id=cfg.env_id or TASK_ENV_IDS[cfg.task],
+        env_id=cfg.env_id or task_spec(cfg.task).env_id,
         kwargs={"world": str(world), "meshes": None if meshes is None else str(meshes), "mode": "eval"}
-        | ({"config": dict(cfg.env)} if cfg.env else {}),
+        | ({"config": cfg.env_overrides()} if cfg.env_overrides() else {}),
         entry_point=cfg.env_entry_point,
     )
     factory = replace(factory, kwargs=_open_and_check(cfg, factory, policy_spec, world))
@@ -264,32 +234,39 @@ def _build(ctx: BuildContext) -> EvalSummary:
     partial = ctx.workspace.root / EVAL_DIR / f"{PARTIAL_PREFIX}{name}"
     episodes_dir = _prepare_partial(partial, _partial_key(ctx, cfg.model_dump(mode="json")), ctx.notes)
     seeds = [cfg.seed + i for i in range(cfg.episodes)]
+    recording = record_plan(cfg.record, seeds, partial / RECORDINGS_DIR, world)
     resumed = len(completed_seeds(episodes_dir, seeds))
     if resumed:
         ctx.notes.append(f"resumed: {resumed} of {len(seeds)} episodes were already on disk")
     workers = cfg.workers or default_workers()
     rate = RunningRate()
     started = time.perf_counter()
-    with progress_bar("eval", total=len(seeds)) as (progress, task):
-        progress.update(task, completed=resumed)
+    try:
+        with progress_bar("eval", total=len(seeds)) as (progress, task):
+            progress.update(task, completed=resumed)
 
-        def on_episode(done: Any) -> None:
-            progress.update(task, advance=1, description=rate.add(done))
+            def on_episode(done: Any) -> None:
+                progress.update(task, advance=1, description=rate.add(done))
 
-        if cfg.backend == "ray":
-            from drivesim.stages.evaluate.ray_backend import run_episodes_ray
+            if cfg.backend == "ray":
+                from drivesim.stages.evaluate.ray_backend import run_episodes_ray
 
-            outcome = run_episodes_ray(
-                factory, policy_spec, cfg.task, seeds, episodes_dir, cfg.address, cfg.workers, on_episode
-            )
-            ran, workers = outcome.episodes_run, outcome.actors or workers
-            ctx.notes.append(f"ray: {outcome.actors} actors on {outcome.nodes} node(s)")
-            if outcome.resubmitted:
-                ctx.notes.append(f"ray: {outcome.resubmitted} episodes resubmitted after their worker died")
-        else:
-            ran = run_episodes(
-                factory, policy_spec, cfg.task, seeds, episodes_dir, workers=workers, on_episode=on_episode
-            )
+                outcome = run_episodes_ray(
+                    factory, policy_spec, cfg.task, seeds, episodes_dir, cfg.address, cfg.workers, on_episode
+                )
+                ran, workers = outcome.episodes_run, outcome.actors or workers
+                ctx.notes.append(f"ray: {outcome.actors} actors on {outcome.nodes} node(s)")
+                if outcome.resubmitted:
+                    ctx.notes.append(f"ray: {outcome.resubmitted} episodes resubmitted after their worker died")
+            else:
+                ran = run_episodes(
+                    factory, policy_spec, cfg.task, seeds, episodes_dir, workers, on_episode, record=recording
+                )
+    except KeyboardInterrupt as e:
+        kept = len(completed_seeds(episodes_dir, seeds))
+        raise Interrupted(
+            f"interrupted: {kept} of {len(seeds)} episodes are kept in {partial}; the same command resumes"
+        ) from e
     elapsed = time.perf_counter() - started
 
     results = []
@@ -312,6 +289,7 @@ def _build(ctx: BuildContext) -> EvalSummary:
         "episodes_per_min": round(60 * ran / elapsed, 2) if ran else None,
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
     }
+    finish_recordings(recording, results, factory, policy_spec, cfg.task, ctx.dir)  # before the report links them
     data = write_outputs(ctx.dir, results, Track.load(world), cfg.task, header, cfg.clearance_histogram_max_m)
     videos = render_videos(results, cfg.video, factory, policy_spec, ctx.dir)
     agg = data["aggregate"]
@@ -342,23 +320,55 @@ SPEC: StageSpec[EvalSummary] = StageSpec(
     preset="eval",
     summary_model=EvalSummary,
     requires=("world",),
+    upstream_hints={"world": WORLD_HINT},
     build=_build,
     collection=True,
 )
 
 
-def run_eval(ws: Workspace, cfg: EvalConfig, force: bool = False) -> StageResult[EvalSummary]:
+def choose_policy(ws: Workspace, cfg: EvalConfig, policy: str | None, user_chose: bool) -> EvalConfig:
+    """The config with the policy to evaluate: `policy` when given; else, when the user named none (no `--policy`,
+    no `policy=` in --set or --config), the workspace's newest finished run of the task, else the expert."""
+    from drivesim.stages.policy import latest_run
+
+    if policy is not None:
+        return cfg.model_copy(update={"policy": policy})
+    if user_chose or cfg.policy != "expert":
+        return cfg
+    newest = latest_run(ws, cfg.task)
+    return cfg if newest is None else cfg.model_copy(update={"policy": str(newest)})
+
+
+def beside_name(name: str, cfg: EvalConfig) -> str:
+    """The folder name for an evaluation written beside one of the same name made with other settings:
+    `<name>-<first 8 hex digits of its config hash>` (the same settings find it again)."""
+    return f"{name}-{sha256_json(cfg.model_dump(mode='json'))[:8]}"
+
+
+def run_eval(
+    ws: Workspace, cfg: EvalConfig, force: bool = False, keep_other: str = "refuse"
+) -> StageResult[EvalSummary]:
     """Evaluate `cfg.policy` into `eval/<name>/` (resuming an interrupted evaluation of the same settings).
+
+    An evaluation of the same name made with other settings (say 1000 episodes where this asks for 100) is never
+    replaced silently: `keep_other="refuse"` stops with one line naming --force and --name (what `drivesim eval`
+    does), "beside" writes this one beside it as `<name>-<config hash>` (what `drivesim run` does).
 
     :param ws: the workspace (its world/ and meshes/ are the defaults).
     :param cfg: the eval config; `name`, `workers`, `backend` and `address` do not change the artifact's identity.
-    :param force: evaluate again even when `eval/<name>/` is fresh.
+    :param force: evaluate again even when `eval/<name>/` is fresh; with "refuse", replace one made with other
+        settings.
+    :param keep_other: "refuse" or "beside".
     """
     if cfg.backend == "ray":
         from drivesim.stages.ray_cluster import import_ray
 
         import_ray()  # a missing Ray is one line before anything runs
     cfg, plan = resolve(ws, cfg)
+    other = ws.other_settings(f"{EVAL_DIR}/{plan.name}", cfg.model_dump(mode="json"))
+    if keep_other == "beside" and other:  # even with --force: a chain's redo never replaces the user's result
+        plan = replace(plan, name=beside_name(plan.name, cfg))
+        cfg = cfg.model_copy(update={"name": plan.name})
     external: dict[str, Path] = {}
     if not plan.world_in_workspace:
         external["world"] = plan.world
@@ -374,7 +384,8 @@ def run_eval(ws: Workspace, cfg: EvalConfig, force: bool = False) -> StageResult
         force=force,
         external=external,
         artifact=f"{EVAL_DIR}/{plan.name}",
-        make_hints={"world": WORLD_HINT},
+        protect=True,
+        protect_hint="--force replaces it, --name NAME writes this evaluation beside it",
     )
     if not result.skipped:
         shutil.rmtree(ws.root / EVAL_DIR / f"{PARTIAL_PREFIX}{plan.name}", ignore_errors=True)
