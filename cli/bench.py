@@ -12,7 +12,7 @@ import typer
 from rich.table import Table
 
 from drivesim.bench.machine import machine_line
-from drivesim.cli.common import ConfigOption, SetOption, console, workspace
+from drivesim.cli.common import ConfigOption, console, set_option, workspace
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError
 from drivesim.pipeline.progress import progress_bar
@@ -97,7 +97,7 @@ def fidelity_command(
         Path | None, typer.Option("--markdown", help="Also write the results as a markdown report to this file.")
     ] = None,
     config: ConfigOption = None,
-    set_: SetOption = None,
+    set_: set_option("method=mvs") = None,
 ) -> None:
     """Depth and view-synthesis fidelity against ground truth on a synthetic drive.
 
@@ -253,7 +253,7 @@ def stereo_command(
         Path | None, typer.Option("--markdown", help="Also write the results as a markdown report to this file.")
     ] = None,
     config: ConfigOption = None,
-    set_: SetOption = None,
+    set_: set_option("method=mvs") = None,
 ) -> None:
     """Real lateral views: each left frame warped with its depth into the right camera, against the real right image.
 

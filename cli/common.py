@@ -25,10 +25,19 @@ state = CliState()
 ConfigOption = Annotated[
     Path | None, typer.Option("--config", help="YAML file of config values for this stage.", show_default=False)
 ]
-SetOption = Annotated[
-    list[str] | None,
-    typer.Option("--set", help="Override one config value, e.g. --set image.width_px=640 (repeatable)."),
-]
+
+
+def set_option(example: str) -> Any:
+    """The `--set KEY=VALUE` option of a command, its help showing `example` (one of that command's own keys)."""
+    return Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set", help=f"Override one config value, e.g. --set {example} (repeatable; `drivesim config` lists keys)."
+        ),
+    ]
+
+
+SetOption = set_option("KEY=VALUE")
 ForceOption = Annotated[bool, typer.Option("--force", help="Redo the stage even when its artifact is fresh.")]
 
 

@@ -9,7 +9,7 @@ import typer
 import yaml
 from rich.table import Table
 
-from drivesim.cli.common import ConfigOption, SetOption, console
+from drivesim.cli.common import ConfigOption, console, set_option
 from drivesim.pipeline.config import StageConfig, describe_config, load_config
 from drivesim.pipeline.errors import ConfigError
 from drivesim.stages.chain import CHAIN, OFF_CHAIN_CONFIGS
@@ -32,7 +32,7 @@ def config_command(
         bool, typer.Option("--yaml", help="Print the resolved config as YAML (a --config file).")
     ] = False,
     config: ConfigOption = None,
-    set_: SetOption = None,
+    set_: set_option("total_steps=4096") = None,
 ) -> None:
     """Show a stage's config keys: type, resolved value (preset + --config + --set) and description with units."""
     configs = _stage_configs()

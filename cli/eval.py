@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli.common import AddressOption, ConfigOption, ForceOption, SetOption, choose_backend, console, workspace
+from drivesim.cli.common import AddressOption, ConfigOption, ForceOption, choose_backend, console, set_option, workspace
 from drivesim.pipeline.config import load_config
 from drivesim.sim.envs.registry import TASK_NAMES
 
@@ -74,7 +74,7 @@ def eval_command(
         typer.Option("--name", help="Folder name under eval/ (default: <task>-<policy>).", show_default=False),
     ] = None,
     config: ConfigOption = None,
-    set_: SetOption = None,
+    set_: set_option("env.max_lateral_m=2.0") = None,
     force: ForceOption = False,
 ) -> None:
     """Evaluate a policy in closed loop: intervention, clearance, deviation and yaw with 95 % intervals.

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli.common import ConfigOption, ForceOption, SetOption, console, workspace
+from drivesim.cli.common import ConfigOption, ForceOption, console, set_option, workspace
 from drivesim.pipeline.config import load_config
 
 export_app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
@@ -22,7 +22,7 @@ def export_onnx_command(
         ),
     ] = None,
     config: ConfigOption = None,
-    set_: SetOption = None,
+    set_: set_option("check_steps=100") = None,
     force: ForceOption = False,
 ) -> None:
     """Write export/policy.onnx: uint8 image, LSTM state (h, c) and episode start in; steering and new state out.

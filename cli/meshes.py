@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli.common import ConfigOption, ForceOption, SetOption, console, workspace
+from drivesim.cli.common import ConfigOption, ForceOption, console, set_option, workspace
 from drivesim.pipeline.config import load_config
 
 meshes_app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
@@ -36,7 +36,7 @@ def build_command(
     ] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="Seed of shapes and paints (config: seed).")] = None,
     config: ConfigOption = None,
-    set_: SetOption = None,
+    set_: set_option("count=12") = None,
     force: ForceOption = False,
 ) -> None:
     """Build <workspace>/meshes/: procedural sedans, hatchbacks, SUVs, vans and pickups (closed meshes, body /

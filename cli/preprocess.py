@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from drivesim.cli.common import ConfigOption, ForceOption, SetOption, console, workspace
+from drivesim.cli.common import ConfigOption, ForceOption, console, set_option, workspace
 from drivesim.pipeline.config import load_config
 
 
-def preprocess_command(config: ConfigOption = None, set_: SetOption = None, force: ForceOption = False) -> None:
+def preprocess_command(
+    config: ConfigOption = None, set_: set_option("depth.method=mvs") = None, force: ForceOption = False
+) -> None:
     """Fuse poses (GPS + IMU + speed, odometry or visual SfM) and estimate per-frame depth (plane, mvs, lidar)."""
     # Imported here so `drivesim --help` stays fast (the stage pulls in torch, open3d, matplotlib).
     from drivesim.stages.preprocess.config import PreprocessConfig

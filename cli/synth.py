@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from drivesim.cli.common import ConfigOption, SetOption, console, workspace
+from drivesim.cli.common import ConfigOption, console, set_option, workspace
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.progress import progress_bar
 from drivesim.stages.synth.config import SynthConfig
@@ -33,7 +33,7 @@ def synth_command(
         ),
     ] = False,
     config: ConfigOption = None,
-    set_: SetOption = None,
+    set_: set_option("drive.duration_s=60") = None,
 ) -> None:
     """Render a procedural drive and write it as an MCAP recording."""
     overrides = list(set_ or [])

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli.common import AddressOption, ConfigOption, SetOption, choose_backend, console, workspace
+from drivesim.cli.common import AddressOption, ConfigOption, choose_backend, console, set_option, workspace
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError
 from drivesim.sim.envs.registry import TASK_NAMES, task_help
@@ -51,7 +51,7 @@ def train_command(
         typer.Option("--warm-start", help="'expert': behaviour cloning from the privileged expert (DAgger) first."),
     ] = None,
     config: ConfigOption = None,
-    set_: SetOption = None,
+    set_: set_option("ppo.learning_rate=1e-4") = None,
 ) -> None:
     """Train a driving policy with PPO (CNN + LSTM); the run goes to runs/<task>-<time>/ in the workspace.
 

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from drivesim.cli.common import ConfigOption, ForceOption, SetOption, console, workspace
+from drivesim.cli.common import ConfigOption, ForceOption, console, set_option, workspace
 from drivesim.pipeline.config import load_config
 
 
-def build_world_command(config: ConfigOption = None, set_: SetOption = None, force: ForceOption = False) -> None:
+def build_world_command(
+    config: ConfigOption = None, set_: set_option("sim_width_px=320") = None, force: ForceOption = False
+) -> None:
     """Build the simulatable world from the trace and the preprocessed poses and depth."""
     # Imported here so `drivesim --help` stays fast (the stage pulls in torch, open3d, matplotlib).
     from drivesim.stages.world.config import WorldConfig
