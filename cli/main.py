@@ -150,7 +150,7 @@ def _stop(interrupt: KeyboardInterrupt) -> None:
     if isinstance(interrupt, Interrupted):
         text = interrupt.message
         if code == SIGTERM_EXIT_CODE:
-            text = "terminated (SIGTERM): " + text.removeprefix("interrupted ").removeprefix("interrupted: ")
+            text = text.replace("interrupted", "terminated (SIGTERM)", 1)
     else:
         text = _TERMINATED if code == SIGTERM_EXIT_CODE else _INTERRUPTED
     err_console.print(escape(text), highlight=False, soft_wrap=True)
