@@ -5,6 +5,7 @@ of the deterministic policy in eval mode, where any overlap is a collision; a ra
     lane-demo       lane on the demo world, 15 min            target: >= 90 % of episodes without intervention
     overtake-demo   overtake on the demo world, 60 min, warm start from the expert   target: >= 70 % passes
     lane-kitti      lane on a world built from the real KITTI drive, 15 min          target: >= 80 %
+    cutin-demo      cutin on the demo world, 30 min with the warm start, from the expert  target: >= 80 %
 
     .venv/bin/python benchmarks/bench_learning.py --only lane-demo --minutes 3    # a short check
     .venv/bin/python benchmarks/bench_learning.py --kitti-world WS/world          # everything (~1.5 h)
@@ -62,6 +63,7 @@ SCENARIOS = {
     "lane-demo": Scenario("lane-demo", "lane", 15, 0.90, False, "demo"),
     "overtake-demo": Scenario("overtake-demo", "overtake", 60, 0.70, True, "demo"),
     "lane-kitti": Scenario("lane-kitti", "lane", 15, 0.80, False, "kitti"),
+    "cutin-demo": Scenario("cutin-demo", "cutin", 30, 0.80, True, "demo"),
 }
 
 

@@ -66,3 +66,12 @@ def test_the_registry_is_the_one_list_of_tasks() -> None:
     assert EvalConfig(task="cutin").task == "cutin"
     with pytest.raises(ValueError, match="choose one of lane, follow, overtake, cutin"):
         task_spec("merge")
+
+
+def test_the_expert_is_evaluated_with_the_task_presets_env() -> None:
+    """`drivesim eval --task cutin` (the expert brings no env config): the preset's faster other car, and the
+    user's keys on top."""
+    from drivesim.stages.evaluate.config import EvalConfig
+
+    env = EvalConfig.model_validate({"task": "cutin", "env": {"episode_steps": 99}}).start_env_config()
+    assert env["other_speed_mps"] == [10.0, 12.0] and env["episode_steps"] == 99

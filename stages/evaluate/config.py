@@ -6,7 +6,7 @@ from typing import Any, Literal
 
 from pydantic import Field, field_validator
 
-from drivesim.pipeline.config import StageConfig
+from drivesim.pipeline.config import StageConfig, load_yaml_text, preset_path
 from drivesim.sim.envs.config import EnvConfig
 from drivesim.sim.envs.registry import TaskName
 
@@ -65,3 +65,16 @@ class EvalConfig(StageConfig):
     def env_overrides(self) -> dict[str, Any]:
         """The env keys the user set (preset, --config or --set), to apply over a run's training env config."""
         return self.env.model_dump(mode="json", exclude_unset=True)
+
+    def start_env_config(self) -> dict[str, Any]:
+        """The env config of a policy that brings none (the expert): the task's training preset's env settings
+        (e.g. cutin's faster other car), then the keys the user set. A user's own env (`env_id`) gets only those."""
+        preset = {} if self.env_id is not None else task_preset_env(self.task)
+        return {**preset, **self.env_overrides()}
+
+
+def task_preset_env(task: str) -> dict[str, Any]:
+    """`envs.config` of the task's training preset (`configs/train/<task>.yaml`), {} when it sets none."""
+    path = preset_path(f"train/{task}")
+    data = load_yaml_text(path.read_text()) if path.is_file() else {}
+    return dict(((data or {}).get("envs") or {}).get("config") or {})

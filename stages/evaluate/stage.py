@@ -225,7 +225,7 @@ def _build(ctx: BuildContext) -> EvalSummary:
     factory = EnvFactory(
         env_id=cfg.env_id or task_spec(cfg.task).env_id,
         kwargs={"world": str(world), "meshes": None if meshes is None else str(meshes), "mode": "eval"}
-        | ({"config": cfg.env_overrides()} if cfg.env_overrides() else {}),
+        | ({"config": cfg.start_env_config()} if cfg.start_env_config() else {}),
         entry_point=cfg.env_entry_point,
     )
     factory = replace(factory, kwargs=_open_and_check(cfg, factory, policy_spec, world))
