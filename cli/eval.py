@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -11,68 +11,78 @@ from drivesim.cli.common import AddressOption, ConfigOption, ForceOption, choose
 from drivesim.pipeline.config import load_config
 from drivesim.sim.envs.registry import TASK_NAMES
 
+TaskOption = Annotated[
+    str | None,
+    typer.Option("--task", help=f"One of {', '.join(TASK_NAMES)} (default: overtake).", show_default=False),
+]
+PolicyOption = Annotated[
+    str | None,
+    typer.Option(
+        "--policy",
+        help="A run folder of `drivesim train`, an exported .onnx file, or 'expert'. "
+        "Default: the workspace's newest finished run of the task, else the expert.",
+        show_default=False,
+    ),
+]
+EpisodesOption = Annotated[
+    int | None, typer.Option("--episodes", help="Episodes to run (default 1000).", show_default=False)
+]
+WorkersOption = Annotated[
+    int | None,
+    typer.Option(
+        "--workers",
+        help="Worker processes, or Ray actors with --backend ray (default: one per core, of the cluster).",
+        show_default=False,
+    ),
+]
+BackendOption = Annotated[
+    str | None,
+    typer.Option(
+        "--backend",
+        help="local: worker processes on this machine (default); ray: Ray actors over a cluster's workers, "
+        "one world loaded per actor (needs `pip install 'drivesim\\[ray]'`). Same seeds, same numbers.",
+        show_default=False,
+    ),
+]
+SeedOption = Annotated[
+    int | None, typer.Option("--seed", help="Seed of episode 0; episode i uses seed + i.", show_default=False)
+]
+WorldOption = Annotated[
+    Path | None, typer.Option("--world", help="World folder (default: the workspace's world/).", show_default=False)
+]
+MeshesOption = Annotated[
+    Path | None,
+    typer.Option("--meshes", help="Vehicle mesh library (default: the workspace's meshes/).", show_default=False),
+]
+VideoOption = Annotated[int | None, typer.Option("--video", help="Render MP4s of N episodes (the worst and the best).")]
+RecordOption = Annotated[
+    str | None,
+    typer.Option(
+        "--record",
+        help="Episodes to write as Foxglove MCAP files in recordings/: failures (the default; those with an "
+        "intervention, the first 50), all, N (the first N episodes) or none. Layout: docs/foxglove_layout.json.",
+        show_default=False,
+    ),
+]
+NameOption = Annotated[
+    str | None,
+    typer.Option("--name", help="Folder name under eval/ (default: <task>-<policy>).", show_default=False),
+]
+
 
 def eval_command(
-    task: Annotated[
-        str | None,
-        typer.Option("--task", help=f"One of {', '.join(TASK_NAMES)} (default: overtake).", show_default=False),
-    ] = None,
-    policy: Annotated[
-        str | None,
-        typer.Option(
-            "--policy",
-            help="A run folder of `drivesim train`, an exported .onnx file, or 'expert'. "
-            "Default: the workspace's newest finished run of the task, else the expert.",
-            show_default=False,
-        ),
-    ] = None,
-    episodes: Annotated[
-        int | None, typer.Option("--episodes", help="Episodes to run (default 1000).", show_default=False)
-    ] = None,
-    workers: Annotated[
-        int | None,
-        typer.Option(
-            "--workers",
-            help="Worker processes, or Ray actors with --backend ray (default: one per core, of the cluster).",
-            show_default=False,
-        ),
-    ] = None,
-    backend: Annotated[
-        str | None,
-        typer.Option(
-            "--backend",
-            help="local: worker processes on this machine (default); ray: Ray actors over a cluster's workers, "
-            "one world loaded per actor (needs `pip install 'drivesim\\[ray]'`). Same seeds, same numbers.",
-            show_default=False,
-        ),
-    ] = None,
+    task: TaskOption = None,
+    policy: PolicyOption = None,
+    episodes: EpisodesOption = None,
+    workers: WorkersOption = None,
+    backend: BackendOption = None,
     address: AddressOption = None,
-    seed: Annotated[
-        int | None, typer.Option("--seed", help="Seed of episode 0; episode i uses seed + i.", show_default=False)
-    ] = None,
-    world: Annotated[
-        Path | None, typer.Option("--world", help="World folder (default: the workspace's world/).", show_default=False)
-    ] = None,
-    meshes: Annotated[
-        Path | None,
-        typer.Option("--meshes", help="Vehicle mesh library (default: the workspace's meshes/).", show_default=False),
-    ] = None,
-    video: Annotated[
-        int | None, typer.Option("--video", help="Render MP4s of N episodes (the worst and the best).")
-    ] = None,
-    record: Annotated[
-        str | None,
-        typer.Option(
-            "--record",
-            help="Episodes to write as Foxglove MCAP files in recordings/: failures (the default; those with an "
-            "intervention, the first 50), all, N (the first N episodes) or none. Layout: docs/foxglove_layout.json.",
-            show_default=False,
-        ),
-    ] = None,
-    name: Annotated[
-        str | None,
-        typer.Option("--name", help="Folder name under eval/ (default: <task>-<policy>).", show_default=False),
-    ] = None,
+    seed: SeedOption = None,
+    world: WorldOption = None,
+    meshes: MeshesOption = None,
+    video: VideoOption = None,
+    record: RecordOption = None,
+    name: NameOption = None,
     config: ConfigOption = None,
     set_: set_option("env.max_lateral_m=2.0") = None,
     force: ForceOption = False,
@@ -106,6 +116,11 @@ def eval_command(
         f"evaluating {cfg.policy} on {cfg.task}: {cfg.episodes} episodes from seed {cfg.seed}", highlight=False
     )
     result = run_eval(ws, cfg, force=force)
+    _print_result(result, cfg)
+
+
+def _print_result(result: Any, cfg: Any) -> None:
+    """The evaluation's one-paragraph summary, its report and its recordings."""
     s = result.summary
     report = result.path / "report.html"
     if result.skipped:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -18,38 +18,45 @@ TaskArgument = Annotated[
 ]
 
 
+WorldOption = Annotated[
+    list[Path] | None,
+    typer.Option(
+        "--world",
+        help="A world folder to train in (repeatable: episodes come from all of them); default: the workspace's world.",
+    ),
+]
+TotalStepsOption = Annotated[
+    int | None, typer.Option("--total-steps", help="Env steps to train for (overrides the preset).")
+]
+EnvsOption = Annotated[int | None, typer.Option("--envs", help="Episodes simulated at once.")]
+BackendOption = Annotated[
+    str | None,
+    typer.Option(
+        "--backend",
+        help="local: the envs run on this machine (default); ray: each env in a Ray actor spread over a "
+        "cluster, so --envs may exceed this machine's cores (needs `pip install 'drivesim\\[ray]'`).",
+        show_default=False,
+    ),
+]
+ResumeOption = Annotated[
+    Path | None,
+    typer.Option("--resume", help="Continue an unfinished run folder (runs/<task>-<time>, or just its name)."),
+]
+WarmStartOption = Annotated[
+    str | None,
+    typer.Option("--warm-start", help="'expert': behaviour cloning from the privileged expert (DAgger) first."),
+]
+
+
 def train_command(
     task: TaskArgument = None,
-    world: Annotated[
-        list[Path] | None,
-        typer.Option(
-            "--world",
-            help="A world folder to train in (repeatable: episodes come from all of them); "
-            "default: the workspace's world.",
-        ),
-    ] = None,
-    total_steps: Annotated[
-        int | None, typer.Option("--total-steps", help="Env steps to train for (overrides the preset).")
-    ] = None,
-    envs: Annotated[int | None, typer.Option("--envs", help="Episodes simulated at once.")] = None,
-    backend: Annotated[
-        str | None,
-        typer.Option(
-            "--backend",
-            help="local: the envs run on this machine (default); ray: each env in a Ray actor spread over a "
-            "cluster, so --envs may exceed this machine's cores (needs `pip install 'drivesim\\[ray]'`).",
-            show_default=False,
-        ),
-    ] = None,
+    world: WorldOption = None,
+    total_steps: TotalStepsOption = None,
+    envs: EnvsOption = None,
+    backend: BackendOption = None,
     address: AddressOption = None,
-    resume: Annotated[
-        Path | None,
-        typer.Option("--resume", help="Continue an unfinished run folder (runs/<task>-<time>, or just its name)."),
-    ] = None,
-    warm_start: Annotated[
-        str | None,
-        typer.Option("--warm-start", help="'expert': behaviour cloning from the privileged expert (DAgger) first."),
-    ] = None,
+    resume: ResumeOption = None,
+    warm_start: WarmStartOption = None,
     config: ConfigOption = None,
     set_: set_option("ppo.learning_rate=1e-4") = None,
 ) -> None:
@@ -105,6 +112,11 @@ def train_command(
     result = run_training(
         ws, cfg, worlds=worlds or None, resume=None if plan is None else plan.run_dir, on_start=on_start
     )
+    _print_result(result)
+
+
+def _print_result(result: Any) -> None:
+    """The run's notes and its one-line summary."""
     for note in result.notes:
         console.print(note, highlight=False, soft_wrap=True)
     s = result.summary
