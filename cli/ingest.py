@@ -7,7 +7,18 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli.common import ConfigOption, ForceOption, SetOption, console, workspace
+from drivesim.cli.common import ConfigOption, ForceOption, console, set_option, workspace
+from drivesim.cli.video_options import (
+    CalibrationOption,
+    CameraHeightOption,
+    EndOption,
+    FpsOption,
+    GpsOption,
+    HfovOption,
+    StartOption,
+    VideoStartOption,
+    video_overrides,
+)
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError, InputError
 from drivesim.stages.ingest.config import TOPIC_ROLES, IngestConfig
@@ -31,7 +42,11 @@ def topic_overrides(topic: list[str] | None) -> list[str]:
 def ingest_command(
     path: Annotated[
         Path,
-        typer.Argument(help="ROS1 .bag, rosbag2 folder, .mcap file, KITTI raw drive (..._sync) or odometry folder."),
+        typer.Argument(
+            help="ROS1 .bag, rosbag2 folder, .mcap file, KITTI raw drive (..._sync) or odometry folder, or a video "
+            "(.mp4/.mov/.mkv/.avi; or a folder of images with --fps): poses by SfM, scale from --camera-height-m "
+            "or a GPS track."
+        ),
     ],
     topic: Annotated[
         list[str] | None,
@@ -41,13 +56,22 @@ def ingest_command(
             "for KITTI folders camera=image_02.",
         ),
     ] = None,
+    camera_height_m: CameraHeightOption = None,
+    hfov_deg: HfovOption = None,
+    calibration: CalibrationOption = None,
+    gps: GpsOption = None,
+    video_start_utc: VideoStartOption = None,
+    start_s: StartOption = None,
+    end_s: EndOption = None,
+    fps: FpsOption = None,
     config: ConfigOption = None,
-    set_: SetOption = None,
+    set_: set_option("image.width_px=640") = None,
     force: ForceOption = False,
 ) -> None:
     """Read a recording into the trace artifact."""
+    video = video_overrides(camera_height_m, hfov_deg, calibration, gps, video_start_utc, start_s, end_s, fps)
     cfg = load_config(
-        IngestConfig, preset="ingest", config_file=config, overrides=[*(set_ or []), *topic_overrides(topic)]
+        IngestConfig, preset="ingest", config_file=config, overrides=[*(set_ or []), *topic_overrides(topic), *video]
     )
     if not path.exists():
         raise InputError("no such file or folder", path)

@@ -64,7 +64,7 @@ def _global_options(
     state.workspace = workspace
 
 
-app.command("ingest", help="Read a recording (ROS1 .bag, rosbag2, .mcap, KITTI raw) into the trace artifact.")(
+app.command("ingest", help="Read a recording (ROS1 .bag, rosbag2, .mcap, KITTI, video) into the trace artifact.")(
     ingest.ingest_command
 )
 app.command("preprocess", help="Poses (GPS/IMU/odometry fusion) and per-frame depth from the trace.")(

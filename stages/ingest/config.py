@@ -9,6 +9,7 @@ from pydantic import Field, field_validator
 
 from drivesim.pipeline.config import StageConfig
 from drivesim.stages.ingest.trace import rigid_problem
+from drivesim.stages.ingest.video_config import VideoConfig
 
 TOPIC_ROLES = ("camera", "camera_info", "gps", "imu", "twist", "odometry", "lidar", "gt_depth", "gt_pose")
 
@@ -86,3 +87,5 @@ class IngestConfig(StageConfig):
     """Refuse recordings without GPS or odometry (set false to let preprocess use visual SfM alone)."""
     kitti_time_step_s: float = Field(0.1, gt=0.0)
     """Frame interval (s) of KITTI folders without timestamps files."""
+    video: VideoConfig = VideoConfig()
+    """Plain video or image folder: trimming, intrinsics, SfM, GPS track (stages/ingest/video_config.py)."""

@@ -35,6 +35,7 @@ from drivesim.stages.ingest.output import IngestResult
 from drivesim.stages.ingest.ros import ingest_ros
 from drivesim.stages.ingest.sources import is_mcap_file, is_ros1_bag, is_rosbag2_folder, unrecognised
 from drivesim.stages.ingest.trace import validate_trace
+from drivesim.stages.ingest.video_trace import ingest_video, is_video
 from drivesim.stages.ingest.writer import TraceWriter
 
 Reader = Callable[[Path, IngestConfig, TraceWriter], None]
@@ -57,6 +58,7 @@ FORMATS: dict[str, RecordingFormat] = {
     "kitti_raw": RecordingFormat(is_kitti_raw_drive, ingest_kitti_raw),
     "kitti_odometry_stereo": RecordingFormat(is_kitti_stereo, ingest_kitti_stereo),
     "kitti_odometry": RecordingFormat(is_kitti_odometry, ingest_kitti_odometry),
+    "video": RecordingFormat(is_video, ingest_video),  # a video file, or a folder of images only (issue 23)
 }
 
 

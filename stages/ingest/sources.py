@@ -88,8 +88,8 @@ def unrecognised(path: Path) -> InputError:
         if path.suffix == ".db3" or (path.suffix == ".mcap" and (path.parent / "metadata.yaml").is_file()):
             return InputError("this is one file of a rosbag2 recording; pass its folder instead", path)
         return InputError(
-            "not a recording drivesim can read (expected a ROS1 .bag, an .mcap file, a rosbag2 folder "
-            "or a KITTI raw/odometry folder)",
+            "not a recording drivesim can read (expected a ROS1 .bag, an .mcap file, a rosbag2 folder, "
+            "a KITTI raw/odometry folder or a video: .mp4, .mov, .mkv, .avi)",
             path,
         )
     names = {p.name for p in path.iterdir()}

@@ -20,7 +20,7 @@ Files (all arrays are .npy; N = frame count):
         "T_vehicle_camera": 4x4,                  camera optical frame -> vehicle frame (metres)
         "camera_height_m": float | null,          camera optical centre above the ground (null: unknown; the
                                                   z of T_vehicle_camera is then relative to base_link, not the ground)
-        "extrinsics_source": "tf_static" | "kitti_calib" | "config" | "default",
+        "extrinsics_source": "tf_static" | "kitti_calib" | "config" | "default" | "sfm_road_plane" (video),
         "time_base": "unix" | "relative",
         "right_camera": str, "baseline_m": float  only with frames_right.npy (below)
     }
@@ -51,7 +51,8 @@ Files (all arrays are .npy; N = frame count):
                   PointCloud2 scan, concatenated in log-time order (NaN/inf points dropped); open with mmap_mode="r"
     lidar_scans.npz   t_ns int64 (S,); start int64 (S,), count int64 (S,): scan s is
                   lidar_points[start[s] : start[s] + count[s]]
-    poses.npz     t_ns (M,); T_world_camera float64 (M,4,4): given camera poses (KITTI odometry ground truth)
+    poses.npz     t_ns (M,); T_world_camera float64 (M,4,4): given camera poses (KITTI odometry ground truth; a
+                  video's metric SfM poses, world z up on the road or local ENU with a GPS track: video_trace.py)
     ground_truth.npz  (synthetic recordings only) t_ns (M,); T_world_vehicle float64 (M,4,4) in the synth world's
                   ENU frame; depth at the frame times is in gt_depth.npy float32 (N,H,W) metres (inf = sky),
                   resized to the working resolution by nearest neighbour

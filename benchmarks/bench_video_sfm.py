@@ -1,0 +1,203 @@
+"""Plain video in (issue 23): the shared KITTI raw drive's grey frames made into an MP4, ingested with only the
+video and either `--camera-height-m 1.65` or a GPX track made from the OXTS fixes; the SfM camera path checked
+against the OXTS camera path. Writes benchmarks/results/video_sfm.md.
+
+    python benchmarks/bench_video_sfm.py
+    python benchmarks/bench_video_sfm.py --only height     # just the camera-height run
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import os
+import re
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+from skimage.transform import SimilarityTransform
+
+from drivesim.bench.machine import machine_line
+from drivesim.sim.geometry import se3
+from drivesim.stages.ingest.kitti import IMU_HEIGHT_M, kitti_raw_extrinsics, parse_timestamps, read_oxts
+from drivesim.stages.preprocess.poses import enu_transformer
+
+DRIVE = (
+    Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "kitti_raw" / "2011_09_26"
+    / "2011_09_26_drive_0001_sync"
+)  # fmt: skip
+RESULTS = Path(__file__).resolve().parent / "results" / "video_sfm.md"
+FPS = 10.0
+
+
+def make_video(out: Path) -> int:
+    """The drive's image_00 frames (grey, 1242x375) as an MP4 at 10 fps (OpenCV's mp4v encoder); frame count."""
+    files = sorted((DRIVE / "image_00" / "data").glob("*.png"))
+    first = cv2.imread(str(files[0]))
+    writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"mp4v"), FPS, (first.shape[1], first.shape[0]))
+    for f in files:
+        writer.write(cv2.imread(str(f)))
+    writer.release()
+    return len(files)
+
+
+def oxts_camera_track() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(times ns, OXTS rows, camera-0 centres in local ENU (N, 3) m) of every frame."""
+    T_vehicle_camera, _, _ = kitti_raw_extrinsics(DRIVE.parent, 0)
+    times, oxts = read_oxts(DRIVE, 100_000_000, use_timestamps=True)
+    e, n, u = enu_transformer(oxts[0, 0], oxts[0, 1], oxts[0, 2]).transform(oxts[:, 1], oxts[:, 0], oxts[:, 2])
+    T_enu_imu = np.tile(np.eye(4), (len(oxts), 1, 1))
+    T_enu_imu[:, :3, :3] = Rotation.from_euler("ZYX", oxts[:, [5, 4, 3]]).as_matrix()
+    T_enu_imu[:, :3, 3] = np.column_stack([e, n, u])
+    T_imu_camera = se3(np.eye(3), np.array([0.0, 0.0, -IMU_HEIGHT_M])) @ T_vehicle_camera
+    return times, oxts, (T_enu_imu @ T_imu_camera)[:, :3, 3]
+
+
+def write_gpx(path: Path, times_ns: np.ndarray, oxts: np.ndarray) -> None:
+    """One GPX track point per OXTS packet (lat, lon, alt, time as UTC)."""
+    points = []
+    for t, row in zip(times_ns, oxts, strict=True):
+        when = dt.datetime.fromtimestamp(t / 1e9, dt.UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+        ele = f"<ele>{row[2]:.3f}</ele><time>{when}</time>"
+        points.append(f'<trkpt lat="{row[0]:.9f}" lon="{row[1]:.9f}">{ele}</trkpt>')
+    path.write_text(
+        '<?xml version="1.0"?><gpx version="1.1" creator="bench_video_sfm" xmlns="http://www.topografix.com/GPX/1/1">'
+        f"<trk><trkseg>{''.join(points)}</trkseg></trk></gpx>\n"
+    )
+
+
+def ingest(video: Path, ws: Path, extra: list[str]) -> tuple[float, str]:
+    """`drivesim ingest` in a child process: (wall s, its output)."""
+    start = time.perf_counter()
+    proc = subprocess.run(
+        [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), "ingest", str(video), *extra],
+        capture_output=True,
+        text=True,
+    )
+    wall = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise SystemExit(f"drivesim ingest failed:\n{proc.stdout}\n{proc.stderr}")
+    return wall, proc.stdout
+
+
+def peak_child_rss_gb() -> float:
+    """Largest resident memory of any child process so far (GB)."""
+    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024**2
+
+
+def similarity_rmse(estimate: np.ndarray, truth: np.ndarray) -> float:
+    """RMS distance (m) between the truth and the estimate after the best similarity (scale, rotation, shift)."""
+    similarity = SimilarityTransform(dimensionality=3)
+    similarity.estimate(estimate, truth)
+    aligned = similarity(estimate)
+    return float(np.sqrt(np.mean(np.sum((aligned - truth) ** 2, axis=1))))
+
+
+def path_length(points: np.ndarray) -> float:
+    """Sum of the steps between consecutive points (m)."""
+    return float(np.sum(np.linalg.norm(np.diff(points, axis=0), axis=1)))
+
+
+def evaluate(ws: Path, truth_m: np.ndarray, n_frames: int, start_ns: int) -> dict[str, float]:
+    """The trace's SfM camera path against the OXTS camera path at the same frames."""
+    with np.load(ws / "trace" / "poses.npz") as poses:
+        t_ns, T_world_camera = poses["t_ns"], poses["T_world_camera"]
+    frame = np.round((t_ns - start_ns) * 1e-9 * FPS).astype(int)
+    est, ref = T_world_camera[:, :3, 3], truth_m[frame]
+    rmse = similarity_rmse(est, ref)
+    return {
+        "registered": len(frame),
+        "frames": n_frames,
+        "length_m": path_length(est),
+        "truth_length_m": path_length(ref),
+        "rmse_m": rmse,
+        "rigid_end_m": float(np.linalg.norm((est[-1] - est[0]) - (ref[-1] - ref[0]))),
+    }
+
+
+def _sfm_seconds(output: str) -> float:
+    """features + matching + mapping seconds from ingest's "SfM registered ..." note."""
+    return sum(float(v) for v in re.findall(r"(?:features|matching|mapping)_s (\d+(?:\.\d+)?) s", output))
+
+
+def _row(name: str, m: dict[str, float], wall_s: float, sfm_s: float, output: str) -> str:
+    focal = re.search(r"fx ([\d.]+) px at (\d+) px wide \(horizontal FOV ([\d.]+) deg\)", output)
+    fov = f"{float(focal.group(3)):.1f}" if focal else "?"
+    length_err = m["length_m"] / m["truth_length_m"] - 1
+    return (
+        f"| {name} | {m['registered']}/{m['frames']} ({m['registered'] / m['frames']:.0%}) | {m['length_m']:.1f} | "
+        f"{m['truth_length_m']:.1f} | {length_err:+.1%} | {m['rmse_m']:.3f} ({m['rmse_m'] / m['truth_length_m']:.2%}) "
+        f"| {fov} | {sfm_s:.0f} ({sfm_s / m['frames']:.2f}) | {wall_s:.0f} |"
+    )
+
+
+def main() -> None:
+    """Make the video and the GPX, ingest both ways, write the table."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", choices=["height", "gpx"], help="run one of the two ingests")
+    args = parser.parse_args()
+    if not DRIVE.is_dir():
+        raise SystemExit(f"KITTI raw drive not found at {DRIVE}")
+    stamps = parse_timestamps(DRIVE / "image_00" / "timestamps.txt")
+    start_utc = dt.datetime.fromtimestamp(stamps[0] / 1e9, dt.UTC).isoformat()
+    oxts_times, oxts, truth_m = oxts_camera_track()
+    load_before = os.getloadavg()[0]
+    rows: list[str] = []
+    runs = {
+        "video + `--camera-height-m 1.65`": (["--camera-height-m", "1.65"], 0),
+        "video + GPX of the OXTS fixes": (["--video-start-utc", start_utc], int(stamps[0])),
+    }
+    if args.only:
+        runs = {k: v for k, v in runs.items() if ("GPX" in k) == (args.only == "gpx")}
+    with tempfile.TemporaryDirectory(prefix="bench-video-") as tmp:
+        video = Path(tmp) / "kitti_0001.mp4"
+        n_frames = make_video(video)
+        write_gpx(video.with_suffix(".gpx"), oxts_times, oxts)
+        for i, (name, (extra, start_ns)) in enumerate(runs.items()):
+            ws = Path(tmp) / f"ws{i}"
+            gps = ["--gps", str(video.with_suffix(".gpx"))] if "GPX" in name else ["--gps", "none"]
+            wall_s, output = ingest(video, ws, [*extra, *gps])
+            m = evaluate(ws, truth_m, n_frames, start_ns)
+            rows.append(_row(name, m, wall_s, _sfm_seconds(output), output))
+            print(rows[-1], flush=True)
+    peak_gb = peak_child_rss_gb()
+    command = "python benchmarks/bench_video_sfm.py" + (f" --only {args.only}" if args.only else "")
+    text = "\n".join(
+        [
+            "## Plain video in: SfM poses and metric scale on the KITTI raw drive (issue 23)",
+            "",
+            f"Machine: {machine_line()} (load average {load_before:.1f} before the runs; the machine is shared). "
+            f"Date: {dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M} UTC. Command: `{command}`.",
+            "The 108 grey frames of `kitti_raw/2011_09_26_drive_0001_sync/image_00` (1242x375, 10 Hz) written as an "
+            "MP4 (OpenCV mp4v); `drivesim ingest` sees only the video (no intrinsics: SfM estimates the focal "
+            "length), plus either the camera height or a GPX track made from the 108 OXTS fixes (lat, lon, alt, "
+            "time). SfM at 640 px wide on 2 threads. Truth: the OXTS pose of each frame moved to camera 0 with the "
+            "KITTI calibration. Path length: sum of the steps between the registered frames' camera centres. RMSE: "
+            "after the best similarity (scale, rotation, shift) of the SfM path onto the OXTS one. SfM s: feature "
+            "extraction + matching + mapping, per video frame in brackets; ingest s: the whole `drivesim ingest` "
+            f"(decoding, SfM, trace). Peak memory of the ingest processes: {peak_gb:.2f} GB.",
+            "",
+            "| input | frames registered | path (m) | OXTS path (m) | length error | RMSE after similarity (m, "
+            "% of path) | estimated HFOV (deg; true 81.4) | SfM s (per frame) | ingest s |",
+            "|---|---|---|---|---|---|---|---|---|",
+            *rows,
+            "",
+            f"Targets: length within 5 %, RMSE <= 2 % of the path, >= 95 % of frames registered, SfM <= 1 s per "
+            f"frame at 640 px on 2 cores, memory <= 4 GB. Load average after the runs: {os.getloadavg()[0]:.1f}.",
+            "",
+        ]
+    )
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(text)
+    print(f"wrote {RESULTS}")
+
+
+if __name__ == "__main__":
+    main()
