@@ -135,9 +135,10 @@ def _print_result(result: Any, cfg: Any) -> None:
     unit = "Ray actors" if cfg.backend == "ray" else "workers"
     speed = f", {s.episodes_per_min:.1f} episodes/min with {s.workers} {unit}" if s.episodes_per_min else ""
     console.print(
-        f"[green]eval[/] {s.episodes} episodes of {s.policy}: intervention {s.intervention:.3f} "
+        f"[green]eval[/] {s.episodes} episodes of {s.policy}: success {s.success:.3f}, "
+        f"intervention {s.intervention:.3f} "
         f"(collision {s.collision:.3f}, off lane {s.off_lane:.3f}, over-rotation {s.over_rotation:.3f}), "
-        f"min clearance {show(s.min_clearance_m)} m, max deviation {show(s.max_deviation_m)} m, "
+        f"min clearance {show(s.min_clearance_m)} m (all episodes), max deviation {show(s.max_deviation_m)} m, "
         f"max yaw {show(s.max_yaw_rad)} rad{speed}\nreport: {report}",
         highlight=False,
         soft_wrap=True,

@@ -105,17 +105,18 @@ def test_bootstrap_interval_covers_the_mean_and_is_reproducible():
     assert math.isnan(mean_estimate([float("nan")]).value)
 
 
-def test_aggregate_counts_each_cause_and_averages_clearance_without_collisions():
+def test_aggregate_counts_each_cause_and_averages_clearance_over_all_episodes():
     records = [pass_record(2.6, seed=0), pass_record(1.95, seed=1), pass_record(1.5, seed=2), lane_departure_record(3)]
     metrics = [evaluate_episode(r).metrics for r in records]
     agg = aggregate(metrics)
     assert agg["intervention"].value == pytest.approx(0.5)
     assert agg["collision"].value == pytest.approx(0.25)
     assert agg["off_lane"].value == pytest.approx(0.25)
-    # Without the sideswipe: the clean pass (0.8), the near miss (0.15) and the lane departure (far).
+    # The headline over all trials (the sideswipe's 0 included); without it, labelled, as the second figure.
     far = metrics[3].min_clearance_m
-    assert agg["min_clearance_m"].value == pytest.approx((0.8 + 0.15 + far) / 3, abs=1e-5)
-    assert agg["min_clearance_m"].n == 3 and agg["min_clearance_all_m"].n == 4
+    assert agg["min_clearance_m"].value == pytest.approx((0.8 + 0.0 + 0.15 + far) / 4, abs=1e-5)
+    assert agg["min_clearance_no_collision_m"].value == pytest.approx((0.8 + 0.15 + far) / 3, abs=1e-5)
+    assert agg["min_clearance_m"].n == 4 and agg["min_clearance_no_collision_m"].n == 3
 
 
 def test_breakdown_levels_follow_the_quartiles_and_the_direction():

@@ -329,7 +329,7 @@ def test_onnx_policy_gives_the_torch_policy_metrics(tmp_path):
     assert by_onnx.path.name == "overtake-policy" and by_torch.path.name == "overtake-1"
     a = json.loads((by_torch.path / "metrics.json").read_text())["aggregate"]
     b = json.loads((by_onnx.path / "metrics.json").read_text())["aggregate"]
-    for key in ("intervention", "success", "max_deviation_m", "max_yaw_rad", "min_clearance_all_m"):
+    for key in ("intervention", "success", "max_deviation_m", "max_yaw_rad", "min_clearance_no_collision_m"):
         assert b[key]["value"] == pytest.approx(a[key]["value"], abs=1e-4), key
     # An ONNX policy of another task is refused like a run folder.
     result = _run_cli(tmp_path / "ws2", *_fake_args(world), "--task", "follow", "--policy", str(onnx_path))

@@ -27,9 +27,10 @@ Aggregates over episodes, each with a 95 % confidence interval:
     means (min clearance, max deviation, max yaw, tracking error): percentile bootstrap of the mean
         (`scipy.stats.bootstrap`, 2000 resamples, fixed random state so the same episodes give the same interval);
         per-episode maxima are skewed, so no normality is assumed.
-    min_clearance_m is averaged over the episodes without a collision (a collision's clearance is 0 by definition
-        and is already counted in the intervention rate), as VISTA's paper-era evaluation did; the mean over all
-        episodes is reported beside it as `min_clearance_all_m`.
+    min_clearance_m, the headline, is averaged over all episodes with another car, a collision's clearance 0
+        included (the paper's Table I is over all trials: a policy that collides or never passes does not look
+        safe); the mean over the episodes without a collision is reported beside it, labelled, as
+        `min_clearance_no_collision_m`.
     Episodes that end because the recorded data ran out ("end_of_data") stay in every aggregate (their steps were
     driven); their count is reported.
 
@@ -337,8 +338,8 @@ RATE_KEYS = ("intervention", "collision", "off_lane", "over_rotation", "success"
 def aggregate(metrics: Sequence[EpisodeMetrics]) -> dict[str, Estimate]:
     """Every aggregate of the module docstring, by name."""
     out: dict[str, Estimate] = {key: rate_estimate([getattr(m, key) for m in metrics]) for key in RATE_KEYS}
-    out["min_clearance_m"] = mean_estimate([m.min_clearance_m for m in metrics if not m.collision])
-    out["min_clearance_all_m"] = mean_estimate([m.min_clearance_m for m in metrics])
+    out["min_clearance_m"] = mean_estimate([m.min_clearance_m for m in metrics])
+    out["min_clearance_no_collision_m"] = mean_estimate([m.min_clearance_m for m in metrics if not m.collision])
     out["max_deviation_m"] = mean_estimate([m.max_deviation_m for m in metrics])
     out["max_yaw_rad"] = mean_estimate([m.max_yaw_rad for m in metrics])
     out["mean_tracking_error_m"] = mean_estimate([m.mean_tracking_error_m for m in metrics])

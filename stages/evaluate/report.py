@@ -35,7 +35,7 @@ PAPER_TABLE_I = {
 }
 TABLE_ROWS = (
     ("intervention", "average intervention ↓", "{:.3f}"),
-    ("min_clearance_m", "minimum clearance (m) ↑", "{:.3f}"),
+    ("min_clearance_m", "minimum clearance over all episodes (m) ↑", "{:.3f}"),
     ("max_deviation_m", "maximum deviation (m) ↓", "{:.3f}"),
     ("max_yaw_rad", "maximum yaw (rad) ↓", "{:.3f}"),
 )
@@ -173,7 +173,7 @@ def _html(
     extra = []
     for key, label in (
         ("success", "success rate"),
-        ("min_clearance_all_m", "minimum clearance over all episodes (m)"),
+        ("min_clearance_no_collision_m", "minimum clearance, episodes without a collision only (m)"),
         ("mean_tracking_error_m", "mean tracking error (m)"),
     ):
         if agg[key].n:

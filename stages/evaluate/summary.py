@@ -28,7 +28,7 @@ class EvalSummary(StageSummary):
     success: float
     """Success rate."""
     min_clearance_m: float | None
-    """Mean minimum clearance of the episodes without a collision [m]."""
+    """Mean minimum clearance over all episodes with another car, collisions (0) included [m]."""
     max_deviation_m: float | None
     """Mean maximum |lateral deviation| [m]."""
     max_yaw_rad: float | None
