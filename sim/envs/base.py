@@ -195,8 +195,10 @@ class DrivingEnv(gymnasium.Env):
 
     # --- task hooks (a task subclass overrides what it needs; the base never asks which task it is) -----------
     def _speeds(self, rng: np.random.Generator) -> tuple[float, float]:
-        """(ego, other) speeds of a new episode, m/s; the other's is unused without another car."""
-        return float(rng.uniform(*self.config.ego_speed_mps)), NAN
+        """(ego, other) speeds of a new episode from ego_speed_mps and other_speed_mps, m/s (NaN: no other car)."""
+        c = self.config
+        ego = float(rng.uniform(*c.ego_speed_mps))
+        return ego, float(rng.uniform(*c.other_speed_mps)) if self.has_other else NAN
 
     def _place_other(
         self,

@@ -39,10 +39,6 @@ class CutInEnv(DrivingEnv):
     task = "cutin"
     has_other = True
 
-    def _speeds(self, rng: np.random.Generator) -> tuple[float, float]:
-        c = self.config
-        return float(rng.uniform(*c.ego_speed_mps)), float(rng.uniform(*c.other_speed_mps))
-
     def _place_other(
         self,
         rng: np.random.Generator,

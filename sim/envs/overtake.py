@@ -39,10 +39,6 @@ class OvertakeEnv(DrivingEnv):
     task = "overtake"
     has_other = True
 
-    def _speeds(self, rng: np.random.Generator) -> tuple[float, float]:
-        c = self.config
-        return float(rng.uniform(*c.ego_speed_mps)), float(rng.uniform(*c.other_speed_mps))
-
     def _task_measurements(self) -> dict[str, float]:
         ego, other = self.sim.agents[0], self.sim.agents[1]
         return {"pass_margin_m": ego.distance_m - other.distance_m - self._gap_m}
