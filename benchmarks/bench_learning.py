@@ -189,7 +189,7 @@ def write_results() -> None:
         "# Learning: success on held-back seeds after a wall-clock training budget",
         "",
         f"Evaluation episodes per policy: seeds {HELD_BACK_SEED}+, eval mode (any overlap is a collision); success = "
-        "lane/follow: the time limit without intervention, overtake: passed and back in the lane without "
+        "lane/follow/cutin: the time limit without intervention, overtake: passed and back in the lane without "
         "intervention. 95 % Wilson intervals in brackets. `python benchmarks/bench_learning.py --only NAME` redoes "
         "one scenario.",
         "",
