@@ -196,10 +196,11 @@ class Workspace:
             written = _folder_bytes(tmp)
             shutil.rmtree(tmp, ignore_errors=True)
             if e.errno == errno.ENOSPC:
+                so_far = f"; {_size_text(written)} of it were written when the disk filled" if written else ""
                 raise DiskFullError(
-                    f"disk full while writing the {name} artifact: {written / 1e6:.1f} MB were written when the disk "
-                    f"filled, {_free_bytes(self.root) / 1e6:.1f} MB are free there now; free at least that much more "
-                    "space (or use --workspace on another disk) and run again; nothing was kept",
+                    f"disk full while writing the {name} artifact{so_far}; {_size_text(_free_bytes(self.root))} are "
+                    "free there now: free more space (or use --workspace on another disk) and run again; nothing "
+                    "was kept",
                     self.root,
                 ) from e
             raise
@@ -280,6 +281,10 @@ def _folder_bytes(folder: Path) -> int:
         with suppress(OSError):
             total += path.stat().st_size if path.is_file() else 0
     return total
+
+
+def _size_text(size_bytes: int) -> str:
+    return f"{size_bytes / 1e6:.1f} MB" if size_bytes >= 1e6 else f"{size_bytes / 1e3:.0f} kB"
 
 
 def _free_bytes(folder: Path) -> int:

@@ -246,7 +246,7 @@ def test_full_disk_names_the_folder_and_keeps_nothing(tmp_path, monkeypatch, cap
         code, err = _cli(ws, *args, monkeypatch=monkeypatch, capsys=capsys)
         lines = [line for line in err.strip().splitlines() if not line.startswith("eval")]
         assert code == 1 and len(lines) == 1, err
-        assert "disk full" in lines[0] and str(ws) in lines[0] and "MB are free" in lines[0], err
+        assert "disk full" in lines[0] and str(ws) in lines[0] and "are free there now" in lines[0], err
         assert not list(ws.glob(".tmp-*")) and not (ws / "eval" / "overtake-expert").exists()
     finally:
         if mounted:
