@@ -55,7 +55,7 @@ class _JsonDecoders(McapDecoderFactory):
 def read_recording(path: Path) -> tuple[dict[str, tuple[str, str, bytes]], dict[str, list[tuple[int, object]]]]:
     """{topic: (schema name, schema encoding, schema data)} and {topic: [(log_time_ns, decoded message)]}."""
     with open(path, "rb") as f:
-        reader = make_reader(f, decoder_factories=[DecoderFactory(), _JsonDecoders()])
+        reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory(), _JsonDecoders()])
         summary = reader.get_summary()
         schemas = {
             c.topic: (summary.schemas[c.schema_id].name, summary.schemas[c.schema_id].encoding,
@@ -119,12 +119,17 @@ def test_every_step_has_its_image_boxes_and_transforms_at_its_time(failed_episod
         tf_by_time[t][(tf.parent_frame_id, tf.child_frame_id)] = tf
     assert sorted(tf_by_time) == times
     for k, t in enumerate(times):
-        # The camera: exactly what the policy saw at step k.
+        # The camera: what the policy saw at step k (JPEG: close to it, and closer than to the steps beside it).
         _, image = messages["/camera/image"][k]
-        assert image.timestamp.ToNanoseconds() == t and image.format == "png" and image.frame_id == "camera"
+        assert image.timestamp.ToNanoseconds() == t and image.format == "jpeg" and image.frame_id == "camera"
         decoded = cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
         assert decoded.shape == capture.steps[k].image_rgb.shape == (16, 40, 3)
-        assert np.array_equal(decoded, capture.steps[k].image_rgb)
+        error = {
+            j: np.abs(decoded.astype(int) - capture.steps[j].image_rgb).mean()
+            for j in (k - 1, k, k + 1)
+            if 0 <= j < steps
+        }
+        assert error[k] < 6 and error[k] == min(error.values()), error
         # The transforms: the ego where the episode file has it, the other car, the camera on the ego.
         frames = tf_by_time[t]
         assert set(frames) == {("world", "ego"), ("world", "other"), ("ego", "camera")}
@@ -292,3 +297,14 @@ def test_sim_render_mcap_records_the_rendered_episode(failed_episode, tmp_path):
     assert cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_COLOR).shape == (50, 80, 3)  # full image
     [(_, log)] = messages["/log"]
     assert summary["outcome"] in log.message
+    # The segment between the footprints is the env's clearance where it is drawn (below 3 m), removed elsewhere.
+    drawn = 0
+    for (_, step), (_, update) in zip(messages["/ego/step"], messages["/scene/vehicles"], strict=True):
+        segment = [e for e in update.entities if e.id == "clearance"]
+        if step["clearance_m"] is not None and step["clearance_m"] < 3.0:
+            a, b = segment[0].lines[0].points
+            assert math.hypot(a.x - b.x, a.y - b.y) == pytest.approx(step["clearance_m"], abs=1e-3)
+            drawn += 1
+        else:
+            assert not segment and [d.id for d in update.deletions] == ["clearance"]
+    assert drawn > 0  # the expert passes the other car
