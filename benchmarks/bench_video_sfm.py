@@ -22,11 +22,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
-from skimage.transform import SimilarityTransform
 
 from drivesim.bench.machine import machine_line
 from drivesim.sim.geometry import se3
 from drivesim.stages.ingest.kitti import IMU_HEIGHT_M, kitti_raw_extrinsics, parse_timestamps, read_oxts
+from drivesim.stages.ingest.scale import fit_similarity
 from drivesim.stages.preprocess.poses import enu_transformer
 
 DRIVE = (
@@ -73,8 +73,9 @@ def write_gpx(path: Path, times_ns: np.ndarray, oxts: np.ndarray) -> None:
     )
 
 
-def ingest(video: Path, ws: Path, extra: list[str]) -> tuple[float, str]:
-    """`drivesim ingest` in a child process: (wall s, its output)."""
+def ingest(video: Path, ws: Path, extra: list[str]) -> tuple[float, float, str]:
+    """`drivesim ingest` in a child process: (wall s, CPU s (user + system), its output)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     proc = subprocess.run(
         [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), "ingest", str(video), *extra],
@@ -82,9 +83,11 @@ def ingest(video: Path, ws: Path, extra: list[str]) -> tuple[float, str]:
         text=True,
     )
     wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
     if proc.returncode != 0:
         raise SystemExit(f"drivesim ingest failed:\n{proc.stdout}\n{proc.stderr}")
-    return wall, proc.stdout
+    return wall, cpu, proc.stdout
 
 
 def peak_child_rss_gb() -> float:
@@ -94,9 +97,7 @@ def peak_child_rss_gb() -> float:
 
 def similarity_rmse(estimate: np.ndarray, truth: np.ndarray) -> float:
     """RMS distance (m) between the truth and the estimate after the best similarity (scale, rotation, shift)."""
-    similarity = SimilarityTransform(dimensionality=3)
-    similarity.estimate(estimate, truth)
-    aligned = similarity(estimate)
+    aligned = fit_similarity(estimate, truth)(estimate)
     return float(np.sqrt(np.mean(np.sum((aligned - truth) ** 2, axis=1))))
 
 
@@ -127,14 +128,15 @@ def _sfm_seconds(output: str) -> float:
     return sum(float(v) for v in re.findall(r"(?:features|matching|mapping)_s (\d+(?:\.\d+)?) s", output))
 
 
-def _row(name: str, m: dict[str, float], wall_s: float, sfm_s: float, output: str) -> str:
+def _row(name: str, m: dict[str, float], wall_s: float, cpu_s: float, sfm_s: float, output: str) -> str:
     focal = re.search(r"fx ([\d.]+) px at (\d+) px wide \(horizontal FOV ([\d.]+) deg\)", output)
     fov = f"{float(focal.group(3)):.1f}" if focal else "?"
     length_err = m["length_m"] / m["truth_length_m"] - 1
     return (
         f"| {name} | {m['registered']}/{m['frames']} ({m['registered'] / m['frames']:.0%}) | {m['length_m']:.1f} | "
         f"{m['truth_length_m']:.1f} | {length_err:+.1%} | {m['rmse_m']:.3f} ({m['rmse_m'] / m['truth_length_m']:.2%}) "
-        f"| {fov} | {sfm_s:.0f} ({sfm_s / m['frames']:.2f}) | {wall_s:.0f} |"
+        f"| {fov} | {sfm_s:.0f} ({sfm_s / m['frames']:.2f}) | {wall_s:.0f} | {cpu_s:.0f} "
+        f"({cpu_s / 2 / m['frames']:.2f}) |"
     )
 
 
@@ -163,9 +165,9 @@ def main() -> None:
         for i, (name, (extra, start_ns)) in enumerate(runs.items()):
             ws = Path(tmp) / f"ws{i}"
             gps = ["--gps", str(video.with_suffix(".gpx"))] if "GPX" in name else ["--gps", "none"]
-            wall_s, output = ingest(video, ws, [*extra, *gps])
+            wall_s, cpu_s, output = ingest(video, ws, [*extra, *gps])
             m = evaluate(ws, truth_m, n_frames, start_ns)
-            rows.append(_row(name, m, wall_s, _sfm_seconds(output), output))
+            rows.append(_row(name, m, wall_s, cpu_s, _sfm_seconds(output), output))
             print(rows[-1], flush=True)
     peak_gb = peak_child_rss_gb()
     command = "python benchmarks/bench_video_sfm.py" + (f" --only {args.only}" if args.only else "")
@@ -181,12 +183,15 @@ def main() -> None:
             "time). SfM at 640 px wide on 2 threads. Truth: the OXTS pose of each frame moved to camera 0 with the "
             "KITTI calibration. Path length: sum of the steps between the registered frames' camera centres. RMSE: "
             "after the best similarity (scale, rotation, shift) of the SfM path onto the OXTS one. SfM s: feature "
-            "extraction + matching + mapping, per video frame in brackets; ingest s: the whole `drivesim ingest` "
-            f"(decoding, SfM, trace). Peak memory of the ingest processes: {peak_gb:.2f} GB.",
+            "extraction + matching + mapping wall time, per video frame in brackets; ingest: the whole `drivesim "
+            "ingest` (decoding, SfM, trace), wall and CPU time (user + system); CPU s / 2 cores / frames is what a "
+            "frame would take on an idle 2-core machine, since the shared machine's load stretches wall times. "
+            f"Peak memory of the ingest processes: {peak_gb:.2f} GB.",
             "",
             "| input | frames registered | path (m) | OXTS path (m) | length error | RMSE after similarity (m, "
-            "% of path) | estimated HFOV (deg; true 81.4) | SfM s (per frame) | ingest s |",
-            "|---|---|---|---|---|---|---|---|---|",
+            "% of path) | estimated HFOV (deg; true 81.4) | SfM wall s (per frame) | ingest wall s | ingest CPU s "
+            "(per frame per core) |",
+            "|---|---|---|---|---|---|---|---|---|---|",
             *rows,
             "",
             f"Targets: length within 5 %, RMSE <= 2 % of the path, >= 95 % of frames registered, SfM <= 1 s per "

@@ -8,13 +8,15 @@ from typing import Annotated
 import typer
 
 from drivesim.cli.common import console, workspace
+from drivesim.cli.video_options import CameraHeightOption, GpsOption, HfovOption, VideoStartOption, video_overrides
 
 
 def run_command(
     recording: Annotated[
         Path | None,
         typer.Argument(
-            help="Your recording (ROS1 .bag, rosbag2 folder, .mcap, KITTI raw drive). Default: the embedded demo "
+            help="Your recording (ROS1 .bag, rosbag2 folder, .mcap, KITTI raw drive, or a video with "
+            "--camera-height-m or a GPS track). Default: the embedded demo "
             "drive, synthesized first into <workspace>/recordings/demo.mcap.",
             show_default=False,
         ),
@@ -35,6 +37,10 @@ def run_command(
         ),
     ] = None,
     force: Annotated[bool, typer.Option("--force", help="Redo every stage even when its artifact is fresh.")] = False,
+    camera_height_m: CameraHeightOption = None,
+    hfov_deg: HfovOption = None,
+    gps: GpsOption = None,
+    video_start_utc: VideoStartOption = None,
 ) -> None:
     """Run every stage in order: (synth,) ingest, preprocess, build-world, meshes, train, eval, export.
 
@@ -44,7 +50,8 @@ def run_command(
     # Imported here so `drivesim --help` stays fast.
     from drivesim.stages.run_chain import StageRun, load_run_preset, run_chain
 
-    overrides = load_run_preset(preset, config, set_ or [])
+    video = video_overrides(camera_height_m, hfov_deg, None, gps, video_start_utc, prefix="ingest.")
+    overrides = load_run_preset(preset, config, [*(set_ or []), *video])
 
     def on_stage(done: StageRun) -> None:
         state = "[dim]fresh, skipped[/]" if done.skipped else f"[green]done[/] in {done.wall_s:.1f} s"

@@ -25,6 +25,7 @@ SPEED_MPS, FPS, N_FRAMES = 5.0, 10.0, 30
 CURVATURE_1PM = 0.01  # a 100 m radius left bend
 WALL_Y_M = 5.0
 START_UTC = dt.datetime(2024, 5, 1, 9, 30, 0, tzinfo=dt.UTC)
+FAST = ("--set", "video.sfm_loop_keyframes=0")  # 30 frames need no loop closure; ~25 % less matching
 
 
 def _texture(seed: int, size: int = 1024) -> np.ndarray:
@@ -146,9 +147,8 @@ def _path_length(points: np.ndarray) -> float:
 def test_video_with_camera_height_gives_the_metric_path(drive, tmp_path: Path, monkeypatch, capsys) -> None:
     video, centres = drive
     ws = tmp_path / "ws"
-    code, out, err = _run(
-        monkeypatch, capsys, ws, "ingest", str(video), "--camera-height-m", str(CAMERA_HEIGHT_M), "--hfov-deg", "90"
-    )
+    args = ("--camera-height-m", str(CAMERA_HEIGHT_M), "--hfov-deg", "90", *FAST)
+    code, out, err = _run(monkeypatch, capsys, ws, "ingest", str(video), *args)
     assert code == 0, out + err
     trace = ws / "trace"
     with np.load(trace / "poses.npz") as poses:
@@ -182,7 +182,8 @@ def test_video_with_a_gpx_beside_it_scales_by_the_track(drive, tmp_path: Path, m
     local.write_bytes(video.read_bytes())
     write_gpx(local.with_suffix(".gpx"), centres, START_UTC)
     ws = tmp_path / "ws"
-    code, out, err = _run(monkeypatch, capsys, ws, "ingest", str(local), "--video-start-utc", START_UTC.isoformat())
+    args = ("--video-start-utc", START_UTC.isoformat(), *FAST)
+    code, out, err = _run(monkeypatch, capsys, ws, "ingest", str(local), *args)
     assert code == 0, out + err
     with np.load(ws / "trace" / "poses.npz") as poses:
         t_ns, T_world_camera = poses["t_ns"], poses["T_world_camera"]
@@ -229,3 +230,47 @@ def test_video_without_a_scale_names_both_options(drive, tmp_path: Path, monkeyp
     video, _ = drive
     code, _, err = _run(monkeypatch, capsys, tmp_path / "ws", "ingest", str(video))
     _assert_refused(code, err, tmp_path / "ws", "--camera-height-m", "GPS track")
+
+
+def test_nmea_and_csv_tracks_read_the_same_fixes(tmp_path: Path) -> None:
+    from drivesim.stages.ingest.gps_sidecar import read_sidecar
+
+    def sentence(body: str) -> str:
+        checksum = 0
+        for char in body:
+            checksum ^= ord(char)
+        return f"${body}*{checksum:02X}\n"
+
+    nmea = tmp_path / "drive.nmea"
+    nmea.write_text(
+        sentence("GPGGA,093000.00,4807.038,N,01131.000,E,1,08,0.9,545.4,M,46.9,M,,")
+        + sentence("GPRMC,093000.00,A,4807.038,N,01131.000,E,022.4,084.4,010524,003.1,W")
+        + "garbage line\n"
+        + sentence("GPRMC,093001.00,A,4807.048,N,01131.010,E,022.4,084.4,010524,003.1,W")
+    )
+    csv = tmp_path / "drive.csv"
+    csv.write_text(
+        "timestamp,latitude,longitude,altitude\n"
+        "2024-05-01T09:30:00Z,48.1173,11.516666667,545.4\n"
+        f"{START_UTC.timestamp() + 1.0},48.117466667,11.516833333,\n"
+    )
+    a, b = read_sidecar(nmea), read_sidecar(csv)
+    assert list(a.t_ns) == list(b.t_ns) == [int(START_UTC.timestamp() * 1e9), int(START_UTC.timestamp() * 1e9) + 10**9]
+    np.testing.assert_allclose(a.lat_deg, b.lat_deg, atol=1e-8)
+    np.testing.assert_allclose(a.lon_deg, b.lon_deg, atol=1e-8)
+    assert a.alt_m[0] == b.alt_m[0] == 545.4 and np.isnan(b.alt_m[1])
+    # 1 s apart, 18.5 m north and 12.4 m east of each other
+    np.testing.assert_allclose(b.enu_m()[1, :2], [12.4, 18.5], atol=0.1)
+
+
+def test_sfm_frames_and_pairs() -> None:
+    from drivesim.stages.ingest.sfm import frame_pairs
+    from drivesim.stages.ingest.video import select_frames, thin_to_rate
+
+    times = np.round(np.arange(90) * 1e9 / 30).astype(np.int64)  # 3 s at 30 fps
+    window = select_frames(times, 1.0, 2.0)
+    assert window[0] == 30 and window[-1] == 60
+    kept = thin_to_rate(times[window], 10.0)
+    assert list(window[kept]) == list(range(30, 61, 3))
+    pairs = frame_pairs(100, window=5, loop_keyframes=5)
+    assert (0, 5) in pairs and (0, 6) not in pairs and (0, 99) in pairs and (25, 74) in pairs and (1, 99) not in pairs

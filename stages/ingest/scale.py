@@ -141,6 +141,15 @@ def scale_poses(T_world_camera: np.ndarray, scale: float) -> np.ndarray:
     return out
 
 
+def fit_similarity(src: np.ndarray, dst: np.ndarray) -> SimilarityTransform | None:
+    """The least-squares similarity src -> dst (Umeyama, scikit-image; 2D or 3D points), None when degenerate."""
+    if hasattr(SimilarityTransform, "from_estimate"):  # scikit-image >= 0.26
+        fitted = SimilarityTransform.from_estimate(src, dst)
+        return fitted if fitted else None
+    similarity = SimilarityTransform(dimensionality=src.shape[1])
+    return similarity if similarity.estimate(src, dst) else None
+
+
 def gps_alignment(level_xyz: np.ndarray, enu_xyz: np.ndarray, min_path_m: float = 10.0) -> np.ndarray:
     """T_enu_level as a 4x4 similarity (scale, yaw about z, translation) that best maps the levelled SfM camera
     positions onto the GPS ENU positions at the same times (least squares in the horizontal plane, Umeyama's
@@ -154,8 +163,8 @@ def gps_alignment(level_xyz: np.ndarray, enu_xyz: np.ndarray, min_path_m: float 
             f"the GPS track moves only {path_m:.1f} m while the video is registered (at least {min_path_m:g} m "
             "needed for a scale); give --camera-height-m instead"
         )
-    similarity = SimilarityTransform(dimensionality=2)
-    if not similarity.estimate(level_xyz[:, :2], enu_xyz[:, :2]):
+    similarity = fit_similarity(level_xyz[:, :2], enu_xyz[:, :2])
+    if similarity is None:
         raise InputError("the GPS track cannot be aligned with the SfM path (degenerate); give --camera-height-m")
     scale = float(similarity.scale)
     T = np.eye(4)

@@ -34,7 +34,7 @@ class VideoConfig(StageConfig):
     """Width of the images SfM works on (px)."""
     sfm_window: int = Field(10, ge=2, le=100)
     """Each SfM frame is matched with this many following frames."""
-    sfm_loop_keyframes: int = Field(30, ge=0, le=200)
+    sfm_loop_keyframes: int = Field(15, ge=0, le=200)
     """Evenly spaced keyframes matched with each other for loop closure (0: off)."""
     sfm_max_features: int = Field(4096, ge=256, le=32768)
     """SIFT features per SfM image."""
