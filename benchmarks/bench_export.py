@@ -19,7 +19,7 @@ from drivesim.bench.report import write_markdown
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.export.config import ExportConfig
 from drivesim.stages.export.stage import run_export
-from drivesim.stages.policy import latest_run
+from drivesim.stages.policy.run_folder import latest_run
 
 RESULTS = Path(__file__).resolve().parent / "results" / "export.md"
 BUDGET_MS = 1000 / 30

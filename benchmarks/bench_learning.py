@@ -31,7 +31,7 @@ import numpy as np
 from drivesim.bench.machine import machine_line
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.workspace import Workspace
-from drivesim.stages.policy import load_policy
+from drivesim.stages.policy.run_folder import load_policy
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.envs import EnvSource
 from drivesim.stages.train.stage import run_training

@@ -135,7 +135,7 @@ def stage_config(model: type[StageConfig], preset: str | None, overrides: dict[s
 
 def _fresh_run(ws: Workspace, spec: StageSpec, cfg: StageConfig) -> Path | None:
     """The newest finished run under runs/ made with this train config and the same world, or None."""
-    from drivesim.stages.policy import RUNS_DIR, is_complete_run
+    from drivesim.stages.policy.run_folder import RUNS_DIR, is_complete_run
 
     requires = () if getattr(getattr(cfg, "envs", None), "source", None) == "cost_free" else spec.requires
     refs = {up: ws.artifact_input(up) for up in requires}

@@ -45,7 +45,7 @@ def _make_run(folder: Path, task: str) -> Path:
     import torch
 
     from drivesim.pipeline.hashing import sha256_file
-    from drivesim.stages.policy import build_net
+    from drivesim.stages.policy.run_folder import build_net
     from drivesim.stages.train.run_files import write_json, write_policy_files
 
     arch = {"conv_layers": [[4, 5, 4], [8, 3, 2]], "features_dim": 16, "lstm_hidden_size": 8, "lstm_layers": 1}
@@ -314,7 +314,7 @@ def test_resume_into_fewer_episodes_keeps_only_those(tmp_path, monkeypatch):
 
 def test_onnx_policy_gives_the_torch_policy_metrics(tmp_path):
     from drivesim.stages.export.onnx_export import export_onnx
-    from drivesim.stages.policy import load_policy
+    from drivesim.stages.policy.run_folder import load_policy
 
     register_fake_envs()
     world = _fake_world(tmp_path / "world")

@@ -12,8 +12,8 @@ import pytest
 
 from drivesim.pipeline.errors import DrivesimError
 from drivesim.pipeline.workspace import Workspace
-from drivesim.stages.onnx_policy import OnnxPolicy
-from drivesim.stages.policy import load_policy
+from drivesim.stages.policy.onnx_runtime import OnnxPolicy
+from drivesim.stages.policy.run_folder import load_policy
 
 SHAPE = (3, 64, 160)
 
@@ -23,7 +23,7 @@ def make_run(folder: Path, task: str = "overtake", hidden: int = 16) -> Path:
     import torch
 
     from drivesim.pipeline.hashing import sha256_file
-    from drivesim.stages.policy import build_net
+    from drivesim.stages.policy.run_folder import build_net
     from drivesim.stages.train.run_files import write_json, write_policy_files
 
     arch = {"conv_layers": [[8, 5, 4], [16, 3, 2]], "features_dim": 32, "lstm_hidden_size": hidden, "lstm_layers": 1}

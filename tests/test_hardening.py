@@ -34,7 +34,7 @@ from drivesim.stages.chain import CHAIN
 from drivesim.stages.evaluate.config import EvalConfig
 from drivesim.stages.evaluate.stage import SPEC as EVAL_SPEC
 from drivesim.stages.evaluate.stage import run_eval
-from drivesim.stages.policy import RunError, load_policy
+from drivesim.stages.policy.run_folder import RunError, load_policy
 from drivesim.stages.run_chain import RUNNERS, _Walk
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.resume import plan_resume, reopen

@@ -19,6 +19,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 # Upstream schema modules (one per artifact, read by its writer and its readers).
 SCHEMA_MODULES = {"drivesim.stages.ingest.trace", "drivesim.stages.preprocess.artifact"}
+# Packages at the top of stages/ that are shared, not stages: the policy (its network, run files and ONNX runtime).
+SHARED_PACKAGES = {"policy"}
 
 
 def _module_name(file: Path) -> str:
@@ -84,8 +86,10 @@ def _stage_import_allowed(file: Path, module: str) -> bool:
     if len(parts) == 1:
         return True  # the shared modules at the top of stages/ (chain registry and walker, policy format)
     target = module.split(".")[2]
-    if target == parts[0] or (REPO / "stages" / f"{target}.py").is_file() or module.count(".") == 2:
-        return True  # its own stage, a shared top-level module, or a stage package itself (its modules are checked)
+    if target == parts[0] or target in SHARED_PACKAGES or (REPO / "stages" / f"{target}.py").is_file():
+        return True  # its own stage, a shared top-level module or package
+    if module.count(".") == 2:
+        return True  # a stage package itself (its modules are checked)
     return any(_under(module, schema) for schema in SCHEMA_MODULES)
 
 
@@ -102,7 +106,8 @@ def test_no_stage_imports_another_stages_run_module() -> None:
         ("stages/world/build.py", "drivesim.cli.common", False),
         ("stages/world/build.py", "drivesim.bench.fidelity", False),
         ("stages/chain.py", "drivesim.stages.world.stage", True),
-        ("stages/evaluate/rollout.py", "drivesim.stages.policy", True),
+        ("stages/evaluate/rollout.py", "drivesim.stages.policy.run_folder", True),
+        ("stages/evaluate/rollout.py", "drivesim.stages.policy.onnx_runtime", True),
         ("stages/evaluate/rollout.py", "drivesim.stages.train.run", False),
     ],
 )

@@ -114,13 +114,15 @@ class PolicySpec:
         if self.kind == "expert":
             return ExpertPolicy(env)
         if self.kind == "run":
-            from drivesim.stages.policy import load_policy
+            from drivesim.stages.policy.run_folder import load_policy
 
             return load_policy(Path(self.path))
         try:
-            from drivesim.stages.onnx_policy import OnnxPolicy
+            from drivesim.stages.policy.onnx_runtime import OnnxPolicy
         except ImportError as e:
-            raise DrivesimError("this version of drivesim cannot run ONNX policies (no stages.onnx_policy)") from e
+            raise DrivesimError(
+                "this version of drivesim cannot run ONNX policies (no stages.policy.onnx_runtime)"
+            ) from e
         return OnnxPolicy(Path(self.path))
 
 

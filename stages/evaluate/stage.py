@@ -329,7 +329,7 @@ SPEC: StageSpec[EvalSummary] = StageSpec(
 def choose_policy(ws: Workspace, cfg: EvalConfig, policy: str | None, user_chose: bool) -> EvalConfig:
     """The config with the policy to evaluate: `policy` when given; else, when the user named none (no `--policy`,
     no `policy=` in --set or --config), the workspace's newest finished run of the task, else the expert."""
-    from drivesim.stages.policy import latest_run
+    from drivesim.stages.policy.run_folder import latest_run
 
     if policy is not None:
         return cfg.model_copy(update={"policy": policy})

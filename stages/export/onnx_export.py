@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from drivesim.stages.onnx_policy import INPUT_NAMES, METADATA_FORMAT, METADATA_PREFIX, OUTPUT_NAMES, OnnxPolicy
+from drivesim.stages.policy.onnx_runtime import INPUT_NAMES, METADATA_FORMAT, METADATA_PREFIX, OUTPUT_NAMES, OnnxPolicy
 
 # Batch size is dynamic: the car runs one episode, evaluation may step several at once.
 DYNAMIC_AXES = {

@@ -22,7 +22,7 @@ class _Section(BaseModel):
 
 
 class PolicyConfig(_Section):
-    """The CNN + LSTM (stages/policy_net.py)."""
+    """The CNN + LSTM (stages/policy/net.py)."""
 
     conv_layers: list[ConvLayer] = Field(default_factory=lambda: [(16, 5, 2), (32, 3, 2), (64, 3, 1)], max_length=32)
     """Convolutions as (out_channels, kernel_px, stride_px), 'valid' padding, ReLU after each."""

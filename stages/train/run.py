@@ -18,7 +18,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from drivesim.pipeline.config import validation_line
 from drivesim.pipeline.errors import ConfigError, DrivesimError, Interrupted
-from drivesim.stages.policy import CONFIG_JSON, RUNS_DIR
+from drivesim.stages.policy.run_folder import CONFIG_JSON, RUNS_DIR
 from drivesim.stages.train.best import BEST_CHECKPOINT, BestPolicy
 from drivesim.stages.train.callbacks import RunState, TrainingCallback
 from drivesim.stages.train.config import TrainConfig

@@ -19,7 +19,7 @@ from sb3_contrib.common.recurrent.type_aliases import RNNStates
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
-from drivesim.stages.policy_net import DrivingNet, ImageEncoder, run_lstm
+from drivesim.stages.policy.net import DrivingNet, ImageEncoder, run_lstm
 
 
 class EncoderExtractor(BaseFeaturesExtractor):

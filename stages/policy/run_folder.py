@@ -117,7 +117,7 @@ class LoadedPolicy:
 
     def export_module(self) -> Any:
         """The deterministic one-step policy as a `torch.nn.Module` for ONNX (see policy_net.ExportModule)."""
-        from drivesim.stages.policy_net import ExportModule
+        from drivesim.stages.policy.net import ExportModule
 
         return ExportModule(self.net).eval()
 
@@ -140,7 +140,7 @@ def _check_weights(run_dir: Path, manifest: dict[str, Any]) -> None:
 def build_net(info: dict[str, Any]) -> Any:
     """A `DrivingNet` with the architecture recorded in policy.json (random weights)."""
     from drivesim.stages.net_size import check_network_size
-    from drivesim.stages.policy_net import DrivingNet
+    from drivesim.stages.policy.net import DrivingNet
 
     arch = info["architecture"]
     # A damaged or hostile policy.json may describe a network larger than memory: refused before torch allocates it.
