@@ -199,8 +199,8 @@ class Workspace:
                 so_far = f"; {_size_text(written)} of it were written when the disk filled" if written else ""
                 raise DiskFullError(
                     f"disk full while writing the {name} artifact{so_far}; {_size_text(_free_bytes(self.root))} are "
-                    "free there now: free more space (or use --workspace on another disk) and run again; nothing "
-                    "was kept",
+                    "free there now: free more space (or use --workspace on another disk) and run again (a run or "
+                    "an evaluation continues where it stopped); no half-written artifact was kept",
                     self.root,
                 ) from e
             raise
