@@ -302,3 +302,81 @@ def save_figure(path: Path, views: dict[str, np.ndarray], depths: dict[str, np.n
         rows.append(np.concatenate(tiles, axis=1))
     path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), np.concatenate(rows, axis=0))
+
+
+@dataclass
+class RealDrive:
+    """A real drive as the depth methods see it: frames (N, H, W, 3) at the working resolution, K, per-frame
+    T_world_camera, T_vehicle_camera, camera_height_m (None: from T_vehicle_camera)."""
+
+    name: str
+    frames: np.ndarray
+    K: np.ndarray
+    T_world_camera: np.ndarray
+    T_vehicle_camera: np.ndarray
+    camera_height_m: float | None
+
+
+def load_real_drive(workspace_dir: Path, name: str = "") -> RealDrive:
+    """The trace frames and the fused poses of a workspace that has run `drivesim ingest` and `drivesim preprocess`."""
+    from drivesim.stages.ingest.trace import open_trace
+
+    trace = open_trace(workspace_dir / "trace")
+    poses = np.load(workspace_dir / "preprocessed" / "poses.npz")
+    frames = np.asarray(trace.frames[poses["frame_index"]])
+    return RealDrive(name or workspace_dir.name, frames, trace.K, poses["T_world_camera"], trace.T_vehicle_camera,
+                     trace.calibration.get("camera_height_m"))  # fmt: skip
+
+
+def forward_view_rows(
+    drive: RealDrive,
+    depths: dict[str, np.ndarray],
+    gaps: tuple[int, ...] = (2, 5),
+    eval_width_px: int = 320,
+    step: int = 2,
+    skip_ends: int = 3,
+) -> list[dict[str, Any]]:
+    """Each method's frame i warped to the pose of frame i + gap and compared with that recorded frame (the real
+    forward novel view), at the world's resolution (depth shrunk by block minimum, frames by area). Frames within
+    `skip_ends` of either end (missing mvs neighbours) are not sources."""
+    from drivesim.stages.world.build import resize_depth, resize_frames
+
+    n, H, W = drive.frames.shape[:3]
+    ew, eh = eval_width_px, max(1, round(H * eval_width_px / W))
+    K = scale_intrinsics(drive.K, ew / W, eh / H)
+    small = resize_frames(drive.frames, ew, eh)
+    rows = []
+    for name, depth in depths.items():
+        depth_small = resize_depth(depth, ew, eh, "min")
+        for gap in gaps:
+            metrics = []
+            for i in range(skip_ends, n - gap - skip_ends, step):
+                T_dst_src = invert(drive.T_world_camera[i + gap]) @ drive.T_world_camera[i]
+                out = forward_warp(
+                    torch.from_numpy(small[i]), torch.from_numpy(depth_small[i]), K, T_dst_src, K, ew, eh
+                )
+                valid = out.valid.numpy().astype(bool).reshape(eh, ew)
+                metrics.append(image_metrics(out.rgb.numpy().reshape(eh, ew, 3), small[i + gap], valid))
+            rows.append(
+                {"drive": drive.name, "depth": name, "gap_frames": gap, "pairs": len(metrics),
+                 **{k: float(np.mean([m[k] for m in metrics])) for k in ("psnr_db", "ssim", "filled_fraction")}}
+            )  # fmt: skip
+    return rows
+
+
+def real_depths(
+    drive: RealDrive, methods: tuple[str, ...], cfg: DepthConfig | None = None
+) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """Depth of every frame of a real drive by each method at the working resolution, and seconds per frame."""
+    import time
+
+    base = cfg or DepthConfig()
+    depths, seconds = {}, {}
+    for method in methods:
+        out = np.empty(drive.frames.shape[:3], np.float32)
+        start = time.perf_counter()
+        estimate_depth(drive.frames, drive.K, drive.T_world_camera, drive.T_vehicle_camera, drive.camera_height_m,
+                       base.model_copy(update={"method": method}), out)  # fmt: skip
+        seconds[method] = (time.perf_counter() - start) / len(out)
+        depths[method] = out
+    return depths, seconds

@@ -121,7 +121,7 @@ def street_drive() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def test_plane_depth_is_exact_on_flat_ground() -> None:
     frames, gt, poses = _drive(Scene(boxes=[]), 3)
     out = np.zeros(gt.shape, np.float32)
-    summary = estimate_depth(frames, K, poses, T_VEHICLE_CAMERA, CAMERA_HEIGHT_M, DepthConfig(), out)
+    summary = estimate_depth(frames, K, poses, T_VEHICLE_CAMERA, CAMERA_HEIGHT_M, DepthConfig(method="plane"), out)
     ground = np.isfinite(gt) & (gt < 80.0)
     assert ground.mean() > 0.4
     np.testing.assert_allclose(out[ground], gt[ground], rtol=1e-4)
@@ -141,7 +141,7 @@ def test_mvs_beats_plane_on_a_street_with_walls(street_drive: tuple[np.ndarray, 
     frames, gt, poses = street_drive
     plane = np.zeros(gt.shape, np.float32)
     mvs = np.zeros(gt.shape, np.float32)
-    estimate_depth(frames, K, poses, T_VEHICLE_CAMERA, CAMERA_HEIGHT_M, DepthConfig(), plane)
+    estimate_depth(frames, K, poses, T_VEHICLE_CAMERA, CAMERA_HEIGHT_M, DepthConfig(method="plane"), plane)
     summary = estimate_depth(frames, K, poses, T_VEHICLE_CAMERA, CAMERA_HEIGHT_M, DepthConfig(method="mvs"), mvs)
     middle = slice(2, 5)  # frames with neighbours on both sides
     abs_rel_plane = _abs_rel(plane[middle], gt[middle])
@@ -173,7 +173,7 @@ def test_mvs_single_frame_falls_back_to_plane(street_drive) -> None:
     frames, gt, poses = street_drive
     plane = np.zeros(gt[:1].shape, np.float32)
     mvs = np.zeros(gt[:1].shape, np.float32)
-    estimate_depth(frames[:1], K, poses[:1], T_VEHICLE_CAMERA, CAMERA_HEIGHT_M, DepthConfig(), plane)
+    estimate_depth(frames[:1], K, poses[:1], T_VEHICLE_CAMERA, CAMERA_HEIGHT_M, DepthConfig(method="plane"), plane)
     estimate_depth(frames[:1], K, poses[:1], T_VEHICLE_CAMERA, CAMERA_HEIGHT_M, DepthConfig(method="mvs"), mvs)
     np.testing.assert_array_equal(plane, mvs)
 
@@ -215,7 +215,7 @@ def test_config_validation() -> None:
     with pytest.raises(ConfigError, match="unknown config key 'mvs.hypotheses'"):
         load_config(DepthConfig, overrides=["mvs.hypotheses=32"])
     with pytest.raises(ConfigError, match="method"):
-        load_config(DepthConfig, overrides=["method=stereo"])
+        load_config(DepthConfig, overrides=["method=sonar"])
     for bad in ({"mvs": {"patch_size_px": 4}}, {"mvs": {"neighbour_offsets": [0, 1]}}, {"max_depth_m": 1.0}):
         with pytest.raises(ValidationError):
             DepthConfig.model_validate(bad)
@@ -225,11 +225,23 @@ def test_bad_shapes_are_input_errors() -> None:
     frames = np.zeros((2, 10, 12, 3), np.uint8)
     with pytest.raises(InputError, match="out must be"):
         estimate_depth(
-            frames, K, np.stack([np.eye(4)] * 2), T_VEHICLE_CAMERA, 1.6, DepthConfig(), np.zeros((2, 10, 12))
+            frames,
+            K,
+            np.stack([np.eye(4)] * 2),
+            T_VEHICLE_CAMERA,
+            1.6,
+            DepthConfig(method="plane"),
+            np.zeros((2, 10, 12)),
         )
     with pytest.raises(InputError, match="T_world_camera"):
         estimate_depth(
-            frames, K, np.eye(4)[None], T_VEHICLE_CAMERA, 1.6, DepthConfig(), np.zeros((2, 10, 12), np.float32)
+            frames,
+            K,
+            np.eye(4)[None],
+            T_VEHICLE_CAMERA,
+            1.6,
+            DepthConfig(method="plane"),
+            np.zeros((2, 10, 12), np.float32),
         )
 
 
@@ -268,7 +280,7 @@ def test_mvs_on_a_stationary_vehicle_keeps_the_plane(street_drive) -> None:
     still_poses = np.repeat(poses[3:4], 4, axis=0)
     plane = np.zeros(still.shape[:3], np.float32)
     mvs = np.zeros(still.shape[:3], np.float32)
-    estimate_depth(still, K, still_poses, T_VEHICLE_CAMERA, CAMERA_HEIGHT_M, DepthConfig(), plane)
+    estimate_depth(still, K, still_poses, T_VEHICLE_CAMERA, CAMERA_HEIGHT_M, DepthConfig(method="plane"), plane)
     summary = estimate_depth(still, K, still_poses, T_VEHICLE_CAMERA, CAMERA_HEIGHT_M, DepthConfig(method="mvs"), mvs)
     assert summary["stereo_fraction"] == 0.0  # no baseline, no parallax: nothing to triangulate
     below = plane < 80.0

@@ -38,7 +38,7 @@ def test_mvs_on_kitti_matches_with_true_poses_and_agrees_with_the_road_plane() -
     for name, poses in (("true", T_world_camera), ("inverted", invert(T_world_camera))):
         plane = np.zeros(frames.shape[:3], np.float32)
         mvs = np.zeros(frames.shape[:3], np.float32)
-        estimate_depth(frames, K, poses, T_vehicle_camera, CAMERA_HEIGHT_M, DepthConfig(), plane)
+        estimate_depth(frames, K, poses, T_vehicle_camera, CAMERA_HEIGHT_M, DepthConfig(method="plane"), plane)
         summary = estimate_depth(frames, K, poses, T_vehicle_camera, CAMERA_HEIGHT_M, DepthConfig(method="mvs"), mvs)
         road = (slice(3, 5), slice(300, 370), slice(480, 720))  # the lane just ahead, frames with all neighbours
         agree = np.mean(np.abs(mvs[road] - plane[road]) < 0.1 * plane[road])

@@ -41,7 +41,7 @@ def ws(tmp_path: Path) -> Workspace:
 
 def test_preprocess_writes_poses_depth_and_summary(ws: Workspace, monkeypatch) -> None:
     calls = install_fake_poses(monkeypatch)
-    result = stage.run_preprocess(ws, PreprocessConfig())
+    result = stage.run_preprocess(ws, PreprocessConfig.model_validate({"depth": {"method": "plane"}}))
     assert not result.skipped
     pre = load_preprocessed(result.path)
     assert pre.frame_count == FRAME_COUNT

@@ -64,7 +64,7 @@ def test_sgbm_finds_the_walls_depth_from_the_pair() -> None:
     assert np.median(np.abs(depth[:, 40:] - 8.0)) < 0.2  # left border: no match, filled from the right
 
 
-def _write_folder(folder: Path, n: int = 9) -> None:
+def write_wall_folder(folder: Path, n: int = 9) -> Path:
     """A KITTI-layout stereo drive towards the wall: 10 m away at frame 0, 0.5 m nearer each frame."""
     texture = _texture(2)
     for side in ("image_l", "image_r"):
@@ -81,10 +81,11 @@ def _write_folder(folder: Path, n: int = 9) -> None:
     (folder / "calib.txt").write_text("".join(f"P{k}: {' '.join(f'{v:.6e}' for v in P.ravel())}\n"
                                               for k, P in enumerate((P0, P1))))  # fmt: skip
     np.savetxt(folder / "poses.txt", np.array(poses, float))
+    return folder
 
 
 def test_the_bench_ranks_the_true_pair_above_the_plane_and_the_identity(tmp_path: Path) -> None:
-    _write_folder(tmp_path / "pair")
+    write_wall_folder(tmp_path / "pair")
     drive = read_stereo_folder(tmp_path / "pair", width_px=W)
     assert drive.baseline_m == pytest.approx(BASELINE_M)
     result = run_stereo_bench(tmp_path / "pair", methods=("plane",), width_px=W, eval_width_px=W // 2,
@@ -99,7 +100,7 @@ def test_the_bench_ranks_the_true_pair_above_the_plane_and_the_identity(tmp_path
 
 
 def test_a_folder_without_right_images_is_refused(tmp_path: Path) -> None:
-    _write_folder(tmp_path / "pair", n=2)
+    write_wall_folder(tmp_path / "pair", n=2)
     for f in (tmp_path / "pair" / "image_r").iterdir():
         f.unlink()
     (tmp_path / "pair" / "image_r").rmdir()

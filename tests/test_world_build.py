@@ -35,7 +35,7 @@ def ws(tmp_path: Path, monkeypatch) -> Workspace:
     workspace = Workspace(tmp_path / "ws")
     make_trace(workspace)
     install_fake_poses(monkeypatch)
-    preprocess_stage.run_preprocess(workspace, PreprocessConfig())
+    preprocess_stage.run_preprocess(workspace, PreprocessConfig.model_validate({"depth": {"method": "plane"}}))
     return workspace
 
 

@@ -81,6 +81,13 @@ class MvsConfig(StageConfig):
     """Side of the square window of the ZNCC matching cost, in matching-resolution pixels (odd)."""
     matching_width_px: int = Field(320, ge=32)
     """Width of the images the sweep runs on (matching resolution); frames wider than this are downscaled."""
+    aggregation_radius_px: int = Field(0, ge=0, le=15)
+    """Edge-aware cost aggregation: the matching cost of each hypothesis is smoothed by a guided filter of this
+    radius (matching pixels) guided by the reference image, so a small patch gets the support of a large one without
+    blurring depth across object edges; 0 disables."""
+    aggregation_eps: float = Field(1e-3, gt=0.0)
+    """Guided filter regularization (grey variance, grey in [0, 1]): edges weaker than about sqrt(eps) are smoothed
+    across."""
     best_k: int = Field(2, ge=1)
     """The cost of a hypothesis is the mean of the best k neighbours' costs (robust to occlusion at the borders)."""
     min_zncc: float = Field(0.7, ge=-1.0, le=1.0)
@@ -98,6 +105,9 @@ class MvsConfig(StageConfig):
     sky_max_std: float = Field(0.012, ge=0.0)
     """Sky: textureless pixels (grey window deviation below this, grey in [0, 1]) above the horizon connected to the
     image top; they get max_depth_m."""
+    temporal_window: int = Field(0, ge=0, le=5)
+    """Each frame's depth becomes the per-pixel median (inverse depth) of its own and its neighbours' estimates
+    warped into it, this many frames on each side; 0 keeps every frame's own estimate."""
     upsample: Literal["joint_bilateral", "bilinear"] = "joint_bilateral"
     """How the matching-resolution depth returns to the working resolution: joint_bilateral follows colour edges."""
     device: Literal["cpu", "cuda", "auto"] = "cpu"
@@ -143,9 +153,11 @@ class StereoConfig(StageConfig):
 class DepthConfig(StageConfig):
     """Per-frame depth estimation."""
 
-    method: Literal["plane", "mvs", "lidar"] = "plane"
-    """plane: flat ground from camera height and pitch (fast baseline); mvs: multi-view stereo over neighbouring
-    frames fused with the plane; lidar: projected point cloud (needs one in the trace)."""
+    method: Literal["auto", "plane", "mvs", "stereo", "lidar"] = "auto"
+    """auto: the best the recording supports, lidar > stereo > mvs (the choice is printed); plane: flat ground from
+    camera height and pitch (fast baseline); mvs: multi-view stereo over neighbouring frames fused with the plane
+    (camera only); stereo: semi-global matching on the recording's rectified second camera (needs one in the
+    trace); lidar: projected point cloud (needs one in the trace)."""
     max_depth_m: float = Field(80.0, gt=0.0)
     """Farthest depth (m): sky, rays above the horizon and anything without an estimate get this value."""
     mvs: MvsConfig = Field(default_factory=MvsConfig)

@@ -6,7 +6,9 @@ Methods (DESIGN §3):
     plane  ground plane from camera height and pitch (VISTA's only mode; the baseline), see depth_plane.py
     mvs    plane-sweep multi-view stereo over neighbouring frames with known poses, fused with the plane prior,
            see depth_mvs.py
+    stereo semi-global matching on a rectified second camera (OpenCV SGBM), see depth_stereo.py
     lidar  a recorded point cloud projected into each frame and densified, see depth_lidar.py
+    auto   the best the recording supports: lidar > stereo > mvs (`choose_method`)
 
 Output convention for every method: optical-axis depth (z in the camera optical frame) in metres, float32, one
 (H, W) map per frame at the trace's working resolution; pixels with no estimate (sky, above the horizon) hold
@@ -48,6 +50,8 @@ class DepthInputs:
     T_vehicle_camera: np.ndarray
     camera_height_m: float | None
     points_vehicle: Sequence[np.ndarray] | None
+    right_frames: np.ndarray | None = None
+    baseline_m: float | None = None
 
 
 class DepthMethod(Protocol):
@@ -90,8 +94,35 @@ def _lidar(inputs: DepthInputs, cfg: DepthConfig, out: np.ndarray, progress: Cal
     )  # fmt: skip
 
 
+def _stereo(inputs: DepthInputs, cfg: DepthConfig, out: np.ndarray, progress: Callable[[int], None] | None) -> dict:
+    from drivesim.stages.preprocess.depth_plane import plane_depth
+    from drivesim.stages.preprocess.depth_stereo import stereo_depth
+
+    if inputs.right_frames is None or inputs.baseline_m is None:
+        raise InputError("depth.method=stereo but the recording has no second (right) camera; use auto, mvs or plane")
+    frames = inputs.frames
+    plane_m = plane_depth(
+        inputs.K, frames.shape[2], frames.shape[1], inputs.T_vehicle_camera, inputs.camera_height_m, cfg.max_depth_m
+    )
+    return stereo_depth(
+        frames, inputs.right_frames, inputs.K, inputs.baseline_m, plane_m, cfg.max_depth_m, cfg.stereo, out, progress
+    )
+
+
+def choose_method(requested: str, has_lidar: bool, has_stereo: bool) -> tuple[str, str]:
+    """The depth method to run and why: `requested` itself, or for auto the best the recording supports
+    (lidar > stereo > mvs, the camera-only method)."""
+    if requested != "auto":
+        return requested, "asked for"
+    if has_lidar:
+        return "lidar", "auto: the recording has a point cloud"
+    if has_stereo:
+        return "stereo", "auto: the recording has a rectified second camera"
+    return "mvs", "auto: camera only (no point cloud, no second camera)"
+
+
 # depth.method -> the function that estimates it (the one place that dispatches on the method's name).
-DEPTH_METHODS: dict[str, DepthMethod] = {"plane": _plane, "mvs": _mvs, "lidar": _lidar}
+DEPTH_METHODS: dict[str, DepthMethod] = {"plane": _plane, "mvs": _mvs, "stereo": _stereo, "lidar": _lidar}
 
 
 def estimate_depth(
@@ -104,6 +135,8 @@ def estimate_depth(
     out: np.ndarray,
     progress: Callable[[int], None] | None = None,
     points_vehicle: Sequence[np.ndarray] | None = None,
+    right_frames: np.ndarray | None = None,
+    baseline_m: float | None = None,
 ) -> dict[str, Any]:
     """Fill `out` (N, H, W) with per-frame depth (m) of `frames` (N, H, W, 3) by `cfg.method`; returns summary figures.
 
@@ -115,15 +148,27 @@ def estimate_depth(
     :param out: writable float32 array or memmap; written one frame at a time.
     :param progress: called with the number of frames just finished.
     :param points_vehicle: for `lidar`, per-frame (M, 3) points in the vehicle frame at the frame's time (m).
+    :param right_frames: for `stereo`, the rectified right camera's frames (N, H, W, 3), same K as `frames`.
+    :param baseline_m: for `stereo`, how far the right camera sits along the left one's +x axis (m).
+    `cfg.method` auto runs `choose_method` on what is given (points, right frames).
     """
     _check_inputs(frames, K, T_world_camera, out)
+    if cfg.method == "auto":
+        method, _ = choose_method(
+            "auto", points_vehicle is not None, right_frames is not None and baseline_m is not None
+        )
+        cfg = cfg.model_copy(update={"method": method})
+    if right_frames is not None and np.shape(right_frames) != frames.shape:
+        raise InputError(f"right_frames must match the frames' shape {frames.shape}, got {np.shape(right_frames)}")
     if cfg.method == "mvs" and cfg.mvs.device == "cuda":
         import torch
 
         if not torch.cuda.is_available():
             raise ConfigError("depth.mvs.device=cuda but torch sees no CUDA device; use cpu or auto")
     start = time.perf_counter()
-    inputs = DepthInputs(frames, K, T_world_camera, T_vehicle_camera, camera_height_m, points_vehicle)
+    inputs = DepthInputs(
+        frames, K, T_world_camera, T_vehicle_camera, camera_height_m, points_vehicle, right_frames, baseline_m
+    )
     extra = DEPTH_METHODS[cfg.method](inputs, cfg, out, progress)
     seconds = time.perf_counter() - start
     n = frames.shape[0]

@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as nnf
 
 from drivesim.sim.geometry import invert, scale_intrinsics
+from drivesim.sim.warp import forward_warp
 from drivesim.stages.preprocess.depth_plane import pixel_rays, plane_depth
 
 if TYPE_CHECKING:
@@ -132,6 +133,24 @@ def _sweep_costs(
     cov = sums[:, 2:3] - mean_r * mean_w
     zncc = (cov / (std_r * torch.sqrt(var_w) + _EPS_VAR))[:, 0]
     return torch.where(inside, (1.0 - zncc.clamp(-1.0, 1.0)) * 0.5, torch.ones_like(zncc))
+
+
+def guided_filter(guide: torch.Tensor, costs: torch.Tensor, radius_px: int, eps: float) -> torch.Tensor:
+    """Edge-aware aggregation of a cost volume (P, h, w) guided by the grey reference (1, h, w): each hypothesis's
+    cost slice is smoothed over a (2r+1)^2 window except across the reference's edges (He et al.'s guided filter, as
+    in Hosni et al.'s cost-volume filtering). Hand-written with the box filter above: OpenCV's guided filter lives in
+    the contrib build, which the project does not install."""
+    size = 2 * radius_px + 1
+    guide = guide[None]  # (1, 1, h, w)
+    mean_i = _box(guide, size)
+    var_i = (_box(guide * guide, size) - mean_i * mean_i).clamp_min(0.0)
+    p = costs[:, None]  # (P, 1, h, w)
+    stats = _box(torch.cat([p, p * guide], dim=1), size)
+    mean_p, corr_ip = stats[:, 0:1], stats[:, 1:2]
+    a = (corr_ip - mean_i * mean_p) / (var_i + eps)
+    b = mean_p - a * mean_i
+    ab = _box(torch.cat([a, b], dim=1), size)
+    return (ab[:, 0:1] * guide + ab[:, 1:2])[:, 0]
 
 
 def _parallax_px(
@@ -286,6 +305,8 @@ def _stereo_evidence(
     )
     k = min(m.best_k, len(nbrs))
     agg = torch.topk(costs, k, dim=0, largest=False).values.mean(dim=0)  # (P, h, w)
+    if m.aggregation_radius_px > 0:
+        agg = guided_filter(ref[0], agg, m.aggregation_radius_px, m.aggregation_eps)
     sweep_cost, plane_cost = agg[:-1], agg[-1]
     best_cost, best = sweep_cost.min(dim=0)
     # Parabolic refinement of the minimum in hypothesis index (inverse depth is linear in it).
@@ -324,6 +345,104 @@ def _stereo_evidence(
     return stereo_m, confident & ~plane_ok, plane_ok, stats[1][0, 0]
 
 
+class MvsEstimator:
+    """Plane-sweep depth of any frame of a drive (the set-up shared by all frames is done once)."""
+
+    def __init__(
+        self,
+        frames: np.ndarray,
+        K: np.ndarray,
+        T_world_camera: np.ndarray,
+        T_vehicle_camera: np.ndarray,
+        camera_height_m: float | None,
+        cfg: DepthConfig,
+    ) -> None:
+        m = self.m = cfg.mvs
+        self.frames = frames
+        self.device = torch.device(
+            "cuda" if m.device == "cuda" or (m.device == "auto" and torch.cuda.is_available()) else "cpu"
+        )
+        n, H, W = frames.shape[:3]
+        w = self.w = min(W, m.matching_width_px)
+        h = self.h = max(8, round(H * w / W))
+        K_lo = scale_intrinsics(np.asarray(K, dtype=np.float64), w / W, h / H)
+        self.K_t = torch.as_tensor(K_lo, dtype=torch.float32, device=self.device)
+        self.rays = torch.as_tensor(pixel_rays(K_lo, w, h), dtype=torch.float32, device=self.device)
+        self.far_m = far_m = cfg.max_depth_m
+        self.plane_lo = plane_depth(K_lo, w, h, T_vehicle_camera, camera_height_m, far_m)
+        plane_lo_t = torch.from_numpy(self.plane_lo).to(self.device)
+        self.plane_hi = plane_depth(K, W, H, T_vehicle_camera, camera_height_m, far_m)
+        self.below_horizon = plane_lo_t < far_m
+        self.inv_depths = torch.linspace(1.0 / m.min_depth_m, 1.0 / far_m, m.num_hypotheses, device=self.device)
+        sweep = (1.0 / self.inv_depths)[:, None, None].expand(-1, h, w)
+        self.hypotheses = torch.cat([sweep, plane_lo_t[None]], dim=0)  # the last one is the ground plane
+        self.poses = np.asarray(T_world_camera, dtype=np.float64)
+        self.cache = _FrameCache(frames, w, h, self.device)
+
+    def neighbours(self, i: int) -> list[int]:
+        """The frames matched against frame i; near the ends an offset past the end takes the last frame there."""
+        n = self.frames.shape[0]
+        return sorted({min(max(i + o, 0), n - 1) for o in self.m.neighbour_offsets} - {i})
+
+    def frame(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Depth (m) of frame i at the working resolution, and the source label of each matching-resolution pixel."""
+        m, far_m, plane_lo = self.m, self.far_m, self.plane_lo
+        nbrs = self.neighbours(i)
+        self.cache.keep_only({i, *nbrs})
+        self.cache.get(i)  # also caches the reference's colour (sky mask, upsampling)
+        if not nbrs:
+            return self.plane_hi.copy(), np.where(plane_lo < far_m, _FALLBACK_PLANE, _FAR)
+        with torch.no_grad():
+            stereo_m, use_stereo, plane_ok, texture_std = _stereo_evidence(
+                i, nbrs, self.poses, self.cache, self.K_t, self.rays, self.hypotheses, self.inv_depths,
+                self.below_horizon, far_m, m,
+            )  # fmt: skip
+        depth_np, labels = _fuse(
+            stereo_m.cpu().numpy(),
+            use_stereo.cpu().numpy(),
+            plane_ok.cpu().numpy(),
+            plane_lo,
+            sky_mask(texture_std.cpu().numpy(), self.cache.colour[i], plane_lo < far_m, m.sky_max_std),
+            far_m,
+            m.fill_sigma_px,
+        )
+        depth_np = cv2.medianBlur(depth_np.astype(np.float32), 3)  # removes isolated mismatches
+        inv_hi = _joint_bilateral_upsample(
+            1.0 / depth_np,
+            self.cache.colour[i],
+            np.asarray(self.frames[i], dtype=np.float32) / 255.0,
+            m.upsample == "joint_bilateral",
+        )
+        # No lower clip at min_depth_m: the ground plane near the camera may be nearer than the sweep's range.
+        return (1.0 / np.clip(inv_hi, 1.0 / far_m, None)).astype(np.float32), labels
+
+
+def temporal_median(
+    depth_m: dict[int, np.ndarray], i: int, K: np.ndarray, poses: np.ndarray, far_m: float
+) -> np.ndarray:
+    """Frame i's depth made consistent with its neighbours': every depth map in `depth_m` is forward-warped into
+    frame i's camera (z-buffered) and each pixel takes the median inverse depth of the maps that land there, its own
+    included, where at least three do. A mismatch that one frame makes and its neighbours do not is voted out."""
+    own = depth_m[i]
+    h, w = own.shape
+    stack = [1.0 / np.clip(own, 1e-3, far_m)]
+    blank = torch.zeros((h, w, 3), dtype=torch.uint8)
+    T_i_world = invert(poses[i])
+    for j, depth in depth_m.items():
+        if j == i:
+            continue
+        finite = np.where(depth >= far_m, np.inf, depth).astype(np.float32)  # far: a point at infinity
+        out = forward_warp(blank, torch.from_numpy(finite), K, T_i_world @ poses[j], K, w, h, use_kernel=True)
+        warped = out.depth_m.numpy().reshape(h, w)
+        valid = out.valid.numpy().reshape(h, w).astype(bool)
+        stack.append(np.where(valid, 1.0 / np.clip(np.where(np.isfinite(warped), warped, far_m), 1e-3, far_m), np.nan))
+    votes = np.stack(stack)
+    inv = np.nanmedian(votes, axis=0)
+    # A median of two is their mean: where fewer than three maps see the pixel, the frame's own estimate stays.
+    inv = np.where(np.sum(np.isfinite(votes), axis=0) >= 3, inv, stack[0])
+    return (1.0 / np.clip(inv, 1.0 / far_m, None)).astype(np.float32)
+
+
 def mvs_depth(
     frames: np.ndarray,
     K: np.ndarray,
@@ -334,66 +453,30 @@ def mvs_depth(
     out: np.ndarray,
     progress: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
-    """Fill `out` with plane-sweep stereo depth fused with the ground plane; returns the fusion fractions."""
-    m = cfg.mvs
-    device = torch.device("cuda" if m.device == "cuda" or (m.device == "auto" and torch.cuda.is_available()) else "cpu")
-    n, H, W = frames.shape[:3]
-    w = min(W, m.matching_width_px)
-    h = max(8, round(H * w / W))
-    K_lo = scale_intrinsics(np.asarray(K, dtype=np.float64), w / W, h / H)
-    K_t = torch.as_tensor(K_lo, dtype=torch.float32, device=device)
-    rays = torch.as_tensor(pixel_rays(K_lo, w, h), dtype=torch.float32, device=device)
-    far_m = cfg.max_depth_m
-    plane_lo_np = plane_depth(K_lo, w, h, T_vehicle_camera, camera_height_m, far_m)
-    plane_lo = torch.from_numpy(plane_lo_np).to(device)
-    plane_hi = plane_depth(K, W, H, T_vehicle_camera, camera_height_m, far_m)
-    below_horizon = plane_lo < far_m
-    inv_depths = torch.linspace(1.0 / m.min_depth_m, 1.0 / far_m, m.num_hypotheses, device=device)
-    sweep = (1.0 / inv_depths)[:, None, None].expand(-1, h, w)
-    hypotheses = torch.cat([sweep, plane_lo[None]], dim=0)  # the last one is the ground plane
-    poses = np.asarray(T_world_camera, dtype=np.float64)
-    cache = _FrameCache(frames, w, h, device)
+    """Fill `out` with plane-sweep stereo depth fused with the ground plane, then made consistent over
+    `mvs.temporal_window` frames each side; returns the fusion fractions."""
+    estimator = MvsEstimator(frames, K, T_world_camera, T_vehicle_camera, camera_height_m, cfg)
     counts = np.zeros(len(_LABELS), np.int64)
+    n = frames.shape[0]
+    window = cfg.mvs.temporal_window
+    raw: dict[int, np.ndarray] = {}  # per-frame estimates not yet finished: at most 2 * window + 1
 
-    for i in range(n):
-        # Near the ends of the drive an offset past the end takes the last frame on that side instead.
-        nbrs = sorted({min(max(i + o, 0), n - 1) for o in m.neighbour_offsets} - {i})
-        cache.keep_only({i, *nbrs})
-        cache.get(i)  # also caches the reference's colour (sky mask, upsampling)
-        if nbrs:
-            with torch.no_grad():
-                stereo_m, use_stereo, plane_ok, texture_std = _stereo_evidence(
-                    i, nbrs, poses, cache, K_t, rays, hypotheses, inv_depths, below_horizon, far_m, m
-                )
-            depth_np, labels = _fuse(
-                stereo_m.cpu().numpy(),
-                use_stereo.cpu().numpy(),
-                plane_ok.cpu().numpy(),
-                plane_lo_np,
-                sky_mask(texture_std.cpu().numpy(), cache.colour[i], plane_lo_np < far_m, m.sky_max_std),
-                far_m,
-                m.fill_sigma_px,
-            )
-        else:
-            depth_np, labels = plane_lo_np.copy(), np.where(plane_lo_np < far_m, _FALLBACK_PLANE, _FAR)
-        counts += np.bincount(labels.ravel(), minlength=len(counts))
-        depth_np = cv2.medianBlur(depth_np.astype(np.float32), 3)  # removes isolated mismatches
-        inv_hi = _joint_bilateral_upsample(
-            1.0 / depth_np,
-            cache.colour[i],
-            np.asarray(frames[i], dtype=np.float32) / 255.0,
-            m.upsample == "joint_bilateral",
-        )
-        # No lower clip at min_depth_m: the ground plane near the camera may be nearer than the sweep's range.
-        depth_hi = (1.0 / np.clip(inv_hi, 1.0 / far_m, None)).astype(np.float32)
-        if not nbrs:
-            depth_hi = plane_hi
-        out[i] = depth_hi
+    def finish(i: int) -> None:
+        near = {j: raw[j] for j in range(i - window, i + window + 1) if j in raw}
+        out[i] = temporal_median(near, i, K, estimator.poses, cfg.max_depth_m) if len(near) > 1 else raw[i]
         if progress is not None:
             progress(1)
 
-    total = max(1, n * h * w)
+    for i in range(n):
+        raw[i], labels = estimator.frame(i)
+        counts += np.bincount(labels.ravel(), minlength=len(counts))
+        if i - window >= 0:
+            finish(i - window)
+            raw.pop(i - 2 * window, None)
+    for i in range(max(0, n - window), n):
+        finish(i)
+    total = max(1, n * estimator.h * estimator.w)
     return {
-        "matching_resolution_px": [w, h],
+        "matching_resolution_px": [estimator.w, estimator.h],
         **{f"{name}_fraction": round(float(c) / total, 4) for name, c in zip(_LABELS, counts, strict=True)},
     }

@@ -100,9 +100,16 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
     trace_dir = ctx.inputs["trace"]
     started = time.perf_counter()
     trace = open_trace(trace_dir)
-    if cfg.depth.method == "lidar" and "lidar_scans" not in trace.info.series:
-        # Checked before the pose fusion so the user learns it at once.
-        raise InputError("depth.method=lidar but the trace has no point cloud (no PointCloud2 topic); use plane or mvs")
+    has_lidar = "lidar_scans" in trace.info.series
+    has_stereo = trace.info.baseline_m is not None
+    # Checked before the pose fusion so the user learns it at once.
+    if cfg.depth.method == "lidar" and not has_lidar:
+        raise InputError("depth.method=lidar but the trace has no point cloud (no PointCloud2 topic); use auto or mvs")
+    if cfg.depth.method == "stereo" and not has_stereo:
+        raise InputError("depth.method=stereo but the trace has no second camera (frames_right.npy); use auto or mvs")
+    method, why = depth_mod.choose_method(cfg.depth.method, has_lidar, has_stereo)
+    console.print(f"depth method: {method} ({why})")
+    depth_cfg = cfg.depth.model_copy(update={"method": method})
     selected = select_frames(trace.frames.shape[0], cfg)
     frame_index = np.arange(trace.frames.shape[0])[selected]
     frames = trace.frames[selected]
@@ -119,19 +126,20 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
     n, h, w = frames.shape[:3]
 
     depth_out = np.lib.format.open_memmap(ctx.dir / "depth.npy", mode="w+", dtype=np.float32, shape=(n, h, w))
-    with progress_bar(f"depth ({cfg.depth.method})", total=n) as (progress, task):
+    right = trace.info.right_frames() if method == "stereo" else None
+    with progress_bar(f"depth ({method})", total=n) as (progress, task):
         depth_summary = depth_mod.estimate_depth(
             frames,
             K,
             T_world_camera,
             T_vehicle_camera,
             trace.calibration.get("camera_height_m"),
-            cfg.depth,
+            depth_cfg,
             depth_out,
             progress=lambda done: progress.advance(task, done),
-            points_vehicle=(
-                LidarPerFrame(trace.info, frame_times_ns, T_world_vehicle) if cfg.depth.method == "lidar" else None
-            ),
+            points_vehicle=LidarPerFrame(trace.info, frame_times_ns, T_world_vehicle) if method == "lidar" else None,
+            right_frames=right[selected] if right is not None else None,
+            baseline_m=trace.info.baseline_m if method == "stereo" else None,
         )
     depth_out.flush()
     poses = {
@@ -148,7 +156,7 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
         "origin_lon_deg": _float_or_none(getattr(fused, "origin_lon_deg", None)),
         "origin_alt_m": _float_or_none(getattr(fused, "origin_alt_m", None)),
         "residual_m": _rms_or_none(getattr(fused, "residual_m", None)),
-        "depth_method": cfg.depth.method,
+        "depth_method": method,
         "max_depth_m": cfg.depth.max_depth_m,
         "width_px": int(w),
         "height_px": int(h),
@@ -163,7 +171,7 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
         frame_count=int(n),
         path_length_m=round(float(poses["arc_length_m"][-1] - poses["arc_length_m"][0]), 3),
         residual_m=origin["residual_m"],
-        depth_method=cfg.depth.method,
+        depth_method=method,
         width_px=int(w),
         height_px=int(h),
         **depth_stats,
