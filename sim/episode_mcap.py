@@ -255,7 +255,9 @@ class _Writer:
 
     def json(self, topic: str, schema: dict[str, Any], value: dict[str, Any], t_ns: int) -> None:
         """Write a JSON message with its JSON schema."""
-        channel = self._channel(topic, "json", (schema["title"], "jsonschema", json.dumps(schema).encode()))
+        if topic not in self._channels:
+            self._channel(topic, "json", (schema["title"], "jsonschema", json.dumps(schema).encode()))
+        channel = self._channels[topic]
         data = json.dumps(value, allow_nan=False, separators=(",", ":")).encode()
         self._mcap.add_message(channel, log_time=t_ns, data=data, publish_time=t_ns)
 
