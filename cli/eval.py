@@ -69,6 +69,16 @@ NameOption = Annotated[
     typer.Option("--name", help="Folder name under eval/ (default: <task>-<policy>).", show_default=False),
 ]
 
+ScenarioOption = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--scenario",
+        help="The paper's Table II scenarios (repeatable): static or dynamic front car, pass-left or pass-right "
+        "(default: the task's own mix, split by scenario in the report).",
+        show_default=False,
+    ),
+]
+
 
 def eval_command(
     task: TaskOption = None,
@@ -82,6 +92,7 @@ def eval_command(
     meshes: MeshesOption = None,
     video: VideoOption = None,
     record: RecordOption = None,
+    scenario: ScenarioOption = None,
     name: NameOption = None,
     config: ConfigOption = None,
     set_: set_option("env.max_lateral_m=2.0") = None,
@@ -101,6 +112,8 @@ def eval_command(
     for key, value in (("task", task), ("episodes", episodes), ("seed", seed), ("video", video), ("record", record)):
         if value is not None:
             overrides.append(f"{key}={value}")
+    if scenario:
+        overrides.append(f"scenario=[{','.join(scenario)}]")
     for key, value in (("world", world), ("meshes", meshes)):
         if value is not None:
             overrides.append(f"{key}={value.absolute()}")

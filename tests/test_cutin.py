@@ -73,3 +73,12 @@ def test_the_expert_is_evaluated_with_the_task_presets_env() -> None:
 
     env = EvalConfig.model_validate({"task": "cutin", "env": {"episode_steps": 99}}).start_env_config()
     assert env["other_speed_mps"] == [10.0, 12.0] and env["episode_steps"] == 99
+
+
+@pytest.mark.parametrize(("side", "sign"), [("left", 1.0), ("right", -1.0)])
+def test_front_side_places_the_other_car(tmp_path, side: str, sign: float) -> None:
+    world = write_test_world(tmp_path / "world")
+    env = gymnasium.make("drivesim/Overtake-v0", world=str(world), config={**SMALL_VIEW, "front_side": side})
+    for seed in range(4):
+        _, info = env.reset(seed=seed)
+        assert np.sign(info["episode"]["other_lateral_m"]) == sign

@@ -164,3 +164,32 @@ def test_clearance_histogram_data_and_recall():
     mins = np.array([r.metrics.min_clearance_m for r in results])
     recall = clearance_recall(mins, np.array([0.0, 0.1, 0.5, 1.0]))
     assert recall.tolist() == pytest.approx([1 / 3, 1 / 3, 2 / 3, 1.0])
+
+
+def test_scenario_table_splits_static_moving_and_the_passing_side():
+    from dataclasses import replace
+
+    from drivesim.stages.evaluate.metrics import scenario_table
+
+    base = evaluate_episode(pass_record(2.6, seed=0)).metrics
+    metrics = [
+        replace(base, seed=0, other_speed_mps=0.0, other_lateral_m=-1.5, success=True, intervention=False),
+        replace(base, seed=1, other_speed_mps=3.0, other_lateral_m=-1.2, success=False, intervention=True),
+        replace(base, seed=2, other_speed_mps=2.0, other_lateral_m=1.4, success=True, intervention=False),
+    ]
+    rows = {r["scenario"]: r for r in scenario_table(metrics)}
+    assert rows["front car static"]["episodes"] == 1 and rows["front car static"]["success"]["value"] == 1.0
+    assert rows["front car moving"]["episodes"] == 2 and rows["front car moving"]["intervention"]["value"] == 0.5
+    assert rows["passing on the left"]["episodes"] == 2  # the front car right of the lane centre
+    assert rows["passing on the right"]["episodes"] == 1
+    lane_only = replace(base, other_speed_mps=float("nan"), other_lateral_m=float("nan"))
+    assert scenario_table([lane_only]) == []
+
+
+def test_eval_scenarios_become_env_settings():
+    from drivesim.stages.evaluate.config import EvalConfig
+
+    cfg = EvalConfig.model_validate({"scenario": ["static", "pass-left"], "env": {"episode_steps": 50}})
+    assert cfg.env_overrides() == {"episode_steps": 50, "other_speed_mps": (0.0, 0.0), "front_side": "right"}
+    with pytest.raises(ValueError, match="exclude each other"):
+        EvalConfig.model_validate({"scenario": ["pass-left", "pass-right"]})

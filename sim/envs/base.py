@@ -185,7 +185,10 @@ class DrivingEnv(gymnasium.Env):
         if self.has_other:
             other = sim.agents[1]
             self._episode.update(
-                other_speed_mps=other_speed, other_length_m=other.length_m, other_width_m=other.width_m
+                other_speed_mps=other_speed,
+                other_lateral_m=self._other_lateral_m,
+                other_length_m=other.length_m,
+                other_width_m=other.width_m,
             )
         aug_on = c.augment and self.mode == "train"
         self._augmentation = (
@@ -209,10 +212,12 @@ class DrivingEnv(gymnasium.Env):
         other_speed_mps: float,
     ) -> tuple[float, float, LateralProfile]:
         """(arc_m, lateral_m, profile) of the other car at the start: by default a front car front_distance_m
-        ahead, front_lateral_m to a random side, keeping its offset (`_other_profile`)."""
+        ahead, front_lateral_m to the side front_side says (drawn for "either"), keeping its offset
+        (`_other_profile`)."""
         c = self.config
         arc = ego_arc_m + float(rng.uniform(*c.front_distance_m))
-        side = 1.0 if rng.uniform() < 0.5 else -1.0
+        side = 1.0 if rng.uniform() < 0.5 else -1.0  # drawn in every case: the same seed, the same other draws
+        side = {"left": 1.0, "right": -1.0}.get(c.front_side, side)
         lateral = side * float(rng.uniform(*c.front_lateral_m))
         return arc, lateral, self._other_profile(rng, arc, lateral, ref)
 

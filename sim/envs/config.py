@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 # Ranges (low, high) whose values are magnitudes (speeds, distances, factors): negative values are refused.
@@ -47,6 +49,9 @@ class EnvConfig(BaseModel):
     """Range of the front car's start distance ahead of the ego (centre to centre, along the road), metres."""
     front_lateral_m: tuple[float, float] = (1.0, 2.0)
     """Range of the front car's lateral shift from the lane centre (either side, drawn), metres."""
+    front_side: Literal["either", "left", "right"] = "either"
+    """Side of the lane centre the other car starts on (left = +); an overtaking ego passes on the other side
+    (the paper's Table II scenarios). either: drawn at random per episode."""
     initial_lateral_m: float = Field(0.3, ge=0.0)
     """The ego starts within ± this lateral offset from the lane centre, metres."""
     initial_yaw_rad: float = Field(0.05, ge=0.0)

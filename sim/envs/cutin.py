@@ -50,6 +50,7 @@ class CutInEnv(DrivingEnv):
         c = self.config
         behind_m = float(rng.uniform(*START_BEHIND_M))
         side = 1.0 if rng.uniform() < 0.5 else -1.0
+        side = {"left": 1.0, "right": -1.0}.get(c.front_side, side)
         lateral_m = side * float(rng.uniform(*c.front_lateral_m))
         cut_gap_m = float(rng.uniform(*c.front_distance_m))
         arc_m = ego_arc_m - behind_m

@@ -4,11 +4,20 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from drivesim.pipeline.config import StageConfig, load_yaml_text, preset_path
 from drivesim.sim.envs.config import EnvConfig
 from drivesim.sim.envs.registry import TaskName
+
+# The paper's Table II scenarios as env settings: the front car static or moving, the ego passing on its left or right.
+SCENARIOS: dict[str, dict[str, Any]] = {
+    "static": {"other_speed_mps": (0.0, 0.0)},
+    "dynamic": {"other_speed_mps": (1.0, 4.0)},
+    "pass-left": {"front_side": "right"},
+    "pass-right": {"front_side": "left"},
+}
+Scenario = Literal["static", "dynamic", "pass-left", "pass-right"]
 
 
 class EvalConfig(StageConfig):
@@ -16,6 +25,10 @@ class EvalConfig(StageConfig):
 
     task: TaskName = "overtake"
     """The task to evaluate (sim/envs/registry.py lists the tasks and their gymnasium ids)."""
+    scenario: list[Scenario] = []
+    """The paper's Table II scenarios to restrict the episodes to: static or dynamic (front car at 0 m/s, or 1-4
+    m/s), pass-left or pass-right (the ego passes on that side); combine one of each, e.g. [static, pass-left].
+    Empty: the task's own distribution (the report's scenario table then splits its episodes)."""
     policy: str = "expert"
     """`expert` (the env's privileged expert), a run folder of `drivesim train`, or an exported `.onnx` file."""
     episodes: int = Field(1000, ge=1, le=10_000_000)
@@ -63,8 +76,19 @@ class EvalConfig(StageConfig):
         return int(text) if text.isdigit() else text
 
     def env_overrides(self) -> dict[str, Any]:
-        """The env keys the user set (preset, --config or --set), to apply over a run's training env config."""
-        return self.env.model_dump(mode="json", exclude_unset=True)
+        """The env keys the user set (preset, --config or --set) and the scenarios', to apply over a run's training
+        env config."""
+        overrides = self.env.model_dump(mode="json", exclude_unset=True)
+        for name in self.scenario:
+            overrides.update(SCENARIOS[name])
+        return overrides
+
+    @model_validator(mode="after")
+    def _check_scenarios(self) -> EvalConfig:
+        for pair in (("static", "dynamic"), ("pass-left", "pass-right")):
+            if set(pair) <= set(self.scenario):
+                raise ValueError(f"scenario: {pair[0]} and {pair[1]} exclude each other; choose one")
+        return self
 
     def start_env_config(self) -> dict[str, Any]:
         """The env config of a policy that brings none (the expert): the task's training preset's env settings

@@ -179,6 +179,7 @@ class EpisodeMetrics:
     other_speed_mps: float
     initial_lateral_m: float
     return_: float
+    other_lateral_m: float = float("nan")
 
     def row(self) -> dict[str, Any]:
         """A flat dict for episodes.csv."""
@@ -276,6 +277,7 @@ def evaluate_episode(record: EpisodeRecord) -> EpisodeResult:
         road_curvature_1pm=_number(ep, "road_curvature_1pm"),
         other_speed_mps=_number(ep, "other_speed_mps"),
         initial_lateral_m=_number(ep, "initial_lateral_m"),
+        other_lateral_m=_number(ep, "other_lateral_m"),
         return_=float(record.return_),
     )
     return EpisodeResult(metrics=metrics, clearance_m=clearance, overlap_m2=overlap, record=record)
@@ -344,6 +346,36 @@ def aggregate(metrics: Sequence[EpisodeMetrics]) -> dict[str, Estimate]:
     out["max_yaw_rad"] = mean_estimate([m.max_yaw_rad for m in metrics])
     out["mean_tracking_error_m"] = mean_estimate([m.mean_tracking_error_m for m in metrics])
     return out
+
+
+STATIC_SPEED_MPS = 0.5
+"""A front car slower than this counts as static in the scenario table."""
+
+
+def scenario_table(metrics: Sequence[EpisodeMetrics]) -> list[dict[str, Any]]:
+    """The paper's Table II offline: success and intervention of the episodes whose front car is static / moving,
+    and whose ego passes on the left / right (the front car right / left of the lane centre); [] without a car."""
+    groups = {
+        "front car static": lambda m: m.other_speed_mps < STATIC_SPEED_MPS,
+        "front car moving": lambda m: m.other_speed_mps >= STATIC_SPEED_MPS,
+        "passing on the left": lambda m: m.other_lateral_m < 0.0,
+        "passing on the right": lambda m: m.other_lateral_m > 0.0,
+    }
+    with_car = [m for m in metrics if math.isfinite(m.other_speed_mps) and math.isfinite(m.other_lateral_m)]
+    if not with_car:
+        return []
+    rows = []
+    for name, chosen in groups.items():
+        members = [m for m in with_car if chosen(m)]
+        rows.append(
+            {
+                "scenario": name,
+                "episodes": len(members),
+                "success": rate_estimate([m.success for m in members]).to_json(),
+                "intervention": rate_estimate([m.intervention for m in members]).to_json(),
+            }
+        )
+    return rows
 
 
 def difficulty_levels(values: np.ndarray, harder_when_larger: bool) -> tuple[np.ndarray, list[float]]:

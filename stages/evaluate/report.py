@@ -18,11 +18,13 @@ import numpy as np
 from drivesim.stages.evaluate import plots
 from drivesim.stages.evaluate.metrics import (
     LEVELS,
+    STATIC_SPEED_MPS,
     EpisodeResult,
     Estimate,
     aggregate,
     along_track,
     breakdowns,
+    scenario_table,
 )
 from drivesim.stages.evaluate.record import recording_link, recordings_html
 
@@ -86,6 +88,7 @@ def write_outputs(
     metrics = [r.metrics for r in results]
     agg = aggregate(metrics)
     levels = breakdowns(metrics)
+    scenarios = scenario_table(metrics)
     along = along_track(results, len(track.x_m))
     figures = {
         "breakdown.png": plots.plot_breakdowns(levels, out_dir / "breakdown.png"),
@@ -103,6 +106,7 @@ def write_outputs(
         "aggregate": {k: v.to_json() for k, v in agg.items()},
         "intervention_causes": {k: int(sum(getattr(m, k) for m in metrics)) for k, _ in CAUSE_ROWS},
         "breakdowns": [b.to_json() for b in levels],
+        "scenarios": scenarios,
         "paper_table_i": {k: {"garage": g, "outdoor": o} for k, (g, o) in PAPER_TABLE_I.items()},
     }
     (out_dir / "metrics.json").write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
@@ -217,13 +221,14 @@ def _html(
 <h2>Metrics beside the paper's Table I</h2>
 <table><tr><th>metric</th><th>this evaluation [95 % CI]</th><th>paper, garage</th><th>paper, outdoor</th></tr>
 {"".join(rows)}{"".join(extra)}</table>
-<p class=ci>Intervention: polygon overlap &gt; 0, off lane or over-rotation. Minimum clearance: mean over the episodes
-without a collision of the smallest distance between the two footprints. Maximum deviation / yaw: mean over the episodes
-of the largest |q_lat| / |q_rot|. Rates: Wilson interval; means: percentile bootstrap (2000 resamples).
-Definitions: <code>drivesim.stages.evaluate.metrics</code>.</p>
+<p class=ci>Intervention: polygon overlap &gt; 0, off lane or over-rotation. Minimum clearance: mean over all
+episodes (a collision counts 0) of the smallest distance between the two footprints. Maximum deviation / yaw: mean
+over the episodes of the largest |q_lat| / |q_rot|. Rates: Wilson interval; means: percentile bootstrap (2000
+resamples). Definitions: <code>drivesim.stages.evaluate.metrics</code>.</p>
 <h2>Interventions by cause, and outcomes</h2>
 <table><tr><th>cause</th><th>episodes</th><th>rate</th></tr>{causes}</table>
 <p class=ci>An episode may have more than one cause.</p>
+{_scenario_html(data["scenarios"])}
 <h2>Breakdown by trial difficulty</h2>
 <table><tr><th>factor</th>{level_head}</tr>{"".join(level_rows)}</table>
 <p class=ci>Each cell: intervention rate, mean maximum deviation, episodes. Levels are the quartiles of the factor over
@@ -238,6 +243,29 @@ aggregates in <code>metrics.json</code>.</p>
 {recordings_html(out_dir, results) if out_dir else ""}
 </body></html>
 """
+
+
+def _scenario_html(rows: Sequence[dict[str, Any]]) -> str:
+    """The scenario table (the paper's Table II, offline) as HTML; empty without another car."""
+    if not rows:
+        return ""
+
+    def cell(e: dict[str, Any]) -> str:
+        if not e["n"]:
+            return "—"
+        return f"{e['value']:.3f} <span class=ci>[{e['ci_low']:.3f}, {e['ci_high']:.3f}]</span>"
+
+    body = "".join(
+        f"<tr><td>{html.escape(r['scenario'])}</td><td>{r['episodes']}</td><td>{cell(r['success'])}</td>"
+        f"<td>{cell(r['intervention'])}</td></tr>"
+        for r in rows
+    )
+    return (
+        "<h2>Scenarios (the paper's Table II, offline)</h2>"
+        "<table><tr><th>scenario</th><th>episodes</th><th>success [95 % CI]</th><th>intervention [95 % CI]</th>"
+        f"</tr>{body}</table><p class=ci>Static: the front car slower than {STATIC_SPEED_MPS} m/s. "
+        "<code>drivesim eval --scenario static --scenario pass-left</code> evaluates one scenario alone.</p>"
+    )
 
 
 def _finite_or(value: float, default: float) -> float:
