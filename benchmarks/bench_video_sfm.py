@@ -143,7 +143,7 @@ def _row(name: str, m: dict[str, float], wall_s: float, cpu_s: float, sfm_s: flo
 def main() -> None:
     """Make the video and the GPX, ingest both ways, write the table."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", choices=["height", "gpx"], help="run one of the two ingests")
+    parser.add_argument("--only", choices=["height", "gpx", "focal"], help="run one of the three ingests")
     args = parser.parse_args()
     if not DRIVE.is_dir():
         raise SystemExit(f"KITTI raw drive not found at {DRIVE}")
@@ -155,9 +155,14 @@ def main() -> None:
     runs = {
         "video + `--camera-height-m 1.65`": (["--camera-height-m", "1.65"], 0),
         "video + GPX of the OXTS fixes": (["--video-start-utc", start_utc], int(stamps[0])),
+        "video + `--camera-height-m 1.65 --hfov-deg 81.4` (focal given)": (
+            ["--camera-height-m", "1.65", "--hfov-deg", "81.4"],
+            0,
+        ),
     }
     if args.only:
-        runs = {k: v for k, v in runs.items() if ("GPX" in k) == (args.only == "gpx")}
+        kind = {"height": "1.65`", "gpx": "GPX", "focal": "focal given"}[args.only]
+        runs = {k: v for k, v in runs.items() if k.endswith(kind) or (kind == "GPX" and "GPX" in k)}
     with tempfile.TemporaryDirectory(prefix="bench-video-") as tmp:
         video = Path(tmp) / "kitti_0001.mp4"
         n_frames = make_video(video)
@@ -178,19 +183,22 @@ def main() -> None:
             f"Machine: {machine_line()} (load average {load_before:.1f} before the runs; the machine is shared). "
             f"Date: {dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M} UTC. Command: `{command}`.",
             "The 108 grey frames of `kitti_raw/2011_09_26_drive_0001_sync/image_00` (1242x375, 10 Hz) written as an "
-            "MP4 (OpenCV mp4v); `drivesim ingest` sees only the video (no intrinsics: SfM estimates the focal "
-            "length), plus either the camera height or a GPX track made from the 108 OXTS fixes (lat, lon, alt, "
-            "time). SfM at 640 px wide on 2 threads. Truth: the OXTS pose of each frame moved to camera 0 with the "
+            "MP4 (OpenCV mp4v, which decodes as 1242x374); `drivesim ingest` sees only the video (no intrinsics: "
+            "SfM estimates the focal length), plus either the camera height or a GPX track made from the 108 OXTS "
+            "fixes (lat, lon, alt, time); the third row also gives the true horizontal field of view (KITTI P_rect_00: "
+            "fx 721.5 px at 1242 px, 81.4 deg) to separate the focal length's error from the scale method's. "
+            "SfM at 640 px wide on 2 threads. Truth: the OXTS pose of each frame moved to camera 0 with the "
             "KITTI calibration. Path length: sum of the steps between the registered frames' camera centres. RMSE: "
             "after the best similarity (scale, rotation, shift) of the SfM path onto the OXTS one. SfM s: feature "
             "extraction + matching + mapping wall time, per video frame in brackets; ingest: the whole `drivesim "
-            "ingest` (decoding, SfM, trace), wall and CPU time (user + system); CPU s / 2 cores / frames is what a "
-            "frame would take on an idle 2-core machine, since the shared machine's load stretches wall times. "
+            "ingest` (decoding, SfM, trace), wall and CPU time (user + system) with CPU s / frames / 2 in brackets: "
+            "the shared machine's load stretches wall times, and on an idle 2-core machine a frame would take "
+            "between CPU / 2 (both threads busy) and CPU s per frame. "
             f"Peak memory of the ingest processes: {peak_gb:.2f} GB.",
             "",
             "| input | frames registered | path (m) | OXTS path (m) | length error | RMSE after similarity (m, "
-            "% of path) | estimated HFOV (deg; true 81.4) | SfM wall s (per frame) | ingest wall s | ingest CPU s "
-            "(per frame per core) |",
+            "% of path) | HFOV (deg; true 81.4) | SfM wall s (per frame) | ingest wall s | ingest CPU s "
+            "(per frame / 2) |",
             "|---|---|---|---|---|---|---|---|---|---|",
             *rows,
             "",

@@ -52,6 +52,11 @@ SCALE_HINT = (
 _STILL_GREY_LEVELS = 2.0
 
 
+# Horizontal fields of view an estimated focal length may give (deg): narrower or wider means SfM's refinement
+# diverged (forward motion hardly constrains the focal length; on KITTI it once ran off to a 3 degree lens).
+_HFOV_RANGE_DEG = (30.0, 150.0)
+
+
 def is_video(path: Path) -> bool:
     """A video file, or a folder holding only images (a frame sequence)."""
     if is_video_file(path):
@@ -157,6 +162,14 @@ def _sfm(source: FrameSource, sfm_idx: np.ndarray, camera: CameraModel | None, c
             threads=video.sfm_threads,
         )
         result = reconstruct(work / "images", names, K, size, opts, work)
+    if result.focal_estimated:
+        hfov_deg = float(np.degrees(2 * np.arctan(0.5 * size[0] / result.K[0, 0])))
+        if not _HFOV_RANGE_DEG[0] <= hfov_deg <= _HFOV_RANGE_DEG[1]:
+            raise InputError(
+                f"SfM could not estimate the camera's focal length (it found a {hfov_deg:.0f} degree field of view); "
+                "give --hfov-deg or --calibration",
+                source.path,
+            )
     registered = len(result.image_index)
     if registered < video.min_registered_fraction * len(sfm_idx):
         raise InputError(
