@@ -274,3 +274,44 @@ def test_sfm_frames_and_pairs() -> None:
     assert list(window[kept]) == list(range(30, 61, 3))
     pairs = frame_pairs(100, window=5, loop_keyframes=5)
     assert (0, 5) in pairs and (0, 6) not in pairs and (0, 99) in pairs and (25, 74) in pairs and (1, 99) not in pairs
+
+
+def test_image_folder_needs_its_frame_rate(tmp_path: Path, monkeypatch, capsys) -> None:
+    from drivesim.stages.ingest.video import probe_image_folder
+
+    frames, _ = render_drive(n=12)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i, frame in enumerate(frames):
+        cv2.imwrite(str(folder / f"{i:04d}.png"), frame)
+    code, _, err = _run(monkeypatch, capsys, tmp_path / "ws", "ingest", str(folder), "--camera-height-m", "1.5")
+    _assert_refused(code, err, tmp_path / "ws", "--fps")
+    source = probe_image_folder(folder, 10.0)
+    assert (source.width_px, source.height_px, len(source.times_ns)) == (WIDTH, HEIGHT, 12)
+    assert source.times_ns[-1] == 1_100_000_000
+
+
+def test_calibration_files_opencv_and_ros(tmp_path: Path) -> None:
+    from drivesim.stages.ingest.camera_file import read_camera_file
+
+    K = np.array([[700.0, 0.0, 639.5], [0.0, 700.0, 359.5], [0.0, 0.0, 1.0]])
+    D = np.array([[-0.3, 0.1, 0.0, 0.0, 0.0]])
+    opencv = tmp_path / "opencv.yaml"
+    storage = cv2.FileStorage(str(opencv), cv2.FILE_STORAGE_WRITE)
+    storage.write("image_width", 1280)
+    storage.write("image_height", 720)
+    storage.write("camera_matrix", K)
+    storage.write("distortion_coefficients", D)
+    storage.release()
+    ros = tmp_path / "ost.yaml"
+    ros.write_text(
+        "image_width: 1280\nimage_height: 720\ncamera_name: dashcam\n"
+        f"camera_matrix: {{rows: 3, cols: 3, data: {K.ravel().tolist()}}}\n"
+        "distortion_model: plumb_bob\n"
+        f"distortion_coefficients: {{rows: 1, cols: 5, data: {D.ravel().tolist()}}}\n"
+    )
+    for path in (opencv, ros):
+        camera = read_camera_file(path, (640, 360))  # the video is half the calibrated size
+        assert camera.model == "plumb_bob" and camera.distorted
+        np.testing.assert_allclose(camera.K, [[350.0, 0.0, 319.5], [0.0, 350.0, 179.5], [0.0, 0.0, 1.0]])
+        np.testing.assert_allclose(camera.D, D.ravel())

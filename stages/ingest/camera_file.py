@@ -46,7 +46,8 @@ def read_camera_file(path: Path, video_size: tuple[int, int]) -> CameraModel:
     """
     try:
         text = path.read_text()
-        values = _opencv_yaml(path) if text.lstrip().startswith("%YAML:1") else yaml.safe_load(text)
+        opencv = text.lstrip().startswith("%YAML") or "!!opencv-matrix" in text  # cv2.FileStorage's own YAML
+        values = _opencv_yaml(path) if opencv else yaml.safe_load(text)
     except (OSError, UnicodeDecodeError, yaml.YAMLError, cv2.error) as e:
         raise InputError(f"unreadable camera calibration file ({type(e).__name__})", path) from e
     if not isinstance(values, dict):
