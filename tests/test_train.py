@@ -304,6 +304,12 @@ def test_warm_start_clones_the_expert() -> None:
         (["train", "lane", "--world", "/nonexistent"], "not a world folder"),
         (["train", "lane"], "run `drivesim build-world` first"),
         (["train", "--resume", "nope"], "no such run folder"),
+        (
+            ["train", "cutin", "--set", "envs.config.weight_colision=1"],
+            "unknown config key 'envs.config.weight_colision'",
+        ),
+        (["train", "cutin", "--set", "envs.config.dt_s=-1"], "config key 'envs.config.dt_s'"),
+        (["eval", "--task", "cutin", "--set", "env.weight_colision=1"], "valid keys here: augment, brightness"),
     ],
 )
 def test_bad_input_is_one_line(tmp_path: Path, args: list[str], message: str) -> None:
