@@ -39,7 +39,7 @@ from drivesim.stages.preprocess.depth_stereo import stereo_frame_depth
 from drivesim.stages.world.build import resize_depth, resize_frames
 
 IDENTITY = "identity (left as right)"
-REFERENCE = "SGBM on the true pair (reference)"
+REFERENCE = "stereo: SGBM on the true pair (reference)"
 DEFAULT_METHODS = ("plane", "mvs")
 _IMAGE_EXT = (".png", ".jpg", ".jpeg")
 
@@ -66,7 +66,9 @@ def _images(folder: Path, names: tuple[str, ...], what: str) -> list[Path]:
             files = sorted(p for p in (folder / name).iterdir() if p.suffix.lower() in _IMAGE_EXT)
             if files:
                 return files
-    raise InputError(f"no {what} images (looked for {', '.join(n + '/' for n in names)}); a stereo folder needs both")
+    raise InputError(
+        f"no {what} images (looked for {', '.join(n + '/' for n in names)}); a stereo folder needs both", folder
+    )
 
 
 def _read(path: Path, size: tuple[int, int]) -> np.ndarray:
@@ -307,7 +309,7 @@ def _world_depth(world: Path, frames: list[int], size: tuple[int, int]) -> tuple
     depth = np.stack([np.asarray(loaded.depth_m[index[i]], np.float32) for i in frames])
     if depth.shape[1:] != (size[1], size[0]):
         depth = resize_depth(depth, size[0], size[1], "min")
-    return f"world {world.name} ({loaded.meta.get('depth_method', '?')})", depth
+    return f"world {world.name} ({loaded.info.get('depth_method', '?')})", depth
 
 
 def save_worst_frame(

@@ -2,6 +2,7 @@
 
     python benchmarks/bench_depth.py            # 24 frames, writes benchmarks/results/depth.md
     python benchmarks/bench_depth.py --quick    # 8 frames, smoke run
+    python benchmarks/bench_depth.py --real     # real drives: the "Real drives" section of depth.md only
 
 The drive (frames, ground-truth depth, poses) is rendered once into a temporary folder; each depth method then runs
 in its own process on memory-mapped frames, streaming into a memory-mapped output as `drivesim preprocess` does, so
@@ -68,6 +69,78 @@ def _worker(folder: Path, method: str, overrides: list[str]) -> None:
     print(json.dumps({"seconds": seconds, "peak_rss_mb": peak_rss_mb, "summary": summary}))
 
 
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+REAL_DRIVES = {
+    "KITTI raw 0001": REAL / "kitti_raw" / "2011_09_26" / "2011_09_26_drive_0001_sync",
+    "KITTI odometry snippet": REAL / "kitti_odometry_straight",
+}
+REAL_SECTION = "## Real drives"
+
+
+def _real_workspace(recording: Path, root: Path) -> Path:
+    """A workspace with `drivesim ingest` and `drivesim preprocess` (plane: only the fused poses are used) done."""
+    ws = root / recording.name
+    for args in (["ingest", str(recording)], ["preprocess", "--set", "depth.method=plane"]):
+        subprocess.run([str(Path(sys.executable).with_name("drivesim")), "-w", str(ws), *args], check=True,
+                       capture_output=True, text=True)  # fmt: skip
+    return ws
+
+
+def _real_section(methods: tuple[str, ...], overrides: list[str]) -> list[str]:
+    """Every real drive x method: forward views (frame i warped to frame i + k), the stereo snippet's lateral view."""
+    from drivesim.bench.fidelity import forward_view_rows, load_real_drive, real_depths
+    from drivesim.bench.stereo import REFERENCE, run_stereo_bench
+    from drivesim.pipeline.config import load_config
+    from drivesim.stages.preprocess.config import DepthConfig
+
+    cfg = load_config(DepthConfig, overrides=overrides)
+    uptime = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench-depth-real-") as tmp:
+        for name, recording in REAL_DRIVES.items():
+            drive = load_real_drive(_real_workspace(recording, Path(tmp)), name)
+            depths, seconds = real_depths(drive, methods, cfg)
+            for r in forward_view_rows(drive, depths):
+                rows.append((name, f"forward, k = {r['gap_frames']}", r["depth"], r, seconds[r["depth"]]))
+            print(f"{name}: done", flush=True)
+    stereo = run_stereo_bench(REAL / "kitti_odometry_stereo", methods, depth_config=cfg)
+    for r in stereo.rows[1:]:
+        method = "stereo (SGBM on the true pair)" if r.name == REFERENCE else r.name
+        metrics = {"psnr_db": r.psnr_db, "ssim": r.ssim, "filled_fraction": r.filled_fraction}
+        rows.append(
+            ("KITTI odometry stereo snippet", "lateral 0.537 m (right camera)", method, metrics, r.seconds_per_frame)
+        )
+    lines = [
+        REAL_SECTION,
+        "",
+        f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}; machine: {machine_line()}; load (shared "
+        f"machine, s / frame vary with it): `{uptime}` at the start",
+        f"- command: `python benchmarks/bench_depth.py --real{''.join(f' --set {o}' for o in overrides)}`",
+        "- forward: each method's depth of frame i warps frame i to the pose of frame i + k, compared with the "
+        "recorded "
+        "frame i + k (every 2nd source frame, 3 frames from the ends); lateral: the left frame warped into the right "
+        "camera, compared with the recorded right image (`drivesim bench stereo`). Depth at 640 px wide (the trace), "
+        "measured at 320 px (the world); PSNR and SSIM over the pixels the warp fills",
+        "",
+        "| drive | view | depth | PSNR dB | SSIM | filled | s / frame |",
+        "|---|---|---|---:|---:|---:|---:|",
+    ]
+    for drive, view, method, m, sec in rows:
+        sec_text = "" if sec is None else f"{sec:.2f}"
+        lines.append(f"| {drive} | {view} | {method} | {m['psnr_db']:.2f} | {m['ssim']:.3f} | "
+                     f"{m['filled_fraction']:.3f} | {sec_text} |")  # fmt: skip
+    return lines
+
+
+def _write_real(output: Path, methods: tuple[str, ...], overrides: list[str]) -> None:
+    section = _real_section(methods, overrides)
+    old = output.read_text() if output.is_file() else "# Per-frame depth: speed, memory, accuracy\n"
+    kept = old.split(REAL_SECTION)[0].rstrip() + "\n\n"
+    output.write_text(kept + "\n".join(section) + "\n")
+    print("\n".join(section))
+    print(f"wrote {output}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="8 frames: a smoke run")
@@ -75,10 +148,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--set", dest="overrides", action="append", default=[], help="depth config override for mvs")
     parser.add_argument("--output", type=Path, default=RESULTS)
+    parser.add_argument("--real", action="store_true", help="the real drives' section only")
+    parser.add_argument("--methods", default="plane,mvs", help="depth methods of the real drives' section")
     parser.add_argument("--worker", nargs=2, metavar=("FOLDER", "METHOD"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
         _worker(Path(args.worker[0]), args.worker[1], args.overrides)
+        return
+    if args.real:
+        _write_real(args.output, tuple(args.methods.split(",")), args.overrides)
         return
 
     from drivesim.bench.fidelity import depth_metrics

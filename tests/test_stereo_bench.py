@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
@@ -106,3 +107,21 @@ def test_a_folder_without_right_images_is_refused(tmp_path: Path) -> None:
     (tmp_path / "pair" / "image_r").rmdir()
     with pytest.raises(InputError, match="no right images"):
         read_stereo_folder(tmp_path / "pair")
+
+
+def test_a_built_worlds_depth_is_a_row(tmp_path: Path) -> None:
+    from sim_worlds import write_test_world
+
+    write_wall_folder(tmp_path / "pair")
+    world = write_test_world(tmp_path / "world", length_m=20.0)
+    n = len(np.load(world / "path.npz")["frame_index"])
+    true_depth_m = np.array([10.0 - 0.5 * min(i, 8) for i in range(n)], np.float32)[:, None, None]
+    np.save(world / "depth_m.npy", np.broadcast_to(true_depth_m, (n, H // 2, W // 2)).copy())
+    np.save(world / "frames.npy", np.zeros((n, H // 2, W // 2, 3), np.uint8))
+    camera = json.loads((world / "camera.json").read_text())
+    camera.update(width_px=W // 2, height_px=H // 2)
+    (world / "camera.json").write_text(json.dumps(camera))
+    result = run_stereo_bench(tmp_path / "pair", methods=("plane",), worlds=(world,), width_px=W, eval_width_px=W // 2)
+    row = result.row("world world (test)")  # the world's true depth warps as well as the pair's own depth
+    assert row.psnr_db > result.row("plane").psnr_db + 4.0
+    assert row.psnr_db > result.row(REFERENCE).psnr_db - 1.0
