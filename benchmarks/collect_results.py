@@ -22,6 +22,7 @@ ORDER = [
     "learning",
     "eval",
     "ray",
+    "record",
     "ingest",
     "render",
     "synth",
