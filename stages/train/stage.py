@@ -16,7 +16,7 @@ from contextvars import ContextVar
 from dataclasses import replace
 from pathlib import Path
 
-from drivesim.pipeline.errors import DrivesimError
+from drivesim.pipeline.errors import DrivesimError, Interrupted
 from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, run_stage
 from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
 from drivesim.stages.train.config import TrainConfig
@@ -50,7 +50,7 @@ def _meshes_of(ws: Workspace) -> Path | None:
 def _build(ctx: BuildContext) -> TrainSummary:
     from drivesim.pipeline.progress import progress_bar
     from drivesim.stages.train.envs import EnvSource
-    from drivesim.stages.train.run import train_in_folder
+    from drivesim.stages.train.run import TrainingInterruptedError, train_in_folder
 
     cfg = ctx.config
     assert isinstance(cfg, TrainConfig)
@@ -68,8 +68,18 @@ def _build(ctx: BuildContext) -> TrainSummary:
         worker_threads=cfg.envs.worker_threads,
         processes=cfg.envs.processes,
     )
-    with progress_bar("train", total=cfg.total_steps) as bar:
-        outcome = train_in_folder(run_dir, cfg, source, report=ctx.notes.append, progress=bar)
+    try:
+        with progress_bar("train", total=cfg.total_steps) as bar:
+            outcome = train_in_folder(run_dir, cfg, source, report=ctx.notes.append, progress=bar)
+    except Interrupted:
+        raise
+    except KeyboardInterrupt as e:  # outside the PPO updates (setup, warm start, final files): say how to go on
+        if not (run_dir / "config.json").is_file():
+            raise
+        raise TrainingInterruptedError(
+            f"interrupted; the run keeps everything up to its last update in {run_dir}; continue with "
+            f"`drivesim train --resume {run_dir}`"
+        ) from e
     # The finished files move into the folder run_stage writes the manifest in and moves into place.
     for entry in run_dir.iterdir():
         os.replace(entry, ctx.dir / entry.name)
