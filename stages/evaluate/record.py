@@ -190,7 +190,8 @@ def recording_link(out_dir: Path, seed: int) -> str:
 
 
 def recordings_html(out_dir: Path, results: Sequence[EpisodeResult]) -> str:
-    """The report's section on the recordings: the recorded failures by cause, each linked, and how to open them."""
+    """The report's section on the recordings: the recorded episodes by outcome (failures first), each linked, and
+    how to open them."""
     seeds = recorded_seeds(Path(out_dir) / RECORDINGS_DIR)
     if not seeds:
         return ""
@@ -205,7 +206,7 @@ def recordings_html(out_dir: Path, results: Sequence[EpisodeResult]) -> str:
     rows = "".join(
         f"<tr><td>{html.escape(cause)}</td><td>{len(s)}</td><td>{' '.join(recording_link(out_dir, x) for x in s)}"
         "</td></tr>"
-        for cause, s in by_cause.items()
+        for cause, s in sorted(by_cause.items(), key=lambda item: item[0] in ("success", "no intervention"))
     )
     return (
         f"<h2>Recordings (Foxglove)</h2><table><tr><th>outcome</th><th>episodes</th><th>recording</th></tr>{rows}"
