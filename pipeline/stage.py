@@ -125,8 +125,8 @@ def run_stage(
     :param force: rebuild even when the artifact is fresh.
     :param external: external inputs (recordings outside the workspace), identified by a fast fingerprint.
     :param artifact: the artifact folder when it is not `spec.artifact` (one of many runs or evaluations).
-    :param make_hints: upstream artifact name -> the command that makes it, for the "run X first" error (default:
-        each upstream stage's `StageSpec.make_hint` as given in `spec.upstream_hints`).
+    :param make_hints: upstream artifact name -> the command that makes it, for the "run X first" error, over
+        `spec.upstream_hints` (the chain passes its registry's commands).
     :param protect: refuse (one line) to replace an existing artifact that was made with other settings (a result the
         user asked for, like a 1000-episode evaluation), unless `force`.
     :param protect_hint: what the refusal suggests.
