@@ -315,3 +315,13 @@ def test_calibration_files_opencv_and_ros(tmp_path: Path) -> None:
         assert camera.model == "plumb_bob" and camera.distorted
         np.testing.assert_allclose(camera.K, [[350.0, 0.0, 319.5], [0.0, 350.0, 179.5], [0.0, 0.0, 1.0]])
         np.testing.assert_allclose(camera.D, D.ravel())
+
+
+def test_a_frame_registered_off_its_neighbours_is_dropped() -> None:
+    from drivesim.stages.ingest.sfm import consistent_poses
+
+    T = np.tile(np.eye(4), (20, 1, 1))
+    T[:, 2, 3] = np.arange(20) * 0.5  # driving along the optical axis, 0.5 units a frame
+    T[7, :3, 3] += [30.0, 0.0, 0.0]  # one frame far off (COLMAP did this once on KITTI)
+    T[12, :3, :3] = cv2.Rodrigues(np.array([0.0, np.radians(40.0), 0.0]))[0]  # one turned 40 degrees
+    assert list(np.flatnonzero(~consistent_poses(T))) == [7, 12]
