@@ -133,6 +133,34 @@ def test_killed_evaluation_leaves_no_worker_and_resumes(tmp_path: Path) -> None:
     assert json.loads((final / "manifest.json").read_text())["summary"]["episodes"] == 8
 
 
+def test_terminated_training_stops_its_worker_processes_and_says_how_to_resume(tmp_path: Path) -> None:
+    """SIGTERM to `drivesim train` with subprocess envs: exit 143, one line naming --resume (not an error), the env
+    worker processes gone, no temporary folder; the header names the run folder before training starts."""
+    from test_train import SMALL
+
+    ws = tmp_path / "ws"
+    sets = [a for s in [*SMALL, "envs.vec_env=subproc", "eval.every_steps=0"] for a in ("--set", s)]
+    command = [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), "train", "lane", *sets]
+    out_path, err_path = tmp_path / "out.txt", tmp_path / "err.txt"
+    with open(out_path, "w") as out, open(err_path, "w") as err:
+        proc = subprocess.Popen([*command, "--total-steps", "100000"], stdout=out, stderr=err, env=_env())
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline and not list(ws.glob("runs/lane-*/progress.csv")):
+            assert proc.poll() is None, err_path.read_text()
+            time.sleep(0.2)
+        workers = psutil.Process(proc.pid).children(recursive=True)
+        assert len(workers) >= 2
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=60)
+    run_dir = next(ws.glob("runs/lane-*"))
+    assert proc.returncode == 143
+    lines = [line for line in err_path.read_text().splitlines() if line.strip() and " s elapsed" not in line]
+    assert len(lines) == 1 and lines[0].startswith("terminated (SIGTERM)") and f"--resume {run_dir}" in lines[0]
+    assert out_path.read_text().splitlines()[0].startswith(f"training lane to 100000 env steps in {run_dir}")
+    _assert_all_end(workers)
+    assert not list(ws.glob(".tmp-*")) and (run_dir / "checkpoints" / "last.pt").is_file()
+
+
 # ---------------------------------------------------------------- the CLI's error boundary, in this process
 
 
@@ -336,7 +364,9 @@ def test_finished_run_is_trained_further_with_more_steps(tmp_path) -> None:
     first = run_training(ws, small_config(256))
     with pytest.raises(DrivesimError, match="finished at 256 env steps; give --total-steps"):
         plan_resume(ws, first.path, None, None, [], [])
-    plan = plan_resume(ws, first.path, None, None, ["total_steps=512"], [])
+    elsewhere = Workspace(tmp_path / "elsewhere")  # `--resume RUN` from another folder: the run's own workspace
+    plan = plan_resume(elsewhere, first.path, None, None, ["total_steps=512"], [])
+    assert plan.workspace.root == ws.root and not elsewhere.root.exists()
     assert plan.finished_steps == 256 and plan.cfg.total_steps == 512
     assert plan.cfg.model_dump(exclude={"total_steps"}) == first_config(first.path)
     reopen(plan)
