@@ -24,10 +24,12 @@ ORDER = [
     "ray",
     "record",
     "ingest",
+    "video_sfm",
     "render",
     "synth",
     "poses",
     "depth",
+    "stereo",
     "preprocess_world",
     "fidelity",
 ]

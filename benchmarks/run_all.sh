@@ -6,6 +6,7 @@ PY=${PY:-.venv/bin/python}
 $PY benchmarks/bench_render.py
 $PY benchmarks/bench_synth.py
 $PY benchmarks/bench_ingest.py
+$PY benchmarks/bench_video_sfm.py
 $PY benchmarks/bench_poses.py
 $PY benchmarks/bench_depth.py
 $PY benchmarks/bench_preprocess_world.py
@@ -14,6 +15,6 @@ $PY benchmarks/bench_preprocess_world.py
 $PY benchmarks/bench_train_speed.py --world "${DEMO_WORLD:-/tmp/ws-demo/world}"
 $PY benchmarks/bench_eval.py --episodes 1000 --world "${DEMO_WORLD:-/tmp/ws-demo/world}"
 $PY benchmarks/bench_record.py --world small --world "${DEMO_WORLD:-/tmp/ws-demo/world}" --repeats 3
-# Learning under wall-clock budgets (~1.5 h): lane 15 min, overtake 60 min, lane on KITTI 15 min.
+# Learning under wall-clock budgets (~2 h): lane 15 min, overtake 60 min, lane on KITTI 15 min, cutin 30 min.
 if [ -n "${LEARNING:-}" ]; then $PY benchmarks/bench_learning.py ${KITTI_WORLD:+--kitti-world "$KITTI_WORLD"}; fi
 $PY benchmarks/collect_results.py
