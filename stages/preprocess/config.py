@@ -90,6 +90,9 @@ class MvsConfig(StageConfig):
     across."""
     best_k: int = Field(2, ge=1)
     """The cost of a hypothesis is the mean of the best k neighbours' costs (robust to occlusion at the borders)."""
+    visible_best_k: bool = False
+    """A pixel that fewer than best_k neighbours see (the outer side of a turn) takes the mean over those that do,
+    instead of counting the others as mismatches (which leaves it to the fill heuristics)."""
     min_zncc: float = Field(0.7, ge=-1.0, le=1.0)
     """Stereo is trusted only where the best aggregated ZNCC score is at least this."""
     min_distinctness: float = Field(0.02, ge=0.0)
@@ -99,6 +102,10 @@ class MvsConfig(StageConfig):
     widest-baseline neighbour: near the focus of expansion of a forward drive there is no parallax to measure."""
     plane_margin: float = Field(0.03, ge=0.0)
     """The ground plane is kept wherever its ZNCC cost is within this margin of the best swept plane."""
+    plane_prior_margin: float = Field(0.0, ge=0.0)
+    """A guessed pixel below the horizon (no trusted stereo, no matching plane, filled from around) takes the ground
+    plane unless its guessed depth's cost beats the plane's by more than this (ZNCC cost (1 - ZNCC) / 2); 0 disables
+    (the guess stays)."""
     fill_sigma_px: float = Field(3.0, ge=0.0)
     """Pixels with neither trusted stereo nor an agreeing plane take the inverse depth of trusted pixels around them,
     Gaussian-weighted with this sigma (matching pixels), where those surround them densely enough; 0 disables."""

@@ -135,6 +135,21 @@ def _sweep_costs(
     return torch.where(inside, (1.0 - zncc.clamp(-1.0, 1.0)) * 0.5, torch.ones_like(zncc))
 
 
+def _best_k_mean(costs: torch.Tensor, k: int, visible_only: bool) -> torch.Tensor:
+    """Mean of the k lowest costs over neighbours (Nn, P, h, w) -> (P, h, w). With `visible_only`, a pixel that fewer
+    than k neighbours see (out of view costs exactly 1, e.g. the outer side of a turn, which the frames ahead and
+    behind look away from) takes the mean over the neighbours that do see it, instead of counting the others as
+    mismatches."""
+    if not visible_only:
+        return torch.topk(costs, k, dim=0, largest=False).values.mean(dim=0)
+    ordered = torch.sort(costs, dim=0).values
+    seen_by = (costs < 1.0).sum(dim=0).amax(dim=0)  # (h, w): neighbours seeing the pixel at some hypothesis
+    k_eff = seen_by.clamp(1, k)
+    sums = ordered[:k].cumsum(dim=0)  # (k, P, h, w)
+    picked = sums.gather(0, (k_eff - 1)[None, None].expand(1, costs.shape[1], -1, -1))[0]
+    return picked / k_eff.to(costs.dtype)
+
+
 def guided_filter(guide: torch.Tensor, costs: torch.Tensor, radius_px: int, eps: float) -> torch.Tensor:
     """Edge-aware aggregation of a cost volume (P, h, w) guided by the grey reference (1, h, w): each hypothesis's
     cost slice is smoothed over a (2r+1)^2 window except across the reference's edges (He et al.'s guided filter, as
@@ -278,6 +293,31 @@ def _fuse(
     return np.minimum(depth, plane_m), labels
 
 
+def _plane_where_no_better(
+    depth_m: np.ndarray,
+    labels: np.ndarray,
+    plane_m: np.ndarray,
+    far_m: float,
+    sweep_cost: torch.Tensor,
+    plane_cost: torch.Tensor,
+    inv_depths: torch.Tensor,
+    margin: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel fusion with the road plane by photometric evidence: a guessed pixel below the horizon (filled from
+    around, or from its column) takes the ground plane unless its guessed depth matches the neighbours better than
+    the plane by more than `margin` in cost. Textureless road matches every depth equally badly, so it gets the
+    plane (the prior), not the depth of whatever textured object lies next to it."""
+    guessed = ((labels == _FILLED) | (labels == _COLUMN)) & (plane_m < far_m)
+    if not guessed.any():
+        return depth_m, labels
+    inv = torch.from_numpy(1.0 / np.clip(depth_m, 1e-3, None)).to(sweep_cost.device)
+    step = inv_depths[1] - inv_depths[0]
+    index = ((inv - inv_depths[0]) / step).round().long().clamp(0, len(inv_depths) - 1)
+    guessed_cost = sweep_cost.gather(0, index[None])[0]
+    take = guessed & (plane_cost <= guessed_cost + margin).cpu().numpy()
+    return np.where(take, plane_m, depth_m).astype(np.float32), np.where(take, _PLANE, labels)
+
+
 def _stereo_evidence(
     i: int,
     nbrs: list[int],
@@ -290,9 +330,9 @@ def _stereo_evidence(
     below_horizon: torch.Tensor,
     far_m: float,
     m: MvsConfig,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Sweep frame i against its neighbours: (stereo depth m, trusted stereo mask, trusted plane mask, window
-    deviation of the grey image), each (h, w) at matching resolution."""
+    deviation of the grey image, aggregated sweep cost (P, h, w), plane cost), at matching resolution."""
     ref = cache.get(i)
     T_ref = poses[i]
     rel = [invert(poses[j]) @ T_ref for j in nbrs]
@@ -303,8 +343,7 @@ def _stereo_evidence(
             for j, T in zip(nbrs, rel, strict=True)
         ]
     )
-    k = min(m.best_k, len(nbrs))
-    agg = torch.topk(costs, k, dim=0, largest=False).values.mean(dim=0)  # (P, h, w)
+    agg = _best_k_mean(costs, min(m.best_k, len(nbrs)), m.visible_best_k)  # (P, h, w)
     if m.aggregation_radius_px > 0:
         agg = guided_filter(ref[0], agg, m.aggregation_radius_px, m.aggregation_eps)
     sweep_cost, plane_cost = agg[:-1], agg[-1]
@@ -342,7 +381,7 @@ def _stereo_evidence(
         & (plane_cost <= best_cost + m.plane_margin)
         & (1.0 - 2.0 * plane_cost >= m.min_zncc)  # textureless ground is a guess, not evidence
     )
-    return stereo_m, confident & ~plane_ok, plane_ok, stats[1][0, 0]
+    return stereo_m, confident & ~plane_ok, plane_ok, stats[1][0, 0], sweep_cost, plane_cost
 
 
 class MvsEstimator:
@@ -393,7 +432,7 @@ class MvsEstimator:
         if not nbrs:
             return self.plane_hi.copy(), np.where(plane_lo < far_m, _FALLBACK_PLANE, _FAR)
         with torch.no_grad():
-            stereo_m, use_stereo, plane_ok, texture_std = _stereo_evidence(
+            stereo_m, use_stereo, plane_ok, texture_std, sweep_cost, plane_cost = _stereo_evidence(
                 i, nbrs, self.poses, self.cache, self.K_t, self.rays, self.hypotheses, self.inv_depths,
                 self.below_horizon, far_m, m,
             )  # fmt: skip
@@ -406,6 +445,10 @@ class MvsEstimator:
             far_m,
             m.fill_sigma_px,
         )
+        if m.plane_prior_margin > 0:
+            depth_np, labels = _plane_where_no_better(
+                depth_np, labels, plane_lo, far_m, sweep_cost, plane_cost, self.inv_depths, m.plane_prior_margin
+            )
         depth_np = cv2.medianBlur(depth_np.astype(np.float32), 3)  # removes isolated mismatches
         inv_hi = _joint_bilateral_upsample(
             1.0 / depth_np,
