@@ -309,7 +309,7 @@ def _world_depth(world: Path, frames: list[int], size: tuple[int, int]) -> tuple
     depth = np.stack([np.asarray(loaded.depth_m[index[i]], np.float32) for i in frames])
     if depth.shape[1:] != (size[1], size[0]):
         depth = resize_depth(depth, size[0], size[1], "min")
-    return f"world {world.name} ({loaded.info.get('depth_method', '?')})", depth
+    return f"built world {world.parent.name} ({loaded.info.get('depth_method', '?')})", depth
 
 
 def save_worst_frame(
@@ -335,8 +335,8 @@ def save_worst_frame(
         (colour_depth(depth_m, max_depth_m), "depth"),
     )
     for image, label in panels:
-        tile = cv2.resize(np.ascontiguousarray(image[..., ::-1]), None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST)
-        cv2.putText(tile, label, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 255, 255), 1, cv2.LINE_AA)
+        tile = np.ascontiguousarray(image[..., ::-1])
+        cv2.putText(tile, label, (3, 9), cv2.FONT_HERSHEY_SIMPLEX, 0.3, (0, 255, 255), 1, cv2.LINE_AA)
         tiles.append(tile)
     path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), np.concatenate(tiles, axis=0))

@@ -122,6 +122,8 @@ def test_a_built_worlds_depth_is_a_row(tmp_path: Path) -> None:
     camera.update(width_px=W // 2, height_px=H // 2)
     (world / "camera.json").write_text(json.dumps(camera))
     result = run_stereo_bench(tmp_path / "pair", methods=("plane",), worlds=(world,), width_px=W, eval_width_px=W // 2)
-    row = result.row("world world (test)")  # the world's true depth warps as well as the pair's own depth
+    row = result.row(
+        f"built world {tmp_path.name} (test)"
+    )  # the world's true depth warps as well as the pair's own depth
     assert row.psnr_db > result.row("plane").psnr_db + 4.0
     assert row.psnr_db > result.row(REFERENCE).psnr_db - 1.0
