@@ -45,7 +45,7 @@ def chain(tmp_path_factory) -> Path:
         pytest.skip(f"the KITTI raw drive is not at {DRIVE}")
     ws = tmp_path_factory.mktemp("kitti") / "ws"
     drivesim_ok(ws, "ingest", str(DRIVE))
-    drivesim_ok(ws, "preprocess")
+    drivesim_ok(ws, "preprocess", timeout_s=900)  # the default depth is mvs (auto, no stereo or lidar here)
     drivesim_ok(ws, "build-world")
     return ws
 
