@@ -9,7 +9,8 @@ from drivesim.pipeline.config import load_config
 def preprocess_command(
     config: ConfigOption = None, set_: set_option("depth.method=mvs") = None, force: ForceOption = False
 ) -> None:
-    """Fuse poses (GPS + IMU + speed, odometry or visual SfM) and estimate per-frame depth (auto: lidar > stereo > mvs; or plane)."""
+    """Fuse poses (GPS + IMU + speed, odometry or visual SfM) and estimate per-frame depth (auto: lidar > stereo >
+    mvs; or plane)."""
     # Imported here so `drivesim --help` stays fast (the stage pulls in torch, open3d, matplotlib).
     from drivesim.stages.preprocess.config import PreprocessConfig
     from drivesim.stages.preprocess.stage import run_preprocess
