@@ -14,8 +14,8 @@ import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
 
-from drivesim.bench.machine import machine_line
-from drivesim.bench.report import write_markdown
+from drivesim.diagnostics.machine import machine_line
+from drivesim.diagnostics.report import write_markdown
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.export.config import ExportConfig
 from drivesim.stages.export.stage import run_export

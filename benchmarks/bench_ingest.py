@@ -30,8 +30,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivesim.bench.machine import machine_line
-from drivesim.bench.recordings import (  # the recording writers shared with the tests
+from drivesim.diagnostics.machine import machine_line
+from drivesim.diagnostics.recordings import (  # the recording writers shared with the tests
     START_NS,
     T_FOOTPRINT_LINK,
     T_LINK_CAMERA,

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivesim.bench.machine import machine_line
+from drivesim.diagnostics.machine import machine_line
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.policy.run_folder import load_policy

@@ -23,8 +23,8 @@ from pathlib import Path
 
 from bench_eval import build_demo_world
 
-from drivesim.bench.machine import machine_line, usable_cores
-from drivesim.bench.report import write_markdown
+from drivesim.diagnostics.machine import machine_line, usable_cores
+from drivesim.diagnostics.report import write_markdown
 from drivesim.sim.envs.registry import task_spec
 from drivesim.stages.evaluate.metrics import evaluate_episode
 from drivesim.stages.evaluate.ray_backend import run_episodes_ray

@@ -29,8 +29,8 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
-from drivesim.bench.machine import machine_line
-from drivesim.bench.report import write_markdown
+from drivesim.diagnostics.machine import machine_line
+from drivesim.diagnostics.report import write_markdown
 from drivesim.pipeline.workspace import Workspace
 from drivesim.sim.envs.config import EnvConfig
 from drivesim.stages.evaluate.config import EvalConfig

@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drivesim.bench.gl_reference import GLRenderer, car_meshes, create_context
-from drivesim.bench.machine import machine_line
+from drivesim.diagnostics.gl_reference import GLRenderer, car_meshes, create_context
+from drivesim.diagnostics.machine import machine_line
 from drivesim.sim import geometry as g
 from drivesim.sim import warp as warp_module
 from drivesim.sim.mesh import Material, Mesh

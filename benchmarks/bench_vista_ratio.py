@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivesim.bench.machine import machine_line
+from drivesim.diagnostics.machine import machine_line
 
 KITTI = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "kitti_raw"
 CAMERA_W_PX, CAMERA_H_PX = 320, 200

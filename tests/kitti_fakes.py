@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivesim.bench.recordings import textured_image
+from drivesim.diagnostics.recordings import textured_image
 
 FX_PX = 80.0
 

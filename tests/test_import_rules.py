@@ -104,7 +104,7 @@ def test_no_stage_imports_another_stages_run_module() -> None:
         ("stages/world/build.py", "drivesim.stages.preprocess.artifact", True),
         ("stages/world/build.py", "drivesim.stages.world.config", True),
         ("stages/world/build.py", "drivesim.cli.common", False),
-        ("stages/world/build.py", "drivesim.bench.fidelity", False),
+        ("stages/world/build.py", "drivesim.diagnostics.fidelity", False),
         ("stages/chain.py", "drivesim.stages.world.stage", True),
         ("stages/evaluate/rollout.py", "drivesim.stages.policy.run_folder", True),
         ("stages/evaluate/rollout.py", "drivesim.stages.policy.onnx_runtime", True),

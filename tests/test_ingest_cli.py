@@ -13,8 +13,15 @@ from pathlib import Path
 import pytest
 from cli_helpers import REAL_DATA, interruptible
 
-from drivesim.bench.recordings import START_NS, Msg, drive_messages, navsat_values, textured_image, write_recording
 from drivesim.cli.main import main
+from drivesim.diagnostics.recordings import (
+    START_NS,
+    Msg,
+    drive_messages,
+    navsat_values,
+    textured_image,
+    write_recording,
+)
 
 REAL = REAL_DATA
 HUSKY = REAL / "husky_gps_imu_odom.bag"

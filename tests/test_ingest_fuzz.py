@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 from kitti_fakes import kitti_stereo_folder
 
-from drivesim.bench.recordings import (
+from drivesim.diagnostics.recordings import (
     START_NS,
     Msg,
     drive_messages,

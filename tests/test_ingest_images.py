@@ -8,7 +8,14 @@ import cv2
 import numpy as np
 import pytest
 
-from drivesim.bench.recordings import Msg, drive_messages, image_values, patch_image, textured_image, write_recording
+from drivesim.diagnostics.recordings import (
+    Msg,
+    drive_messages,
+    image_values,
+    patch_image,
+    textured_image,
+    write_recording,
+)
 from drivesim.pipeline.errors import InputError
 from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.images import CameraModel, EncodingError, FrameProcessor, area_remap_tables, decode_raw

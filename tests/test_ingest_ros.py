@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivesim.bench.recordings import (
+from drivesim.diagnostics.recordings import (
     DEFAULT_K,
     FORMATS,
     START_NS,
@@ -309,7 +309,7 @@ def test_camera_size_change_midway_is_refused(tmp_path: Path) -> None:
 
 
 def test_pointcloud_scans_are_stored_in_the_vehicle_frame(tmp_path: Path) -> None:
-    from drivesim.bench.recordings import pointcloud_values
+    from drivesim.diagnostics.recordings import pointcloud_values
 
     T_link_lidar = np.eye(4)
     T_link_lidar[:3, 3] = [0.5, 0.0, 1.8]  # lidar on the roof, axes as the vehicle's

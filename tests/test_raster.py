@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from drivesim.bench.gl_reference import (
+from drivesim.diagnostics.gl_reference import (
     GLRenderer,
     car_meshes,
     checker_texture,

@@ -9,7 +9,14 @@ import cv2
 import numpy as np
 import pytest
 
-from drivesim.bench.stereo import IDENTITY, REFERENCE, read_stereo_folder, run_stereo_bench, view_metrics, warp_to_right
+from drivesim.diagnostics.stereo import (
+    IDENTITY,
+    REFERENCE,
+    read_stereo_folder,
+    run_stereo_bench,
+    view_metrics,
+    warp_to_right,
+)
 from drivesim.pipeline.errors import InputError
 from drivesim.stages.preprocess.config import StereoConfig
 from drivesim.stages.preprocess.depth_stereo import stereo_frame_depth

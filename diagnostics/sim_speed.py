@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivesim.bench.machine import machine_line, usable_cores
+from drivesim.diagnostics.machine import machine_line, usable_cores
 from drivesim.sim.envs.registry import TASK_NAMES
 
 # "overtake:eval": evaluation episodes, which end at the pass, so the other car is in view at nearly every step; a

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import torch
 
-from drivesim.bench.fidelity import colour_depth, image_metrics
+from drivesim.diagnostics.fidelity import colour_depth, image_metrics
 from drivesim.pipeline.errors import InputError
 from drivesim.sim.geometry import camera_mount, scale_intrinsics
 from drivesim.sim.warp import forward_warp
