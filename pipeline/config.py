@@ -200,6 +200,26 @@ def load_config(
         if path.is_file():
             data = _merge(data, _read_yaml(path))
             sources.append(f"preset {preset}")
+    return _layer_and_validate(model, data, sources, config_file, overrides)
+
+
+def load_config_over(
+    model: type[ConfigT], base: dict[str, Any], config_file: Path | None = None, overrides: list[str] | None = None
+) -> ConfigT:
+    """A config from `base` (a saved config, e.g. a run's), then a user YAML file and `--set` overrides on top: only
+    the keys the user gives change."""
+    return _layer_and_validate(model, dict(base), ["saved config"], config_file, overrides)
+
+
+def _layer_and_validate(
+    model: type[ConfigT],
+    data: dict[str, Any],
+    sources: list[str],
+    config_file: Path | None,
+    overrides: list[str] | None,
+) -> ConfigT:
+    """`data` with a user YAML file and `--set` overrides on top, validated (one-line ConfigError naming the
+    sources)."""
     if config_file is not None:
         data = _merge(data, _read_yaml(Path(config_file)))
         sources.append(str(config_file))
@@ -212,27 +232,6 @@ def load_config(
         return model.model_validate(data)
     except ValidationError as e:
         raise _friendly(e, model, " + ".join(sources) or "defaults") from None
-
-
-def load_config_over(
-    model: type[ConfigT], base: dict[str, Any], config_file: Path | None = None, overrides: list[str] | None = None
-) -> ConfigT:
-    """A config from `base` (a saved config, e.g. a run's), then a user YAML file and `--set` overrides on top: only
-    the keys the user gives change."""
-    data = dict(base)
-    sources = ["saved config"]
-    if config_file is not None:
-        data = _merge(data, _read_yaml(Path(config_file)))
-        sources.append(str(config_file))
-    for text in overrides or []:
-        keys, value = parse_override(text)
-        _set_path(data, keys, value)
-    if overrides:
-        sources.append("--set")
-    try:
-        return model.model_validate(data)
-    except ValidationError as e:
-        raise _friendly(e, model, " + ".join(sources)) from None
 
 
 def _type_name(annotation: Any) -> str:
