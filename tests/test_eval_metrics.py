@@ -178,7 +178,8 @@ def test_scenario_table_splits_static_moving_and_the_passing_side():
         replace(base, seed=2, other_speed_mps=2.0, other_lateral_m=1.4, success=True, intervention=False),
     ]
     rows = {r["scenario"]: r for r in scenario_table(metrics)}
-    assert rows["front car static"]["episodes"] == 1 and rows["front car static"]["success"]["value"] == 1.0
+    static = rows["front car nearly static (< 0.5 m/s)"]
+    assert static["episodes"] == 1 and static["success"]["value"] == 1.0
     assert rows["front car moving"]["episodes"] == 2 and rows["front car moving"]["intervention"]["value"] == 0.5
     assert rows["passing on the left"]["episodes"] == 2  # the front car right of the lane centre
     assert rows["passing on the right"]["episodes"] == 1

@@ -356,7 +356,7 @@ def scenario_table(metrics: Sequence[EpisodeMetrics]) -> list[dict[str, Any]]:
     """The paper's Table II offline: success and intervention of the episodes whose front car is static / moving,
     and whose ego passes on the left / right (the front car right / left of the lane centre); [] without a car."""
     groups = {
-        "front car static": lambda m: m.other_speed_mps < STATIC_SPEED_MPS,
+        "front car nearly static (< 0.5 m/s)": lambda m: m.other_speed_mps < STATIC_SPEED_MPS,
         "front car moving": lambda m: m.other_speed_mps >= STATIC_SPEED_MPS,
         "passing on the left": lambda m: m.other_lateral_m < 0.0,
         "passing on the right": lambda m: m.other_lateral_m > 0.0,
