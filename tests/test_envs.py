@@ -238,3 +238,15 @@ def test_augmentation_follows_its_formula() -> None:
     assert Augmentation().apply(image) is image  # the identity draw costs nothing
     grey_only = Augmentation(saturation=0.0).apply(image)
     assert np.abs(grey_only.astype(int) - grey_only[..., :1]).max() <= 1  # no saturation: grey
+
+
+def test_grey_episodes_come_at_their_rate_and_leave_other_draws_alone() -> None:
+    """grey_probability p makes about p of the training episodes grey; p = 0 draws exactly as before."""
+    ranges = ((0.8, 1.25), (-0.1, 0.1), (0.8, 1.2), (0.7, 1.3))
+    rng_a, rng_b = np.random.default_rng(3), np.random.default_rng(3)
+    assert Augmentation.sample(rng_a, *ranges) == Augmentation.sample(rng_b, *ranges, grey_probability=0.0)
+    rng = np.random.default_rng(0)
+    draws = [Augmentation.sample(rng, *ranges, grey_probability=0.3) for _ in range(2000)]
+    grey = np.mean([d.saturation == 0.0 for d in draws])
+    assert 0.26 < grey < 0.34
+    assert all(0.7 <= d.saturation <= 1.3 for d in draws if d.saturation != 0.0)

@@ -363,3 +363,34 @@ def test_best_policy_keeps_the_best_evaluation(tmp_path: Path) -> None:
     assert (resumed.success_rate, resumed.return_mean, resumed.steps) == (0.5, 11.0, 500)
     assert float(resumed.weights()["policy"]["w"]) == 2.0
     assert not resumed.offer({"eval_success_rate": 0.3, "eval_return_mean": 50.0}, 600, lambda: {"policy": {}})
+
+
+def test_a_checkpoint_of_the_run_is_a_policy(finished_run: Path) -> None:
+    """`<run>/checkpoints/<name>.pt` loads as the run's policy with that checkpoint's weights (the baselines of the
+    learning benchmarks: the warm start alone, the best evaluation), and a missing checkpoint is one line."""
+    final = load_policy(finished_run)
+    best = load_policy(finished_run / "checkpoints" / "best.pt")
+    assert best.run_dir == finished_run and best.task == "lane"
+    for name, tensor in final.net.state_dict().items():
+        assert torch.equal(tensor, best.net.state_dict()[name]), name  # the run's policy is its best checkpoint
+    last = load_policy(finished_run / "checkpoints" / "last.pt")
+    saved = torch.load(finished_run / "checkpoints" / "last.pt", weights_only=True)["policy"]
+    for name, tensor in saved.items():
+        assert torch.equal(tensor, last.net.state_dict()[name]), name
+    with pytest.raises(RunError, match="no such checkpoint"):
+        load_policy(finished_run / "checkpoints" / "warm_start.pt")  # this run had no warm start
+
+
+def test_training_counts_episodes_with_any_contact() -> None:
+    """An episode whose footprints overlapped at any step is counted as a contact (what evaluation calls a
+    collision) even when training's threshold let it go on."""
+    from drivesim.stages.train.callbacks import EpisodeTracker, summarize_episodes
+
+    tracker = EpisodeTracker(2)
+    touch = {"state": {"overlap_frac": 0.02}, "termination": {"collision": False}}
+    clear = {"state": {"overlap_frac": 0.0}, "termination": {"collision": False}}
+    tracker.step(np.zeros(2), np.array([False, False]), [touch, clear])
+    tracker.step(np.zeros(2), np.array([True, True]), [clear, clear])
+    tracker.step(np.zeros(2), np.array([True, False]), [clear, clear])  # env 0's next episode: no contact
+    figures = summarize_episodes(tracker.take())
+    assert figures["episodes"] == 3 and figures["ep_contact_rate"] == pytest.approx(1 / 3)

@@ -1,4 +1,5 @@
-"""Episode-level photometric augmentation of the uint8 observation: gamma, brightness, contrast, saturation."""
+"""Episode-level photometric augmentation of the uint8 observation: gamma, brightness, contrast, saturation, and
+whole episodes in grey (a grey camera, as every KITTI drive is, seen by a policy trained on colour worlds)."""
 
 from __future__ import annotations
 
@@ -18,9 +19,22 @@ class Augmentation:
     saturation: float = 1.0
 
     @classmethod
-    def sample(cls, rng: np.random.Generator, gamma, brightness, contrast, saturation) -> Augmentation:  # noqa: ANN001
-        """A draw from the given (low, high) ranges."""
-        return cls(*(float(rng.uniform(*r)) for r in (gamma, brightness, contrast, saturation)))
+    def sample(
+        cls,
+        rng: np.random.Generator,
+        gamma,  # noqa: ANN001
+        brightness,  # noqa: ANN001
+        contrast,  # noqa: ANN001
+        saturation,  # noqa: ANN001
+        grey_probability: float = 0.0,
+    ) -> Augmentation:
+        """A draw from the given (low, high) ranges; with probability `grey_probability` the episode is grey
+        (saturation 0). The grey draw is made only when that probability is above 0, so the draws of a config
+        without it stay as they were."""
+        draw = cls(*(float(rng.uniform(*r)) for r in (gamma, brightness, contrast, saturation)))
+        if grey_probability > 0.0 and rng.uniform() < grey_probability:
+            draw = cls(draw.gamma, draw.brightness, draw.contrast, 0.0)
+        return draw
 
     def __post_init__(self) -> None:
         # Gamma, brightness and contrast act per channel value: one 256-entry table, applied by indexing.

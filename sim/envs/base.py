@@ -192,7 +192,9 @@ class DrivingEnv(gymnasium.Env):
             )
         aug_on = c.augment and self.mode == "train"
         self._augmentation = (
-            Augmentation.sample(rng, c.gamma, c.brightness, c.contrast, c.saturation) if aug_on else Augmentation()
+            Augmentation.sample(rng, c.gamma, c.brightness, c.contrast, c.saturation, c.grey_probability)
+            if aug_on
+            else Augmentation()
         )
         self._measure()
 

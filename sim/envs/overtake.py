@@ -32,7 +32,8 @@ class OvertakeEnv(DrivingEnv):
     evaluation the episode is terminated at the success; in training it goes on (R_pass is paid for every step
     ahead) and info["success"] at its end says whether it succeeded and had no intervention since
     (`end_on_success_in_training` ends it at the success instead). Terminated on off_lane, over_rotation, collision
-    (undilated overlap > 5 % of the ego's area in training, > 0 % in evaluation) or end_of_data. Truncated:
+    (undilated overlap above collision_overlap_train of the ego's area in training, collision_overlap_eval in
+    evaluation: any overlap in both by default) or end_of_data. Truncated:
     time_limit after episode_steps steps.
     """
 

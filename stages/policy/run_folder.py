@@ -34,6 +34,7 @@ POLICY_WEIGHTS = "policy.pt"
 CONFIG_JSON = "config.json"
 NORMALIZATION_JSON = "normalization.json"
 RUNS_DIR = "runs"
+CHECKPOINTS_DIR = "checkpoints"
 
 
 class RunError(DrivesimError):
@@ -186,9 +187,34 @@ def load_weights(net: Any, path: Path) -> None:
         ) from e
 
 
+def _load_checkpoint_weights(net: Any, path: Path) -> None:
+    """The DrivingNet weights of a training checkpoint (its "policy" entry; tensors and plain values only)."""
+    import pickle
+    import zipfile
+
+    import torch
+
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+        state = checkpoint["policy"]
+        net.load_state_dict(state)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError) as e:
+        raise RunError(f"not a readable checkpoint of this run ({type(e).__name__}); the file is damaged", path) from e
+    except (KeyError, TypeError) as e:
+        raise RunError("not a training checkpoint (no policy weights in it)", path) from e
+
+
 def load_policy(run_dir: Path | str) -> LoadedPolicy:
-    """Read a finished run folder into a `LoadedPolicy`; RunError (one line) when missing, unfinished or damaged."""
+    """Read a finished run folder into a `LoadedPolicy`; RunError (one line) when missing, unfinished or damaged.
+
+    `run_dir` may also be one of the run's checkpoints, `<run>/checkpoints/<name>.pt` (e.g. `warm_start.pt`, the
+    policy before any PPO update, or `best.pt`): the run's policy with that checkpoint's weights, for baselines."""
+    checkpoint = None
     run_dir = Path(run_dir)
+    if run_dir.suffix == ".pt" and run_dir.parent.name == CHECKPOINTS_DIR:
+        checkpoint, run_dir = run_dir, run_dir.parent.parent
+        if not checkpoint.is_file():
+            raise RunError("no such checkpoint in the run", checkpoint)
     if not run_dir.is_dir():
         raise RunError("no such run folder", run_dir)
     manifest_path = run_dir / MANIFEST_NAME
@@ -208,7 +234,10 @@ def load_policy(run_dir: Path | str) -> LoadedPolicy:
     except ValueError as e:
         raise RunError(f"{POLICY_JSON}: {e}; the run folder is damaged or not from drivesim", run_dir) from e
     _check_weights(run_dir, manifest)
-    load_weights(net, run_dir / POLICY_WEIGHTS)
+    if checkpoint is None:
+        load_weights(net, run_dir / POLICY_WEIGHTS)
+    else:
+        _load_checkpoint_weights(net, checkpoint)
     net.eval()
     return LoadedPolicy(
         run_dir=run_dir,

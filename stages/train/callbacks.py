@@ -26,13 +26,15 @@ from drivesim.stages.train.run_files import (
 
 @dataclass
 class EpisodeRecord:
-    """One finished episode: return, length, summed reward terms, the termination causes, success."""
+    """One finished episode: return, length, summed reward terms, the termination causes, success, and whether the
+    footprints ever overlapped (`contact`: what evaluation counts as a collision, whatever training's threshold)."""
 
     return_: float
     length: int
     terms: dict[str, float]
     causes: dict[str, bool]
     success: bool
+    contact: bool = False
 
 
 def summarize_episodes(episodes: list[EpisodeRecord], prefix: str = "") -> dict[str, float]:
@@ -45,6 +47,7 @@ def summarize_episodes(episodes: list[EpisodeRecord], prefix: str = "") -> dict[
         f"{head}return_mean": float(np.mean([e.return_ for e in episodes])),
         f"{head}length_mean": float(np.mean([e.length for e in episodes])),
         f"{head}success_rate": float(np.mean([e.success for e in episodes])),
+        f"{head}contact_rate": float(np.mean([e.contact for e in episodes])),
     }
     names = sorted({k for e in episodes for k in e.terms})
     for name in names:
@@ -62,6 +65,7 @@ class EpisodeTracker:
         self.returns = np.zeros(n_envs)
         self.lengths = np.zeros(n_envs, dtype=int)
         self.terms: list[dict[str, float]] = [{} for _ in range(n_envs)]
+        self.contact = np.zeros(n_envs, dtype=bool)
         self.finished: list[EpisodeRecord] = []
 
     def step(self, rewards: np.ndarray, dones: np.ndarray, infos: list[dict[str, Any]]) -> None:
@@ -71,6 +75,7 @@ class EpisodeTracker:
         for i, info in enumerate(infos):
             for name, value in (info.get("rewards") or {}).items():
                 self.terms[i][name] = self.terms[i].get(name, 0.0) + float(value)
+            self.contact[i] |= (info.get("state") or {}).get("overlap_frac", 0.0) > 0.0
             if dones[i]:
                 causes = {k: bool(v) for k, v in (info.get("termination") or {}).items()}
                 self.finished.append(
@@ -80,9 +85,10 @@ class EpisodeTracker:
                         self.terms[i],
                         causes,
                         bool(info.get("success", False)),
+                        bool(self.contact[i]),
                     )
                 )
-                self.returns[i], self.lengths[i], self.terms[i] = 0.0, 0, {}
+                self.returns[i], self.lengths[i], self.terms[i], self.contact[i] = 0.0, 0, {}, False
 
     def take(self) -> list[EpisodeRecord]:
         """The episodes finished since the last call."""

@@ -24,7 +24,7 @@ def run_episodes(
         obs, _ = env.reset(seed=int(seed))
         state = net.initial_state(1)
         start = torch.ones(1)
-        total, length, terms, causes, success = 0.0, 0, {}, {}, False
+        total, length, terms, causes, success, contact = 0.0, 0, {}, {}, False, False
         with torch.no_grad():
             for _ in range(max_steps):
                 mean, _, state = net.step(torch.from_numpy(np.ascontiguousarray(obs))[None], state, start)
@@ -35,11 +35,12 @@ def run_episodes(
                 length += 1
                 for name, value in (info.get("rewards") or {}).items():
                     terms[name] = terms.get(name, 0.0) + float(value)
+                contact |= (info.get("state") or {}).get("overlap_frac", 0.0) > 0.0
                 if terminated or truncated:
                     causes = {k: bool(v) for k, v in (info.get("termination") or {}).items()}
                     success = bool(info.get("success", False))
                     break
-        records.append(EpisodeRecord(total, length, terms, causes, success))
+        records.append(EpisodeRecord(total, length, terms, causes, success, contact))
     return records
 
 
@@ -52,6 +53,7 @@ def run_episodes_batched(net: DrivingNet, venv: VecEnv, max_steps: int = 100_000
     start = torch.ones(n)
     totals, lengths = np.zeros(n), np.zeros(n, dtype=int)
     terms: list[dict[str, float]] = [{} for _ in range(n)]
+    contact = np.zeros(n, dtype=bool)
     records: list[EpisodeRecord | None] = [None] * n
     with torch.no_grad():
         for _ in range(max_steps):
@@ -65,10 +67,16 @@ def run_episodes_batched(net: DrivingNet, venv: VecEnv, max_steps: int = 100_000
                 lengths[i] += 1
                 for name, value in (infos[i].get("rewards") or {}).items():
                     terms[i][name] = terms[i].get(name, 0.0) + float(value)
+                contact[i] |= (infos[i].get("state") or {}).get("overlap_frac", 0.0) > 0.0
                 if dones[i]:
                     causes = {k: bool(v) for k, v in (infos[i].get("termination") or {}).items()}
                     records[i] = EpisodeRecord(
-                        float(totals[i]), int(lengths[i]), terms[i], causes, bool(infos[i].get("success", False))
+                        float(totals[i]),
+                        int(lengths[i]),
+                        terms[i],
+                        causes,
+                        bool(infos[i].get("success", False)),
+                        bool(contact[i]),
                     )
             if all(r is not None for r in records):
                 break
