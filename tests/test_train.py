@@ -152,10 +152,10 @@ def test_run_folder_and_round_trip(finished_run: Path) -> None:
     cfg = small_config(512)
     venv = DummyVecEnv([lambda: CostFreeDrivingEnv(episode_steps=40) for _ in range(3)])
     model = build_model(cfg, venv)
-    # The run's policy is its best evaluation's weights (eval.keep_best), kept in checkpoints/best.pt.
+    # The run's policy is its last update's weights (eval.keep_best off, the default), as in checkpoints/last.pt.
     summary = json.loads((finished_run / "manifest.json").read_text())["summary"]
-    checkpoint = torch.load(finished_run / "checkpoints" / "best.pt", weights_only=True)
-    assert checkpoint["num_timesteps"] == summary["policy_steps"] and summary["policy_eval_success_rate"] is not None
+    checkpoint = torch.load(finished_run / "checkpoints" / "last.pt", weights_only=True)
+    assert checkpoint["num_timesteps"] == summary["policy_steps"] == summary["steps"]
     model.policy.load_driving_net_state(checkpoint["policy"])
     export = loaded.export_module()
     rng = np.random.default_rng(1)
@@ -369,14 +369,14 @@ def test_a_checkpoint_of_the_run_is_a_policy(finished_run: Path) -> None:
     """`<run>/checkpoints/<name>.pt` loads as the run's policy with that checkpoint's weights (the baselines of the
     learning benchmarks: the warm start alone, the best evaluation), and a missing checkpoint is one line."""
     final = load_policy(finished_run)
-    best = load_policy(finished_run / "checkpoints" / "best.pt")
-    assert best.run_dir == finished_run and best.task == "lane"
-    for name, tensor in final.net.state_dict().items():
-        assert torch.equal(tensor, best.net.state_dict()[name]), name  # the run's policy is its best checkpoint
     last = load_policy(finished_run / "checkpoints" / "last.pt")
-    saved = torch.load(finished_run / "checkpoints" / "last.pt", weights_only=True)["policy"]
+    assert last.run_dir == finished_run and last.task == "lane"
+    for name, tensor in final.net.state_dict().items():
+        assert torch.equal(tensor, last.net.state_dict()[name]), name  # the run's policy is its last update's
+    best = load_policy(finished_run / "checkpoints" / "best.pt")
+    saved = torch.load(finished_run / "checkpoints" / "best.pt", weights_only=True)["policy"]
     for name, tensor in saved.items():
-        assert torch.equal(tensor, last.net.state_dict()[name]), name
+        assert torch.equal(tensor, best.net.state_dict()[name]), name
     with pytest.raises(RunError, match="no such checkpoint"):
         load_policy(finished_run / "checkpoints" / "warm_start.pt")  # this run had no warm start
 

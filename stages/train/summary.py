@@ -36,7 +36,8 @@ class TrainSummary(StageSummary):
     eval_return_mean: float | None = None
     """Mean return of the last evaluation."""
     policy_steps: int = 0
-    """Env steps of the weights in the run's policy files (the best evaluation's with eval.keep_best)."""
+    """Env steps of the weights in the run's policy files (the last update's, or the best evaluation's with
+    eval.keep_best)."""
     policy_eval_success_rate: float | None = None
     """Success rate on held-back seeds of those weights (None: the last update's weights, not chosen by evaluation)."""
     warm_start: bool = False
