@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -25,7 +26,12 @@ PolicyOption = Annotated[
     ),
 ]
 EpisodesOption = Annotated[
-    int | None, typer.Option("--episodes", help="Episodes to run (default 1000).", show_default=False)
+    int | None,
+    typer.Option(
+        "--episodes",
+        help="Episodes to run in each world (default 1000); every world gets the same seeds.",
+        show_default=False,
+    ),
 ]
 WorkersOption = Annotated[
     int | None,
@@ -48,7 +54,14 @@ SeedOption = Annotated[
     int | None, typer.Option("--seed", help="Seed of episode 0; episode i uses seed + i.", show_default=False)
 ]
 WorldOption = Annotated[
-    Path | None, typer.Option("--world", help="World folder (default: the workspace's world/).", show_default=False)
+    list[Path] | None,
+    typer.Option(
+        "--world",
+        help="World folder (default: the workspace's world/). Repeatable: --episodes episodes in each world, one "
+        "table with a row per world and the pooled figures; a run folder's training worlds are labelled train, "
+        "the others unseen.",
+        show_default=False,
+    ),
 ]
 MeshesOption = Annotated[
     Path | None,
@@ -114,9 +127,10 @@ def eval_command(
             overrides.append(f"{key}={value}")
     if scenario:
         overrides.append(f"scenario=[{','.join(scenario)}]")
-    for key, value in (("world", world), ("meshes", meshes)):
-        if value is not None:
-            overrides.append(f"{key}={value.absolute()}")
+    if world:
+        overrides.append(f"world={json.dumps([str(w.absolute()) for w in world])}")  # JSON is YAML: any path reads
+    if meshes is not None:
+        overrides.append(f"meshes={meshes.absolute()}")
     cfg = load_config(EvalConfig, preset="eval", config_file=config, overrides=overrides)
     user_chose = config is not None or any(o.startswith("policy=") for o in overrides)
     cfg = choose_policy(ws, cfg, policy, user_chose)
@@ -125,8 +139,9 @@ def eval_command(
     choose_backend(backend, address, cfg)
     if name is not None:
         cfg.name = name
+    where = f" in each of {len(cfg.world)} worlds" if cfg.world is not None and len(cfg.world) > 1 else ""
     console.print(
-        f"evaluating {cfg.policy} on {cfg.task}: {cfg.episodes} episodes from seed {cfg.seed}", highlight=False
+        f"evaluating {cfg.policy} on {cfg.task}: {cfg.episodes} episodes{where} from seed {cfg.seed}", highlight=False
     )
     result = run_eval(ws, cfg, force=force)
     _print_result(result, cfg)
@@ -156,11 +171,51 @@ def _print_result(result: Any, cfg: Any) -> None:
         highlight=False,
         soft_wrap=True,
     )
-    recordings = sorted((result.path / "recordings").glob("*.mcap"))
+    _print_worlds(result.path / "metrics.json")
+    recordings = sorted([*result.path.glob("recordings/*.mcap"), *result.path.glob("worlds/*/recordings/*.mcap")])
     if recordings:
         console.print(
-            f"recordings: {len(recordings)} episodes in {result.path / 'recordings'} (Foxglove, layout "
+            f"recordings: {len(recordings)} episodes in {recordings[0].parent} (Foxglove, layout "
             "docs/foxglove_layout.json)",
             highlight=False,
             soft_wrap=True,
         )
+
+
+def _print_worlds(metrics_path: Path) -> None:
+    """With several worlds: the table of metrics.json's `per_world` rows, the pooled rows and the train-unseen gap."""
+    from rich.table import Table
+
+    from drivesim.stages.evaluate.worlds import TABLE_COLUMNS
+
+    try:
+        data = json.loads(metrics_path.read_text())
+    except (OSError, ValueError):
+        return
+    if "per_world" not in data:
+        return
+    known = any(row.get("group") for row in data["per_world"])
+
+    def value(estimate: dict[str, Any]) -> str:
+        return "n/a" if estimate.get("value") is None else f"{estimate['value']:.3f}"
+
+    table = Table(title="per world (same seeds in each)", title_justify="left")
+    table.add_column("world")
+    if known:
+        table.add_column("trained on")
+    for heading in ("episodes", *(h for _, h in TABLE_COLUMNS)):
+        table.add_column(heading, justify="right")
+    rows = [(row["world"], row.get("group") or "", row) for row in data["per_world"]]
+    rows += [(f"{name} worlds, pooled", name, figures) for name, figures in data.get("groups", {}).items()]
+    rows.append(("all worlds, pooled", "", data["pooled"]))
+    for name, group, figures in rows:
+        cells = [str(figures["episodes"]), *(value(figures[k]) for k, _ in TABLE_COLUMNS)]
+        table.add_row(name, *([group] if known else []), *cells)
+    gap = data.get("gap") or {}
+    if gap:
+        cells = [
+            "" if gap.get(k) is None and k not in gap else "n/a" if gap.get(k) is None else f"{gap[k]:+.3f}"
+            for k, _ in TABLE_COLUMNS
+        ]
+        table.add_row("gap: unseen - train", *([""] if known else []), "", *cells)
+    console.print(table)

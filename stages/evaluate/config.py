@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, field_serializer, field_validator, model_validator
 
 from drivesim.pipeline.config import StageConfig, load_yaml_text, preset_path
 from drivesim.sim.envs.config import EnvConfig
@@ -35,8 +35,9 @@ class EvalConfig(StageConfig):
     """Number of episodes; episode i is reset with seed `seed + i`."""
     seed: int = Field(0, ge=0)
     """Seed of the first episode."""
-    world: str | None = None
-    """World folder to evaluate in; null = the workspace's world/."""
+    world: list[str] | None = None
+    """World folder(s) to evaluate in, each with the same seeds and `episodes` episodes (one path or a list);
+    null = the workspace's world/. Several worlds give a table with a row per world and the pooled figures."""
     meshes: str | None = None
     """Vehicle mesh library folder; null = the workspace's meshes/ when built, else the procedural library."""
     env: EnvConfig = Field(default_factory=EnvConfig)
@@ -74,6 +75,21 @@ class EvalConfig(StageConfig):
         if text not in ("failures", "all", "none") and not text.isdigit():
             raise ValueError(f"{value!r}: use failures, all, none or a number of episodes")
         return int(text) if text.isdigit() else text
+
+    @field_validator("world", mode="before")
+    @classmethod
+    def _world_list(cls, value: Any) -> Any:
+        """One world folder as a path is still accepted (a list of one); an empty list means the workspace's."""
+        if isinstance(value, str):
+            return [value]
+        if isinstance(value, list | tuple) and not value:
+            return None
+        return value
+
+    @field_serializer("world")
+    def _world_json(self, value: list[str] | None) -> str | list[str] | None:
+        """One world is written as its path, as before lists were accepted (the same evaluation keeps its identity)."""
+        return value[0] if value is not None and len(value) == 1 else value
 
     def env_overrides(self) -> dict[str, Any]:
         """The env keys the user set (preset, --config or --set) and the scenarios', to apply over a run's training

@@ -71,32 +71,40 @@ class Track:
 def write_outputs(
     out_dir: Path,
     results: Sequence[EpisodeResult],
-    track: Track,
+    track: Track | None,
     task: str,
     header: dict[str, Any],
     clearance_max_m: float = 2.0,
+    extra: dict[str, Any] | None = None,
+    extra_html: str = "",
+    world_column: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """Write metrics.json, episodes.csv, the PNGs and report.html into `out_dir`; returns the metrics dict.
 
     :param results: the evaluated episodes, in seed order.
-    :param track: the world's path.
+    :param track: the world's path; None (episodes of several worlds) leaves out the figures along the track.
     :param task: the task evaluated.
     :param header: what was evaluated (policy, world, seeds, ...), recorded in metrics.json and the report.
     :param clearance_max_m: upper end of the per-step clearance histogram [m].
+    :param extra: more keys for metrics.json (the per-world table of `stages.evaluate.worlds`).
+    :param extra_html: a report section shown right after the header table.
+    :param world_column: each episode's world, written as episodes.csv's first column (None: no such column).
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     metrics = [r.metrics for r in results]
     agg = aggregate(metrics)
     levels = breakdowns(metrics)
     scenarios = scenario_table(metrics)
-    along = along_track(results, len(track.x_m))
     figures = {
         "breakdown.png": plots.plot_breakdowns(levels, out_dir / "breakdown.png"),
         "clearance.png": plots.plot_clearance(results, out_dir / "clearance.png", clearance_max_m),
-        "track.png": plots.plot_track(track.x_m, track.y_m, along, out_dir / "track.png", tracking=task == "follow"),
-        "relative.png": plots.plot_relative(results, out_dir / "relative.png"),
     }
-    if task == "follow":
+    if track is not None:
+        along = along_track(results, len(track.x_m))
+        tracking = task == "follow"
+        figures["track.png"] = plots.plot_track(track.x_m, track.y_m, along, out_dir / "track.png", tracking=tracking)
+    figures["relative.png"] = plots.plot_relative(results, out_dir / "relative.png")
+    if task == "follow" and track is not None:
         figures["tracking.png"] = plots.plot_tracking(track.arc_length_m, along, out_dir / "tracking.png")
     data = {
         "format": 1,
@@ -108,16 +116,19 @@ def write_outputs(
         "breakdowns": [b.to_json() for b in levels],
         "scenarios": scenarios,
         "paper_table_i": {k: {"garage": g, "outdoor": o} for k, (g, o) in PAPER_TABLE_I.items()},
+        **(extra or {}),
     }
     (out_dir / "metrics.json").write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
-    write_csv(out_dir / "episodes.csv", results)
-    (out_dir / "report.html").write_text(_html(data, agg, levels, figures, results, out_dir))
+    write_csv(out_dir / "episodes.csv", results, world_column)
+    (out_dir / "report.html").write_text(_html(data, agg, levels, figures, results, out_dir, extra_html))
     return data
 
 
-def write_csv(path: Path, results: Sequence[EpisodeResult]) -> None:
-    """One row per episode with its metrics and initial conditions."""
+def write_csv(path: Path, results: Sequence[EpisodeResult], worlds: Sequence[str] | None = None) -> None:
+    """One row per episode with its metrics and initial conditions (its world first, when `worlds` is given)."""
     rows = [r.metrics.row() for r in results]
+    if worlds is not None:
+        rows = [{"world": w, **row} for w, row in zip(worlds, rows, strict=True)]
     if not rows:
         path.write_text("")
         return
@@ -163,6 +174,7 @@ def _html(
     figures: dict[str, Path],
     results: Sequence[EpisodeResult],
     out_dir: Path | None = None,
+    extra_html: str = "",
 ) -> str:
     esc = html.escape
     meta_keys = ("task", "policy", "episodes", "seed", "world", "meshes", "created_utc")
@@ -217,7 +229,7 @@ def _html(
 <html lang="en"><head><meta charset="utf-8"><title>drivesim evaluation: {esc(str(data.get("policy", "")))}</title>
 <style>{_CSS}</style></head><body>
 <h1>drivesim evaluation — {esc(str(data.get("task", "")))}, policy {esc(str(data.get("policy", "")))}</h1>
-<table class=meta>{meta}</table>
+<table class=meta>{meta}</table>{extra_html}
 <h2>Metrics beside the paper's Table I</h2>
 <table><tr><th>metric</th><th>this evaluation [95 % CI]</th><th>paper, garage</th><th>paper, outdoor</th></tr>
 {"".join(rows)}{"".join(extra)}</table>

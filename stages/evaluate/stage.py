@@ -28,6 +28,7 @@ from drivesim.stages.evaluate.summary import EvalSummary
 EVAL_DIR = "eval"
 PARTIAL_PREFIX = ".partial-"
 WORLD_HINT = "drivesim build-world"
+WORLDS_DIR = "worlds"
 
 
 @dataclass
@@ -35,7 +36,7 @@ class _Plan:
     """What an evaluation runs, resolved from the config and the workspace."""
 
     name: str
-    world: Path
+    worlds: list[Path]
     world_in_workspace: bool
     meshes: Path | None
     policy_text: str
@@ -57,12 +58,15 @@ def default_name(task: str, policy: str) -> str:
 
 def _plan(ws: Workspace, cfg: EvalConfig) -> _Plan:
     if cfg.world is not None:
-        world = Path(cfg.world).absolute()
-        if not world.is_dir():
-            raise InputError("no such world folder; build one with `drivesim build-world`", world)
+        worlds = [Path(w).absolute() for w in cfg.world]
+        for world in worlds:
+            if not world.is_dir():
+                raise InputError("no such world folder; build one with `drivesim build-world`", world)
+        if len(set(worlds)) < len(worlds):
+            raise ConfigError("--world: the same world folder is given twice; give each world once")
         world_in_ws = False
     else:
-        world = ws.require("world", WORLD_HINT)
+        worlds = [ws.require("world", WORLD_HINT)]
         world_in_ws = True
     if cfg.meshes is not None:
         meshes: Path | None = Path(cfg.meshes).absolute()
@@ -82,7 +86,7 @@ def _plan(ws: Workspace, cfg: EvalConfig) -> _Plan:
     name = cfg.name or default_name(cfg.task, cfg.policy)
     if "/" in name or name.startswith(".") or not name.strip():
         raise ConfigError(f"--name {name!r}: a plain folder name is needed (no '/', not starting with '.')")
-    return _Plan(name, world, world_in_ws, meshes, cfg.policy, policy_path)
+    return _Plan(name, worlds, world_in_ws, meshes, cfg.policy, policy_path)
 
 
 def resolve(ws: Workspace, cfg: EvalConfig) -> tuple[EvalConfig, _Plan]:
@@ -90,15 +94,19 @@ def resolve(ws: Workspace, cfg: EvalConfig) -> tuple[EvalConfig, _Plan]:
     plan = _plan(ws, cfg)
     update: dict[str, Any] = {
         "name": plan.name,
-        "world": None if plan.world_in_workspace else str(plan.world),
+        "world": None if plan.world_in_workspace else [str(w) for w in plan.worlds],
         "meshes": None if plan.meshes is None or cfg.meshes is None else str(plan.meshes),
         "policy": "expert" if plan.policy_path is None else str(plan.policy_path),
     }
     return cfg.model_copy(update=update), plan
 
 
-def _world_of(ctx: BuildContext) -> Path:
-    return ctx.external["world"] if "world" in ctx.external else ctx.inputs["world"]
+def _worlds_of(ctx: BuildContext) -> list[Path]:
+    """The worlds in the order given: `world` (one world), or `world_00`, `world_01`, ... (several)."""
+    if "world" in ctx.external:
+        return [ctx.external["world"]]
+    several = [ctx.external[k] for k in sorted(ctx.external) if k.startswith("world_")]
+    return several or [ctx.inputs["world"]]
 
 
 def _open_and_check(cfg: EvalConfig, factory: Any, policy_spec: Any, world: Path) -> dict[str, Any]:
@@ -200,88 +208,159 @@ def _prepare_partial(folder: Path, key: str, notes: list[str]) -> Path:
     return folder / "episodes"
 
 
-def _build(ctx: BuildContext) -> EvalSummary:
-    from drivesim.pipeline.progress import progress_bar
-    from drivesim.sim.envs.registry import task_spec
-    from drivesim.stages.evaluate.metrics import evaluate_episode
-    from drivesim.stages.evaluate.record import RECORDINGS_DIR, finish_recordings, record_plan
-    from drivesim.stages.evaluate.report import Track, write_outputs
-    from drivesim.stages.evaluate.rollout import (
-        EnvFactory,
-        PolicySpec,
-        RunningRate,
-        completed_seeds,
-        default_workers,
-        read_episode,
-        run_episodes,
-    )
-    from drivesim.stages.evaluate.video import render_videos
+@dataclass
+class WorldJob:
+    """One world of an evaluation: its env factory (checked), where its episodes and recordings go, and its label.
 
-    cfg = ctx.config
-    assert isinstance(cfg, EvalConfig)
-    world = _world_of(ctx)
-    meshes = ctx.external.get("meshes")
-    policy_spec = PolicySpec.parse(cfg.policy)
-    factory = EnvFactory(
+    :param world: the world folder. :param label: its name in tables and folders (`worlds/<label>/`).
+    :param factory: builds its env. :param episodes_dir: the work folder's `<seed>.json` files.
+    :param recording: what its workers record (None: nothing).
+    """
+
+    world: Path
+    label: str
+    factory: Any
+    episodes_dir: Path
+    recording: Any
+
+
+def _factory(cfg: EvalConfig, world: Path, meshes: Path | None) -> Any:
+    from drivesim.sim.envs.registry import task_spec
+    from drivesim.stages.evaluate.rollout import EnvFactory
+
+    return EnvFactory(
         env_id=cfg.env_id or task_spec(cfg.task).env_id,
         kwargs={"world": str(world), "meshes": None if meshes is None else str(meshes), "mode": "eval"}
         | ({"config": cfg.start_env_config()} if cfg.start_env_config() else {}),
         entry_point=cfg.env_entry_point,
     )
-    factory = replace(factory, kwargs=_open_and_check(cfg, factory, policy_spec, world))
 
-    name = cfg.name or default_name(cfg.task, cfg.policy)
-    partial = ctx.workspace.root / EVAL_DIR / f"{PARTIAL_PREFIX}{name}"
+
+def _jobs(ctx: BuildContext, policy_spec: Any, seeds: list[int], partial: Path) -> list[WorldJob]:
+    """Every world checked (env, policy) before any episode runs, with its work folders; one world keeps today's
+    layout (`episodes/`, `recordings/`), several go to `worlds/<label>/`."""
+    from drivesim.stages.evaluate.record import RECORDINGS_DIR, record_plan
+    from drivesim.stages.evaluate.rollout import remove_stale_temporaries
+    from drivesim.stages.evaluate.worlds import world_labels
+
+    cfg = ctx.config
+    assert isinstance(cfg, EvalConfig)
+    worlds = _worlds_of(ctx)
+    meshes = ctx.external.get("meshes")
+    factories = []
+    for world in worlds:
+        factory = _factory(cfg, world, meshes)
+        factories.append(replace(factory, kwargs=_open_and_check(cfg, factory, policy_spec, world)))
     episodes_dir = _prepare_partial(partial, _partial_key(ctx, cfg.model_dump(mode="json")), ctx.notes)
-    seeds = [cfg.seed + i for i in range(cfg.episodes)]
-    recording = record_plan(cfg.record, seeds, partial / RECORDINGS_DIR, world)
-    resumed = len(completed_seeds(episodes_dir, seeds))
+    if len(worlds) == 1:
+        recording = record_plan(cfg.record, seeds, partial / RECORDINGS_DIR, worlds[0])
+        return [WorldJob(worlds[0], "", factories[0], episodes_dir, recording)]
+    jobs = []
+    for world, label, factory in zip(worlds, world_labels(worlds), factories, strict=True):
+        folder = partial / WORLDS_DIR / label
+        (folder / "episodes").mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(folder / "episodes")
+        recording = record_plan(cfg.record, seeds, folder / RECORDINGS_DIR, world)
+        jobs.append(WorldJob(world, label, factory, folder / "episodes", recording))
+    return jobs
+
+
+def _run_jobs(
+    cfg: EvalConfig, jobs: list[WorldJob], policy_spec: Any, seeds: list[int], partial: Path, notes: list[str]
+) -> tuple[int, int, int, float]:
+    """Run every world's missing episodes (one progress bar over all); returns (episodes run now, episodes found on
+    disk, workers, seconds)."""
+    from drivesim.pipeline.progress import progress_bar
+    from drivesim.stages.evaluate.rollout import RunningRate, completed_seeds, default_workers, run_episodes
+
+    def kept() -> int:
+        return sum(len(completed_seeds(job.episodes_dir, seeds)) for job in jobs)
+
+    resumed = kept()
+    total = len(seeds) * len(jobs)
     if resumed:
-        ctx.notes.append(f"resumed: {resumed} of {len(seeds)} episodes were already on disk")
+        notes.append(f"resumed: {resumed} of {total} episodes were already on disk")
     workers = cfg.workers or default_workers()
     rate = RunningRate()
+    ran = 0
     started = time.perf_counter()
     try:
-        with progress_bar("eval", total=len(seeds)) as (progress, task):
+        with progress_bar("eval", total=total) as (progress, task):
             progress.update(task, completed=resumed)
 
             def on_episode(done: Any) -> None:
                 progress.update(task, advance=1, description=rate.add(done))
 
-            if cfg.backend == "ray":
-                from drivesim.stages.evaluate.ray_backend import run_episodes_ray
+            for job in jobs:
+                if cfg.backend == "ray":
+                    from drivesim.stages.evaluate.ray_backend import run_episodes_ray
 
-                outcome = run_episodes_ray(
-                    factory, policy_spec, cfg.task, seeds, episodes_dir, cfg.address, cfg.workers, on_episode
-                )
-                ran, workers = outcome.episodes_run, outcome.actors or workers
-                ctx.notes.append(f"ray: {outcome.actors} actors on {outcome.nodes} node(s)")
-                if outcome.resubmitted:
-                    ctx.notes.append(f"ray: {outcome.resubmitted} episodes resubmitted after their worker died")
-            else:
-                ran = run_episodes(
-                    factory, policy_spec, cfg.task, seeds, episodes_dir, workers, on_episode, record=recording
-                )
+                    outcome = run_episodes_ray(
+                        job.factory,
+                        policy_spec,
+                        cfg.task,
+                        seeds,
+                        job.episodes_dir,
+                        cfg.address,
+                        cfg.workers,
+                        on_episode,
+                    )
+                    ran, workers = ran + outcome.episodes_run, outcome.actors or workers
+                    where = f" ({job.label})" if job.label else ""
+                    notes.append(f"ray{where}: {outcome.actors} actors on {outcome.nodes} node(s)")
+                    if outcome.resubmitted:
+                        notes.append(f"ray{where}: {outcome.resubmitted} episodes resubmitted after their worker died")
+                else:
+                    ran += run_episodes(
+                        job.factory,
+                        policy_spec,
+                        cfg.task,
+                        seeds,
+                        job.episodes_dir,
+                        workers,
+                        on_episode,
+                        record=job.recording,
+                    )
     except KeyboardInterrupt as e:
-        kept = len(completed_seeds(episodes_dir, seeds))
         raise Interrupted(
-            f"interrupted: {kept} of {len(seeds)} episodes are kept in {partial}; the same command resumes"
+            f"interrupted: {kept()} of {total} episodes are kept in {partial}; the same command resumes"
         ) from e
-    elapsed = time.perf_counter() - started
+    return ran, resumed, workers, time.perf_counter() - started
+
+
+def _results(job: WorldJob, seeds: list[int]) -> list[Any]:
+    """The world's episodes, evaluated, in seed order."""
+    from drivesim.stages.evaluate.metrics import evaluate_episode
+    from drivesim.stages.evaluate.rollout import read_episode
 
     results = []
     for seed in seeds:
-        record = read_episode(episodes_dir / f"{seed}.json")
+        record = read_episode(job.episodes_dir / f"{seed}.json")
         if record is None:
-            raise DrivesimError(f"episode {seed} is missing from {episodes_dir}; run the evaluation again")
+            raise DrivesimError(f"episode {seed} is missing from {job.episodes_dir}; run the evaluation again")
         results.append(evaluate_episode(record))
-    (ctx.dir / "episodes").mkdir()
-    for seed in seeds:
-        shutil.copy2(episodes_dir / f"{seed}.json", ctx.dir / "episodes" / f"{seed}.json")
+    return results
+
+
+def _build(ctx: BuildContext) -> EvalSummary:
+    from drivesim.stages.evaluate.record import finish_recordings
+    from drivesim.stages.evaluate.report import Track, write_outputs
+    from drivesim.stages.evaluate.rollout import PolicySpec
+    from drivesim.stages.evaluate.video import render_videos
+
+    cfg = ctx.config
+    assert isinstance(cfg, EvalConfig)
+    meshes = ctx.external.get("meshes")
+    policy_spec = PolicySpec.parse(cfg.policy)
+    name = cfg.name or default_name(cfg.task, cfg.policy)
+    partial = ctx.workspace.root / EVAL_DIR / f"{PARTIAL_PREFIX}{name}"
+    seeds = [cfg.seed + i for i in range(cfg.episodes)]
+    jobs = _jobs(ctx, policy_spec, seeds, partial)
+    ran, resumed, workers, elapsed = _run_jobs(cfg, jobs, policy_spec, seeds, partial, ctx.notes)
     header = {
         "policy": _policy_label(cfg.policy),
         "policy_path": cfg.policy,
-        "world": str(world),
+        "world": str(jobs[0].world),
         "meshes": str(meshes) if meshes else "procedural",
         "seed": cfg.seed,
         "workers": workers,
@@ -289,9 +368,20 @@ def _build(ctx: BuildContext) -> EvalSummary:
         "episodes_per_min": round(60 * ran / elapsed, 2) if ran else None,
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
     }
-    finish_recordings(recording, results, factory, policy_spec, cfg.task, ctx.dir)  # before the report links them
-    data = write_outputs(ctx.dir, results, Track.load(world), cfg.task, header, cfg.clearance_histogram_max_m)
-    videos = render_videos(results, cfg.video, factory, policy_spec, ctx.dir)
+    if len(jobs) > 1:
+        from drivesim.stages.evaluate.worlds import write_world_outputs
+
+        data, results, videos = write_world_outputs(ctx.dir, cfg, jobs, [_results(j, seeds) for j in jobs], header)
+        videos = [str(v.relative_to(ctx.dir)) for v in videos]
+    else:
+        job = jobs[0]
+        results = _results(job, seeds)
+        (ctx.dir / "episodes").mkdir()
+        for seed in seeds:
+            shutil.copy2(job.episodes_dir / f"{seed}.json", ctx.dir / "episodes" / f"{seed}.json")
+        finish_recordings(job.recording, results, job.factory, policy_spec, cfg.task, ctx.dir)  # before the report
+        data = write_outputs(ctx.dir, results, Track.load(job.world), cfg.task, header, cfg.clearance_histogram_max_m)
+        videos = [p.name for p in render_videos(results, cfg.video, job.factory, policy_spec, ctx.dir)]
     agg = data["aggregate"]
     return EvalSummary(
         task=cfg.task,
@@ -308,7 +398,7 @@ def _build(ctx: BuildContext) -> EvalSummary:
         episodes_resumed=resumed,
         episodes_per_min=header["episodes_per_min"],
         workers=workers,
-        videos=[p.name for p in videos],
+        videos=videos,
     )
 
 
@@ -370,8 +460,10 @@ def run_eval(
         plan = replace(plan, name=beside_name(plan.name, cfg))
         cfg = cfg.model_copy(update={"name": plan.name})
     external: dict[str, Path] = {}
-    if not plan.world_in_workspace:
-        external["world"] = plan.world
+    if not plan.world_in_workspace and len(plan.worlds) == 1:
+        external["world"] = plan.worlds[0]
+    elif not plan.world_in_workspace:
+        external.update({f"world_{i:02d}": w for i, w in enumerate(plan.worlds)})
     if plan.meshes is not None:
         external["meshes"] = plan.meshes
     if plan.policy_path is not None:
