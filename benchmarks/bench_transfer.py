@@ -1,0 +1,229 @@
+"""Issue 19: a trained policy and its baselines on the worlds it trained on and on worlds it never saw.
+
+For one training run (`drivesim train ...`, its folder given with --run) this evaluates, with `drivesim eval` on the
+same seeds (0 .. N-1 in every world, eval mode: any overlap is a collision):
+  random      uniform random steering
+  expert      the privileged expert (sees the other car's state; the warm start's teacher)
+  warm start  the run's policy before any PPO update (checkpoints/warm_start.pt), when the run had one
+  final       the run's last update's weights (what the run reports)
+  best        the weights of the run's best periodic evaluation on its held-back seeds (checkpoints/best.pt)
+in each world of two groups: the run's training worlds (from its config.json) and the unseen worlds given with
+--unseen (never in the run's training set: checked). Rows pool each group (episodes per world are equal), with the
+per-world figures in the JSON. The run's held-back success over training time is drawn from its progress.csv.
+
+    python benchmarks/bench_transfer.py --run RUN --unseen W1 --unseen W2 --real W3 --episodes 500 --name NAME
+
+writes benchmarks/results/transfer_<NAME>.json, transfer_<NAME>.png and (from every transfer_*.json)
+benchmarks/results/transfer.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).parent / "results"
+DRIVESIM = Path(sys.executable).parent / "drivesim"
+POLICIES = ("random", "expert", "warm start", "final", "best")
+
+
+def machine() -> str:
+    """A one-line description of this machine (CPU model, cores, load)."""
+    model = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{os.cpu_count()}-core CPU ({model}), no GPU, {platform.machine()}, load average {os.getloadavg()[0]:.1f}"
+
+
+def policy_argument(run: Path, policy: str) -> str | None:
+    """What `drivesim eval --policy` takes for a row, or None when the run lacks it (no warm start)."""
+    paths = {"warm start": run / "checkpoints" / "warm_start.pt", "best": run / "checkpoints" / "best.pt"}
+    if policy in ("random", "expert"):
+        return policy
+    if policy == "final":
+        return str(run)
+    return str(paths[policy]) if paths[policy].is_file() else None
+
+
+def evaluate(workspace: Path, task: str, policy: str, world: Path, episodes: int, name: str) -> dict:
+    """`drivesim eval` of one policy in one world; its metrics.json."""
+    out = workspace / "eval" / name / "metrics.json"
+    if not out.is_file():
+        command = [
+            str(DRIVESIM), "--workspace", str(workspace), "eval", "--task", task, "--policy", policy,
+            "--world", str(world), "--episodes", str(episodes), "--record", "none", "--name", name,
+        ]  # fmt: skip
+        print(" ".join(command), flush=True)
+        subprocess.run(command, check=True)
+    return json.loads(out.read_text())
+
+
+def pooled(per_world: list[dict]) -> dict:
+    """Figures of a group of worlds with the same episodes each: rates and means over all their episodes."""
+    n = sum(m["episodes"] for m in per_world)
+    out = {"episodes": n}
+    for key in ("success", "intervention", "collision", "off_lane", "min_clearance_m"):
+        values = [(m["aggregate"][key]["value"], m["aggregate"][key]["n"]) for m in per_world]
+        total = sum(k for _, k in values)
+        out[key] = sum(v * k for v, k in values if v is not None) / total if total else None
+    return out
+
+
+def progress_curve(run: Path) -> list[tuple[float, int, float]]:
+    """(training minutes, env steps, held-back success) of every periodic evaluation of the run."""
+    rows = list(csv.DictReader((run / "progress.csv").open()))
+    return [
+        (float(r["wall_s"]) / 60.0, int(float(r["steps"])), float(r["eval_success_rate"]))
+        for r in rows
+        if r.get("eval_success_rate") not in (None, "")
+    ]
+
+
+def plot(result: dict, path: Path) -> None:
+    """Held-back success over training time, with the baselines' unseen-world success as lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    curve = result["curve"]
+    if curve:
+        ax.plot([c[0] for c in curve], [c[2] for c in curve], "o-", label="held-back success (training worlds)")
+    colours = {"random": "grey", "expert": "black", "warm start": "tab:orange", "final": "tab:green"}
+    for policy, colour in colours.items():
+        row = result["rows"].get(policy)
+        if row and row.get("unseen"):
+            ax.axhline(row["unseen"]["success"], color=colour, ls="--", lw=1, label=f"{policy}: unseen towns")
+    ax.set_xlabel("training minutes (warm start included)")
+    ax.set_ylabel("success")
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title(f"{result['name']}: overtake, held-back success and baselines")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _cell(group: dict | None) -> str:
+    if not group:
+        return "—"
+    clearance = group["min_clearance_m"]
+    clearance_text = "—" if clearance is None else f"{clearance:.2f} m"
+    return f"{group['success']:.1%} / {group['intervention']:.3f} / {clearance_text}"
+
+
+def write_markdown() -> None:
+    """benchmarks/results/transfer.md from every transfer_*.json."""
+    lines = [
+        "# Learning that transfers: baselines on training worlds and on worlds never seen (issue 19)",
+        "",
+        "Each cell: success / intervention / minimum clearance over all episodes, pooled over the group's worlds,",
+        "the same seeds (0 .. N-1) in every world, `drivesim eval` (eval mode: any overlap is a collision).",
+        "Reproduce: `python benchmarks/bench_transfer.py --run RUN --unseen W ... --real W --episodes N --name NAME`.",
+        "",
+    ]
+    for path in sorted(RESULTS.glob("transfer_*.json")):
+        r = json.loads(path.read_text())
+        lines += [
+            f"## {r['name']}",
+            "",
+            f"Measured {r['measured_utc']} on {r['machine']}. Run: `{r['run']}` ({r['trained_min']:.1f} min of "
+            f"training, warm start included; {r['steps']} PPO env steps). Episodes per world: {r['episodes']}.",
+            f"Training worlds: {', '.join(r['train_worlds'])}. Unseen: {', '.join(r['unseen_worlds'])}. "
+            f"Real, unseen: {', '.join(r['real_worlds']) or '—'}.",
+            "",
+            "| policy | training worlds | unseen synthetic towns | unseen real drive |",
+            "|---|---|---|---|",
+        ]
+        for policy in POLICIES:
+            row = r["rows"].get(policy)
+            if row is None:
+                continue
+            lines.append(
+                f"| {policy} | {_cell(row.get('train'))} | {_cell(row.get('unseen'))} | {_cell(row.get('real'))} |"
+            )
+        lines += ["", f"![held-back success]({path.stem}.png)", ""]
+        if r.get("notes"):
+            lines += [r["notes"], ""]
+    (RESULTS / "transfer.md").write_text("\n".join(lines))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run", type=Path, required=True, help="a finished run folder of drivesim train")
+    parser.add_argument("--unseen", type=Path, action="append", default=[], help="an unseen synthetic world")
+    parser.add_argument("--real", type=Path, action="append", default=[], help="an unseen real world")
+    parser.add_argument("--episodes", type=int, default=1000, help="episodes per world and policy")
+    parser.add_argument("--name", required=True, help="name of the result (transfer_<name>.json)")
+    parser.add_argument("--policies", nargs="*", default=list(POLICIES), choices=POLICIES)
+    parser.add_argument("--workspace", type=Path, default=None, help="scratch workspace for the evaluations")
+    parser.add_argument("--notes", default="", help="a paragraph printed under the table")
+    args = parser.parse_args()
+    run = args.run.absolute()
+    config = json.loads((run / "config.json").read_text())
+    task = config["train"]["task"]
+    train_worlds = [Path(w) for w in config["worlds"]]
+    for world in [*args.unseen, *args.real]:
+        if any(world.absolute().samefile(t) for t in train_worlds):
+            raise SystemExit(f"{world}: the run trained in this world; it cannot be an unseen one")
+    workspace = args.workspace or Path(tempfile.gettempdir()) / f"drivesim-bench-transfer-{args.name}"
+    groups = {"train": train_worlds, "unseen": args.unseen, "real": args.real}
+    start = time.time()
+    out_path = RESULTS / f"transfer_{args.name}.json"
+    result = json.loads(out_path.read_text()) if out_path.is_file() else {"rows": {}}
+    for policy in args.policies:
+        argument = policy_argument(run, policy)
+        if argument is None:
+            continue
+        row = result["rows"].setdefault(policy, {})
+        for group, worlds in groups.items():
+            if not worlds:
+                continue
+            per_world = []
+            for world in worlds:
+                label = f"{args.name}-{policy.replace(' ', '_')}-{world.parent.name}-{world.name}"
+                per_world.append(evaluate(workspace, task, argument, world.absolute(), args.episodes, label))
+            row[group] = pooled(per_world)
+            row[f"{group}_per_world"] = {str(w): pooled([m]) for w, m in zip(worlds, per_world, strict=True)}
+    manifest = json.loads((run / "manifest.json").read_text())
+    summary = manifest.get("summary", {})
+    result.update(
+        name=args.name,
+        run=str(run),
+        task=task,
+        episodes=args.episodes,
+        train_worlds=[str(w) for w in train_worlds],
+        unseen_worlds=[str(w) for w in args.unseen],
+        real_worlds=[str(w) for w in args.real],
+        trained_min=float(summary.get("wall_s", math.nan)) / 60.0,
+        steps=int(summary.get("steps", 0)),
+        curve=progress_curve(run),
+        machine=machine(),
+        measured_utc=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        eval_minutes=(time.time() - start) / 60.0,
+        notes=args.notes or result.get("notes", ""),
+    )
+    out_path.write_text(json.dumps(result, indent=1))
+    plot(result, RESULTS / f"transfer_{args.name}.png")
+    write_markdown()
+    print(f"wrote {out_path} and {RESULTS / 'transfer.md'}")
+
+
+if __name__ == "__main__":
+    main()
