@@ -18,7 +18,7 @@ from typing import Annotated
 import typer
 from rich.markup import escape
 
-from drivesim.cli import bench, config_show, export, ingest, meshes, preprocess, run, status, synth, train, world
+from drivesim.cli import bench, config_show, export, ingest, meshes, preprocess, run, status, synth, towns, train, world
 from drivesim.cli import eval as eval_cmd
 from drivesim.cli import sim as sim_cmd
 from drivesim.cli.common import err_console, state
@@ -77,6 +77,7 @@ app.add_typer(meshes.meshes_app, name="meshes", help="The vehicle mesh library: 
 app.command("synth", help="Render a procedural drive with ground truth and write it as a ROS2 MCAP recording.")(
     synth.synth_command
 )
+app.add_typer(towns.towns_app, name="towns", help="Procedural towns to train on, in <workspace>/towns/seed<N>/world.")
 app.command(
     "train",
     help=f"Train a driving policy with PPO, a CNN and an LSTM (tasks: {', '.join(TASK_NAMES)}) into "

@@ -136,9 +136,15 @@ def stage_config(model: type[StageConfig], preset: str | None, overrides: dict[s
 def _fresh_run(ws: Workspace, spec: StageSpec, cfg: StageConfig) -> Path | None:
     """The newest finished run under runs/ made with this train config and the same world, or None."""
     from drivesim.stages.policy.run_folder import RUNS_DIR, is_complete_run
+    from drivesim.stages.towns import is_built, town_world
+    from drivesim.stages.train.stage import training_inputs
 
-    requires = () if getattr(getattr(cfg, "envs", None), "source", None) == "cost_free" else spec.requires
-    refs = {up: ws.artifact_input(up) for up in requires}
+    towns = [] if cfg.envs.source == "cost_free" else cfg.towns  # type: ignore[attr-defined]
+    if not all(is_built(ws, seed) for seed in towns):
+        return None
+    inputs, external = training_inputs(ws, cfg, None, [town_world(ws, seed) for seed in towns])  # type: ignore[arg-type]
+    refs = {up: ws.artifact_input(up) for up in inputs.requires}
+    refs.update({key: ws.external_input(path) for key, path in external.items()})
     config_json = cfg.model_dump(mode="json")
     fresh = []
     for run_dir in sorted((ws.root / RUNS_DIR).glob("*")):

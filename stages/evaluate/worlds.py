@@ -65,12 +65,15 @@ def world_labels(worlds: Sequence[Path]) -> list[str]:
 
 
 def training_worlds(policy_kind: str, policy_path: str | None) -> set[Path] | None:
-    """The worlds a run folder's policy trained on (its config.json `worlds`, resolved); None for the expert or an
-    ONNX file (no record of its training worlds)."""
+    """The worlds a run folder's policy (or one of its checkpoints) trained on: its config.json `worlds`, resolved;
+    None for the expert or an ONNX file (no record of its training worlds)."""
     if policy_kind != "run" or policy_path is None:
         return None
+    path = Path(policy_path)
+    # A checkpoint file (`<run>/checkpoints/<name>.pt`) trained on its run's worlds.
+    run_dir = next((p for p in (path, *path.parents[:2]) if (p / "config.json").is_file()), path)
     try:
-        data = json.loads((Path(policy_path) / "config.json").read_text())
+        data = json.loads((run_dir / "config.json").read_text())
     except (OSError, ValueError):
         return None
     worlds = data.get("worlds") if isinstance(data, dict) else None

@@ -140,6 +140,10 @@ class TrainConfig(StageConfig):
     """The task to train (sim/envs/registry.py)."""
     total_steps: int = Field(2_000_000, ge=1)
     """Env steps to train for (warm start not counted)."""
+    towns: list[Annotated[int, Field(ge=0)]] = []
+    """Procedural towns to train on as well (seeds): town N is `<workspace>/towns/seed<N>/world`, built first when
+    missing (`drivesim towns build`, stages/towns.py), added to the workspace's world or the --world folders;
+    [] for none."""
     time_limit_s: float | None = Field(None, gt=0.0)
     """Stop after this much training wall time, at the end of an update, and finish the run [s] (None: no limit)."""
     seed: int = Field(0, ge=0)

@@ -118,6 +118,27 @@ SPEC: StageSpec[TrainSummary] = StageSpec(
 )
 
 
+def training_inputs(
+    ws: Workspace, cfg: TrainConfig, worlds: list[Path] | None, towns: list[Path] | None = None
+) -> tuple[StageSpec[TrainSummary], dict[str, Path]]:
+    """The stage spec and external inputs of a run: the workspace's world as its one artifact input; with world
+    folders or towns, every world as an external input `world_00`, `world_01`, ... in order (the given worlds or
+    else the workspace's, then the towns not among them); none with the cost-free env."""
+    if cfg.envs.source == "cost_free":
+        return replace(SPEC, requires=()), {}
+    if not worlds and not towns:
+        return SPEC, {}
+    base = list(worlds) if worlds else [ws.require("world", SPEC.upstream_hints["world"])]
+    every: list[Path] = []
+    for world in [*base, *(towns or [])]:  # a resumed run's worlds hold its towns already
+        if Path(world).absolute() not in every:
+            every.append(Path(world).absolute())
+    for world in every:
+        if not (world / MANIFEST_NAME).is_file():
+            raise DrivesimError("not a world folder (no manifest.json); make one with `drivesim build-world`", world)
+    return replace(SPEC, requires=()), {f"world_{i:02d}": w for i, w in enumerate(every)}
+
+
 def run_training(
     ws: Workspace,
     cfg: TrainConfig,
@@ -129,26 +150,23 @@ def run_training(
 
     :param ws: the workspace (runs/ goes in it; its world/ is the default world).
     :param cfg: the resolved train config.
-    :param worlds: world folders to train on (default: the workspace's world); ignored with the cost-free env.
+    :param worlds: world folders to train on (default: the workspace's world); ignored with the cost-free env. The
+        towns of `cfg.towns` are added (built first when missing, stages/towns.py).
     :param resume: an unfinished run folder to continue (`stages.train.resume` finds it and reopens a finished one).
     :param on_start: called with the run folder once the inputs are checked, right before training (the CLI
         reopens a finished run to train it further, and prints its header).
     """
     from drivesim.stages.train.run import new_run_dir
 
+    towns: list[Path] = []
+    if cfg.towns and cfg.envs.source != "cost_free":
+        from drivesim.stages.towns import ensure_towns
+
+        if not worlds:  # a missing world is one line before any town is built
+            ws.require("world", SPEC.upstream_hints["world"])
+        towns = ensure_towns(ws, cfg.towns)
     run_dir = resume if resume is not None else new_run_dir(ws.root, cfg.task)
-    spec = SPEC
-    external: dict[str, Path] = {}
-    if cfg.envs.source == "cost_free":
-        spec = replace(SPEC, requires=())
-    elif worlds:
-        for world in worlds:
-            if not (Path(world) / MANIFEST_NAME).is_file():
-                raise DrivesimError(
-                    "not a world folder (no manifest.json); make one with `drivesim build-world`", world
-                )
-        spec = replace(SPEC, requires=())
-        external = {f"world_{i:02d}": Path(w).absolute() for i, w in enumerate(worlds)}
+    spec, external = training_inputs(ws, cfg, worlds, towns)
     for upstream in spec.requires:  # a missing world is one line before the header names a run folder
         ws.require(upstream, spec.upstream_hints.get(upstream, f"drivesim {upstream}"))
     if on_start is not None:
