@@ -34,18 +34,29 @@ import pydantic
 import torch
 
 from drivesim.sim import raster_kernel
+from drivesim.sim.fill import FillStats, hole_box, inpaint_holes, merge_into_holes
 from drivesim.sim.geometry import invert, scale_intrinsics
 from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer
 from drivesim.sim.raster import PackedScene, Rasterizer, RenderResult, composite, merge_scenes
-from drivesim.sim.shading import Lighting
+from drivesim.sim.shading import Lighting, contact_shadow_
 from drivesim.sim.warp import WarpResult, forward_warp
 from drivesim.sim.world import World, relative_pose
 
-__all__ = ["CarPlacement", "ViewBatch", "ViewConfig", "ViewSynthesizer", "fit_roi", "planar_transforms"]
+__all__ = [
+    "CarPlacement", "ViewBatch", "ViewConfig", "ViewSynthesizer", "fit_roi", "frames_are_monochrome",
+    "planar_transforms",
+]  # fmt: skip
 
 TIMING_KEYS = ("warp", "raster", "composite", "lighting", "harmonize")
 _FRAME_CACHE_SIZE = 2048  # recorded frames kept as tensors (about 0.1 MB each at the default view)
 _WARP_MARGIN_PX = 3
+# Holes of fewer pixels than this are inpainted at once (disocclusion specks); neighbours are warped only for more.
+_FILL_MIN_HOLE_PX = 24
+# A neighbour frame that fills less than this fraction of the holes still open ends the search for that view.
+_FILL_MIN_GAIN = 0.1
+_LUMA = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma weights, as cv2.COLOR_RGB2GRAY
+_MONOCHROME_SAMPLES = 8  # frames looked at to tell a gray camera
+_MONOCHROME_TOLERANCE = 2  # grey levels of channel difference a gray camera's frames may show (compression)
 
 
 class ViewConfig(pydantic.BaseModel):
@@ -79,6 +90,18 @@ class ViewConfig(pydantic.BaseModel):
     """Cars farther than this from the camera (m, along the optical axis) are not drawn."""
     fill_holes: bool = True
     """Fill 1-2 px cracks of the warp (never larger disocclusions)."""
+    fill_frames: tuple[int, ...] = (-1, 1, -2)
+    """Neighbouring recorded frames (index offsets from the view's own frame) warped into what the view's own frame
+    leaves empty (side wedges off the recorded path, disocclusions), in this order, merged by depth; () = none. Each
+    is warped only into the bounding box of the holes still open, and only while holes remain (`sim/fill.py`)."""
+    inpaint: bool = True
+    """Inpaint (OpenCV Telea) what no frame saw, so the policy never sees black; off: such pixels stay black."""
+    contact_shadow: float = pydantic.Field(0.6, ge=0.0, le=1.0)
+    """Darkening of the ground under an inserted car (fraction of the ground's colour removed under its footprint,
+    fading to none 0.5 m outside it); 0 = no shadow."""
+    monochrome: bool | None = None
+    """Whether the camera is monochrome: inserted cars are then drawn and harmonized in gray (luminance). None:
+    detected from the world's frames (every sampled frame has equal R, G and B, as KITTI's gray cameras give)."""
     source_downsample: bool = True
     """Warp from recorded frames reduced by the integer factor closest to (not above) roi / out, colour area-averaged
     and depth min-pooled (the nearest surface wins): about that factor squared fewer points to warp, at the policy's
@@ -184,6 +207,9 @@ class ViewSynthesizer:
         self._frames: OrderedDict[int, tuple[torch.Tensor, torch.Tensor, np.ndarray]] = OrderedDict()
         self._packed: dict[int, tuple[Any, PackedScene, PackedScene]] = {}
         self._frustum_normals = self._frustum_planes()
+        self.monochrome = config.monochrome if config.monochrome is not None else frames_are_monochrome(world.frames)
+        self.fill_stats = FillStats()
+        """Where the pixels of every view rendered so far came from (own frame, neighbours, inpainting)."""
 
     # ------------------------------------------------------------------ caches
     def _frame(self, index: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
@@ -292,6 +318,7 @@ class ViewSynthesizer:
             rgb, depth, _ = self._frame(int(frame_index[b]))
             T_dst_src = T_camera_world[b] @ self._T_world_camera[frame_index[b]]
             warped = _warp(rgb, depth, self.K_src, T_dst_src, self.K_view, cfg)
+            warped = self._fill(int(frame_index[b]), T_camera_world[b], warped)
             rgb_views.append(warped.rgb)
             depth_views.append(warped.depth_m)
         rgb_out = torch.stack(rgb_views)
@@ -299,19 +326,24 @@ class ViewSynthesizer:
         timings["warp"] = 1e3 * (time.perf_counter() - start)
 
         start = time.perf_counter()
-        scenes, poses, viewers, lights = [], [], [], []
+        scenes, poses, viewers, lights, shadows = [], [], [], [], []
         for b in range(B):
             placed = self._placed_cars(b, int(frame_index[b]), T_camera_world[b], cars[b])
             if len(placed) == 1:  # one car: rendered from its own frame, no copy of its mesh moved into the camera's
                 scenes.append(placed[0][0])
                 poses.append(placed[0][1])
             elif placed:
-                scenes.append(merge_scenes([scene.transformed(T) for scene, T in placed]))
+                scenes.append(merge_scenes([scene.transformed(T) for scene, T, _ in placed]))
                 poses.append(np.eye(4))
             if placed:
                 viewers.append(b)
                 lights.append(self._lighting(int(frame_index[b])))
+                shadows.extend((b, T, model) for _, T, model in placed)
         timings["lighting"] = 1e3 * (time.perf_counter() - start)
+        if shadows and cfg.contact_shadow > 0:
+            start = time.perf_counter()
+            rgb_out = self._contact_shadows(rgb_out, depth_out, shadows)
+            timings["composite"] += 1e3 * (time.perf_counter() - start)
         if not viewers:
             car_mask = np.zeros((B, cfg.out_height_px, cfg.out_width_px), dtype=bool)
             return ViewBatch(rgb=rgb_out.cpu().numpy(), car_mask=car_mask, timings_ms=timings)
@@ -334,7 +366,10 @@ class ViewSynthesizer:
         car_rgb, car_depth = drawn.rgb.numpy(), drawn.depth_m.numpy()
         for i, b in enumerate(viewers):
             raster_kernel.composite_uint8(rgb_np[b], depth_np[b], car_rgb[i], car_depth[i], car_mask[b])
-        timings["composite"] = 1e3 * (time.perf_counter() - start)
+        if self.monochrome:
+            for b in viewers:
+                _gray_under_mask_(rgb_np[b], car_mask[b])
+        timings["composite"] += 1e3 * (time.perf_counter() - start)
         if self.config.harmonization:
             start = time.perf_counter()
             in_place = getattr(self.harmonizer, "harmonize_view_uint8_", None)
@@ -358,7 +393,11 @@ class ViewSynthesizer:
         start = time.perf_counter()
         index = torch.as_tensor(viewers, device=self.device)
         rgb_c, _, front = composite(rgb.index_select(0, index), depth.index_select(0, index), drawn)
-        timings["composite"] = 1e3 * (time.perf_counter() - start)
+        if self.monochrome:
+            luma = torch.tensor(_LUMA, device=rgb_c.device)
+            gray = (rgb_c.to(torch.float32) @ luma + 0.5).clamp_(0, 255).to(torch.uint8)
+            rgb_c = torch.where(front[..., None], gray[..., None].expand_as(rgb_c), rgb_c)
+        timings["composite"] += 1e3 * (time.perf_counter() - start)
         if self.config.harmonization and bool(front.any()):
             start = time.perf_counter()
             harmonized = self.harmonizer(rgb_c.to(torch.float32) / 255.0, front)
@@ -366,6 +405,61 @@ class ViewSynthesizer:
             timings["harmonize"] = 1e3 * (time.perf_counter() - start)
         car_mask = torch.zeros((B, h, w), dtype=torch.bool, device=self.device).index_copy(0, index, front)
         return rgb.index_copy(0, index, rgb_c).cpu().numpy(), car_mask.cpu().numpy()
+
+    def _fill(self, frame: int, T_camera_world: np.ndarray, warped: WarpResult) -> WarpResult:
+        """A view's warp with its holes filled from the neighbouring frames (`ViewConfig.fill_frames`), then
+        inpainted (`ViewConfig.inpaint`); the pixel counts go to `fill_stats` (module `sim/fill.py`)."""
+        valid = warped.valid.cpu().numpy()
+        box = hole_box(valid)
+        if box is None:
+            self.fill_stats.add(FillStats(total_px=valid.size, frame_px=valid.size))
+            return warped
+        stats = FillStats(total_px=valid.size, frame_px=int(valid.sum()))
+        if not (self.config.fill_frames or self.config.inpaint):
+            self.fill_stats.add(stats)
+            return warped
+        rgb, depth = warped.rgb.cpu().numpy().copy(), warped.depth_m.cpu().numpy().copy()
+        hole, filled = ~valid, np.zeros_like(valid)
+        open_px = valid.size - stats.frame_px
+        for offset in self.config.fill_frames if open_px >= _FILL_MIN_HOLE_PX else ():
+            neighbour = frame + offset
+            if box is None:
+                break
+            if not 0 <= neighbour < self.world.frame_count:
+                continue
+            n_rgb, n_depth, _ = self._frame(neighbour)
+            other = _warp(
+                n_rgb, n_depth, self.K_src, T_camera_world @ self._T_world_camera[neighbour], self.K_view,
+                self.config, box,
+            )  # fmt: skip
+            newly = merge_into_holes(
+                rgb, depth, hole, filled, box, other.rgb.numpy(), other.depth_m.numpy(), other.valid.numpy()
+            )
+            stats.neighbour_px += newly
+            box = hole_box(~hole | filled)
+            if newly < _FILL_MIN_GAIN * open_px:
+                break  # what is left no nearby frame saw (a wedge turned past the recorded field of view)
+            open_px -= newly
+        if self.config.inpaint:
+            stats.inpainted_px = inpaint_holes(rgb, hole & ~filled)
+        self.fill_stats.add(stats)
+        device = warped.rgb.device
+        return WarpResult(
+            rgb=torch.from_numpy(rgb).to(device), depth_m=torch.from_numpy(depth).to(device),
+            valid=torch.from_numpy(~hole | filled).to(device),
+        )  # fmt: skip
+
+    def _contact_shadows(self, rgb: torch.Tensor, depth: torch.Tensor, shadows: list[tuple]) -> torch.Tensor:
+        """The warped views with a soft shadow on the ground under each inserted car, `shadows` holding (view,
+        T_camera_car, model) per car (before the cars are composited, so a car covers its own shadow's middle)."""
+        rgb_np = rgb.cpu().numpy()
+        depth_np = depth.cpu().numpy()
+        for b, T_camera_car, model in shadows:
+            contact_shadow_(
+                rgb_np[b], depth_np[b], self.K_view, T_camera_car, float(model.length_m), float(model.width_m),
+                self.config.contact_shadow,
+            )  # fmt: skip
+        return rgb if rgb.device.type == "cpu" else torch.from_numpy(rgb_np).to(rgb.device)
 
     def _lighting(self, frame: int) -> Lighting:
         """Ambient = the scene's mean colour, directional light from the viewpoint at infinity; or unlit colours."""
@@ -382,9 +476,9 @@ class ViewSynthesizer:
 
     def _placed_cars(
         self, b: int, frame: int, T_camera_world: np.ndarray, cars: list[CarPlacement]
-    ) -> list[tuple[PackedScene, np.ndarray]]:
+    ) -> list[tuple[PackedScene, np.ndarray, Any]]:
         """The visible cars of view b: each car's packed mesh (in its own frame, at the level of detail its projected
-        size asks for) and its pose in the camera frame, T_camera_car."""
+        size asks for), its pose in the camera frame, T_camera_car, and its model."""
         if not cars:
             return []
         x = np.array([c.x_m for c in cars], dtype=np.float64)
@@ -400,8 +494,34 @@ class ViewSynthesizer:
             full, light = self._model_scenes(car.model)
             size_px = fx * max(float(car.model.length_m), float(car.model.height_m)) / max(float(T[2, 3]), 0.1)
             scene = full if size_px >= self.config.full_detail_min_px else light
-            placed.append((scene, T))
+            placed.append((scene, T, car.model))
         return placed
+
+
+def frames_are_monochrome(frames: np.ndarray) -> bool:
+    """Whether recorded frames (N, h, w, 3) uint8 come from a gray camera: R, G and B equal (within a couple of grey
+    levels) in every one of a few frames sampled across the drive."""
+    n = len(frames)
+    if n == 0:
+        return False
+    for i in np.unique(np.linspace(0, n - 1, _MONOCHROME_SAMPLES).round().astype(int)):
+        frame = np.asarray(frames[i], dtype=np.int16)
+        if np.abs(frame[..., 0] - frame[..., 1]).max() > _MONOCHROME_TOLERANCE:
+            return False
+        if np.abs(frame[..., 2] - frame[..., 1]).max() > _MONOCHROME_TOLERANCE:
+            return False
+    return True
+
+
+def _gray_under_mask_(rgb: np.ndarray, mask: np.ndarray) -> None:
+    """Replace the pixels of a uint8 view (h, w, 3) under `mask` (h, w) by their luma, in place."""
+    ys, xs = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+    if ys.size == 0:
+        return
+    box = rgb[ys[0] : ys[-1] + 1, xs[0] : xs[-1] + 1]
+    gray = cv2.cvtColor(np.ascontiguousarray(box), cv2.COLOR_RGB2GRAY)
+    under = mask[ys[0] : ys[-1] + 1, xs[0] : xs[-1] + 1]
+    box[under] = gray[under][:, None]
 
 
 def _harmonized_uint8(rgb: torch.Tensor, harmonized: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -416,8 +536,10 @@ def _warp(
     T_dst_src: np.ndarray,
     K_view: np.ndarray,
     cfg: ViewConfig,
+    box: tuple[int, int, int, int] | None = None,
 ) -> WarpResult:
-    """One recorded frame warped into one view (the frame's tensors are cached, so its source constants are too).
+    """One recorded frame warped into one view (the frame's tensors are cached, so its source constants are too), or
+    into the box (x0, y0, w, h) of the view only.
 
     The view is passed as the region of a slightly larger destination image (a margin of _WARP_MARGIN_PX on every
     side): hole filling then sees the pixels just outside the view, and the warp only transforms the source pixels
@@ -427,6 +549,8 @@ def _warp(
     K_dst[0, 2] += m
     K_dst[1, 2] += m
     w, h = cfg.out_width_px, cfg.out_height_px
+    x0, y0, bw, bh = box if box is not None else (0, 0, w, h)
     return forward_warp(
-        rgb, depth, K_src, T_dst_src, K_dst, w + 2 * m + 1, h + 2 * m + 1, roi=(m, m, w, h), fill_holes=cfg.fill_holes
-    )
+        rgb, depth, K_src, T_dst_src, K_dst, w + 2 * m + 1, h + 2 * m + 1, roi=(m + x0, m + y0, bw, bh),
+        fill_holes=cfg.fill_holes,
+    )  # fmt: skip

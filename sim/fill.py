@@ -1,0 +1,142 @@
+"""No black in the policy's view (issue 20): fill what the recorded frame's warp leaves empty.
+
+A forward warp of one recorded frame leaves two kinds of hole: wedges along the image side where the agent looks past
+what the camera saw (lateral offset, rotation), and disocclusions behind poles and trees. Both are filled in two
+steps, on one view at a time:
+1. neighbouring recorded frames (the two or three nearest) are warped into the holes' bounding box only and merged
+   by depth and visibility: a hole pixel takes the nearest surface any neighbour puts there (a z-buffer over the
+   neighbours), pixels the frame itself filled are kept;
+2. what no frame saw is inpainted (OpenCV's Telea fast marching, `cv2.inpaint`): smooth continuation of the border
+   colours, with depth +inf (so an inserted car is drawn over it).
+
+`FillStats` counts, per view, how many pixels each step filled, so a benchmark can say how much of the view is real
+recorded data, neighbour data, or invented.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+__all__ = ["FillStats", "hole_box", "inpaint_holes", "merge_into_holes"]
+
+INPAINT_RADIUS_PX = 3
+"""Neighbourhood (px) Telea's method averages over for each inpainted pixel: small, the views are 160 x 64."""
+FULL_RESOLUTION_MAX_PX = 256
+"""Holes of more pixels than this are inpainted at reduced resolution (`inpaint_holes`)."""
+REDUCED_FACTOR = 4
+"""How much a view with large holes is shrunk for inpainting (each axis)."""
+
+
+@dataclass
+class FillStats:
+    """Pixels of one or more views by where their colour came from.
+
+    :param total_px: all pixels. :param frame_px: from the view's own recorded frame (warp and crack filling).
+    :param neighbour_px: from a neighbouring recorded frame. :param inpainted_px: invented by inpainting.
+    """
+
+    total_px: int = 0
+    frame_px: int = 0
+    neighbour_px: int = 0
+    inpainted_px: int = 0
+
+    def add(self, other: FillStats) -> None:
+        """Accumulate another view's counts."""
+        self.total_px += other.total_px
+        self.frame_px += other.frame_px
+        self.neighbour_px += other.neighbour_px
+        self.inpainted_px += other.inpainted_px
+
+    def fractions(self) -> dict[str, float]:
+        """The counts as fractions of all pixels (keys frame, neighbour, inpainted, unfilled)."""
+        n = max(self.total_px, 1)
+        return {
+            "frame": self.frame_px / n,
+            "neighbour": self.neighbour_px / n,
+            "inpainted": self.inpainted_px / n,
+            "unfilled": (self.total_px - self.frame_px - self.neighbour_px - self.inpainted_px) / n,
+        }
+
+
+def hole_box(valid: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(x0, y0, w, h) bounding box of the False pixels of `valid` (h, w) bool, or None when there are none."""
+    rows = np.flatnonzero(~valid.all(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(~valid[rows[0] : rows[-1] + 1].all(axis=0))
+    return int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)
+
+
+def merge_into_holes(
+    rgb: np.ndarray,
+    depth_m: np.ndarray,
+    hole: np.ndarray,
+    filled: np.ndarray,
+    box: tuple[int, int, int, int],
+    other_rgb: np.ndarray,
+    other_depth_m: np.ndarray,
+    other_valid: np.ndarray,
+) -> int:
+    """Fill the holes of a view in place from another frame's warp of the box `box` (x0, y0, w, h) of it: a hole
+    pixel takes the other warp's colour and depth where that warp has a surface there and the pixel is still unfilled
+    or holds a farther surface (a z-buffer over the neighbours). Returns how many hole pixels were newly filled.
+
+    :param rgb, depth_m: the view (h, w, 3) uint8 and (h, w) float32, changed in place.
+    :param hole: (h, w) bool, the pixels the view's own frame left empty. :param filled: (h, w) bool, the hole pixels
+        filled so far, updated in place. :param other_rgb, other_depth_m, other_valid: the other warp of the box.
+    """
+    x0, y0, w, h = box
+    region = (slice(y0, y0 + h), slice(x0, x0 + w))
+    was_filled = filled[region]
+    take = hole[region] & other_valid & (~was_filled | (other_depth_m < depth_m[region]))
+    newly = int(np.count_nonzero(take & ~was_filled))
+    rgb[region][take] = other_rgb[take]
+    depth_m[region][take] = other_depth_m[take]
+    was_filled |= take
+    return newly
+
+
+def inpaint_holes(rgb: np.ndarray, hole: np.ndarray, radius_px: int = INPAINT_RADIUS_PX) -> int:
+    """Inpaint the pixels of `hole` (h, w) bool in the uint8 view `rgb` (h, w, 3) in place (Telea); returns how
+    many there were. Small holes are inpainted at full resolution over their bounding box (plus a margin); large ones
+    (a side wedge) at 1/`REDUCED_FACTOR` resolution, upsampled into the holes: Telea's cost grows with the hole's area,
+    and a wedge no frame saw gets a smooth continuation either way."""
+    count = int(np.count_nonzero(hole))
+    if count == 0:
+        return 0
+    if count == hole.size:  # nothing to continue from: leave the view as it is (black)
+        return count
+    if count > FULL_RESOLUTION_MAX_PX:
+        _inpaint_reduced(rgb, hole, radius_px)
+        return count
+    box = hole_box(~hole)
+    assert box is not None
+    x0, y0, w, h = box
+    H, W = hole.shape
+    m = radius_px + 1
+    ys, xs = slice(max(y0 - m, 0), min(y0 + h + m, H)), slice(max(x0 - m, 0), min(x0 + w + m, W))
+    patch = np.ascontiguousarray(rgb[ys, xs])
+    rgb[ys, xs] = cv2.inpaint(patch, hole[ys, xs].view(np.uint8), radius_px, cv2.INPAINT_TELEA)
+    return count
+
+
+def _inpaint_reduced(rgb: np.ndarray, hole: np.ndarray, radius_px: int) -> None:
+    """inpaint_holes for large holes: the view shrunk by REDUCED_FACTOR with the holes left out of every average
+    (normalized area averaging), inpainted where a reduced pixel is mostly hole, enlarged (bilinear) into the holes."""
+    H, W = hole.shape
+    f = REDUCED_FACTOR
+    small = (max(1, -(-W // f)), max(1, -(-H // f)))
+    seen = (~hole).astype(np.float32)
+    weight = cv2.resize(seen, small, interpolation=cv2.INTER_AREA)
+    colour = cv2.resize(rgb.astype(np.float32) * seen[..., None], small, interpolation=cv2.INTER_AREA)
+    colour = colour / np.maximum(weight, 1e-6)[..., None]
+    small_rgb = np.clip(colour + 0.5, 0, 255).astype(np.uint8)
+    small_hole = (weight < 0.5).view(np.uint8)
+    if small_hole.all():
+        return
+    small_rgb = cv2.inpaint(small_rgb, small_hole, max(1, radius_px // 2 + 1), cv2.INPAINT_TELEA)
+    large = cv2.resize(small_rgb, (W, H), interpolation=cv2.INTER_LINEAR)
+    rgb[hole] = large[hole]

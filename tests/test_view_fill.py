@@ -1,0 +1,172 @@
+"""Issue 20 in the policy's view: holes filled from neighbouring frames and inpainted, a contact shadow under inserted
+cars, and inserted cars drawn in gray on a gray camera.
+
+The world here is a ground plane with a texture fixed to the ground (so any pose's true view is known) and a sky,
+recorded by a camera driving straight along +x, one frame a metre."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivesim.sim.fill import hole_box, inpaint_holes
+from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, pose_2d
+from drivesim.sim.mesh import Material, Mesh
+from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer, frames_are_monochrome
+from drivesim.sim.world import World
+
+W_PX, H_PX = 160, 100
+CAMERA_HEIGHT_M = 1.6
+SKY_M = 80.0
+SKY_RGB = (90, 140, 200)
+SMALL = {"roi_px": (0, 40, 160, 60), "out_width_px": 80, "out_height_px": 30}
+K = intrinsics_from_hfov(W_PX, H_PX, np.deg2rad(70.0))
+T_VC = camera_mount(0.0, 0.0, CAMERA_HEIGHT_M)
+
+
+def ground_rgb(x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
+    """The ground's colour at world (x, y): smooth stripes along and across the road, different per channel."""
+    r = 120 + 60 * np.sin(x_m / 0.9)
+    g = 110 + 50 * np.cos(y_m / 0.6)
+    b = 100 + 40 * np.sin((x_m + y_m) / 1.3)
+    return np.stack([r, g, b], axis=-1)
+
+
+def true_view(T_world_camera: np.ndarray, Kv: np.ndarray, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
+    """What a camera at T_world_camera with intrinsics Kv sees: (rgb (h, w, 3) uint8, depth (h, w) float32)."""
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    rays = np.stack([(u - Kv[0, 2]) / Kv[0, 0], (v - Kv[1, 2]) / Kv[1, 1], np.ones_like(u)], axis=-1)
+    R, t = T_world_camera[:3, :3], T_world_camera[:3, 3]
+    down = rays @ R.T  # world direction of each ray (z = 1 along the optical axis)
+    with np.errstate(divide="ignore"):
+        z = np.where(down[..., 2] < -1e-6, -t[2] / down[..., 2], np.inf)
+    ground = (z < SKY_M) & np.isfinite(z)
+    points = t + down * np.where(ground, z, 0.0)[..., None]
+    rgb = np.where(ground[..., None], ground_rgb(points[..., 0], points[..., 1]), SKY_RGB)
+    depth = np.where(ground, z, SKY_M).astype(np.float32)
+    return np.clip(rgb + 0.5, 0, 255).astype(np.uint8), depth
+
+
+def psnr_db(a: np.ndarray, b: np.ndarray) -> float:
+    return float(10 * np.log10(255.0**2 / np.mean((a.astype(float) - b.astype(float)) ** 2)))
+
+
+def make_world(tmp: Path, n: int = 8, gray: bool = False) -> World:
+    x = np.arange(n, dtype=np.float64)
+    T_wv = np.stack([pose_2d(xi, 0.0, 0.0) for xi in x])
+    views = [true_view(T @ T_VC, K, W_PX, H_PX) for T in T_wv]
+    frames = np.stack([v[0] for v in views])
+    if gray:
+        frames = np.repeat(frames.mean(axis=-1, keepdims=True).astype(np.uint8), 3, axis=-1)
+    path = {
+        "x_m": x, "y_m": np.zeros(n), "z_m": np.zeros(n), "yaw_rad": np.zeros(n), "speed_mps": np.full(n, 10.0),
+        "curvature_1pm": np.zeros(n), "arc_length_m": x.copy(), "t_ns": np.arange(n) * 100_000_000,
+        "frame_index": np.arange(n), "T_world_vehicle": T_wv, "T_world_camera": T_wv @ T_VC,
+    }  # fmt: skip
+    return World(
+        root=tmp, frames=frames, depth_m=np.stack([v[1] for v in views]), K=K, T_vehicle_camera=T_VC, width_px=W_PX,
+        height_px=H_PX, camera_height_m=CAMERA_HEIGHT_M, path=path, road_width_m=8.0, lane_width_m=3.5,
+        info={"format": 1},
+    )  # fmt: skip
+
+
+@dataclass
+class BoxModel:
+    """Stands in for a vehicle_library.VehicleModel: one box with a red body."""
+
+    length_m: float = 4.0
+    width_m: float = 1.8
+    height_m: float = 1.5
+
+    @property
+    def full(self) -> list[Mesh]:
+        L, Wd, H = self.length_m, self.width_m, self.height_m
+        v = np.array([[x, y, z] for x in (-L / 2, L / 2) for y in (-Wd / 2, Wd / 2) for z in (0.0, H)], np.float32)
+        faces = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1]]
+        faces += [[2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+        material = Material(diffuse_rgb=(0.8, 0.1, 0.1), specular_rgb=(0.0, 0.0, 0.0))
+        return [Mesh(v, np.array(faces, dtype=np.int64), material=material)]
+
+    light = full
+
+
+def render(vs: ViewSynthesizer, frame: int, lateral_m: float, yaw_rad: float = 0.0, cars=()):
+    return vs.render(np.array([frame]), np.array([float(frame)]), np.array([lateral_m]), np.array([yaw_rad]),
+                     [list(cars)])  # fmt: skip
+
+
+def test_neighbour_frames_fill_the_side_wedge_with_what_is_really_there(tmp_path):
+    """2 m to the left of frame 4, the frame alone leaves a wedge on the left; the frames behind it saw most of that
+    ground, and what they put there is the true ground (as close to it as the frame's own pixels are, while a wrong pose
+would put the stripes elsewhere); inpainting leaves no black pixel."""
+    world = make_world(tmp_path)
+    alone = ViewSynthesizer(world, ViewConfig(**SMALL, fill_frames=(), inpaint=False))
+    merged = ViewSynthesizer(world, ViewConfig(**SMALL, fill_frames=(-1, -2, 1), inpaint=False))
+    full = ViewSynthesizer(world, ViewConfig(**SMALL))
+    out_alone, out_merged, out_full = (render(vs, 4, 2.0) for vs in (alone, merged, full))
+    hole = out_alone.rgb[0].max(axis=-1) == 0
+    assert hole.mean() > 0.05, "the test needs a wedge"
+    assert hole[:, :10].mean() > 3 * hole[:, -10:].mean(), "the wedge is on the left"
+    stats = merged.fill_stats.fractions()
+    assert stats["neighbour"] > 0.6 * hole.mean()
+    assert stats["unfilled"] < 0.4 * hole.mean()
+    truth, _ = true_view(pose_2d(4.0, 2.0, 0.0) @ T_VC, alone.K_view, 80, 30)
+    filled = hole & (out_merged.rgb[0].max(axis=-1) > 0)
+    own_db = psnr_db(out_alone.rgb[0][~hole], truth[~hole])  # nearest-pixel splats of a fine texture: ~23 dB
+    assert psnr_db(out_merged.rgb[0][filled], truth[filled]) > max(own_db - 1.0, 20.0)
+    assert full.fill_stats.fractions()["unfilled"] == 0.0
+    assert (out_full.rgb[0].max(axis=-1) > 0).all()
+    # Pixels the frame itself filled are the same whatever fills the holes.
+    assert np.array_equal(out_full.rgb[0][~hole], out_alone.rgb[0][~hole])
+
+
+def test_inpainting_continues_the_border_colours():
+    """A hole in a smooth gradient is inpainted close to the gradient, at full and at reduced resolution."""
+    u = np.linspace(0, 200, 80)
+    image = np.repeat(np.stack([u, 200 - u, np.full_like(u, 100)], -1)[None], 30, axis=0).astype(np.uint8)
+    for hole_cols in (slice(38, 42), slice(20, 60)):  # 120 px (full resolution), 1200 px (reduced)
+        hole = np.zeros((30, 80), bool)
+        hole[5:25, hole_cols] = True
+        damaged = np.where(hole[..., None], 0, image).astype(np.uint8)
+        assert inpaint_holes(damaged, hole) == hole.sum()
+        assert np.abs(damaged[hole].astype(int) - image[hole]).mean() < 12
+    assert hole_box(~hole) == (20, 5, 40, 20)
+
+
+def test_contact_shadow_darkens_the_ground_beside_the_car_only(tmp_path):
+    """The ground just beside an inserted car is darker than without the shadow; 2 m away it is unchanged."""
+    world = make_world(tmp_path)
+    car = [CarPlacement(BoxModel(), 12.0, 0.0, 0.0)]
+    flags = {**SMALL, "harmonization": False}
+    with_shadow = render(ViewSynthesizer(world, ViewConfig(**flags)), 2, 0.0, cars=car)
+    without = render(ViewSynthesizer(world, ViewConfig(**flags, contact_shadow=0.0)), 2, 0.0, cars=car)
+    mask = with_shadow.car_mask[0]
+    assert np.array_equal(mask, without.car_mask[0]) and mask.any()
+    rows, cols = np.nonzero(mask)
+    below = slice(rows.max() + 1, min(rows.max() + 3, 30))  # the ground in front of the car's rear
+    centre = slice(cols.min() + 2, cols.max() - 1)
+    darker = without.rgb[0][below, centre].astype(float).mean() - with_shadow.rgb[0][below, centre].mean()
+    assert darker > 15
+    far_left = slice(0, max(cols.min() - 12, 1))
+    assert np.array_equal(with_shadow.rgb[0][:, far_left], without.rgb[0][:, far_left])
+
+
+@pytest.mark.parametrize("gray", [False, True])
+def test_car_on_a_gray_camera_is_gray(tmp_path, gray):
+    """A red car inserted into a gray camera's view is drawn gray (R = G = B, lit and harmonized); into a colour
+    camera's view it stays red. Whether the camera is gray is read from the frames."""
+    world = make_world(tmp_path, gray=gray)
+    vs = ViewSynthesizer(world, ViewConfig(**SMALL))
+    assert vs.monochrome is gray and frames_are_monochrome(world.frames) is gray
+    out = render(vs, 2, 0.0, cars=[CarPlacement(BoxModel(), 10.0, 0.0, 0.0)])
+    car = out.rgb[0][out.car_mask[0]].astype(int)
+    assert len(car) > 50
+    spread = (car.max(axis=-1) - car.min(axis=-1)).max()
+    if gray:
+        assert spread == 0
+        assert (out.rgb[0].max(axis=-1) == out.rgb[0].min(axis=-1)).all(), "the whole view stays gray"
+    else:
+        assert (car[:, 0] - car[:, 1]).mean() > 30
