@@ -7,6 +7,10 @@ import numpy as np
 from drivesim.sim.envs.base import DrivingEnv
 from drivesim.sim.envs.expert import EXPERT_CLEARANCE_M
 from drivesim.sim.envs.rewards import pass_reward
+from drivesim.sim.envs.winnable import OvertakeStart, SteeringLimits, is_winnable
+
+MAX_REDRAWS = 100
+"""Most redraws of an unwinnable start with `redraw_unwinnable` (about 5 % of the default starts are unwinnable)."""
 
 
 class OvertakeEnv(DrivingEnv):
@@ -25,7 +29,9 @@ class OvertakeEnv(DrivingEnv):
     ## Start state
     The ego as in Lane-v0 at a speed drawn from ego_speed_mps; the front car front_distance_m ahead and
     front_lateral_m to a random side, heading along the road, at a speed from other_speed_mps, driving with pure
-    pursuit (gain 0.8, lookahead 5 m) at its lateral offset.
+    pursuit (gain 0.8, lookahead 5 m) at its lateral offset. info["episode"]["winnable"] is False for a start no
+    driver can survive (sim/envs/winnable.py); with `redraw_unwinnable` such a start is drawn again from the same
+    generator (the same seed still gives the same episode; info["episode"]["redraws"] counts the draws discarded).
 
     ## Episode end
     Success: pass_margin_m > Z_pass = pass_distance_m and |q_lat| < return_lateral_m, without intervention. In
@@ -39,6 +45,38 @@ class OvertakeEnv(DrivingEnv):
 
     task = "overtake"
     has_other = True
+
+    def reset_state(self, seed: int | None) -> None:
+        """Draw the start state; label it winnable or not, and redraw an unwinnable one when the config says so."""
+        super().reset_state(seed)
+        redraws = 0
+        while self.config.redraw_unwinnable and not self._start_winnable() and redraws < MAX_REDRAWS:
+            super().reset_state(None)  # the generator goes on: still one episode per seed
+            redraws += 1
+        self._seed = seed
+        self._episode["seed"] = seed
+        self._episode["winnable"] = self._start_winnable()
+        if redraws:
+            self._episode["redraws"] = redraws
+
+    def _start_winnable(self) -> bool:
+        c, ep, ego = self.config, self._episode, self.sim.agents[0]
+        start = OvertakeStart(
+            gap_m=self._gap_m,
+            ego_speed_mps=ep["ego_speed_mps"],
+            other_speed_mps=ep["other_speed_mps"],
+            ego_lateral_m=ego.lateral_m,
+            ego_yaw_rad=self._m["q_rot_rad"],
+            other_lateral_m=self._other_lateral_m,
+            ego_length_m=ep["ego_length_m"],
+            ego_width_m=ep["ego_width_m"],
+            other_length_m=ep["other_length_m"],
+            other_width_m=ep["other_width_m"],
+        )
+        limits = SteeringLimits(
+            c.wheelbase_m, c.max_curvature_1pm, c.max_steering_rate_radps, c.max_rotation_rad, c.max_lateral_m
+        )
+        return is_winnable(start, limits)
 
     def _task_measurements(self) -> dict[str, float]:
         ego, other = self.sim.agents[0], self.sim.agents[1]

@@ -180,6 +180,8 @@ class EpisodeMetrics:
     initial_lateral_m: float
     return_: float
     other_lateral_m: float = float("nan")
+    winnable: bool | None = None
+    """Overtake: False for a start no driver can survive (sim/envs/winnable.py); None when the env gives no label."""
 
     def row(self) -> dict[str, Any]:
         """A flat dict for episodes.csv."""
@@ -279,6 +281,7 @@ def evaluate_episode(record: EpisodeRecord) -> EpisodeResult:
         initial_lateral_m=_number(ep, "initial_lateral_m"),
         other_lateral_m=_number(ep, "other_lateral_m"),
         return_=float(record.return_),
+        winnable=ep["winnable"] if isinstance(ep.get("winnable"), bool) else None,
     )
     return EpisodeResult(metrics=metrics, clearance_m=clearance, overlap_m2=overlap, record=record)
 
@@ -376,6 +379,30 @@ def scenario_table(metrics: Sequence[EpisodeMetrics]) -> list[dict[str, Any]]:
             }
         )
     return rows
+
+
+def winnable_table(metrics: Sequence[EpisodeMetrics]) -> list[dict[str, Any]]:
+    """The episodes whose start can be won and those no driver can survive (the env's `winnable` label), apart:
+    episodes, success, intervention and collision of each; [] when no episode is labelled."""
+    labelled = [m for m in metrics if m.winnable is not None]
+    if not labelled:
+        return []
+    rows = []
+    for name, flag in (("winnable starts", True), ("unwinnable starts", False)):
+        members = [m for m in labelled if m.winnable is flag]
+        rows.append(
+            {
+                "starts": name,
+                "episodes": len(members),
+                "share": round(len(members) / len(labelled), 5),
+                **{k: rate_estimate([getattr(m, k) for m in members]).to_json() for k in WINNABLE_RATES},
+            }
+        )
+    return rows
+
+
+WINNABLE_RATES = ("success", "intervention", "collision")
+"""The rates the winnable / unwinnable table reports for each group."""
 
 
 def difficulty_levels(values: np.ndarray, harder_when_larger: bool) -> tuple[np.ndarray, list[float]]:

@@ -25,6 +25,7 @@ from drivesim.stages.evaluate.metrics import (
     along_track,
     breakdowns,
     scenario_table,
+    winnable_table,
 )
 from drivesim.stages.evaluate.record import recording_link, recordings_html
 
@@ -115,6 +116,7 @@ def write_outputs(
         "intervention_causes": {k: int(sum(getattr(m, k) for m in metrics)) for k, _ in CAUSE_ROWS},
         "breakdowns": [b.to_json() for b in levels],
         "scenarios": scenarios,
+        "starts": winnable_table(metrics),
         "paper_table_i": {k: {"garage": g, "outdoor": o} for k, (g, o) in PAPER_TABLE_I.items()},
         **(extra or {}),
     }
@@ -240,7 +242,7 @@ resamples). Definitions: <code>drivesim.stages.evaluate.metrics</code>.</p>
 <h2>Interventions by cause, and outcomes</h2>
 <table><tr><th>cause</th><th>episodes</th><th>rate</th></tr>{causes}</table>
 <p class=ci>An episode may have more than one cause.</p>
-{_scenario_html(data["scenarios"])}
+{_scenario_html(data["scenarios"])}{_starts_html(data["starts"])}
 <h2>Breakdown by trial difficulty</h2>
 <table><tr><th>factor</th>{level_head}</tr>{"".join(level_rows)}</table>
 <p class=ci>Each cell: intervention rate, mean maximum deviation, episodes. Levels are the quartiles of the factor over
@@ -277,6 +279,30 @@ def _scenario_html(rows: Sequence[dict[str, Any]]) -> str:
         "<table><tr><th>scenario</th><th>episodes</th><th>success [95 % CI]</th><th>intervention [95 % CI]</th>"
         f"</tr>{body}</table><p class=ci>Static: the front car slower than {STATIC_SPEED_MPS} m/s. "
         "<code>drivesim eval --scenario static --scenario pass-left</code> evaluates one scenario alone.</p>"
+    )
+
+
+def _starts_html(rows: Sequence[dict[str, Any]]) -> str:
+    """The winnable / unwinnable starts table as HTML; empty when the env labels no start."""
+    if not rows:
+        return ""
+
+    def cell(e: dict[str, Any]) -> str:
+        if not e["n"]:
+            return "—"
+        return f"{e['value']:.3f} <span class=ci>[{e['ci_low']:.3f}, {e['ci_high']:.3f}]</span>"
+
+    body = "".join(
+        f"<tr><td>{html.escape(r['starts'])}</td><td>{r['episodes']}</td><td>{r['share']:.3f}</td>"
+        f"<td>{cell(r['success'])}</td><td>{cell(r['intervention'])}</td><td>{cell(r['collision'])}</td></tr>"
+        for r in rows
+    )
+    return (
+        "<h2>Starts that can be won</h2><table><tr><th>starts</th><th>episodes</th><th>share</th>"
+        "<th>success [95 % CI]</th><th>intervention [95 % CI]</th><th>collision [95 % CI]</th></tr>"
+        f"{body}</table><p class=ci>Unwinnable: the front car so close and closing so fast that no steering within "
+        "the ego's limits gets clear of it (<code>drivesim.sim.envs.winnable</code>); the headline figures above "
+        "include them. <code>--set env.redraw_unwinnable=true</code> draws such starts again.</p>"
     )
 
 

@@ -1,0 +1,93 @@
+"""Overtake starts that can be won (sim/envs/winnable.py): the physical bound on hand-made starts, the env's label and
+its redraw option on the small test world, and the evaluation's table of the two groups apart."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import gymnasium
+import pytest
+from eval_fakes import pass_record
+from sim_worlds import SMALL_VIEW, write_test_world
+
+import drivesim.sim.envs  # noqa: F401  (registers the envs)
+from drivesim.sim.envs.winnable import OvertakeStart, SteeringLimits, best_swerve_m, is_winnable, time_to_contact_s
+from drivesim.stages.evaluate.metrics import evaluate_episode, winnable_table
+
+LIMITS = SteeringLimits(wheelbase_m=2.7, max_curvature_1pm=0.15, max_steering_rate_radps=1.0, max_rotation_rad=0.5,
+                        max_lateral_m=2.5)  # fmt: skip
+
+
+def _start(gap_m: float, ego_mps: float, other_mps: float, other_lateral_m: float, **kw: float) -> OvertakeStart:
+    base = {"ego_lateral_m": 0.0, "ego_yaw_rad": 0.0, "ego_length_m": 4.5, "ego_width_m": 1.9}
+    base.update(other_length_m=4.5, other_width_m=1.8)
+    return OvertakeStart(gap_m, ego_mps, other_mps, other_lateral_m=other_lateral_m, **{**base, **kw})
+
+
+def test_the_bound_on_hand_made_starts() -> None:
+    # 2 m of bumper gap closing at 8 m/s: 0.25 s, the ego swerves a few centimetres; it needs 0.85 m.
+    close = _start(6.5, 9.0, 1.0, 1.0)
+    assert time_to_contact_s(close) == pytest.approx(0.25)
+    assert abs(best_swerve_m(close, LIMITS, -1.0, 0.25)) < 0.1
+    assert not is_winnable(close, LIMITS)
+    # The same cars 15 m apart: over a second to swerve; not closing: never contact; already beside: clear.
+    assert is_winnable(_start(15.0, 9.0, 1.0, 1.0), LIMITS)
+    assert time_to_contact_s(_start(6.5, 3.0, 3.0, 1.0)) == math.inf and is_winnable(_start(6.5, 3.0, 3.0, 1.0), LIMITS)
+    assert is_winnable(_start(6.5, 9.0, 1.0, 2.0, ego_lateral_m=-0.2), LIMITS)
+    # The only clear side beyond the lane limit does not count: a car 0.9 m left of a narrow lane's limit.
+    narrow = SteeringLimits(2.7, 0.15, 1.0, 0.5, max_lateral_m=1.0)
+    assert not is_winnable(_start(15.0, 9.0, 1.0, 0.0), narrow) and is_winnable(_start(15.0, 9.0, 1.0, 0.0), LIMITS)
+    # The swerve is held to the over-rotation limit: after 3 s at 10 m/s at most 10 * 3 * sin(0.5) m sideways.
+    far = best_swerve_m(_start(100.0, 10.0, 0.0, 1.0), LIMITS, 1.0, 3.0)
+    assert 5.0 < far < 10.0 * 3.0 * math.sin(0.5)
+
+
+@pytest.fixture(scope="module")
+def world_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_test_world(tmp_path_factory.mktemp("winnable-world") / "world")
+
+
+def _env(world_dir: Path, **config: object) -> gymnasium.Env:
+    overrides = {**SMALL_VIEW, "front_distance_m": (6.0, 8.0), "other_speed_mps": (0.0, 1.0), **config}
+    return gymnasium.make("drivesim/Overtake-v0", world=str(world_dir), meshes=None, mode="eval", config=overrides)
+
+
+def test_the_env_labels_each_start_and_can_redraw_the_unwinnable(world_dir: Path) -> None:
+    """Close, fast starts (front car 6-8 m ahead, ego 4-10 m/s against 0-1 m/s): many cannot be won."""
+    env = _env(world_dir)
+    labels = {seed: env.reset(seed=seed)[1]["episode"]["winnable"] for seed in range(40)}
+    assert 5 <= sum(not w for w in labels.values()) <= 35, labels
+    redrawing = _env(world_dir, redraw_unwinnable=True)
+    for seed, was in labels.items():
+        episode = redrawing.reset(seed=seed)[1]["episode"]
+        assert episode["winnable"] and episode["seed"] == seed
+        assert ("redraws" in episode) == (not was)  # a winnable start is kept as it was drawn
+    again = [redrawing.reset(seed=3)[1]["episode"] for _ in range(2)]
+    assert again[0] == again[1]  # the same seed, the same (redrawn) episode
+    first = env.reset(seed=next(s for s, w in labels.items() if w))[1]["episode"]
+    kept = redrawing.reset(seed=first["seed"])[1]["episode"]
+    assert kept == first
+
+
+def test_the_expert_fails_an_unwinnable_start(world_dir: Path) -> None:
+    env = _env(world_dir)
+    seed = next(s for s in range(40) if not env.reset(seed=s)[1]["episode"]["winnable"])
+    env.reset(seed=seed)
+    for _ in range(100):
+        _, _, terminated, truncated, info = env.step(env.unwrapped.expert_action())
+        if terminated or truncated:
+            break
+    assert info["termination"]["collision"] and not info["success"]
+
+
+def test_evaluation_reports_the_two_groups_apart() -> None:
+    records = [pass_record(3.0, seed=s) for s in range(3)] + [pass_record(0.4, seed=s) for s in (3, 4)]
+    for record in records:
+        record.episode["winnable"] = record.seed < 4  # seed 3 crashes on a winnable start, seed 4 on an unwinnable
+    table = winnable_table([evaluate_episode(r).metrics for r in records])
+    assert [(row["starts"], row["episodes"]) for row in table] == [("winnable starts", 4), ("unwinnable starts", 1)]
+    assert table[0]["success"]["value"] == 0.75 and table[1]["collision"]["value"] == 1.0
+    assert table[1]["share"] == 0.2
+    unlabelled = [evaluate_episode(pass_record(3.0, seed=s)).metrics for s in range(2)]
+    assert winnable_table(unlabelled) == [] and unlabelled[0].winnable is None
