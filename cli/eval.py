@@ -172,6 +172,7 @@ def _print_result(result: Any, cfg: Any) -> None:
         soft_wrap=True,
     )
     _print_worlds(result.path / "metrics.json")
+    _print_starts(result.path / "metrics.json")
     recordings = sorted([*result.path.glob("recordings/*.mcap"), *result.path.glob("worlds/*/recordings/*.mcap")])
     if recordings:
         console.print(
@@ -180,6 +181,25 @@ def _print_result(result: Any, cfg: Any) -> None:
             highlight=False,
             soft_wrap=True,
         )
+
+
+def _print_starts(metrics_path: Path) -> None:
+    """Overtake: how many starts no driver can survive were among the episodes, and success on the others."""
+    try:
+        rows = json.loads(metrics_path.read_text()).get("starts") or []
+    except (OSError, ValueError):
+        return
+    by_name = {row["starts"]: row for row in rows}
+    unwinnable, winnable = by_name.get("unwinnable starts"), by_name.get("winnable starts")
+    if not unwinnable or not winnable or not unwinnable["episodes"]:
+        return
+    success = winnable["success"]["value"]
+    console.print(
+        f"starts no driver can survive: {unwinnable['episodes']} of {unwinnable['episodes'] + winnable['episodes']} "
+        f"(in every figure above); success on the others {'n/a' if success is None else f'{success:.3f}'}",
+        highlight=False,
+        soft_wrap=True,
+    )
 
 
 def _print_worlds(metrics_path: Path) -> None:
