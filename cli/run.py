@@ -23,7 +23,11 @@ def run_command(
     ] = None,
     preset: Annotated[
         str,
-        typer.Option("--preset", help="Run preset in configs/run/: demo (about 9 min on 2 cores) or full."),
+        typer.Option(
+            "--preset",
+            help="Run preset in configs/run/: demo (about 9 min on 2 cores), lane (a lane-keeping policy, "
+            "15 min of training) or full.",
+        ),
     ] = "demo",
     config: Annotated[
         Path | None,

@@ -210,6 +210,23 @@ def test_video_too_short_is_refused(tmp_path: Path, monkeypatch, capsys) -> None
     _assert_refused(code, err, tmp_path / "ws", "too short", "4 frame")
 
 
+def test_video_trimmed_too_short_is_refused(drive, tmp_path: Path, monkeypatch, capsys) -> None:
+    video, _ = drive
+    ws = tmp_path / "ws"
+    args = ("ingest", str(video), "--camera-height-m", "1.5", "--start-s", "2.0", "--end-s", "2.5")
+    code, _, err = _run(monkeypatch, capsys, ws, *args)
+    _assert_refused(code, err, ws, "too short", "6 frame", "--start-s/--end-s")
+
+
+def test_run_from_a_video_that_does_not_move_stops_at_ingest(tmp_path: Path, monkeypatch, capsys) -> None:
+    frames, _ = render_drive(n=20, still=True)
+    video = write_video(tmp_path / "parked.mp4", frames)
+    ws = tmp_path / "ws"
+    code, _, err = _run(monkeypatch, capsys, ws, "run", str(video), "--camera-height-m", "1.5")
+    _assert_refused(code, err, ws, "does not move")
+    assert not any((ws / name).exists() for name in ("preprocessed", "world", "runs", "eval"))
+
+
 def test_video_with_an_unreadable_codec_is_refused(tmp_path: Path, monkeypatch, capsys) -> None:
     video = tmp_path / "broken.mp4"
     video.write_bytes(b"\x00\x00\x00\x18ftypmp42" + np.random.default_rng(0).bytes(20_000))
