@@ -160,6 +160,7 @@ def _sfm(source: FrameSource, sfm_idx: np.ndarray, camera: CameraModel | None, c
             loop_keyframes=video.sfm_loop_keyframes,
             max_features=video.sfm_max_features,
             threads=video.sfm_threads,
+            focal_rounds=video.sfm_focal_rounds,
         )
         result = reconstruct(work / "images", names, K, size, opts, work)
     if result.focal_estimated:
@@ -323,7 +324,9 @@ def _notes(
     seconds: float,
 ) -> list[str]:
     hfov = np.degrees(2 * np.arctan(0.5 * camera.width_px / camera.K[0, 0]))
-    how = "estimated by SfM" if result.focal_estimated else "given"
+    how = "given"
+    if result.focal_estimated:
+        how = f"estimated by SfM (mapped {1 + result.focal_rounds} time(s) until the focal length settled)"
     missing = np.setdiff1d(sfm_idx, registered)
     notes = [
         source.note,
