@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 
 from drivesim.pipeline.config import STRICT_MODEL_CONFIG, StageConfig
 from drivesim.sim.envs.config import EnvConfig
@@ -140,7 +140,7 @@ class TrainConfig(StageConfig):
     """The task to train (sim/envs/registry.py)."""
     total_steps: int = Field(2_000_000, ge=1)
     """Env steps to train for (warm start not counted)."""
-    towns: list[Annotated[int, Field(ge=0)]] = []
+    towns: list[int] = []
     """Procedural towns to train on as well (seeds): town N is `<workspace>/towns/seed<N>/world`, built first when
     missing (`drivesim towns build`, stages/towns.py), added to the workspace's world or the --world folders;
     [] for none."""
@@ -162,6 +162,13 @@ class TrainConfig(StageConfig):
     """Periodic evaluation."""
     warm_start: WarmStartConfig = Field(default_factory=WarmStartConfig)
     """Warm start from the privileged expert."""
+
+    @field_validator("towns")
+    @classmethod
+    def _town_seeds(cls, value: list[int]) -> list[int]:
+        if any(seed < 0 for seed in value):
+            raise ValueError("town seeds are 0 or more")
+        return value
 
     @model_validator(mode="after")
     def _check_sizes(self) -> TrainConfig:
