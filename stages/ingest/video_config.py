@@ -38,9 +38,6 @@ class VideoConfig(StageConfig):
     """Evenly spaced keyframes matched with each other for loop closure (0: off)."""
     sfm_max_features: int = Field(4096, ge=256, le=32768)
     """SIFT features per SfM image."""
-    sfm_focal_rounds: int = Field(2, ge=0, le=10)
-    """When SfM estimates the focal length: at most this many more mappings, each holding the last refined focal
-    length fixed, until it moves by less than 1 % (0: one refinement of the first mapping)."""
     sfm_threads: int = Field(2, ge=1, le=256)
     """CPU threads SfM uses."""
     min_registered_fraction: float = Field(0.5, gt=0.0, le=1.0)

@@ -160,7 +160,6 @@ def _sfm(source: FrameSource, sfm_idx: np.ndarray, camera: CameraModel | None, c
             loop_keyframes=video.sfm_loop_keyframes,
             max_features=video.sfm_max_features,
             threads=video.sfm_threads,
-            focal_rounds=video.sfm_focal_rounds,
         )
         result = reconstruct(work / "images", names, K, size, opts, work)
     if result.focal_estimated:
@@ -324,9 +323,7 @@ def _notes(
     seconds: float,
 ) -> list[str]:
     hfov = np.degrees(2 * np.arctan(0.5 * camera.width_px / camera.K[0, 0]))
-    how = "given"
-    if result.focal_estimated:
-        how = f"estimated by SfM (mapped {1 + result.focal_rounds} time(s) until the focal length settled)"
+    how = "estimated by SfM" if result.focal_estimated else "given"
     missing = np.setdiff1d(sfm_idx, registered)
     notes = [
         source.note,
