@@ -5,11 +5,15 @@ One `ViewSynthesizer.render` call produces B views:
 1. the agent's full pose from its associated recorded frame, T_world_agent = T_world_vehicle[frame] @ planar(q_long,
    q_lat, q_rot) (keeps the recorded height, pitch and roll), and its camera T_world_agent @ T_vehicle_camera;
 2. eq. 2: `warp.forward_warp` of the recorded RGB-D frame straight into the region of interest at the policy's
-   resolution (the world's intrinsics scaled by out / roi);
+   resolution (the world's intrinsics scaled by out / roi); what it leaves empty (side wedges off the recorded path,
+   disocclusions) is filled from the neighbouring recorded frames warped into the holes' box and merged by depth, and
+   what no frame saw is inpainted (`fill.py`): the policy never sees black;
 3. every other car, placed on the ground of the viewer's recorded frame the same way, rasterized (`raster.py`, back
    faces culled, full or light level of detail by projected size) in the same region and composited with a per-pixel
    depth test against the warped depth, so occlusion works both ways; lit by an ambient light equal to the scene's
-   mean colour and a directional light from the viewpoint at infinity (`shading.Lighting`);
+   mean colour and a directional light from the viewpoint at infinity (`shading.Lighting`), over a soft contact
+   shadow darkening the ground under each car (`shading.contact_shadow_`); on a monochrome camera (detected from the
+   frames) the cars are drawn in luma;
 4. harmonization of the inserted cars under their mask (`harmonize.py`).
 
 Speed: recorded frames are turned into torch tensors once and kept in a small cache (so the warp's per-source cache
