@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from drivesim.diagnostics.machine import machine_line, usable_cores
+from drivesim.diagnostics.sim_steps import make_env, recording_car_drawn, time_env_steps
 from drivesim.sim.envs.registry import TASK_NAMES
 
 # "overtake:eval": evaluation episodes, which end at the pass, so the other car is in view at nearly every step; a
@@ -34,7 +35,13 @@ PARTS = ("dynamics", "association", "warp", "raster", "composite", "lighting", "
 
 @dataclass
 class TaskSpeed:
-    """One task's speed: steps/s in one process and summed over one process per core, ms per step by part."""
+    """One task's speed: steps/s in one process and summed over one process per core, ms per step by part.
+
+    For a task with another car, steps split by whether the car was drawn in the ego's view (`sim_steps.py`):
+    `car_drawn_share` of the timed steps drew it; `car_drawn_steps_per_s` is 1000 / the median ms of those steps
+    (one process; `car_drawn_steps_per_s_all_cores` sums it over the processes) and `ms_per_step_car_drawn` their
+    mean ms per part. Tasks without another car leave them NaN / empty.
+    """
 
     task: str
     steps_per_s: float
@@ -43,6 +50,13 @@ class TaskSpeed:
     ms_per_step: dict[str, float]
     batched_steps_per_s: float = float("nan")
     batched_envs: int = 0
+    car_drawn_share: float = float("nan")
+    car_drawn_steps: int = 0
+    median_ms_car_drawn: float = float("nan")
+    car_drawn_steps_per_s: float = float("nan")
+    car_drawn_steps_per_s_all_cores: float = float("nan")
+    ms_per_step_car_drawn: dict[str, float] = field(default_factory=dict)
+    batched_car_drawn_share: float = float("nan")
 
 
 @dataclass
@@ -60,39 +74,25 @@ class SimSpeedResult:
         return asdict(self)
 
 
-def _env_loop(task: str, world: str, meshes: str | None, steps: int, seed: int) -> tuple[float, dict[str, float], int]:
-    """(seconds, cumulative timings_ms, steps) of `steps` expert steps of one env, resets included."""
-    import gymnasium
-    import torch
-
-    import drivesim.sim.envs  # noqa: F401  (registers the envs)
-
-    torch.set_num_threads(1)
+def _env_loop(task: str, world: str, meshes: str | None, steps: int, seed: int) -> dict:
+    """The figures of `steps` expert steps of one env (`sim_steps.StepTimes`, resets not timed): the summary, and the
+    mean ms per part over all steps and over the car-drawn ones."""
     name, mode = _task_mode(task)
-    env = gymnasium.make(f"drivesim/{name.capitalize()}-v0", world=world, meshes=meshes, mode=mode)
-    env.reset(seed=seed)
-    env.unwrapped.expert_action()
-    for _ in range(5):  # warm the caches (frames, packed meshes) before timing
-        env.step(env.unwrapped.expert_action())
-    env.reset(seed=seed)
-    env.unwrapped.reset_timings()
-    episode = 0
-    start = time.perf_counter()
-    for _ in range(steps):
-        _, _, terminated, truncated, _ = env.step(env.unwrapped.expert_action())
-        if terminated or truncated:
-            episode += 1
-            env.reset(seed=seed + episode)
-    seconds = time.perf_counter() - start
-    return seconds, dict(env.unwrapped.timings_ms), int(env.unwrapped.step_count)
+    times = time_env_steps(make_env(name, world, meshes, mode), steps, seed)
+    return {
+        "summary": times.summary(),
+        "parts": times.mean_part_ms(),
+        "parts_car_drawn": times.mean_part_ms(True),
+    }
 
 
-def _env_loop_star(args: tuple) -> tuple[float, dict[str, float], int]:
+def _env_loop_star(args: tuple) -> dict:
     return _env_loop(*args)
 
 
-def _batched_loop(task: str, world: str, meshes: str | None, steps: int, n_envs: int, seed: int) -> float:
-    """Env steps/s of `n_envs` episodes stepped together in one process (one batched render per step)."""
+def _batched_loop(task: str, world: str, meshes: str | None, steps: int, n_envs: int, seed: int) -> tuple[float, float]:
+    """(env steps/s, share of the views that drew the other car) of `n_envs` episodes stepped together in one process
+    (one batched render per step)."""
     import torch
 
     from drivesim.sim.envs.vector import BatchedVecEnv
@@ -104,12 +104,15 @@ def _batched_loop(task: str, world: str, meshes: str | None, steps: int, n_envs:
     actions = np.zeros((n_envs, 1), dtype=np.float32)
     for _ in range(3):
         venv.step(actions)
-    start = time.perf_counter()
     rounds = max(steps // n_envs, 1)
-    for _ in range(rounds):
-        actions = np.stack([e.expert_action() for e in venv.envs])
-        venv.step(actions)
-    return rounds * n_envs / (time.perf_counter() - start)
+    with recording_car_drawn() as calls:
+        start = time.perf_counter()
+        for _ in range(rounds):
+            actions = np.stack([e.expert_action() for e in venv.envs])
+            venv.step(actions)
+        seconds = time.perf_counter() - start
+    drawn = np.concatenate(calls) if calls else np.zeros(0, bool)
+    return rounds * n_envs / seconds, float(drawn.mean()) if len(drawn) else float("nan")
 
 
 def view_speed(world_path: str, repeats: int = 60, batch: int = 8) -> dict[str, float]:
@@ -162,19 +165,34 @@ def run_sim_speed(
     result.view_ms = view_speed(world)
     ctx = multiprocessing.get_context("spawn")
     for task in tasks:
-        seconds, timings, count = _env_loop(task, world, meshes, steps, seed=0)
+        one = _env_loop(task, world, meshes, steps, seed=0)
         with ctx.Pool(processes) as pool:
             runs = pool.map(_env_loop_star, [(task, world, meshes, steps, 1000 * (i + 1)) for i in range(processes)])
-        all_cores = sum(c / s for s, _, c in runs)
-        ms = {part: timings.get(part, 0.0) / max(count, 1) for part in PARTS}
-        ms["total"] = 1e3 * seconds / max(count, 1)
-        ms["other"] = ms["total"] - sum(ms[p] for p in PARTS)
-        speed = TaskSpeed(task, count / seconds, all_cores, processes, ms)
+        summary = one["summary"]
+        ms = {part: one["parts"].get(part, 0.0) for part in (*PARTS, "other", "total")}
+        speed = TaskSpeed(
+            task, 1e3 / summary["mean_ms"], sum(1e3 / r["summary"]["mean_ms"] for r in runs), processes, ms
+        )
+        if _task_has_other(task):
+            speed.car_drawn_share = summary["car_drawn_share"]
+            speed.car_drawn_steps = summary["car_drawn_steps"]
+            speed.median_ms_car_drawn = summary["median_ms_car_drawn"]
+            speed.car_drawn_steps_per_s = 1e3 / summary["median_ms_car_drawn"]
+            speed.car_drawn_steps_per_s_all_cores = sum(1e3 / r["summary"]["median_ms_car_drawn"] for r in runs)
+            speed.ms_per_step_car_drawn = one["parts_car_drawn"]
         if batched_envs > 1:
-            speed.batched_steps_per_s = _batched_loop(task, world, meshes, steps, batched_envs, seed=0)
+            speed.batched_steps_per_s, share = _batched_loop(task, world, meshes, steps, batched_envs, seed=0)
             speed.batched_envs = batched_envs
+            speed.batched_car_drawn_share = share if _task_has_other(task) else float("nan")
         result.tasks.append(speed)
     return result
+
+
+def _task_has_other(task: str) -> bool:
+    """Whether a task's episodes have another car."""
+    from drivesim.sim.envs.registry import task_spec
+
+    return bool(task_spec(_task_mode(task)[0]).env_class().has_other)
 
 
 def sim_speed_markdown(result: SimSpeedResult, command: str) -> str:
@@ -184,7 +202,8 @@ def sim_speed_markdown(result: SimSpeedResult, command: str) -> str:
         "",
         f"- machine: {result.machine}",
         f"- date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
-        f"- world: `{result.world}`, {result.steps} expert steps per measurement, default observation",
+        f"- world: `{result.world}`, {result.steps} expert steps per measurement, default observation; step times "
+        "exclude resets",
         f"- command: `{command}`",
         "",
         "| task | steps/s, 1 process | steps/s, 1 env per core | batched envs in 1 process: steps/s |",
@@ -192,17 +211,36 @@ def sim_speed_markdown(result: SimSpeedResult, command: str) -> str:
     ]
     for t in result.tasks:
         batched = f"{t.batched_steps_per_s:.0f} ({t.batched_envs} envs)" if t.batched_envs else "-"
+        if t.batched_envs and t.batched_car_drawn_share == t.batched_car_drawn_share:
+            batched += f", car drawn in {100 * t.batched_car_drawn_share:.0f} % of the views"
         lines.append(f"| {t.task} | {t.steps_per_s:.0f} | {t.steps_per_s_all_cores:.0f} ({t.processes}) | {batched} |")
     lines += [
         "",
-        "overtake: training episodes (they drive on after the pass, the other car behind and out of view); "
-        "overtake:eval: evaluation episodes (they end at the pass: the car is in view at nearly every step).",
+        "steps/s = 1000 / mean ms per step over all timed steps, with or without the other car in view. overtake: "
+        "training episodes (they drive on after the pass, the other car behind and out of view); overtake:eval: "
+        "evaluation episodes (they end at the pass).",
+        "",
+        "With the other car drawn (a step counts when at least one pixel of the car survives the depth test in the "
+        "ego's view; steps/s = 1000 / the median ms of those steps):",
+        "",
+        "| task | car drawn in (share of timed steps) | car-drawn steps | median ms, car drawn | steps/s, car drawn, "
+        "1 process | steps/s, car drawn, 1 env per core |",
+        "|---|---:|---:|---:|---:|---:|",
     ]
-    lines += ["", "ms per step, one process:", "", "| task | " + " | ".join((*PARTS, "other", "total")) + " |"]
-    lines.append("|---|" + "---:|" * (len(PARTS) + 2))
     for t in result.tasks:
-        cells = " | ".join(f"{t.ms_per_step[p]:.2f}" for p in (*PARTS, "other", "total"))
-        lines.append(f"| {t.task} | {cells} |")
+        if t.car_drawn_steps or t.car_drawn_share == t.car_drawn_share:
+            lines.append(
+                f"| {t.task} | {100 * t.car_drawn_share:.0f} % | {t.car_drawn_steps} | {t.median_ms_car_drawn:.2f} | "
+                f"{t.car_drawn_steps_per_s:.0f} | {t.car_drawn_steps_per_s_all_cores:.0f} ({t.processes}) |"
+            )
+    columns = (*PARTS, "other", "total")
+    lines += ["", "Mean ms per step, one process (all timed steps; car drawn: only those):", ""]
+    lines += ["| task | " + " | ".join(columns) + " |", "|---|" + "---:|" * len(columns)]
+    for t in result.tasks:
+        lines.append(f"| {t.task} | " + " | ".join(f"{t.ms_per_step.get(p, 0.0):.2f}" for p in columns) + " |")
+        if t.ms_per_step_car_drawn:
+            cells = " | ".join(f"{t.ms_per_step_car_drawn.get(p, 0.0):.2f}" for p in columns)
+            lines.append(f"| {t.task}, car drawn | {cells} |")
     lines += ["", "View synthesizer alone (one library car 10 m ahead):", ""]
     lines += [f"- {k}: {v:.2f}" for k, v in result.view_ms.items()]
     return "\n".join(lines) + "\n"

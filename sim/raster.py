@@ -56,6 +56,7 @@ _PACK_CACHE_SIZE = 16
 _SMALL_AREA_PX = 64
 _ONE_CALL_GATHER = 1 << 16
 _TILE_PX = 8
+_NO_OWNER = np.zeros(0, dtype=np.int64)  # the kernel's owner for one scene seen by every camera
 
 
 @dataclass
@@ -538,37 +539,19 @@ class Rasterizer:
         W, H = self.width_px, self.height_px
         N = vc.shape[2]
         K_np = K.cpu().numpy()
-        table = np.empty((13, N), dtype=np.float32)
-        bbox = np.empty((N, 4), dtype=np.int64)
-        index = np.empty(N, dtype=np.int64)
-        n = raster_kernel.setup(
-            np.ascontiguousarray(vc.reshape(9, N).numpy()),
-            float(K_np[0, 0]), float(K_np[1, 1]), float(K_np[0, 2]), float(K_np[1, 2]),
-            W, H, self.near_m, self.cull_back_faces, table, bbox, index,
-        )  # fmt: skip
-        table, bbox, index = np.ascontiguousarray(table[:, :n]), bbox[:n], index[:n]
-        if owner is None:  # shared scene: candidate n is triangle n % T seen by camera n // T
-            camera = index // max(scene.triangle_count, 1)
-            source = index - camera * max(scene.triangle_count, 1)
-        else:
-            camera, source = owner.numpy()[index], index
         size = B * H * W
-        depth = np.full(size, np.inf, dtype=np.float32)
-        winner = np.full(size, -1, dtype=np.int64)
-        raster_kernel.depth_test(table, bbox, camera, W, H, self.near_m, depth, winner)
-
         rgb = np.empty((size, 3), dtype=np.float32)
         depth_out = np.empty(size, dtype=np.float32)
         object_id = np.empty(size, dtype=np.int32)
         normal = np.empty((size, 3), dtype=np.float32)
         bg = np.zeros(3, dtype=np.float32) if background_rgb is None else np.asarray(background_rgb, np.float32)
-        amb, ldir, lrgb = _lighting_tensors(lighting, B, torch.device("cpu"))
-        raster_kernel.shade(
-            depth, winner, table, source,
+        raster_kernel.render_untextured(
+            np.ascontiguousarray(vc.reshape(9, N).numpy()),
+            np.array([K_np[0, 0], K_np[1, 1], K_np[0, 2], K_np[1, 2]]), W, H, self.near_m, self.cull_back_faces,
+            _NO_OWNER if owner is None else owner.numpy(), max(scene.triangle_count, 1),
             scene.attribute_table.numpy(), scene.material.numpy(), scene.object_id.numpy(),
             np.ascontiguousarray(R_cam_world.numpy()), np.linalg.inv(K_np).astype(np.float32),
-            np.ascontiguousarray(torch.cat([amb, ldir, lrgb], dim=1).numpy()), bg,
-            W, H, rgb, depth_out, object_id, normal,
+            _lighting_table(lighting, B), bg, rgb, depth_out, object_id, normal,
         )  # fmt: skip
         return RenderResult(
             rgb=torch.from_numpy(rgb.reshape(B, H, W, 3)),
@@ -809,10 +792,8 @@ class Rasterizer:
         )
 
 
-def _lighting_tensors(
-    lighting: Lighting | list[Lighting] | None, B: int, device: torch.device
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(B, 3) ambient, unit light direction and light colour."""
+def _lighting_table(lighting: Lighting | list[Lighting] | None, B: int) -> np.ndarray:
+    """(B, 9) float32: ambient, unit light direction and light colour of each camera."""
     if lighting is None:
         lighting = Lighting()
     lights = lighting if isinstance(lighting, list) else [lighting] * B
@@ -824,7 +805,14 @@ def _lighting_tensors(
         table[b, 0:3] = light.ambient_rgb
         table[b, 3:6] = direction / max(np.linalg.norm(direction), 1e-12)
         table[b, 6:9] = light.light_rgb
-    t = torch.as_tensor(table, device=device)
+    return table
+
+
+def _lighting_tensors(
+    lighting: Lighting | list[Lighting] | None, B: int, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(B, 3) ambient, unit light direction and light colour."""
+    t = torch.as_tensor(_lighting_table(lighting, B), device=device)
     return t[:, 0:3], t[:, 3:6], t[:, 6:9]
 
 
