@@ -184,7 +184,7 @@ def _print_result(result: Any, cfg: Any) -> None:
 
 
 def _print_starts(metrics_path: Path) -> None:
-    """Overtake: how many starts no driver can survive were among the episodes, and success on the others."""
+    """Overtake: how many starts labelled unwinnable were among the episodes, and success on the others."""
     try:
         rows = json.loads(metrics_path.read_text()).get("starts") or []
     except (OSError, ValueError):
@@ -195,7 +195,8 @@ def _print_starts(metrics_path: Path) -> None:
         return
     success = winnable["success"]["value"]
     console.print(
-        f"starts no driver can survive: {unwinnable['episodes']} of {unwinnable['episodes'] + winnable['episodes']} "
+        f"starts labelled unwinnable (the hardest swerve cannot escape): {unwinnable['episodes']} of "
+        f"{unwinnable['episodes'] + winnable['episodes']} "
         f"(in every figure above); success on the others {'n/a' if success is None else f'{success:.3f}'}",
         highlight=False,
         soft_wrap=True,

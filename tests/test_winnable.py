@@ -12,7 +12,7 @@ from eval_fakes import pass_record
 from sim_worlds import SMALL_VIEW, write_test_world
 
 import drivesim.sim.envs  # noqa: F401  (registers the envs)
-from drivesim.sim.envs.winnable import OvertakeStart, SteeringLimits, best_swerve_m, is_winnable, time_to_contact_s
+from drivesim.sim.envs.winnable import OvertakeStart, SteeringLimits, is_winnable, time_to_contact_s
 from drivesim.stages.evaluate.metrics import evaluate_episode, winnable_table
 
 LIMITS = SteeringLimits(wheelbase_m=2.7, max_curvature_1pm=0.15, max_steering_rate_radps=1.0, max_rotation_rad=0.5,
@@ -26,21 +26,17 @@ def _start(gap_m: float, ego_mps: float, other_mps: float, other_lateral_m: floa
 
 
 def test_the_bound_on_hand_made_starts() -> None:
-    # 2 m of bumper gap closing at 8 m/s: 0.25 s, the ego swerves a few centimetres; it needs 0.85 m.
+    # 2 m of bumper gap closing at 8 m/s: 0.25 s, far too little to swerve the 0.85 m it needs.
     close = _start(6.5, 9.0, 1.0, 1.0)
-    assert time_to_contact_s(close) == pytest.approx(0.25)
-    assert abs(best_swerve_m(close, LIMITS, -1.0, 0.25)) < 0.1
-    assert not is_winnable(close, LIMITS)
+    assert time_to_contact_s(close) == pytest.approx(0.25) and not is_winnable(close, LIMITS)
     # The same cars 15 m apart: over a second to swerve; not closing: never contact; already beside: clear.
     assert is_winnable(_start(15.0, 9.0, 1.0, 1.0), LIMITS)
     assert time_to_contact_s(_start(6.5, 3.0, 3.0, 1.0)) == math.inf and is_winnable(_start(6.5, 3.0, 3.0, 1.0), LIMITS)
     assert is_winnable(_start(6.5, 9.0, 1.0, 2.0, ego_lateral_m=-0.2), LIMITS)
-    # The only clear side beyond the lane limit does not count: a car 0.9 m left of a narrow lane's limit.
+    # A car on the lane centre, 15 m ahead: clear on either side of a normal lane, on neither of a narrow one (the
+    # ego's centre would leave the lane before its footprint is beside the car's).
     narrow = SteeringLimits(2.7, 0.15, 1.0, 0.5, max_lateral_m=1.0)
-    assert not is_winnable(_start(15.0, 9.0, 1.0, 0.0), narrow) and is_winnable(_start(15.0, 9.0, 1.0, 0.0), LIMITS)
-    # The swerve is held to the over-rotation limit: after 3 s at 10 m/s at most 10 * 3 * sin(0.5) m sideways.
-    far = best_swerve_m(_start(100.0, 10.0, 0.0, 1.0), LIMITS, 1.0, 3.0)
-    assert 5.0 < far < 10.0 * 3.0 * math.sin(0.5)
+    assert is_winnable(_start(15.0, 9.0, 1.0, 0.0), LIMITS) and not is_winnable(_start(15.0, 9.0, 1.0, 0.0), narrow)
 
 
 @pytest.fixture(scope="module")
@@ -70,15 +66,19 @@ def test_the_env_labels_each_start_and_can_redraw_the_unwinnable(world_dir: Path
     assert kept == first
 
 
-def test_the_expert_fails_an_unwinnable_start(world_dir: Path) -> None:
-    env = _env(world_dir)
-    seed = next(s for s in range(40) if not env.reset(seed=s)[1]["episode"]["winnable"])
-    env.reset(seed=seed)
-    for _ in range(100):
-        _, _, terminated, truncated, info = env.step(env.unwrapped.expert_action())
-        if terminated or truncated:
-            break
-    assert info["termination"]["collision"] and not info["success"]
+def test_the_expert_fails_most_labelled_starts_and_rarely_the_others(world_dir: Path) -> None:
+    """The label checked with the privileged expert on the close, fast starts (stepped without rendering)."""
+    env = _env(world_dir).unwrapped
+    failed: dict[bool, list[bool]] = {True: [], False: []}
+    for seed in range(40):
+        env.reset_state(seed)
+        winnable = env._episode["winnable"]
+        while True:
+            _, terminated, truncated, info = env.advance(env.expert_action())
+            if terminated or truncated:
+                break
+        failed[winnable].append(not info["success"])
+    assert sum(failed[False]) >= 2 / 3 * len(failed[False]) and sum(failed[True]) <= 0.1 * len(failed[True])
 
 
 def test_evaluation_reports_the_two_groups_apart() -> None:

@@ -65,8 +65,8 @@ class EnvConfig(BaseModel):
     return_lateral_m: float = Field(0.75, gt=0.0)
     """Overtake succeeds once passed and back within this lateral offset of the lane centre, metres."""
     redraw_unwinnable: bool = False
-    """Overtake: draw a start that no driver can survive (sim/envs/winnable.py; info["episode"]["winnable"] labels
-    it either way) again, so every episode can be won. Off: such starts stay in (about 5 % of the defaults)."""
+    """Overtake: draw a start labelled unwinnable (the hardest swerve cannot escape the front car, sim/envs/winnable.py;
+    info["episode"]["winnable"] labels it either way) again. Off: such starts stay in (about 5 % of the defaults)."""
     end_on_success_in_training: bool = False
     """Whether a training (mode "train") overtake episode ends at its success. Off (the default), it goes on to the
     time limit, so R_pass, paid per step once ahead, makes passing worth more than following the slow car in the

@@ -29,9 +29,9 @@ class OvertakeEnv(DrivingEnv):
     ## Start state
     The ego as in Lane-v0 at a speed drawn from ego_speed_mps; the front car front_distance_m ahead and
     front_lateral_m to a random side, heading along the road, at a speed from other_speed_mps, driving with pure
-    pursuit (gain 0.8, lookahead 5 m) at its lateral offset. info["episode"]["winnable"] is False for a start no
-    driver can survive (sim/envs/winnable.py); with `redraw_unwinnable` such a start is drawn again from the same
-    generator (the same seed still gives the same episode; info["episode"]["redraws"] counts the draws discarded).
+    pursuit (gain 0.8, lookahead 5 m) at its lateral offset. info["episode"]["winnable"] is False for a start
+    the hardest swerve cannot escape (sim/envs/winnable.py); with `redraw_unwinnable` such a start is drawn again
+    from the same generator (the same seed, the same episode; info["episode"]["redraws"] counts the draws discarded).
 
     ## Episode end
     Success: pass_margin_m > Z_pass = pass_distance_m and |q_lat| < return_lateral_m, without intervention. In

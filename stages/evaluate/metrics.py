@@ -181,7 +181,7 @@ class EpisodeMetrics:
     return_: float
     other_lateral_m: float = float("nan")
     winnable: bool | None = None
-    """Overtake: False for a start no driver can survive (sim/envs/winnable.py); None when the env gives no label."""
+    """Overtake: False for a start the hardest swerve cannot escape (sim/envs/winnable.py); None without a label."""
 
     def row(self) -> dict[str, Any]:
         """A flat dict for episodes.csv."""
@@ -382,7 +382,7 @@ def scenario_table(metrics: Sequence[EpisodeMetrics]) -> list[dict[str, Any]]:
 
 
 def winnable_table(metrics: Sequence[EpisodeMetrics]) -> list[dict[str, Any]]:
-    """The episodes whose start can be won and those no driver can survive (the env's `winnable` label), apart:
+    """The episodes whose start can be won and those labelled unwinnable (the env's `winnable` label), apart:
     episodes, success, intervention and collision of each; [] when no episode is labelled."""
     labelled = [m for m in metrics if m.winnable is not None]
     if not labelled:

@@ -300,9 +300,10 @@ def _starts_html(rows: Sequence[dict[str, Any]]) -> str:
     return (
         "<h2>Starts that can be won</h2><table><tr><th>starts</th><th>episodes</th><th>share</th>"
         "<th>success [95 % CI]</th><th>intervention [95 % CI]</th><th>collision [95 % CI]</th></tr>"
-        f"{body}</table><p class=ci>Unwinnable: the front car so close and closing so fast that no steering within "
-        "the ego's limits gets clear of it (<code>drivesim.sim.envs.winnable</code>); the headline figures above "
-        "include them. <code>--set env.redraw_unwinnable=true</code> draws such starts again.</p>"
+        f"{body}</table><p class=ci>Unwinnable: the front car so close and closing so fast that even the hardest "
+        "swerve within the ego's steering limits does not get clear of it (<code>drivesim.sim.envs.winnable</code>; "
+        "the privileged expert fails most such starts); the headline figures above include them. "
+        "<code>--set env.redraw_unwinnable=true</code> draws such starts again.</p>"
     )
 
 
