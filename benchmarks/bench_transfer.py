@@ -34,6 +34,7 @@ from pathlib import Path
 RESULTS = Path(__file__).parent / "results"
 DRIVESIM = Path(sys.executable).parent / "drivesim"
 POLICIES = ("random", "expert", "warm start", "final", "best")
+GROUPS = ("train", "unseen", "real")
 
 
 def machine() -> str:
@@ -172,6 +173,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=1000, help="episodes per world and policy")
     parser.add_argument("--name", required=True, help="name of the result (transfer_<name>.json)")
     parser.add_argument("--policies", nargs="*", default=list(POLICIES), choices=POLICIES)
+    parser.add_argument("--groups", nargs="*", default=list(GROUPS), choices=GROUPS, help="world groups to evaluate")
     parser.add_argument("--workspace", type=Path, default=None, help="scratch workspace for the evaluations")
     parser.add_argument("--notes", default="", help="a paragraph printed under the table")
     args = parser.parse_args()
@@ -193,7 +195,7 @@ def main() -> None:
             continue
         row = result["rows"].setdefault(policy, {})
         for group, worlds in groups.items():
-            if not worlds:
+            if not worlds or group not in args.groups:
                 continue
             per_world = []
             for world in worlds:
