@@ -342,3 +342,23 @@ def test_a_frame_registered_off_its_neighbours_is_dropped() -> None:
     T[7, :3, 3] += [30.0, 0.0, 0.0]  # one frame far off (COLMAP did this once on KITTI)
     T[12, :3, :3] = cv2.Rodrigues(np.array([0.0, np.radians(40.0), 0.0]))[0]  # one turned 40 degrees
     assert list(np.flatnonzero(~consistent_poses(T))) == [7, 12]
+
+
+def test_lane_run_preset_trains_like_the_lane_preset_on_the_recording_alone() -> None:
+    """`drivesim run VIDEO --preset lane` (the issue's video-to-policy run): configs/train/lane.yaml's training on
+    top of the chain's train preset, stopped after 15 min, no procedural towns, 100 lane evaluation episodes."""
+    from drivesim.pipeline.config import load_config
+    from drivesim.stages.chain import stage_by_name
+    from drivesim.stages.evaluate.config import EvalConfig
+    from drivesim.stages.run_chain import load_run_preset, stage_config
+    from drivesim.stages.train.config import TrainConfig
+
+    overrides = load_run_preset("lane")
+    train = stage_config(TrainConfig, stage_by_name("train").preset, overrides["train"], "train")
+    lane = load_config(TrainConfig, preset="train/lane")
+    for key in ("task", "total_steps", "ppo", "eval"):
+        assert getattr(train, key) == getattr(lane, key), key
+    assert train.envs.count == lane.envs.count
+    assert train.towns == [] and train.time_limit_s == 900 and train.warm_start.method == "none"
+    evaluation = stage_config(EvalConfig, stage_by_name("eval").preset, overrides["eval"], "eval")
+    assert (evaluation.task, evaluation.episodes) == ("lane", 100)
