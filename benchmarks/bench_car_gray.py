@@ -31,7 +31,7 @@ OFFSETS_M = (0.0, 0.5, 1.0)
 
 def gray(rgb: np.ndarray) -> np.ndarray:
     """Luma of uint8 RGB images (..., 3) as 3 equal channels."""
-    flat = rgb.reshape(-1, rgb.shape[-2], 3)
+    flat = rgb.reshape(-1, *rgb.shape[-3:])
     luma = np.stack([cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2GRAY) for f in flat])
     return np.repeat(luma[..., None], 3, axis=-1).reshape(rgb.shape)
 

@@ -120,7 +120,7 @@ def markdown(coverage: list[dict], speed: list[dict], args: argparse.Namespace, 
         f"- machine: {machine_line()}",
         f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
         f"- command: `python benchmarks/bench_view_fill.py --coverage-world {args.coverage_world} --speed-world "
-        f"{args.speed_world} --steps {args.steps}`",
+        f"{args.speed_world} --steps {args.steps}{''.join(f' --skip {s}' for s in args.skip)}`",
         f"- load: {load}",
         "",
     ]
