@@ -20,7 +20,8 @@ PolicyOption = Annotated[
     str | None,
     typer.Option(
         "--policy",
-        help="A run folder of `drivesim train`, an exported .onnx file, or 'expert'. "
+        help="A run folder of `drivesim train` (or one of its checkpoints, RUN/checkpoints/NAME.pt), an exported "
+        ".onnx file, 'expert' or 'random'. "
         "Default: the workspace's newest finished run of the task, else the expert.",
         show_default=False,
     ),

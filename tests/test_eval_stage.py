@@ -334,3 +334,19 @@ def test_onnx_policy_gives_the_torch_policy_metrics(tmp_path):
     # An ONNX policy of another task is refused like a run folder.
     result = _run_cli(tmp_path / "ws2", *_fake_args(world), "--task", "follow", "--policy", str(onnx_path))
     assert result.returncode == 2 and "overtake policy, not follow" in result.stderr
+
+
+def test_random_policy_is_a_baseline_that_repeats_its_episodes(tmp_path):
+    """`--policy random` steers at random, drawn from each episode's seed: the same files with one or two workers,
+    actions spread over [-1, 1], and other seeds other actions."""
+    factory = _factory(_fake_world(tmp_path / "world"))
+    seeds = list(range(6))
+    run_episodes(factory, PolicySpec.parse("random"), "overtake", seeds, tmp_path / "one", workers=1)
+    run_episodes(factory, PolicySpec.parse("random"), "overtake", seeds, tmp_path / "two", workers=2)
+    one, two = _files(tmp_path / "one"), _files(tmp_path / "two")
+    assert one == two and len(one) == 6
+    first = np.array(json.loads(one["0.json"])["trajectory"]["action"][1:])
+    second = np.array(json.loads(one["1.json"])["trajectory"]["action"][1:])
+    assert np.all(np.abs(first) <= 1) and np.ptp(first) > 0.5
+    assert not np.array_equal(first[: len(second)], second[: len(first)])
+    assert PolicySpec.parse("random").label == "random"

@@ -30,7 +30,8 @@ class EvalConfig(StageConfig):
     m/s), pass-left or pass-right (the ego passes on that side); combine one of each, e.g. [static, pass-left].
     Empty: the task's own distribution (the report's scenario table then splits its episodes)."""
     policy: str = "expert"
-    """`expert` (the env's privileged expert), a run folder of `drivesim train`, or an exported `.onnx` file."""
+    """`expert` (the env's privileged expert), `random` (uniform random steering, a baseline), a run folder of
+    `drivesim train` (or one of its checkpoints, `<run>/checkpoints/<name>.pt`), or an exported `.onnx` file."""
     episodes: int = Field(1000, ge=1, le=10_000_000)
     """Number of episodes; episode i is reset with seed `seed + i`."""
     seed: int = Field(0, ge=0)

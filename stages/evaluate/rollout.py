@@ -84,6 +84,27 @@ class ExpertPolicy:
         return np.asarray(self.env.unwrapped.expert_action(), dtype=np.float32).reshape(1, -1), None
 
 
+class RandomPolicy:
+    """Uniform random steering in [-1, 1] (the baseline of the learning tables), drawn from the episode's seed so
+    an episode is the same in any worker."""
+
+    def __init__(self, env: Any) -> None:
+        self.env = env
+        self.rng = np.random.default_rng(0)
+
+    def initial_state(self, n: int) -> None:
+        """No state."""
+        return None
+
+    def predict(
+        self, obs: np.ndarray, state: Any, episode_start: np.ndarray, deterministic: bool = True
+    ) -> tuple[np.ndarray, Any]:
+        """A random action, shaped (1, 1)."""
+        if bool(np.asarray(episode_start).reshape(-1)[0]):
+            self.rng = np.random.default_rng(self.env.unwrapped.np_random_seed)  # the seed of the env's reset
+        return self.rng.uniform(-1.0, 1.0, (1, 1)).astype(np.float32), None
+
+
 @dataclass(frozen=True)
 class PolicySpec:
     """Which policy to evaluate (picklable): "expert", a run folder ("run") or an ONNX file ("onnx").
@@ -98,8 +119,8 @@ class PolicySpec:
     @classmethod
     def parse(cls, text: str) -> PolicySpec:
         """`expert`, a path ending in `.onnx`, or a run folder."""
-        if text == "expert":
-            return cls("expert")
+        if text in ("expert", "random"):
+            return cls(text)
         if text.lower().endswith(".onnx"):
             return cls("onnx", str(Path(text).absolute()))
         return cls("run", str(Path(text).absolute()))
@@ -107,12 +128,14 @@ class PolicySpec:
     @property
     def label(self) -> str:
         """A short name: "expert", the run folder's name or the ONNX file's stem."""
-        return "expert" if self.path is None else Path(self.path).stem if self.kind == "onnx" else Path(self.path).name
+        return self.kind if self.path is None else Path(self.path).stem if self.kind == "onnx" else Path(self.path).name
 
     def load(self, env: Any) -> Policy:
         """The policy (DrivesimError with one line for a bad run folder or ONNX file)."""
         if self.kind == "expert":
             return ExpertPolicy(env)
+        if self.kind == "random":
+            return RandomPolicy(env)
         if self.kind == "run":
             from drivesim.stages.policy.run_folder import load_policy
 

@@ -43,9 +43,13 @@ class _Plan:
     policy_path: Path | None
 
 
+BUILT_IN_POLICIES = ("expert", "random")
+"""Policies named by a word: the env's privileged expert, uniform random steering (a baseline)."""
+
+
 def _policy_label(policy: str) -> str:
-    if policy == "expert":
-        return "expert"
+    if policy in BUILT_IN_POLICIES:
+        return policy
     path = Path(policy)
     return path.stem if path.suffix.lower() == ".onnx" else path.name
 
@@ -76,7 +80,7 @@ def _plan(ws: Workspace, cfg: EvalConfig) -> _Plan:
         ws_meshes = ws.artifact_dir("meshes")
         meshes = ws_meshes if (ws_meshes / MANIFEST_NAME).is_file() else None
     policy_path = None
-    if cfg.policy != "expert":
+    if cfg.policy not in BUILT_IN_POLICIES:
         policy_path = Path(cfg.policy).absolute()
         if not policy_path.exists():
             what = "ONNX file" if policy_path.suffix.lower() == ".onnx" else "run folder"
@@ -96,7 +100,7 @@ def resolve(ws: Workspace, cfg: EvalConfig) -> tuple[EvalConfig, _Plan]:
         "name": plan.name,
         "world": None if plan.world_in_workspace else [str(w) for w in plan.worlds],
         "meshes": None if plan.meshes is None or cfg.meshes is None else str(plan.meshes),
-        "policy": "expert" if plan.policy_path is None else str(plan.policy_path),
+        "policy": cfg.policy if plan.policy_path is None else str(plan.policy_path),
     }
     return cfg.model_copy(update=update), plan
 
