@@ -31,6 +31,7 @@ from drivesim.diagnostics.fidelity import colour_depth, image_metrics
 from drivesim.pipeline.errors import InputError
 from drivesim.sim.fill import hole_box, inpaint_holes, merge_into_holes
 from drivesim.sim.geometry import camera_mount, invert, scale_intrinsics
+from drivesim.sim.view import ViewConfig
 from drivesim.sim.warp import forward_warp
 from drivesim.stages.ingest.kitti import KITTI_CAMERA_HEIGHT_M, parse_calib_file
 from drivesim.stages.preprocess.config import DepthConfig
@@ -42,7 +43,7 @@ from drivesim.stages.world.build import resize_depth, resize_frames
 IDENTITY = "identity (left as right)"
 REFERENCE = "stereo: SGBM on the true pair (reference)"
 DEFAULT_METHODS = ("plane", "mvs")
-FILL_FRAMES = (-1, 1, -2)  # the simulator's default (sim/view.py ViewConfig.fill_frames)
+FILL_FRAMES = ViewConfig().fill_frames  # the simulator's default (neighbour frames to fill from, then inpainting)
 _IMAGE_EXT = (".png", ".jpg", ".jpeg")
 
 
@@ -390,8 +391,13 @@ def stereo_markdown(result: StereoResult, machine: str, command: str, date: str)
         f"{result.working_size_px[0]}x{result.working_size_px[1]}, measured at {result.eval_size_px[0]}x"
         f"{result.eval_size_px[1]}; baseline {result.baseline_m:.3f} m (right camera to the right)",
         "- PSNR and SSIM over the pixels the warp fills; 'PSNR all' over the whole image with holes black; 'PSNR all,"
-        " holes filled' over the whole image with the holes filled as the policy's view is (the neighbouring left "
-        f"frames {', '.join(f'{o:+d}' for o in FILL_FRAMES)} warped into them and merged by depth, then inpainted)",
+        " holes filled' over the whole image with the holes filled as the policy's view is ("
+        + (
+            f"the neighbouring left frames {', '.join(f'{o:+d}' for o in FILL_FRAMES)} warped into them and merged by "
+            "depth, then inpainted)"
+            if FILL_FRAMES
+            else "inpainted: the simulator's default fills from no neighbour frame)"
+        ),
         "",
         "| depth | PSNR dB (filled) | SSIM (filled) | filled | PSNR dB (all) | PSNR dB (all, holes filled) | "
         "worst frame dB | s / frame |",

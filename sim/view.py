@@ -94,10 +94,13 @@ class ViewConfig(pydantic.BaseModel):
     """Cars farther than this from the camera (m, along the optical axis) are not drawn."""
     fill_holes: bool = True
     """Fill 1-2 px cracks of the warp (never larger disocclusions)."""
-    fill_frames: tuple[int, ...] = (-1, 1, -2)
+    fill_frames: tuple[int, ...] = ()
     """Neighbouring recorded frames (index offsets from the view's own frame) warped into what the view's own frame
     leaves empty (side wedges off the recorded path, disocclusions), in this order, merged by depth; () = none. Each
-    is warped only into the bounding box of the holes still open, and only while holes remain (`sim/fill.py`)."""
+    is warped only into the bounding box of the holes still open, and only while holes remain (`sim/fill.py`).
+    Default () (inpainting alone): (-1, 1, -2) recovers recorded data for lateral wedges (real lateral view, holes
+    counted: 0.45 dB below the filled pixels instead of 1.0 dB) but cost 2.8x the warp per follow step where
+    inpainting alone costs 1.4x (benchmarks/results/view_fill_speed.md, stereo_filled.md)."""
     inpaint: bool = True
     """Inpaint (OpenCV Telea) what no frame saw, so the policy never sees black; off: such pixels stay black."""
     contact_shadow: float = pydantic.Field(0.6, ge=0.0, le=1.0)
