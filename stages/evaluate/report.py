@@ -259,19 +259,21 @@ aggregates in <code>metrics.json</code>.</p>
 """
 
 
+def _ci_cell(e: dict[str, Any]) -> str:
+    """A rate with its 95 % interval as an HTML table cell ("—" without episodes)."""
+    if not e["n"]:
+        return "—"
+    return f"{e['value']:.3f} <span class=ci>[{e['ci_low']:.3f}, {e['ci_high']:.3f}]</span>"
+
+
 def _scenario_html(rows: Sequence[dict[str, Any]]) -> str:
     """The scenario table (the paper's Table II, offline) as HTML; empty without another car."""
     if not rows:
         return ""
 
-    def cell(e: dict[str, Any]) -> str:
-        if not e["n"]:
-            return "—"
-        return f"{e['value']:.3f} <span class=ci>[{e['ci_low']:.3f}, {e['ci_high']:.3f}]</span>"
-
     body = "".join(
-        f"<tr><td>{html.escape(r['scenario'])}</td><td>{r['episodes']}</td><td>{cell(r['success'])}</td>"
-        f"<td>{cell(r['intervention'])}</td></tr>"
+        f"<tr><td>{html.escape(r['scenario'])}</td><td>{r['episodes']}</td><td>{_ci_cell(r['success'])}</td>"
+        f"<td>{_ci_cell(r['intervention'])}</td></tr>"
         for r in rows
     )
     return (
@@ -287,14 +289,9 @@ def _starts_html(rows: Sequence[dict[str, Any]]) -> str:
     if not rows:
         return ""
 
-    def cell(e: dict[str, Any]) -> str:
-        if not e["n"]:
-            return "—"
-        return f"{e['value']:.3f} <span class=ci>[{e['ci_low']:.3f}, {e['ci_high']:.3f}]</span>"
-
     body = "".join(
         f"<tr><td>{html.escape(r['starts'])}</td><td>{r['episodes']}</td><td>{r['share']:.3f}</td>"
-        f"<td>{cell(r['success'])}</td><td>{cell(r['intervention'])}</td><td>{cell(r['collision'])}</td></tr>"
+        f"<td>{_ci_cell(r['success'])}</td><td>{_ci_cell(r['intervention'])}</td><td>{_ci_cell(r['collision'])}</td></tr>"
         for r in rows
     )
     return (
