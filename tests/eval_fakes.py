@@ -8,6 +8,7 @@ The fake env has the same spaces and `info` keys as drivesim's envs (INTERFACES 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import gymnasium
@@ -279,3 +280,15 @@ def register_fake_envs() -> None:
         env_id = f"drivesim-test/Fake{name}-v0"
         if env_id not in gymnasium.registry:
             gymnasium.register(env_id, entry_point="eval_fakes:FakeDrivingEnv", kwargs={"task": task})
+
+
+FAKE = {"env_id": "drivesim-test/FakeOvertake-v0", "env_entry_point": "eval_fakes:FakeDrivingEnv"}
+"""The eval config keys that evaluate in the fake overtake env instead of a drivesim world."""
+
+
+def fake_world(folder: Path, frames: int = 200) -> Path:
+    """A folder with just the reference path the fake env reads (path.npz: a gentle curve, 1 m per frame)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    x = np.arange(float(frames))
+    np.savez(folder / "path.npz", x_m=x, y_m=0.002 * x**2, arc_length_m=x)
+    return folder

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from eval_fakes import register_fake_envs
+from eval_fakes import FAKE, fake_world, register_fake_envs
 
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.evaluate import rollout
@@ -20,15 +20,7 @@ from drivesim.stages.evaluate.config import EvalConfig
 from drivesim.stages.evaluate.rollout import EnvFactory, PolicySpec, run_episodes
 from drivesim.stages.evaluate.stage import run_eval
 
-FAKE = {"env_id": "drivesim-test/FakeOvertake-v0", "env_entry_point": "eval_fakes:FakeDrivingEnv"}
 TESTS_DIR = Path(__file__).parent
-
-
-def _fake_world(folder: Path, frames: int = 200) -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    x = np.arange(float(frames))
-    np.savez(folder / "path.npz", x_m=x, y_m=0.002 * x**2, arc_length_m=x)
-    return folder
 
 
 def _factory(world: Path) -> EnvFactory:
@@ -61,7 +53,7 @@ def _make_run(folder: Path, task: str) -> Path:
 
 
 def test_same_seeds_give_the_same_files_with_one_or_two_workers(tmp_path):
-    factory = _factory(_fake_world(tmp_path / "world"))
+    factory = _factory(fake_world(tmp_path / "world"))
     seeds = list(range(10, 22))
     one, two = tmp_path / "one", tmp_path / "two"
     assert run_episodes(factory, PolicySpec("expert"), "overtake", seeds, one, workers=1) == 12
@@ -76,7 +68,7 @@ def test_same_seeds_give_the_same_files_with_one_or_two_workers(tmp_path):
 
 
 def test_a_trained_policy_gives_the_same_files_with_one_or_two_workers(tmp_path):
-    factory = _factory(_fake_world(tmp_path / "world"))
+    factory = _factory(fake_world(tmp_path / "world"))
     spec = PolicySpec("run", str(_make_run(tmp_path / "runs" / "overtake-1", "overtake")))
     seeds = list(range(4))
     run_episodes(factory, spec, "overtake", seeds, tmp_path / "one", workers=1)
@@ -88,7 +80,7 @@ def test_a_trained_policy_gives_the_same_files_with_one_or_two_workers(tmp_path)
 
 
 def test_interrupted_evaluation_resumes_and_loses_nothing(tmp_path, monkeypatch):
-    world = _fake_world(tmp_path / "world")
+    world = fake_world(tmp_path / "world")
     cfg = EvalConfig(episodes=12, world=str(world), workers=1, **FAKE)
     calls = {"n": 0}
     original = rollout.RunningRate.add
@@ -145,7 +137,7 @@ def _fake_args(world: Path) -> list[str]:
 
 @pytest.mark.parametrize("case", ["missing_run", "unfinished_run", "other_task_run", "short_world", "not_a_world"])
 def test_bad_input_is_one_line_and_no_report(tmp_path, case):
-    world = _fake_world(tmp_path / "world")
+    world = fake_world(tmp_path / "world")
     args = _fake_args(world) + ["--episodes", "3", "--workers", "1"]
     expect = {
         "missing_run": "no such run folder",
@@ -164,7 +156,7 @@ def test_bad_input_is_one_line_and_no_report(tmp_path, case):
     elif case == "other_task_run":
         args += ["--policy", str(_make_run(tmp_path / "runs" / "follow-1", "follow"))]
     elif case == "short_world":
-        short = _fake_world(tmp_path / "world-too-short", frames=10)
+        short = fake_world(tmp_path / "world-too-short", frames=10)
         args = _fake_args(short) + ["--episodes", "3", "--workers", "1"]
     else:
         empty = tmp_path / "empty"
@@ -191,7 +183,7 @@ def test_onnx_with_wrong_inputs_is_one_line(tmp_path):
     )
     path = tmp_path / "wrong.onnx"
     onnx.save(helper.make_model(graph), path)
-    result = _run_cli(tmp_path / "ws", *_fake_args(_fake_world(tmp_path / "world")), "--policy", str(path))
+    result = _run_cli(tmp_path / "ws", *_fake_args(fake_world(tmp_path / "world")), "--policy", str(path))
     assert result.returncode == 2, result.stdout + result.stderr
     assert len([line for line in result.stderr.splitlines() if line.strip()]) == 1
     assert not (tmp_path / "ws" / "eval" / "overtake-wrong").exists()
@@ -202,7 +194,7 @@ def test_report_renders_with_its_images_in_headless_chromium(tmp_path):
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
         pytest.skip("chromium is not installed (scripts/setup.sh installs it: apt-get install chromium)")
-    world = _fake_world(tmp_path / "world")
+    world = fake_world(tmp_path / "world")
     result = _run_cli(tmp_path / "ws", *_fake_args(world), "--episodes", "30", "--workers", "2", "--video", "2")
     assert result.returncode == 0, result.stdout + result.stderr
     folder = tmp_path / "ws" / "eval" / "overtake-expert"
@@ -264,7 +256,7 @@ def test_report_renders_with_its_images_in_headless_chromium(tmp_path):
 
 def test_follow_reports_tracking_error_by_track_position(tmp_path):
     register_fake_envs()
-    world = _fake_world(tmp_path / "world")
+    world = fake_world(tmp_path / "world")
     cfg = EvalConfig(
         task="follow",
         episodes=4,
@@ -284,7 +276,7 @@ def test_follow_reports_tracking_error_by_track_position(tmp_path):
 
 def test_resume_into_fewer_episodes_keeps_only_those(tmp_path, monkeypatch):
     register_fake_envs()
-    world = _fake_world(tmp_path / "world")
+    world = fake_world(tmp_path / "world")
     ws = Workspace(tmp_path / "ws")
     original = rollout.RunningRate.add
 
@@ -317,7 +309,7 @@ def test_onnx_policy_gives_the_torch_policy_metrics(tmp_path):
     from drivesim.stages.policy.run_folder import load_policy
 
     register_fake_envs()
-    world = _fake_world(tmp_path / "world")
+    world = fake_world(tmp_path / "world")
     run = _make_run(tmp_path / "runs" / "overtake-1", "overtake")
     loaded = load_policy(run)
     onnx_path = tmp_path / "policy.onnx"
@@ -339,7 +331,7 @@ def test_onnx_policy_gives_the_torch_policy_metrics(tmp_path):
 def test_random_policy_is_a_baseline_that_repeats_its_episodes(tmp_path):
     """`--policy random` steers at random, drawn from each episode's seed: the same files with one or two workers,
     actions spread over [-1, 1], and other seeds other actions."""
-    factory = _factory(_fake_world(tmp_path / "world"))
+    factory = _factory(fake_world(tmp_path / "world"))
     seeds = list(range(6))
     run_episodes(factory, PolicySpec.parse("random"), "overtake", seeds, tmp_path / "one", workers=1)
     run_episodes(factory, PolicySpec.parse("random"), "overtake", seeds, tmp_path / "two", workers=2)

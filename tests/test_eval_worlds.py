@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from eval_fakes import lane_departure_record, pass_record
+from eval_fakes import FAKE, fake_world, lane_departure_record, pass_record
 
 from drivesim.pipeline.errors import ConfigError
 from drivesim.pipeline.workspace import Workspace
@@ -20,15 +20,7 @@ from drivesim.stages.evaluate.metrics import evaluate_episode
 from drivesim.stages.evaluate.stage import run_eval
 from drivesim.stages.evaluate.worlds import world_labels, world_tables
 
-FAKE = {"env_id": "drivesim-test/FakeOvertake-v0", "env_entry_point": "eval_fakes:FakeDrivingEnv"}
 TESTS_DIR = Path(__file__).parent
-
-
-def _fake_world(folder: Path, frames: int = 200) -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    x = np.arange(float(frames))
-    np.savez(folder / "path.npz", x_m=x, y_m=0.002 * x**2, arc_length_m=x)
-    return folder
 
 
 def _make_run(folder: Path, trained_on: list[Path]) -> Path:
@@ -81,14 +73,14 @@ def test_per_world_rows_pool_and_gap_count_every_episode() -> None:
 def test_one_world_keeps_its_identity_and_a_repeat_is_refused(tmp_path: Path) -> None:
     one = EvalConfig(world=str(tmp_path)).model_dump(mode="json")
     assert one["world"] == str(tmp_path) and EvalConfig(world=[str(tmp_path)]).model_dump(mode="json") == one
-    world = _fake_world(tmp_path / "w")
+    world = fake_world(tmp_path / "w")
     with pytest.raises(ConfigError, match="twice"):
         run_eval(Workspace(tmp_path / "ws"), EvalConfig(world=[str(world), str(world)], episodes=1, **FAKE))
 
 
 def test_two_worlds_same_seeds_rows_labelled_by_the_run(tmp_path: Path) -> None:
-    seen = _fake_world(tmp_path / "towns" / "seed1" / "world")
-    unseen = _fake_world(tmp_path / "towns" / "seed2" / "world")
+    seen = fake_world(tmp_path / "towns" / "seed1" / "world")
+    unseen = fake_world(tmp_path / "towns" / "seed2" / "world")
     run = _make_run(tmp_path / "ws" / "runs" / "overtake-test", trained_on=[seen])
     cfg = EvalConfig(world=[str(seen), str(unseen)], episodes=3, seed=5, workers=1, policy=str(run), **FAKE)
     result = run_eval(Workspace(tmp_path / "ws"), cfg)
@@ -113,7 +105,7 @@ def test_two_worlds_same_seeds_rows_labelled_by_the_run(tmp_path: Path) -> None:
 
 
 def test_one_world_writes_no_world_table(tmp_path: Path) -> None:
-    world = _fake_world(tmp_path / "w")
+    world = fake_world(tmp_path / "w")
     result = run_eval(Workspace(tmp_path / "ws"), EvalConfig(world=str(world), episodes=2, workers=1, **FAKE))
     data = json.loads((result.path / "metrics.json").read_text())
     assert "per_world" not in data and data["world"] == str(world)
@@ -122,7 +114,7 @@ def test_one_world_writes_no_world_table(tmp_path: Path) -> None:
 
 
 def test_cli_prints_a_row_per_world_and_the_pooled_row(tmp_path: Path) -> None:
-    a, b = _fake_world(tmp_path / "a"), _fake_world(tmp_path / "b")
+    a, b = fake_world(tmp_path / "a"), fake_world(tmp_path / "b")
     env = {**os.environ, "PYTHONPATH": str(TESTS_DIR), "OMP_NUM_THREADS": "1", "COLUMNS": "200"}
     args = ["--world", str(a), "--world", str(b), "--episodes", "2", "--workers", "1", "--policy", "expert"]
     args += ["--set", f"env_id={FAKE['env_id']}", "--set", f"env_entry_point={FAKE['env_entry_point']}"]
