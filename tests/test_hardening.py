@@ -21,8 +21,8 @@ from pathlib import Path
 import psutil
 import pytest
 import torch
-from eval_fakes import register_fake_envs
-from test_eval_stage import FAKE, _fake_world, _make_run
+from eval_fakes import FAKE, fake_world, register_fake_envs
+from test_eval_stage import _make_run
 from test_train import small_config
 
 from drivesim.cli.main import main
@@ -94,7 +94,7 @@ def _listing(folder: Path) -> dict[str, tuple[int, int]]:
 def test_killed_evaluation_leaves_no_worker_and_resumes(tmp_path: Path) -> None:
     """SIGTERM: one line, exit 143, no temporary folder, no worker left. SIGKILL: the workers die with the parent and
     write nothing after. The same command then finishes the evaluation with every episode."""
-    world = _fake_world(tmp_path / "world")
+    world = fake_world(tmp_path / "world")
     ws = tmp_path / "ws"
     command = _eval_command(ws, world, "--episodes", "8", "--workers", "2")
     episodes = ws / "eval" / ".partial-overtake-expert" / "episodes"
@@ -257,7 +257,7 @@ def test_full_disk_names_the_folder_and_keeps_nothing(tmp_path, monkeypatch, cap
     """An evaluation on a 256 KB disk (a real tmpfs where possible, else a simulated ENOSPC): one line naming the
     workspace and the space left, no artifact, no temporary folder."""
     register_fake_envs()
-    world = _fake_world(tmp_path / "world")
+    world = fake_world(tmp_path / "world")
     small = tmp_path / "small"
     mounted = _mount_tmpfs(small, "256k")
     try:
@@ -332,7 +332,7 @@ def test_rerun_never_replaces_an_evaluation_made_with_other_settings(tmp_path) -
     """`drivesim eval --episodes N` in a chain's workspace, then `drivesim run` again: the chain's evaluation goes
     beside it; `drivesim eval` with other settings refuses naming --force; --force replaces."""
     register_fake_envs()
-    world = _fake_world(tmp_path / "world")
+    world = fake_world(tmp_path / "world")
     run = _make_run(tmp_path / "ws" / "runs" / "overtake-1", "overtake")
     ws = Workspace(tmp_path / "ws")
     users = run_eval(ws, EvalConfig(episodes=6, world=str(world), workers=1, policy=str(run), **FAKE))

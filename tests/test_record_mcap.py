@@ -14,7 +14,7 @@ import cv2
 import gymnasium
 import numpy as np
 import pytest
-from eval_fakes import register_fake_envs
+from eval_fakes import FAKE, fake_world, register_fake_envs
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.Log_pb2 import Log
@@ -24,7 +24,7 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from mcap_protobuf.schema import build_file_descriptor_set
 from sim_worlds import SMALL_VIEW, write_test_world
-from test_eval_stage import FAKE, _factory, _fake_world, _make_run
+from test_eval_stage import _factory, _make_run
 
 from drivesim.pipeline.errors import ConfigError
 from drivesim.pipeline.workspace import Workspace
@@ -188,7 +188,7 @@ def test_the_road_is_the_path_with_its_lane_bounds_and_off_lane_limits(failed_ep
 
 
 def test_eval_records_the_first_failures_capped_and_the_report_links_them(tmp_path, monkeypatch):
-    world = _fake_world(tmp_path / "world")
+    world = fake_world(tmp_path / "world")
     run = _make_run(tmp_path / "runs" / "overtake-1", "overtake")  # random weights: every episode fails
     monkeypatch.setattr(record, "FAILURES_CAP", 3)
     cfg = EvalConfig(episodes=6, world=str(world), workers=1, policy=str(run), **FAKE)
@@ -223,7 +223,7 @@ def test_the_capped_failures_are_the_lowest_seeds_in_any_finishing_order(tmp_pat
 
 
 def test_record_n_all_and_none(tmp_path):
-    factory = _factory(_fake_world(tmp_path / "world"))
+    factory = _factory(fake_world(tmp_path / "world"))
     seeds = [0, 1, 2, 3]
     for value, expected in ((2, [0, 1]), ("all", seeds), ("failures", [0]), ("none", None), (0, None)):
         plan = record.record_plan(value, seeds, tmp_path / f"work-{value}", tmp_path / "world")
@@ -245,7 +245,7 @@ def test_record_n_all_and_none(tmp_path):
 
 def test_a_replayed_recording_is_the_one_the_worker_wrote(tmp_path):
     """The Ray backend's actors and resumed episodes do not record: those recordings are replayed, identically."""
-    world = _fake_world(tmp_path / "world")
+    world = fake_world(tmp_path / "world")
     factory = _factory(world)
     seeds = [0, 1, 2]
     plan = record.record_plan("all", seeds, tmp_path / "by-worker", world)

@@ -100,8 +100,8 @@ def render(vs: ViewSynthesizer, frame: int, lateral_m: float, yaw_rad: float = 0
 
 def test_neighbour_frames_fill_the_side_wedge_with_what_is_really_there(tmp_path):
     """2 m to the left of frame 4, the frame alone leaves a wedge on the left; the frames behind it saw most of that
-    ground, and what they put there is the true ground (as close to it as the frame's own pixels are, while a wrong pose
-would put the stripes elsewhere); inpainting leaves no black pixel."""
+    ground, and what they put there is the true ground (as close to it as the frame's own pixels are, while a wrong
+    pose would put the stripes elsewhere); inpainting leaves no black pixel."""
     world = make_world(tmp_path)
     alone = ViewSynthesizer(world, ViewConfig(**SMALL, fill_frames=(), inpaint=False))
     merged = ViewSynthesizer(world, ViewConfig(**SMALL, fill_frames=(-1, -2, 1), inpaint=False))
