@@ -47,8 +47,8 @@ def coverage_rows(world_path: str, step: int = 2) -> list[dict]:
     """(a): fractions of the view by source, per pose and variant, over every `step`-th frame of the drive."""
     import torch
 
-    from drivesim.sim.envs.base import default_roi
     from drivesim.sim.envs.config import EnvConfig
+    from drivesim.sim.envs.roi import default_roi
     from drivesim.sim.geometry import yaw_of
     from drivesim.sim.view import ViewConfig, ViewSynthesizer, planar_transforms
     from drivesim.sim.world import World

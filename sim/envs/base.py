@@ -24,6 +24,7 @@ from drivesim.sim.dynamics import BicycleState, curvature_of_steering
 from drivesim.sim.envs.augment import Augmentation
 from drivesim.sim.envs.config import EnvConfig
 from drivesim.sim.envs.rewards import collision_reward, comfort_reward, lane_reward
+from drivesim.sim.envs.roi import roi_for
 from drivesim.sim.envs.termination import termination_flags
 from drivesim.sim.footprint import clearance_m, collision_overlap, footprint
 from drivesim.sim.simulator import TIMING_KEYS, Simulator, make_view_synthesizer, render_requests
@@ -57,15 +58,6 @@ def load_vehicles(meshes: Any) -> Any:
     from drivesim.sim.vehicle_library import VehicleLibrary  # trimesh: only for tasks with other cars
 
     return VehicleLibrary.procedural() if meshes is None else VehicleLibrary.load(meshes)
-
-
-def default_roi(width_px: int, height_px: int, config: EnvConfig) -> tuple[int, int, int, int]:
-    """The largest region with the observation's aspect, centred across, at the bottom of the image."""
-    aspect = config.observation_width_px / config.observation_height_px
-    w, h = width_px, round(width_px / aspect)
-    if h > height_px:
-        w, h = round(height_px * aspect), height_px
-    return ((width_px - w) // 2, height_px - h, w, h)
 
 
 class DrivingEnv(gymnasium.Env):
@@ -114,9 +106,8 @@ class DrivingEnv(gymnasium.Env):
 
     # --- episode start -------------------------------------------------------------------------------------------
     def roi_px_of(self, world_index: int = 0) -> tuple[int, int, int, int]:
-        """(x0, y0, w, h) of world `world_index`'s sim image that the policy sees: `roi_px`, else the default."""
-        c, world = self.config, self.worlds[world_index]
-        return tuple(c.roi_px) if c.roi_px is not None else default_roi(world.width_px, world.height_px, c)
+        """(x0, y0, w, h) of world `world_index`'s sim image that the policy sees (`roi.py`)."""
+        return roi_for(self.worlds[world_index], self.config)
 
     def _renderer(self, world_index: int) -> Any:
         if world_index not in self._renderers:

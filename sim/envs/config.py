@@ -98,6 +98,12 @@ class EnvConfig(BaseModel):
     roi_px: tuple[int, int, int, int] | None = None
     """(x0, y0, w, h) region of the world's sim image that the policy sees, pixels; None: the largest region with
     the observation's aspect, centred across and at the bottom of the image ((0, 72, 320, 128) at 320 x 200)."""
+    roi_fov_deg: float | None = Field(None, gt=0.0, lt=180.0)
+    """Horizontal field of view of the policy's image, degrees: the region is placed by each world's intrinsics and
+    camera mounting (centred straight ahead, the horizon at `roi_horizon_fraction` of its height), so worlds from
+    different cameras show the same angles; None: `roi_px`, else the default region."""
+    roi_horizon_fraction: float = Field(0.45, ge=0.0, lt=1.0)
+    """With `roi_fov_deg`: where the horizon sits in the policy's image, as a fraction of its height from the top."""
     observation_width_px: int = Field(160, ge=8, le=4096)
     """Width of the observation (the policy's image), pixels; with the height, the `observation_shape`
     (3, height, width) that the run config, the policy and the ONNX export record."""
@@ -128,6 +134,8 @@ class EnvConfig(BaseModel):
                 raise ValueError(f"{name}: ({value[0]}, {value[1]}) must not be negative")
         if self.gamma[0] <= 0:
             raise ValueError(f"gamma: ({self.gamma[0]}, {self.gamma[1]}) must be positive")
+        if self.roi_px is not None and self.roi_fov_deg is not None:
+            raise ValueError("roi_px and roi_fov_deg both given: give the region in pixels or in degrees, not both")
         if self.roi_px is not None and (min(self.roi_px) < 0 or self.roi_px[2] < 1 or self.roi_px[3] < 1):
             raise ValueError(f"roi_px {self.roi_px}: give (x0, y0, width, height) with x0, y0 >= 0 and a size >= 1")
         return self

@@ -48,7 +48,8 @@ class ExportSummary(StageSummary):
 
 def roi_of(env_config: dict[str, Any]) -> list[int] | None:
     """The region of interest (x0, y0, w, h) of the sim image the policy sees, as the run's env config records it
-    (training resolves it; null only for a run over worlds whose regions differ)."""
+    (training resolves it; null for a run over worlds whose regions differ, or whose region is given in degrees:
+    then `env_config.roi_fov_deg` and `roi_horizon_fraction` place it on the camera, `drivesim.sim.envs.roi`)."""
     roi = env_config.get("roi_px")
     return None if roi is None else [int(v) for v in roi]
 

@@ -98,14 +98,15 @@ class EnvSource:
 
     def resolved_env_config(self, env: gymnasium.Env) -> dict[str, Any]:
         """The full env config of a made env (its `config` when it has one), else the overrides; `roi_px` resolved
-        to the region the policy sees when every world of the run has the same one (else left null)."""
+        to the region the policy sees when every world of the run has the same one (else left null; left null too
+        when the region is given in degrees, `roi_fov_deg`, which places it on any camera)."""
         unwrapped = env.unwrapped
         config = getattr(unwrapped, "config", None)
         if not hasattr(config, "model_dump"):
             return dict(self.overrides)
         resolved = config.model_dump(mode="json")
         roi_of = getattr(unwrapped, "roi_px_of", None)
-        if callable(roi_of):
+        if callable(roi_of) and resolved.get("roi_fov_deg") is None:
             rois = {tuple(int(v) for v in roi_of(i)) for i in range(len(unwrapped.worlds))}
             if len(rois) == 1:
                 resolved["roi_px"] = list(rois.pop())

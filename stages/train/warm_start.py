@@ -4,8 +4,9 @@ of the value head to the cloned policy's returns, before PPO.
 Written against the policy's own `evaluate_actions` over fixed-length sequence chunks with their LSTM states (the
 `imitation` package pins an old stable-baselines3 and its behaviour cloning ignores the LSTM state). Round 0 drives
 with the expert; round i drives with the expert with probability beta**i per step and env, else with the learner
-(stochastic, as PPO will), and always records the expert's label; the learner is fitted to all data gathered so
-far. The log std of the steering is not fitted (cloning would shrink it to nothing and leave PPO no exploration).
+(stochastic, as PPO will), and always records the expert's label; after each round the learner is fitted on
+minibatches drawn from all data gathered so far, `epochs` passes' worth of one round's steps. The log std of the
+steering is not fitted (cloning would shrink it to nothing and leave PPO no exploration).
 """
 
 from __future__ import annotations
@@ -90,32 +91,42 @@ def _concat(a: ChunkData | None, b: ChunkData) -> ChunkData:
     )
 
 
+def _batches(total: int, batches: int, chunks_per_batch: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """`batches` minibatches of chunk ids drawn from all `total` chunks, each id once per pass over them."""
+    passes = -(-batches * chunks_per_batch // total)
+    ids = np.concatenate([rng.permutation(total) for _ in range(passes)])
+    size = max(1, min(chunks_per_batch, total))
+    return [ids[i * size : (i + 1) * size] for i in range(batches)]
+
+
 def _clone(
-    model: ChunkedRecurrentPPO, data: ChunkData, epochs: int, optimizer: torch.optim.Optimizer, chunks_per_batch: int
+    model: ChunkedRecurrentPPO,
+    data: ChunkData,
+    batches: list[np.ndarray],
+    optimizer: torch.optim.Optimizer,
 ) -> float:
-    """Fit the steering to the expert's labels (negative log-likelihood with the std fixed); the last mean loss."""
+    """Fit the steering to the expert's labels on the given minibatches of chunks (negative log-likelihood with the
+    std fixed); the mean loss of the last quarter of them."""
     policy = model.policy
     policy.set_training_mode(True)
     losses = []
-    for _ in range(epochs):
-        losses = []
-        for ids in np.array_split(np.random.permutation(len(data.obs)), max(1, len(data.obs) // chunks_per_batch)):
-            obs = torch.from_numpy(data.obs[ids].reshape(-1, *data.obs.shape[2:]))
-            h = torch.from_numpy(np.ascontiguousarray(data.h[ids].swapaxes(0, 1)))
-            c = torch.from_numpy(np.ascontiguousarray(data.c[ids].swapaxes(0, 1)))
-            _, log_prob, _ = policy.evaluate_actions(
-                obs.float(),
-                torch.from_numpy(data.labels[ids].reshape(-1, 1)),
-                RNNStates((h, c), (h, c)),
-                torch.from_numpy(data.starts[ids].reshape(-1)),
-            )
-            loss = -log_prob.mean()
-            optimizer.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
-            optimizer.step()
-            losses.append(loss.item())
-    return float(np.mean(losses)) if losses else float("nan")
+    for ids in batches:
+        obs = torch.from_numpy(data.obs[ids].reshape(-1, *data.obs.shape[2:]))
+        h = torch.from_numpy(np.ascontiguousarray(data.h[ids].swapaxes(0, 1)))
+        c = torch.from_numpy(np.ascontiguousarray(data.c[ids].swapaxes(0, 1)))
+        _, log_prob, _ = policy.evaluate_actions(
+            obs.float(),
+            torch.from_numpy(data.labels[ids].reshape(-1, 1)),
+            RNNStates((h, c), (h, c)),
+            torch.from_numpy(data.starts[ids].reshape(-1)),
+        )
+        loss = -log_prob.mean()
+        optimizer.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
+        optimizer.step()
+        losses.append(loss.item())
+    return float(np.mean(losses[-max(1, len(losses) // 4) :])) if losses else float("nan")
 
 
 def _fit_value(
@@ -196,7 +207,10 @@ def warm_start(
         beta = cfg.beta**round_
         new, share = _collect(model, venv, cfg.steps_per_iteration // n, beta, rng, carry)
         data = _concat(data, new)
-        loss = _clone(model, data, cfg.epochs, optimizer, chunks_per_batch)
+        # Passes over the new round's size, drawn from all data: each round costs the same (fitting every epoch over
+        # all data made round i cost i+1 times round 0, 36 rounds' worth of gradient steps for 8 rounds).
+        batches = _batches(len(data.obs), cfg.epochs * max(1, len(new.obs) // chunks_per_batch), chunks_per_batch, rng)
+        loss = _clone(model, data, batches, optimizer)
         figures[f"warm_start_bc_loss_{round_}"] = loss
         report(
             f"warm start round {round_}: expert drove {share:.0%} of {len(new.obs) * model.sequence_length} "
