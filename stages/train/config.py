@@ -134,6 +134,16 @@ class WarmStartConfig(_Section):
     """Passes over those steps for the value head."""
 
 
+class ImitationConfig(_Section):
+    """Cloning of the privileged expert on PPO's own rollouts after each update, a regularizer that keeps PPO near the
+    expert where its reward misleads it (stages/train/imitation.py); off by default, as in the paper."""
+
+    epochs: int = Field(0, ge=0, le=1000)
+    """Cloning passes over each rollout after its PPO update (0: off)."""
+    learning_rate: float = Field(1e-4, gt=0.0, le=1.0)
+    """Adam learning rate of the cloning (the std is left to PPO)."""
+
+
 class TrainConfig(StageConfig):
     """`drivesim train`: PPO with a CNN and an LSTM (paper §III-C, §IV-A)."""
 
@@ -163,6 +173,8 @@ class TrainConfig(StageConfig):
     """Periodic evaluation."""
     warm_start: WarmStartConfig = Field(default_factory=WarmStartConfig)
     """Warm start from the privileged expert."""
+    imitation: ImitationConfig = Field(default_factory=ImitationConfig)
+    """Imitation of the privileged expert alongside PPO."""
 
     @field_validator("towns")
     @classmethod

@@ -23,6 +23,7 @@ from drivesim.stages.train.best import BEST_CHECKPOINT, BestPolicy
 from drivesim.stages.train.callbacks import RunState, TrainingCallback
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.envs import EnvSource
+from drivesim.stages.train.imitation import ExpertLabels, ImitationRegularizer
 from drivesim.stages.train.periodic_eval import PeriodicEvaluator
 from drivesim.stages.train.recurrent import ChunkedRecurrentPPO, TimedVecEnv
 from drivesim.stages.train.run_files import (
@@ -213,7 +214,8 @@ def train_in_folder(
         timed = TimedVecEnv(source.make_vec(cfg.envs.count, kind, cfg.seed + done_steps, address=cfg.envs.address))
     except (ValueError, FileNotFoundError) as e:  # the envs' one-line errors (short world, missing meshes, ...)
         raise DrivesimError(f"cannot make the {cfg.task} env: {str(e).splitlines()[0]}") from e
-    venv = VecNormalize(timed, norm_obs=False, norm_reward=cfg.ppo.normalize_reward, gamma=cfg.ppo.gamma)
+    labelled = ExpertLabels(timed, cfg.steps_per_env()) if cfg.imitation.epochs > 0 else None
+    venv = VecNormalize(labelled or timed, norm_obs=False, norm_reward=cfg.ppo.normalize_reward, gamma=cfg.ppo.gamma)
     run_dir.mkdir(parents=True, exist_ok=True)
     evaluator = None
     try:
@@ -229,6 +231,10 @@ def train_in_folder(
         write_run_config(run_dir, cfg, source, env_config, probe.observation_space.shape)
         model = build_model(cfg, venv)
         model.set_logger(configure(str(run_dir / "tb"), ["tensorboard"]))
+        if labelled is not None:
+            model.update_hooks.append(
+                ImitationRegularizer(model, labelled, cfg.imitation.epochs, cfg.imitation.learning_rate, cfg.seed)
+            )
         state = RunState()
         figures: dict[str, float] = {}
         if last.is_file():

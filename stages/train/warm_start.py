@@ -12,7 +12,6 @@ steering is not fitted (cloning would shrink it to nothing and leave PPO no expl
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -21,19 +20,8 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from drivesim.stages.train.config import WarmStartConfig
 from drivesim.stages.train.envs import expert_actions
+from drivesim.stages.train.imitation import ChunkData, cloning_optimizer, fit_to_labels, minibatches, to_chunks
 from drivesim.stages.train.recurrent import ChunkedRecurrentPPO, ChunkedRolloutBuffer
-
-
-@dataclass
-class ChunkData:
-    """Sequence chunks: obs (K, L, C, H, W) uint8, starts (K, L), labels (K, L, 1), LSTM state at each chunk's start
-    (h, c) (K, layers, hidden)."""
-
-    obs: np.ndarray
-    starts: np.ndarray
-    labels: np.ndarray
-    h: np.ndarray
-    c: np.ndarray
 
 
 def _collect(
@@ -67,13 +55,10 @@ def _collect(
         carry.update(obs=next_obs, start=dones.astype(np.float32), state=new_state.pi)
     k = steps_per_env // L
 
-    def chunks(a: np.ndarray) -> np.ndarray:  # (T, n, ...) -> (k * n, L, ...), chunk id = time chunk * n + env
-        return a.reshape(k, L, n, *a.shape[2:]).swapaxes(1, 2).reshape(k * n, L, *a.shape[2:])
-
     data = ChunkData(
-        chunks(obs_buf),
-        chunks(starts),
-        chunks(labels),
+        to_chunks(obs_buf, L),
+        to_chunks(starts, L),
+        to_chunks(labels, L),
         hs.reshape(k * n, layers, hidden),
         cs.reshape(k * n, layers, hidden),
     )
@@ -89,44 +74,6 @@ def _concat(a: ChunkData | None, b: ChunkData) -> ChunkData:
             for x, y in zip((a.obs, a.starts, a.labels, a.h, a.c), (b.obs, b.starts, b.labels, b.h, b.c), strict=True)
         )
     )
-
-
-def _batches(total: int, batches: int, chunks_per_batch: int, rng: np.random.Generator) -> list[np.ndarray]:
-    """`batches` minibatches of chunk ids drawn from all `total` chunks, each id once per pass over them."""
-    passes = -(-batches * chunks_per_batch // total)
-    ids = np.concatenate([rng.permutation(total) for _ in range(passes)])
-    size = max(1, min(chunks_per_batch, total))
-    return [ids[i * size : (i + 1) * size] for i in range(batches)]
-
-
-def _clone(
-    model: ChunkedRecurrentPPO,
-    data: ChunkData,
-    batches: list[np.ndarray],
-    optimizer: torch.optim.Optimizer,
-) -> float:
-    """Fit the steering to the expert's labels on the given minibatches of chunks (negative log-likelihood with the
-    std fixed); the mean loss of the last quarter of them."""
-    policy = model.policy
-    policy.set_training_mode(True)
-    losses = []
-    for ids in batches:
-        obs = torch.from_numpy(data.obs[ids].reshape(-1, *data.obs.shape[2:]))
-        h = torch.from_numpy(np.ascontiguousarray(data.h[ids].swapaxes(0, 1)))
-        c = torch.from_numpy(np.ascontiguousarray(data.c[ids].swapaxes(0, 1)))
-        _, log_prob, _ = policy.evaluate_actions(
-            obs.float(),
-            torch.from_numpy(data.labels[ids].reshape(-1, 1)),
-            RNNStates((h, c), (h, c)),
-            torch.from_numpy(data.starts[ids].reshape(-1)),
-        )
-        loss = -log_prob.mean()
-        optimizer.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
-        optimizer.step()
-        losses.append(loss.item())
-    return float(np.mean(losses[-max(1, len(losses) // 4) :])) if losses else float("nan")
 
 
 def _fit_value(
@@ -198,8 +145,7 @@ def warm_start(
     n = venv.num_envs
     zeros = torch.zeros(layers, n, hidden)
     carry = {"obs": venv.reset(), "start": np.ones(n, np.float32), "state": (zeros, zeros.clone())}
-    params = [p for name, p in policy.named_parameters() if name != "log_std"]
-    optimizer = torch.optim.Adam(params, lr=cfg.learning_rate)
+    optimizer = cloning_optimizer(model, cfg.learning_rate)
     chunks_per_batch = max(1, model.batch_size // model.sequence_length)
     data: ChunkData | None = None
     figures: dict[str, float] = {}
@@ -209,8 +155,9 @@ def warm_start(
         data = _concat(data, new)
         # Passes over the new round's size, drawn from all data: each round costs the same (fitting every epoch over
         # all data made round i cost i+1 times round 0, 36 rounds' worth of gradient steps for 8 rounds).
-        batches = _batches(len(data.obs), cfg.epochs * max(1, len(new.obs) // chunks_per_batch), chunks_per_batch, rng)
-        loss = _clone(model, data, batches, optimizer)
+        count = cfg.epochs * max(1, len(new.obs) // chunks_per_batch)
+        batches = minibatches(len(data.obs), count, chunks_per_batch, rng)
+        loss = fit_to_labels(model, data, batches, optimizer)
         figures[f"warm_start_bc_loss_{round_}"] = loss
         report(
             f"warm start round {round_}: expert drove {share:.0%} of {len(new.obs) * model.sequence_length} "
