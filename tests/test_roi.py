@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 from types import SimpleNamespace
 
 import numpy as np
 import pydantic
 import pytest
+from sim_worlds import write_test_world
 
 from drivesim.sim.envs.config import EnvConfig
 from drivesim.sim.envs.roi import angular_roi, roi_for, straight_ahead_px
@@ -66,3 +69,15 @@ def test_a_view_too_wide_for_the_image_names_the_widest_that_fits():
 def test_pixels_and_degrees_together_are_refused():
     with pytest.raises(pydantic.ValidationError, match="roi_px and roi_fov_deg both given"):
         EnvConfig(roi_px=(0, 0, 100, 40), roi_fov_deg=60)
+
+
+def test_eval_refuses_a_camera_too_narrow_for_the_view_in_one_line(tmp_path):
+    world = write_test_world(tmp_path / "world")  # 80 x 50 at 90 degrees: room for about 80 degrees at 45 %
+    result = subprocess.run(
+        [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(tmp_path / "ws"), "eval", "--task", "lane",
+         "--policy", "expert", "--world", str(world), "--episodes", "2", "--set", "env.roi_fov_deg=120"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    assert "no room for a 120 degree view" in result.stderr and "degrees fit" in result.stderr
+    assert "Traceback" not in result.stderr and not (tmp_path / "ws" / "eval").exists()

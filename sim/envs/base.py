@@ -82,6 +82,7 @@ class DrivingEnv(gymnasium.Env):
         self.render_mode = render_mode
         c = self.config
         self.worlds = load_worlds(world, c.min_path_length_m + c.end_margin_m)
+        self._rois = [roi_for(w, c) for w in self.worlds]  # a camera too small for the view is refused here
         self.vehicles = load_vehicles(meshes) if self.has_other else None
         self.collision_threshold = c.collision_overlap_train if mode == "train" else c.collision_overlap_eval
         self._timings = dict.fromkeys(TIMING_KEYS, 0.0)
@@ -107,7 +108,7 @@ class DrivingEnv(gymnasium.Env):
     # --- episode start -------------------------------------------------------------------------------------------
     def roi_px_of(self, world_index: int = 0) -> tuple[int, int, int, int]:
         """(x0, y0, w, h) of world `world_index`'s sim image that the policy sees (`roi.py`)."""
-        return roi_for(self.worlds[world_index], self.config)
+        return self._rois[world_index]
 
     def _renderer(self, world_index: int) -> Any:
         if world_index not in self._renderers:
