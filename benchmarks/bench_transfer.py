@@ -14,7 +14,10 @@ per-world figures in the JSON. The run's held-back success over training time is
     python benchmarks/bench_transfer.py --run RUN --unseen W1 --unseen W2 --real W3 --episodes 500 --name NAME
 
 writes benchmarks/results/transfer_<NAME>.json, transfer_<NAME>.png and (from every transfer_*.json)
-benchmarks/results/transfer.md.
+benchmarks/results/transfer.md. With --curve it also evaluates the run's warm start, its numbered checkpoints
+(`checkpoints/step-*.pt`, every `checkpoint_every_steps`) and its final weights on the unseen and real worlds
+(--curve-episodes each): success over training minutes, warm start included, and the first minute at or above
+--target (issue 19's time to a good policy).
 """
 
 from __future__ import annotations
@@ -94,6 +97,51 @@ def progress_curve(run: Path) -> list[tuple[float, int, float]]:
     ]
 
 
+def checkpoint_points(run: Path) -> list[tuple[float, int, str]]:
+    """(training minutes, PPO env steps, `drivesim eval --policy` argument) of the warm start, every numbered
+    checkpoint and the final weights, in training order."""
+    import torch
+
+    points = []
+    folder = run / "checkpoints"
+    for path in [folder / "warm_start.pt", *sorted(folder.glob("step-*.pt"))]:
+        if path.is_file():
+            checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+            points.append((float(checkpoint["wall_s"]) / 60.0, int(checkpoint.get("num_timesteps", 0)), str(path)))
+    summary = json.loads((run / "manifest.json").read_text()).get("summary", {})
+    points.append((float(summary.get("wall_s", math.nan)) / 60.0, int(summary.get("steps", 0)), str(run)))
+    return points
+
+
+def unseen_curve(args: argparse.Namespace, run: Path, task: str, workspace: Path) -> list[dict]:
+    """Success on the unseen and real worlds of every checkpoint point (checkpoint_points)."""
+    curve = []
+    for minutes, steps, argument in checkpoint_points(run):
+        point: dict = {"minutes": minutes, "steps": steps, "policy": argument}
+        for group, worlds in (("unseen", args.unseen), ("real", args.real)):
+            per_world = [
+                evaluate(
+                    workspace,
+                    task,
+                    argument,
+                    world.absolute(),
+                    args.curve_episodes,
+                    f"{args.name}-curve-{Path(argument).stem}-{steps}-{world.parent.name}-{world.name}",
+                )  # fmt: skip
+                for world in worlds
+            ]
+            if per_world:
+                point[group] = pooled(per_world)
+        curve.append(point)
+    return curve
+
+
+def time_to_target(curve: list[dict], target: float) -> float | None:
+    """Training minutes of the first checkpoint whose unseen-town success is at least `target` (None: never)."""
+    hits = [p["minutes"] for p in curve if p.get("unseen") and p["unseen"]["success"] >= target]
+    return min(hits) if hits else None
+
+
 def plot(result: dict, path: Path) -> None:
     """Held-back success over training time, with the baselines' unseen-world success as lines."""
     import matplotlib
@@ -105,6 +153,11 @@ def plot(result: dict, path: Path) -> None:
     curve = result["curve"]
     if curve:
         ax.plot([c[0] for c in curve], [c[2] for c in curve], "o-", label="held-back success (training worlds)")
+    for group, style in (("unseen", "s-"), ("real", "^-")):
+        points = [p for p in result.get("unseen_curve", []) if p.get(group)]
+        if points:
+            label = f"checkpoints on {'unseen towns' if group == 'unseen' else 'the unseen real drive'}"
+            ax.plot([p["minutes"] for p in points], [p[group]["success"] for p in points], style, label=label)
     colours = {"random": "grey", "expert": "black", "warm start": "tab:orange", "final": "tab:green"}
     for policy, colour in colours.items():
         row = result["rows"].get(policy)
@@ -159,6 +212,21 @@ def write_markdown() -> None:
             lines.append(
                 f"| {policy} | {_cell(row.get('train'))} | {_cell(row.get('unseen'))} | {_cell(row.get('real'))} |"
             )
+        if r.get("unseen_curve"):
+            points = "; ".join(
+                f"{p['minutes']:.0f} min ({p['steps']} steps): {p['unseen']['success']:.0%}"
+                + (f", real {p['real']['success']:.0%}" if p.get("real") else "")
+                for p in r["unseen_curve"]
+                if p.get("unseen")
+            )
+            reached = r.get("time_to_target_min")
+            target = f"{r.get('target', 0.9):.0%}"
+            lines += [
+                "",
+                f"Success on the unseen towns over training ({r.get('curve_episodes')} episodes per world and point): "
+                f"{points}. Time to {target} on unseen towns: "
+                + (f"{reached:.0f} min." if reached is not None else f"not reached in {r['trained_min']:.0f} min."),
+            ]
         lines += ["", f"![held-back success]({path.stem}.png)", ""]
         if r.get("notes"):
             lines += [r["notes"], ""]
@@ -176,6 +244,9 @@ def main() -> None:
     parser.add_argument("--groups", nargs="*", default=list(GROUPS), choices=GROUPS, help="world groups to evaluate")
     parser.add_argument("--workspace", type=Path, default=None, help="scratch workspace for the evaluations")
     parser.add_argument("--notes", default="", help="a paragraph printed under the table")
+    parser.add_argument("--curve", action="store_true", help="evaluate every checkpoint on the unseen worlds too")
+    parser.add_argument("--curve-episodes", type=int, default=100, help="episodes per world and checkpoint")
+    parser.add_argument("--target", type=float, default=0.9, help="the unseen success whose time is reported")
     args = parser.parse_args()
     run = args.run.absolute()
     config = json.loads((run / "config.json").read_text())
@@ -203,6 +274,10 @@ def main() -> None:
                 per_world.append(evaluate(workspace, task, argument, world.absolute(), args.episodes, label))
             row[group] = pooled(per_world)
             row[f"{group}_per_world"] = {str(w): pooled([m]) for w, m in zip(worlds, per_world, strict=True)}
+    if args.curve:
+        result["unseen_curve"] = unseen_curve(args, run, task, workspace)
+        result["curve_episodes"], result["target"] = args.curve_episodes, args.target
+        result["time_to_target_min"] = time_to_target(result["unseen_curve"], args.target)
     manifest = json.loads((run / "manifest.json").read_text())
     summary = manifest.get("summary", {})
     result.update(
