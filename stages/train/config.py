@@ -124,8 +124,7 @@ class WarmStartConfig(_Section):
     steps_per_iteration: int = Field(4096, ge=1)
     """Env steps collected per round (all envs together)."""
     epochs: int = Field(4, ge=1, le=10_000)
-    """Cloning after each round: this many passes' worth of one round's steps, drawn from all rounds' data (so every
-    round costs the same)."""
+    """Passes over the aggregated data after each round."""
     learning_rate: float = Field(1e-3, gt=0.0, le=1.0)
     """Adam learning rate for cloning and for the value fit."""
     value_fit_steps: int = Field(4096, ge=0)

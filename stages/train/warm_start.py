@@ -4,8 +4,8 @@ of the value head to the cloned policy's returns, before PPO.
 Written against the policy's own `evaluate_actions` over fixed-length sequence chunks with their LSTM states (the
 `imitation` package pins an old stable-baselines3 and its behaviour cloning ignores the LSTM state). Round 0 drives
 with the expert; round i drives with the expert with probability beta**i per step and env, else with the learner
-(stochastic, as PPO will), and always records the expert's label; after each round the learner is fitted on
-minibatches drawn from all data gathered so far, `epochs` passes' worth of one round's steps. The log std of the
+(stochastic, as PPO will), and always records the expert's label; after each round the learner is fitted to all
+data gathered so far (`epochs` passes). The log std of the
 steering is not fitted (cloning would shrink it to nothing and leave PPO no exploration).
 """
 
@@ -153,10 +153,13 @@ def warm_start(
         beta = cfg.beta**round_
         new, share = _collect(model, venv, cfg.steps_per_iteration // n, beta, rng, carry)
         data = _concat(data, new)
-        # Passes over the new round's size, drawn from all data: each round costs the same (fitting every epoch over
-        # all data made round i cost i+1 times round 0, 36 rounds' worth of gradient steps for 8 rounds).
-        count = cfg.epochs * max(1, len(new.obs) // chunks_per_batch)
-        batches = minibatches(len(data.obs), count, chunks_per_batch, rng)
+        # `epochs` passes over all data so far: round i costs i + 1 times round 0 (36 rounds' worth for 8 rounds).
+        # Passes over one round's size instead (a constant cost per round) make 4.5x fewer gradient steps for 8
+        # rounds: the one run with it (and with the 60-degree view, new as well) held 72 % of its held-back episodes
+        # after the warm start, against 87 % before (issue 19); the cost it saves is ~5 min of one core.
+        batches = minibatches(
+            len(data.obs), cfg.epochs * max(1, len(data.obs) // chunks_per_batch), chunks_per_batch, rng
+        )
         loss = fit_to_labels(model, data, batches, optimizer)
         figures[f"warm_start_bc_loss_{round_}"] = loss
         report(
