@@ -5,8 +5,8 @@ Written against the policy's own `evaluate_actions` over fixed-length sequence c
 `imitation` package pins an old stable-baselines3 and its behaviour cloning ignores the LSTM state). Round 0 drives
 with the expert; round i drives with the expert with probability beta**i per step and env, else with the learner
 (stochastic, as PPO will), and always records the expert's label; after each round the learner is fitted to all
-data gathered so far (`epochs` passes). The log std of the
-steering is not fitted (cloning would shrink it to nothing and leave PPO no exploration).
+data gathered so far (`epochs` passes). The log std of the steering is not fitted (cloning would shrink it to
+nothing and leave PPO no exploration).
 """
 
 from __future__ import annotations
