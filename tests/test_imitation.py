@@ -8,13 +8,11 @@ import math
 import numpy as np
 import torch
 from stable_baselines3.common.vec_env import DummyVecEnv
-from test_train import small_config
+from test_train import small_config, small_ppo
 
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
 from drivesim.stages.train.imitation import ExpertLabels, ImitationRegularizer
-from drivesim.stages.train.recurrent import ChunkedRecurrentPPO
-from drivesim.stages.train.sb3_policy import DrivingLstmPolicy
 from drivesim.stages.train.stage import run_training
 
 SHAPE = (3, 16, 40)
@@ -34,17 +32,7 @@ def test_labels_belong_to_the_states_ppo_acted_in_and_cloning_fits_them():
     torch.manual_seed(0)
     venv = DummyVecEnv([lambda: CounterEnv(observation_shape=SHAPE, episode_steps=37) for _ in range(2)])
     labelled = ExpertLabels(venv, steps=64)
-    model = ChunkedRecurrentPPO(
-        DrivingLstmPolicy,
-        labelled,
-        n_steps=64,
-        batch_size=64,
-        n_epochs=1,
-        sequence_length=16,
-        seed=0,
-        device="cpu",
-        policy_kwargs={"conv_layers": [(8, 3, 2), (16, 3, 1)], "input_pool": 1},
-    )
+    model = small_ppo(labelled, [(8, 3, 2), (16, 3, 1)], 1)
     regularizer = ImitationRegularizer(model, labelled, epochs=20, learning_rate=3e-3, seed=0)
     seen: list[tuple[np.ndarray, np.ndarray]] = []
     losses: list[float] = []

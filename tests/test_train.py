@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -53,9 +54,8 @@ def small_config(total_steps: int = 512, extra: list[str] | None = None) -> Trai
     )
 
 
-def cost_free_model(episode_steps: int = 23) -> ChunkedRecurrentPPO:
-    venv = DummyVecEnv([lambda: CostFreeDrivingEnv(episode_steps=episode_steps) for _ in range(2)])
-    venv.seed(0)
+def small_ppo(venv: Any, conv_layers: list[tuple[int, int, int]], input_pool: int) -> ChunkedRecurrentPPO:
+    """A small ChunkedRecurrentPPO: 64-step rollouts per env, one epoch, 16-step chunks."""
     return ChunkedRecurrentPPO(
         DrivingLstmPolicy,
         venv,
@@ -65,8 +65,14 @@ def cost_free_model(episode_steps: int = 23) -> ChunkedRecurrentPPO:
         sequence_length=16,
         seed=0,
         device="cpu",
-        policy_kwargs={"conv_layers": [(8, 5, 2), (16, 3, 2)], "input_pool": 2},
+        policy_kwargs={"conv_layers": conv_layers, "input_pool": input_pool},
     )
+
+
+def cost_free_model(episode_steps: int = 23) -> ChunkedRecurrentPPO:
+    venv = DummyVecEnv([lambda: CostFreeDrivingEnv(episode_steps=episode_steps) for _ in range(2)])
+    venv.seed(0)
+    return small_ppo(venv, [(8, 5, 2), (16, 3, 2)], 2)
 
 
 def test_fused_recurrent_pass_is_exact() -> None:
