@@ -117,7 +117,7 @@ class ImitationRegularizer:
     def _fit(self) -> None:
         buffer, L = self.model.rollout_buffer, self.model.sequence_length
         if len(self.labels.labels) < buffer.buffer_size:
-            return  # no full rollout recorded (a resumed run's first update)
+            return  # fewer labels than rollout steps: not a rollout of this wrapper's env
         labels = np.stack(list(self.labels.labels)[-buffer.buffer_size :]).astype(np.float32)
         k, n = buffer.buffer_size // L, buffer.n_envs
         data = ChunkData(
