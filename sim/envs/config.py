@@ -96,8 +96,9 @@ class EnvConfig(BaseModel):
     weight_comfort: float = Field(0.01, ge=0.0)
     """Weight of R_comfort = -|δ̈| (rad/s²)."""
     roi_px: tuple[int, int, int, int] | None = None
-    """(x0, y0, w, h) region of the world's sim image that the policy sees, pixels; None: the largest region with
-    the observation's aspect, centred across and at the bottom of the image ((0, 72, 320, 128) at 320 x 200)."""
+    """(x0, y0, w, h) region of the world's sim image that the policy sees, pixels; None: the region `roi_fov_deg`
+    places, else the largest region with the observation's aspect, centred across and at the bottom of the image
+    ((0, 72, 320, 128) at 320 x 200)."""
     roi_fov_deg: float | None = Field(None, gt=0.0, lt=180.0)
     """Horizontal field of view of the policy's image, degrees: the region is placed by each world's intrinsics and
     camera mounting (centred straight ahead, the horizon at `roi_horizon_fraction` of its height), so worlds from
