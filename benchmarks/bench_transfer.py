@@ -63,13 +63,16 @@ def policy_argument(run: Path, policy: str) -> str | None:
     return str(paths[policy]) if paths[policy].is_file() else None
 
 
-def evaluate(workspace: Path, task: str, policy: str, world: Path, episodes: int, name: str) -> dict:
-    """`drivesim eval` of one policy in one world; its metrics.json."""
+def evaluate(
+    workspace: Path, task: str, policy: str, world: Path, episodes: int, name: str, overrides: list[str]
+) -> dict:
+    """`drivesim eval` of one policy in one world (with `--set` of each override); its metrics.json."""
     out = workspace / "eval" / name / "metrics.json"
     if not out.is_file():
         command = [
             str(DRIVESIM), "--workspace", str(workspace), "eval", "--task", task, "--policy", policy,
             "--world", str(world), "--episodes", str(episodes), "--record", "none", "--name", name,
+            *(arg for value in overrides for arg in ("--set", value)),
         ]  # fmt: skip
         print(" ".join(command), flush=True)
         subprocess.run(command, check=True)
@@ -127,6 +130,7 @@ def unseen_curve(args: argparse.Namespace, run: Path, task: str, workspace: Path
                     world.absolute(),
                     args.curve_episodes,
                     f"{args.name}-curve-{Path(argument).stem}-{steps}-{world.parent.name}-{world.name}",
+                    args.eval_set,
                 )  # fmt: skip
                 for world in worlds
             ]
@@ -168,7 +172,7 @@ def plot(result: dict, path: Path) -> None:
     ax.set_ylim(0, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="lower right")
-    ax.set_title(f"{result['name']}: overtake, held-back success and baselines")
+    ax.set_title(f"{result['name']}: {result.get('task', 'overtake')}, held-back success and baselines")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -180,6 +184,20 @@ def _cell(group: dict | None) -> str:
     clearance = group["min_clearance_m"]
     clearance_text = "—" if clearance is None else f"{clearance:.2f} m"
     return f"{group['success']:.1%} / {group['intervention']:.3f} / {clearance_text}"
+
+
+def _per_world_lines(result: dict) -> list[str]:
+    """Per-world success of every row, for groups of more than one world (the table pools them)."""
+    lines = []
+    for group in GROUPS:
+        for policy in POLICIES:
+            per_world = (result["rows"].get(policy) or {}).get(f"{group}_per_world") or {}
+            if len(per_world) > 1:
+                cells = ", ".join(
+                    f"{Path(w).parent.name}/{Path(w).name} {m['success']:.1%}" for w, m in per_world.items()
+                )
+                lines.append(f"- {group}, {policy}: {cells}")
+    return ["", "Per world (success):", *lines] if lines else []
 
 
 def write_markdown() -> None:
@@ -212,6 +230,7 @@ def write_markdown() -> None:
             lines.append(
                 f"| {policy} | {_cell(row.get('train'))} | {_cell(row.get('unseen'))} | {_cell(row.get('real'))} |"
             )
+        lines += _per_world_lines(r)
         if r.get("unseen_curve"):
             points = "; ".join(
                 f"{p['minutes']:.0f} min ({p['steps']} steps): {p['unseen']['success']:.0%}"
@@ -247,6 +266,14 @@ def main() -> None:
     parser.add_argument("--curve", action="store_true", help="evaluate every checkpoint on the unseen worlds too")
     parser.add_argument("--curve-episodes", type=int, default=100, help="episodes per world and checkpoint")
     parser.add_argument("--target", type=float, default=0.9, help="the unseen success whose time is reported")
+    parser.add_argument(
+        "--eval-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="passed to every `drivesim eval` as --set, e.g. env.min_path_length_m=40 so that a 60 m real drive is "
+        "accepted as the run accepted it in training (random and expert take the task's preset otherwise)",
+    )
     args = parser.parse_args()
     run = args.run.absolute()
     config = json.loads((run / "config.json").read_text())
@@ -271,7 +298,8 @@ def main() -> None:
             per_world = []
             for world in worlds:
                 label = f"{args.name}-{policy.replace(' ', '_')}-{world.parent.name}-{world.name}"
-                per_world.append(evaluate(workspace, task, argument, world.absolute(), args.episodes, label))
+                metrics = evaluate(workspace, task, argument, world.absolute(), args.episodes, label, args.eval_set)
+                per_world.append(metrics)
             row[group] = pooled(per_world)
             row[f"{group}_per_world"] = {str(w): pooled([m]) for w, m in zip(worlds, per_world, strict=True)}
     if args.curve:
