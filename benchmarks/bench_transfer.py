@@ -167,6 +167,8 @@ def plot(result: dict, path: Path) -> None:
         row = result["rows"].get(policy)
         if row and row.get("unseen"):
             ax.axhline(row["unseen"]["success"], color=colour, ls="--", lw=1, label=f"{policy}: unseen towns")
+        if row and row.get("real") and policy in ("expert", "final"):
+            ax.axhline(row["real"]["success"], color=colour, ls=":", lw=1.5, label=f"{policy}: unseen real drive")
     ax.set_xlabel("training minutes (warm start included)")
     ax.set_ylabel("success")
     ax.set_ylim(0, 1.02)
