@@ -240,6 +240,26 @@ def test_augmentation_follows_its_formula() -> None:
     assert np.abs(grey_only.astype(int) - grey_only[..., :1]).max() <= 1  # no saturation: grey
 
 
+def test_a_mirrored_episode_flips_the_image_and_the_steering(world_dir: Path) -> None:
+    """mirror_probability 1: the policy sees the plain episode's image flipped left to right, its steering +a moves
+    the ego as -a does in the plain episode, the expert's label is negated; evaluation is never mirrored."""
+    still = {"gamma": (1.0, 1.0), "brightness": (0.0, 0.0), "contrast": (1.0, 1.0), "saturation": (1.0, 1.0)}
+    plain, mirrored = _make(world_dir, "lane", **still), _make(world_dir, "lane", **still, mirror_probability=1.0)
+    obs_plain, _ = plain.reset(seed=5)
+    obs_mirrored, _ = mirrored.reset(seed=5)
+    assert np.abs(obs_plain.astype(int) - obs_plain[:, :, ::-1]).max() > 0  # the view is not symmetric
+    np.testing.assert_array_equal(obs_mirrored, obs_plain[:, :, ::-1])
+    np.testing.assert_allclose(mirrored.unwrapped.expert_action(), -plain.unwrapped.expert_action())
+    for _ in range(4):
+        obs_plain, *_, info_plain = plain.step(np.array([-0.5], np.float32))
+        obs_mirrored, *_, info_mirrored = mirrored.step(np.array([0.5], np.float32))
+    assert info_plain["state"]["q_lat_m"] < -0.05  # steered right of the centre line
+    assert info_mirrored["state"]["q_lat_m"] == info_plain["state"]["q_lat_m"]
+    np.testing.assert_array_equal(obs_mirrored, obs_plain[:, :, ::-1])
+    evaluation = _make(world_dir, "lane", "eval", **still, mirror_probability=1.0)
+    np.testing.assert_array_equal(evaluation.reset(seed=5)[0], plain.reset(seed=5)[0])
+
+
 def test_grey_episodes_come_at_their_rate_and_leave_other_draws_alone() -> None:
     """grey_probability p makes about p of the training episodes grey; p = 0 draws exactly as before."""
     ranges = ((0.8, 1.25), (-0.1, 0.1), (0.8, 1.2), (0.7, 1.3))

@@ -65,6 +65,7 @@ class DrivingEnv(gymnasium.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
     task = "lane"
+    _mirrored = False  # this episode seen mirrored (EnvConfig.mirror_probability); drawn at each reset
     has_other = False
 
     def __init__(
@@ -188,6 +189,8 @@ class DrivingEnv(gymnasium.Env):
             if aug_on
             else Augmentation()
         )
+        # drawn only when asked for, so that the draws of a config without mirroring stay as they were
+        self._mirrored = bool(aug_on and c.mirror_probability > 0.0 and rng.uniform() < c.mirror_probability)
         self._measure()
 
     # --- task hooks (a task subclass overrides what it needs; the base never asks which task it is) -----------
@@ -268,6 +271,7 @@ class DrivingEnv(gymnasium.Env):
         """Dynamics, association, rewards and terminations for one action (no rendering)."""
         c, sim = self.config, self.sim
         a = float(np.clip(np.asarray(action, dtype=np.float32).reshape(-1)[0], -1.0, 1.0))
+        a = -a if self._mirrored else a  # the policy steers in the mirrored picture it sees
         curvatures = [a * c.max_curvature_1pm]
         if self.has_other:
             other = sim.agents[1]
@@ -366,7 +370,9 @@ class DrivingEnv(gymnasium.Env):
     def observation_from(self, rgb: np.ndarray) -> np.ndarray:
         """The observation (3, h, w) uint8 from the ego's rendered (h, w, 3) view."""
         self._last_rgb = rgb
-        return np.ascontiguousarray(self._augmentation.apply(rgb).transpose(2, 0, 1))
+        view = self._augmentation.apply(rgb)
+        view = view[:, ::-1] if self._mirrored else view
+        return np.ascontiguousarray(view.transpose(2, 0, 1))
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """One step of dt_s: the action is the normalized steering curvature in [-1, 1]."""
@@ -382,4 +388,5 @@ class DrivingEnv(gymnasium.Env):
         `expert_target_offset()`)."""
         from drivesim.sim.envs.expert import expert_action
 
-        return expert_action(self)
+        action = expert_action(self)
+        return -action if self._mirrored else action

@@ -123,6 +123,10 @@ class EnvConfig(BaseModel):
     grey_probability: float = Field(0.0, ge=0.0, le=1.0)
     """Share of training episodes shown in grey (saturation 0), so a policy trained on colour worlds also drives
     grey cameras (all KITTI drives are grey)."""
+    mirror_probability: float = Field(0.0, ge=0.0, le=1.0)
+    """Share of training episodes seen mirrored left to right: the policy's image flipped and its steering negated
+    (its expert labels too), so it meets a road's cues on either side (the KITTI raw drive's lane has its marking on
+    the left only). Never in evaluation."""
     far_clearance_m: float = Field(10.0, gt=0.0)
     """Beyond this centre distance the clearance is the centre distance minus both half-diagonals (no polygons)."""
 
