@@ -263,6 +263,28 @@ def test_killed_run_resumes_with_nothing_lost(tmp_path: Path) -> None:
     assert again.returncode == 2 and "finished" in again.stderr and "Traceback" not in again.stderr
 
 
+def test_a_run_that_used_its_time_limit_resumes_only_with_more_time(tmp_path: Path) -> None:
+    """The time limit counts a run's time across resumes: a plain --resume would stop at once, so it is refused in
+    one line that says what to give; with a larger time_limit_s the run trains on."""
+    ws = tmp_path / "ws"
+    sets = [a for s in [*SMALL, "time_limit_s=2"] for a in ("--set", s)]
+    first = subprocess.run(
+        _drivesim(ws, "train", "lane", "--total-steps", "100000", *sets), capture_output=True, text=True, timeout=120
+    )
+    assert first.returncode == 0, first.stderr
+    (run_dir,) = (ws / "runs").glob("lane-*")
+    done = int((run_dir / "progress.csv").read_text().splitlines()[-1].split(",")[0])
+    assert done < 100000
+    refused = subprocess.run(_drivesim(ws, "train", "--resume", str(run_dir)), capture_output=True, text=True)
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr
+    assert "time limit" in refused.stderr and "--set time_limit_s=" in refused.stderr
+    assert (run_dir / "manifest.json").is_file()  # left as it was
+    more = ["--set", "time_limit_s=600", "--total-steps", str(done + 512)]
+    resumed = subprocess.run(_drivesim(ws, "train", "--resume", str(run_dir), *more), capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert int((run_dir / "progress.csv").read_text().splitlines()[-1].split(",")[0]) >= done + 512
+
+
 def test_warm_start_clones_the_expert() -> None:
     """After DAgger the deterministic policy steers like the expert on states it drives into itself."""
     torch.manual_seed(0)

@@ -89,7 +89,29 @@ def plan_resume(
             "or start a new run",
             run_dir,
         )
+    trained_s = trained_wall_s(run_dir)
+    if cfg.time_limit_s is not None and trained_s >= cfg.time_limit_s:
+        # the limit counts the run's time across resumes: the run would stop again at its first update
+        raise DrivesimError(
+            f"this run has used its time limit ({trained_s:.0f} s trained, time_limit_s={cfg.time_limit_s:g}); "
+            "give it more to train further (--set time_limit_s=SECONDS)",
+            run_dir,
+        )
     return ResumePlan(run_ws, run_dir, cfg, list(worlds) or saved_worlds, done)
+
+
+def trained_wall_s(run_dir: Path) -> float:
+    """The run's training wall time so far, s (its progress.csv's last row; 0 when it has none)."""
+    import csv
+
+    from drivesim.stages.train.run_files import PROGRESS_CSV
+
+    try:
+        with (run_dir / PROGRESS_CSV).open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        return float(rows[-1]["wall_s"]) if rows else 0.0
+    except (OSError, KeyError, ValueError):
+        return 0.0
 
 
 def reopen(plan: ResumePlan) -> None:
