@@ -101,11 +101,17 @@ def plan_resume(
 
 
 def trained_wall_s(run_dir: Path) -> float:
-    """The run's training wall time so far, s (its progress.csv's last row; 0 when it has none)."""
+    """The run's training wall time so far, s: its manifest's (a finished run), else its progress.csv's last row
+    (0 when it has neither). The last row can be a little short of a limit that stopped the run mid-rollout."""
     import csv
+    import json
 
     from drivesim.stages.train.run_files import PROGRESS_CSV
 
+    try:
+        return float(json.loads((run_dir / MANIFEST_NAME).read_text())["summary"]["wall_s"])
+    except (OSError, KeyError, ValueError, TypeError):
+        pass
     try:
         with (run_dir / PROGRESS_CSV).open(newline="") as f:
             rows = list(csv.DictReader(f))
