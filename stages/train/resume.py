@@ -91,7 +91,7 @@ def plan_resume(
         )
     trained_s = trained_wall_s(run_dir)
     if cfg.time_limit_s is not None and trained_s >= cfg.time_limit_s:
-        # the limit counts the run's time across resumes: the run would stop again at its first update
+        # the limit counts the run's time across resumes: a plain resume would stop again within an update
         raise DrivesimError(
             f"this run has used its time limit ({trained_s:.0f} s trained, time_limit_s={cfg.time_limit_s:g}); "
             "give it more to train further (--set time_limit_s=SECONDS)",
@@ -101,22 +101,13 @@ def plan_resume(
 
 
 def trained_wall_s(run_dir: Path) -> float:
-    """The run's training wall time so far, s: its manifest's (a finished run), else its progress.csv's last row
-    (0 when it has neither). The last row can be a little short of a limit that stopped the run mid-rollout."""
-    import csv
+    """A finished run's training wall time, s, from its manifest (0 for an unfinished one: a run killed mid-way
+    resumes from a checkpoint saved before its time limit ran out)."""
     import json
-
-    from drivesim.stages.train.run_files import PROGRESS_CSV
 
     try:
         return float(json.loads((run_dir / MANIFEST_NAME).read_text())["summary"]["wall_s"])
     except (OSError, KeyError, ValueError, TypeError):
-        pass
-    try:
-        with (run_dir / PROGRESS_CSV).open(newline="") as f:
-            rows = list(csv.DictReader(f))
-        return float(rows[-1]["wall_s"]) if rows else 0.0
-    except (OSError, KeyError, ValueError):
         return 0.0
 
 
