@@ -15,7 +15,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 import drivesim.sim.envs  # noqa: F401  (registers the envs)
 from drivesim.sim.dynamics import BicycleState
-from drivesim.sim.envs.augment import Augmentation
+from drivesim.sim.envs.augment import Augmentation, ViewJitter
 from drivesim.sim.envs.parallel import ProcessBatchedVecEnv
 from drivesim.sim.envs.vector import BatchedVecEnv
 
@@ -257,6 +257,45 @@ def test_a_mirrored_episode_flips_the_image_and_the_steering(world_dir: Path) ->
     assert info_mirrored["state"]["q_lat_m"] == info_plain["state"]["q_lat_m"]
     np.testing.assert_array_equal(obs_mirrored, obs_plain[:, :, ::-1])
     evaluation = _make(world_dir, "lane", "eval", **still, mirror_probability=1.0)
+    np.testing.assert_array_equal(evaluation.reset(seed=5)[0], plain.reset(seed=5)[0])
+
+
+def test_view_jitter_shifts_blurs_and_adds_noise() -> None:
+    """A pitch shifts the image by whole rows (edge rows repeated), a blur keeps the mean and lowers the spread, the
+    noise has the asked standard deviation and is new at every call; nothing asked, nothing done."""
+    rng = np.random.default_rng(1)
+    image = rng.integers(40, 216, (16, 24, 3), dtype=np.uint8)
+    shifted = ViewJitter(shift_rows=2.0).apply(image)
+    np.testing.assert_array_equal(shifted[2:], image[:-2])
+    np.testing.assert_array_equal(shifted[:2], image[:1].repeat(2, axis=0))
+    blurred = ViewJitter(blur_sigma_px=1.5).apply(image).astype(float)
+    assert abs(blurred.mean() - image.mean()) < 2.0 and blurred.std() < 0.6 * image.std()
+    noisy = ViewJitter(noise_std=0.05, noise_rng=np.random.default_rng(0))
+    first, second = noisy.apply(image).astype(float), noisy.apply(image).astype(float)
+    assert 0.045 * 255 < np.std(first - image) < 0.055 * 255
+    assert np.abs(first - second).max() > 0  # sensor noise changes from step to step
+    assert ViewJitter().apply(image) is image
+
+
+def test_a_pitched_episode_sees_its_view_shifted_and_evaluation_never(world_dir: Path) -> None:
+    """pitch_jitter_deg: the training observation is the plain episode's shifted by the drawn pitch's rows (the same
+    start state: the draw comes last), within the asked angle at the image's focal length; evaluation is unchanged."""
+    still = {"gamma": (1.0, 1.0), "brightness": (0.0, 0.0), "contrast": (1.0, 1.0), "saturation": (1.0, 1.0)}
+    plain, pitched = _make(world_dir, "lane", **still), _make(world_dir, "lane", **still, pitch_jitter_deg=4.0)
+    shifts = []
+    for seed in range(6):
+        obs_plain, info_plain = plain.reset(seed=seed)
+        obs_pitched, info_pitched = pitched.reset(seed=seed)
+        assert info_pitched["episode"] == info_plain["episode"]
+        jitter = pitched.unwrapped._jitter
+        expected = ViewJitter(shift_rows=jitter.shift_rows).apply(obs_plain.transpose(1, 2, 0)).transpose(2, 0, 1)
+        np.testing.assert_array_equal(obs_pitched, expected)
+        shifts.append(jitter.shift_rows)
+    env = pitched.unwrapped
+    focal_rows_px = float(env.worlds[0].K[1, 1]) * env.config.observation_height_px / env.roi_px_of(0)[3]
+    assert max(abs(s) for s in shifts) <= focal_rows_px * np.tan(np.radians(4.0)) + 1e-9
+    assert min(abs(s) for s in shifts) < max(abs(s) for s in shifts)  # drawn per episode
+    evaluation = _make(world_dir, "lane", "eval", **still, pitch_jitter_deg=4.0)
     np.testing.assert_array_equal(evaluation.reset(seed=5)[0], plain.reset(seed=5)[0])
 
 

@@ -1,9 +1,10 @@
-"""Episode-level photometric augmentation of the uint8 observation: gamma, brightness, contrast, saturation, and
-whole episodes in grey (a grey camera, as every KITTI drive is, seen by a policy trained on colour worlds)."""
+"""Episode-level augmentation of the uint8 observation: photometric (gamma, brightness, contrast, saturation, and
+whole episodes in grey: a grey camera, as every KITTI drive is, seen by a policy trained on colour worlds), and in
+image space (`ViewJitter`: camera pitch, blur, sensor noise)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -62,3 +63,57 @@ class Augmentation:
         if self.saturation != 1.0:
             out = cv2.transform(out, self._saturation_matrix)
         return out.reshape(rgb.shape)
+
+
+@dataclass
+class ViewJitter:
+    """One episode's image-space draw, applied after `Augmentation`: a camera pitch shown as the vertical shift of
+    the image it makes, a Gaussian blur, and sensor noise drawn anew at every call (its own generator, so the
+    episode's other draws do not depend on how many steps it ran)."""
+
+    shift_rows: float = 0.0
+    blur_sigma_px: float = 0.0
+    noise_std: float = 0.0
+    noise_rng: np.random.Generator | None = field(default=None, compare=False, repr=False)
+
+    @classmethod
+    def sample(
+        cls,
+        rng: np.random.Generator,
+        pitch_deg: float,
+        focal_rows_px: float,
+        blur_sigma_px: tuple[float, float],
+        noise_std: tuple[float, float],
+    ) -> ViewJitter:
+        """A pitch in +-`pitch_deg` (as rows at the image's vertical focal length `focal_rows_px`: a small pitch
+        moves the whole image by about f tan(pitch)), a blur and a noise level from their (low, high) ranges."""
+        pitch_rad = np.radians(float(rng.uniform(-pitch_deg, pitch_deg)))
+        return cls(
+            shift_rows=float(focal_rows_px * np.tan(pitch_rad)),
+            blur_sigma_px=float(rng.uniform(*blur_sigma_px)),
+            noise_std=float(rng.uniform(*noise_std)),
+            noise_rng=np.random.default_rng(int(rng.integers(2**63))),
+        )
+
+    @property
+    def identity(self) -> bool:
+        """True when it changes nothing."""
+        return self.shift_rows == 0.0 and self.blur_sigma_px == 0.0 and self.noise_std == 0.0
+
+    def apply(self, rgb: np.ndarray) -> np.ndarray:
+        """The (h, w, 3) uint8 image shifted down by `shift_rows` (sub-pixel, edge rows repeated), blurred, and with
+        Gaussian noise of `noise_std` x 255 added, rounded and saturated to 0-255."""
+        if self.identity:
+            return rgb
+        out = np.ascontiguousarray(rgb)
+        if self.shift_rows != 0.0:
+            shift = np.float32([[1.0, 0.0, 0.0], [0.0, 1.0, self.shift_rows]])
+            out = cv2.warpAffine(out, shift, (out.shape[1], out.shape[0]), flags=cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_REPLICATE)  # fmt: skip
+        if self.blur_sigma_px > 0.0:
+            out = cv2.GaussianBlur(out, (0, 0), self.blur_sigma_px, borderType=cv2.BORDER_REPLICATE)
+        if self.noise_std > 0.0:
+            rng = self.noise_rng if self.noise_rng is not None else np.random.default_rng()
+            noisy = out.astype(np.float32) + rng.normal(0.0, self.noise_std * 255.0, out.shape).astype(np.float32)
+            out = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+        return out

@@ -21,7 +21,7 @@ from gymnasium import spaces
 
 from drivesim.sim.agents import Agent, LateralProfile, ReferencePath, pursue_profile
 from drivesim.sim.dynamics import BicycleState, curvature_of_steering
-from drivesim.sim.envs.augment import Augmentation
+from drivesim.sim.envs.augment import Augmentation, ViewJitter
 from drivesim.sim.envs.config import EnvConfig
 from drivesim.sim.envs.rewards import collision_reward, comfort_reward, lane_reward
 from drivesim.sim.envs.roi import roi_for
@@ -66,6 +66,7 @@ class DrivingEnv(gymnasium.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
     task = "lane"
     _mirrored = False  # this episode seen mirrored (EnvConfig.mirror_probability); drawn at each reset
+    _jitter = ViewJitter()  # this episode's pitch, blur and noise (EnvConfig.pitch_jitter_deg, ...); drawn at reset
     has_other = False
 
     def __init__(
@@ -191,7 +192,18 @@ class DrivingEnv(gymnasium.Env):
         )
         # drawn only when asked for, so that the draws of a config without mirroring stay as they were
         self._mirrored = bool(aug_on and c.mirror_probability > 0.0 and rng.uniform() < c.mirror_probability)
+        self._jitter = self._sample_jitter(rng) if aug_on else ViewJitter()
         self._measure()
+
+    def _sample_jitter(self, rng: np.random.Generator) -> ViewJitter:
+        """The episode's pitch, blur and noise (`ViewJitter`); nothing is drawn when all three are off, so the draws
+        of a config without them stay as they were."""
+        c = self.config
+        if c.pitch_jitter_deg == 0.0 and max(c.blur_sigma_px) == 0.0 and max(c.noise_std) == 0.0:
+            return ViewJitter()
+        world = self.worlds[self._world_index]
+        focal_rows_px = float(world.K[1, 1]) * c.observation_height_px / self.roi_px_of(self._world_index)[3]
+        return ViewJitter.sample(rng, c.pitch_jitter_deg, focal_rows_px, c.blur_sigma_px, c.noise_std)
 
     # --- task hooks (a task subclass overrides what it needs; the base never asks which task it is) -----------
     def _speeds(self, rng: np.random.Generator) -> tuple[float, float]:
@@ -370,7 +382,7 @@ class DrivingEnv(gymnasium.Env):
     def observation_from(self, rgb: np.ndarray) -> np.ndarray:
         """The observation (3, h, w) uint8 from the ego's rendered (h, w, 3) view."""
         self._last_rgb = rgb
-        view = self._augmentation.apply(rgb)
+        view = self._jitter.apply(self._augmentation.apply(rgb))
         view = view[:, ::-1] if self._mirrored else view
         return np.ascontiguousarray(view.transpose(2, 0, 1))
 

@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 # Ranges (low, high) whose values are magnitudes (speeds, distances, factors): negative values are refused.
 _NON_NEGATIVE_RANGES = (
     "ego_speed_mps", "other_speed_mps", "follow_speed_mps", "front_distance_m", "front_lateral_m", "gamma",
-    "contrast", "saturation",
+    "contrast", "saturation", "blur_sigma_px", "noise_std",
 )  # fmt: skip
 
 
@@ -127,6 +127,16 @@ class EnvConfig(BaseModel):
     """Share of training episodes seen mirrored left to right: the policy's image flipped and its steering negated
     (its expert labels too), so it meets a road's cues on either side (the KITTI raw drive's lane has its marking on
     the left only). Never in evaluation."""
+    pitch_jitter_deg: float = Field(0.0, ge=0.0, le=20.0)
+    """Each training episode's camera pitch is drawn in +-this, degrees, and shown as the vertical shift of the
+    policy's image that pitch makes (f tan(pitch) rows at the image's focal length): a camera mounted a little
+    differently from the worlds' (0: off)."""
+    blur_sigma_px: tuple[float, float] = (0.0, 0.0)
+    """Range of each training episode's Gaussian blur of the policy's image, pixels at the observation's size (a soft
+    lens, motion blur); (0, 0): off."""
+    noise_std: tuple[float, float] = (0.0, 0.0)
+    """Range of each training episode's sensor-noise level: Gaussian noise of this standard deviation (fraction of
+    full scale) added to every pixel, drawn anew at every step; (0, 0): off."""
     far_clearance_m: float = Field(10.0, gt=0.0)
     """Beyond this centre distance the clearance is the centre distance minus both half-diagonals (no polygons)."""
 
