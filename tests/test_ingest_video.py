@@ -172,6 +172,27 @@ def test_video_with_camera_height_gives_the_metric_path(drive, tmp_path: Path, m
         3,
     )
     assert "intrinsics given" in out and "scale from --camera-height-m 1.5" in out
+    assert "inherits the error of the focal length" not in out  # the focal length was given
+
+
+def test_camera_height_with_an_estimated_focal_says_the_scale_follows_it(
+    drive, tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """No intrinsics: the summary says the camera-height scale inherits the estimated focal length's error, and the
+    path is as long as the focal length it printed implies (scale ~ the focal length's ratio to the truth)."""
+    video, centres = drive
+    ws = tmp_path / "ws"
+    code, out, err = _run(
+        monkeypatch, capsys, ws, "ingest", str(video), "--camera-height-m", str(CAMERA_HEIGHT_M), *FAST
+    )
+    assert code == 0, out + err
+    assert "intrinsics estimated by SfM" in out and "inherits the error of the focal length" in out
+    fx_px = float(json.loads((ws / "trace" / "calibration.json").read_text())["K"][0][0])
+    true_fx_px = 0.5 * WIDTH / np.tan(np.radians(HFOV_DEG) / 2)
+    with np.load(ws / "trace" / "poses.npz") as poses:
+        est = poses["T_world_camera"][:, :3, 3]
+    ratio = _path_length(est) / _path_length(centres)
+    assert ratio == pytest.approx(fx_px / true_fx_px, rel=0.03)  # measured: 1.097 and 1.091, each within 0.05 %
 
 
 def test_video_with_a_gpx_beside_it_scales_by_the_track(drive, tmp_path: Path, monkeypatch, capsys) -> None:

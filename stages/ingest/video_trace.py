@@ -220,6 +220,11 @@ def _metric(result: SfmResult, times_ns: np.ndarray, gps: GpsTrack | None, cfg: 
         T_world_camera = scale_poses(T_level_camera, scale)
         fitted = len(road.frame_rows)
         note = f"scale from --camera-height-m {height_m:g} over the road plane fitted below {fitted} frames"
+        if result.focal_estimated:
+            note += (
+                " (it inherits the error of the focal length SfM estimated, which forward driving constrains weakly: "
+                "a focal length 5 % short makes the path about 5 % short; give --hfov-deg or --calibration if known)"
+            )
     return _Metric(T_world_camera, vehicle_mount(normal_camera, height_m), float(height_m), note)
 
 
