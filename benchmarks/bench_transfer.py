@@ -28,6 +28,7 @@ import json
 import math
 import os
 import platform
+import re
 import subprocess
 import sys
 import tempfile
@@ -202,6 +203,40 @@ def _per_world_lines(result: dict) -> list[str]:
     return ["", "Per world (success):", *lines] if lines else []
 
 
+def arm_and_seed(name: str) -> tuple[str, int]:
+    """('lane-towns-kitti06', 2) from 'lane-towns-kitti06-seed2'; a name without '-seedN' is seed 0."""
+    match = re.fullmatch(r"(.*)-seed(\d+)", name)
+    return (match.group(1), int(match.group(2))) if match else (name, 0)
+
+
+def _seed_table(results: list[dict]) -> list[str]:
+    """Final-policy success of every arm run with more than one seed, per seed and the mean over seeds."""
+    arms: dict[str, dict[int, dict]] = {}
+    for r in results:
+        arm, seed = arm_and_seed(r["name"])
+        if (r["rows"].get("final") or {}).get("unseen") is not None:
+            arms.setdefault(arm, {})[seed] = r["rows"]["final"]
+    arms = {arm: seeds for arm, seeds in arms.items() if len(seeds) > 1}
+    if not arms:
+        return []
+    lines = [
+        "## Arms run with several seeds (the final policy's success; the mean over the seeds)",
+        "",
+        "| arm | seeds | unseen synthetic towns, per seed | mean | unseen real drive, per seed | mean |",
+        "|---|---|---|---|---|---|",
+    ]
+    for arm, seeds in sorted(arms.items()):
+        order = sorted(seeds)
+        cells = []
+        for group in ("unseen", "real"):
+            values = [(seeds[s].get(group) or {}).get("success") for s in order]
+            known = [v for v in values if v is not None]
+            cells.append(" / ".join("—" if v is None else f"{v:.1%}" for v in values))
+            cells.append(f"{sum(known) / len(known):.1%}" if known else "—")
+        lines.append(f"| {arm} | {', '.join(map(str, order))} | {' | '.join(cells)} |")
+    return [*lines, ""]
+
+
 def write_markdown() -> None:
     """benchmarks/results/transfer.md from every transfer_*.json."""
     lines = [
@@ -212,7 +247,9 @@ def write_markdown() -> None:
         "Reproduce: `python benchmarks/bench_transfer.py --run RUN --unseen W ... --real W --episodes N --name NAME`.",
         "",
     ]
-    for path in sorted(RESULTS.glob("transfer_*.json")):
+    paths = sorted(RESULTS.glob("transfer_*.json"))
+    lines += _seed_table([json.loads(path.read_text()) for path in paths])
+    for path in paths:
         r = json.loads(path.read_text())
         lines += [
             f"## {r['name']}",
