@@ -52,7 +52,7 @@ NOTES = (
     "KITTI's true principal point held fixed instead of the image centre it went to 86.3 deg: the centred principal "
     "point is not the cause. Not fixed: "
     "the focal length SfM estimates stays 6-8 % short on this drive (8 degrees of yaw in 11 s)."
-    " Tried 2026-11-26 and not kept: a robust (Cauchy) loss in the focal refinement, its scale from the inliers' "
+    " Tried 2026-11-25 and not kept: a robust (Cauchy) loss in the focal refinement, its scale from the inliers' "
     "noise (the residuals are heavy-tailed: median 0.2 px, 99th percentile 2.4 px), moved the focal from 87.9 to "
     "83.4 deg on this drive's frames resized from the PNGs (two mapping seeds), but on the tests' rendered drive "
     "(true 90 deg) from 79 to 70 deg. Those PNG-resized frames give 87.4-87.9 deg with least squares where this "
