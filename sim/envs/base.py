@@ -45,7 +45,8 @@ def load_worlds(world: Any, min_length_m: float) -> list[World]:
         if w.path_length_m < min_length_m:
             raise ValueError(
                 f"{w.root / 'world.json'}: path of {w.path_length_m:.0f} m is too short for this task "
-                f"(needs {min_length_m:.0f} m: min_path_length_m + end_margin_m); record a longer drive"
+                f"(needs {min_length_m:.0f} m: min_path_length_m + end_margin_m); record a longer drive or set the "
+                "env's min_path_length_m lower"
             )
         worlds.append(w)
     return worlds

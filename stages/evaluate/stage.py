@@ -175,6 +175,8 @@ def _make_env(factory: Any, world: Path) -> Any:
         return factory()
     except (ValueError, FileNotFoundError) as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        for named in (f"{world / 'world.json'}: ", f"{world}: "):  # the error names the world once, in front
+            first = first.removeprefix(named)
         raise InputError(f"cannot evaluate in this world: {first}", world) from e
     except gymnasium.error.Error as e:
         raise DrivesimError(f"the env {factory.env_id} is not available: {e}") from e
