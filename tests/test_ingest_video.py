@@ -380,6 +380,9 @@ def test_lane_run_preset_trains_like_the_lane_preset_on_the_recording_alone() ->
     for key in ("task", "total_steps", "ppo", "eval"):
         assert getattr(train, key) == getattr(lane, key), key
     assert train.envs.count == lane.envs.count
+    for key in ("pitch_jitter_deg", "blur_sigma_px", "noise_std"):
+        assert getattr(train.envs.config, key) == getattr(lane.envs.config, key), key
+    assert lane.envs.config.pitch_jitter_deg > 0  # the lane preset's image-space jitter
     assert train.towns == [] and train.time_limit_s == 900 and train.warm_start.method == "none"
     evaluation = stage_config(EvalConfig, stage_by_name("eval").preset, overrides["eval"], "eval")
     assert (evaluation.task, evaluation.episodes) == ("lane", 100)
