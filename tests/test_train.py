@@ -337,7 +337,10 @@ def test_warm_start_clones_the_expert() -> None:
             "unknown config key 'envs.config.weight_colision'",
         ),
         (["train", "cutin", "--set", "envs.config.dt_s=-1"], "config key 'envs.config.dt_s'"),
-        (["eval", "--task", "cutin", "--set", "env.weight_colision=1"], "valid keys here: augment, blur_sigma_px, brightness"),
+        (
+            ["eval", "--task", "cutin", "--set", "env.weight_colision=1"],
+            "valid keys here: augment, blur_sigma_px, brightness",
+        ),
     ],
 )
 def test_bad_input_is_one_line(tmp_path: Path, args: list[str], message: str) -> None:
