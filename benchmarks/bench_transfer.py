@@ -212,23 +212,27 @@ def arm_and_seed(name: str) -> tuple[str, int]:
 def _seed_table(results: list[dict]) -> list[str]:
     """Final-policy success of every arm run with more than one seed, per seed and the mean over seeds."""
     arms: dict[str, dict[int, dict]] = {}
+    real_worlds: dict[str, str] = {}
     for r in results:
         arm, seed = arm_and_seed(r["name"])
         if (r["rows"].get("final") or {}).get("unseen") is not None:
             arms.setdefault(arm, {})[seed] = r["rows"]["final"]
+            real_worlds[arm] = ", ".join(Path(w).parent.name for w in r["real_worlds"]) or "—"
     arms = {arm: seeds for arm, seeds in arms.items() if len(seeds) > 1}
     if not arms:
         return []
     lines = [
         "## Arms run with several seeds (the final policy's success; the mean over the seeds)",
         "",
-        "| arm | seeds | unseen synthetic towns, per seed | mean | unseen real drive, per seed | mean |",
-        "|---|---|---|---|---|---|",
+        "| arm | seeds | unseen synthetic towns, per seed | mean | unseen real drives (pooled) | per seed | mean |",
+        "|---|---|---|---|---|---|---|",
     ]
     for arm, seeds in sorted(arms.items()):
         order = sorted(seeds)
         cells = []
         for group in ("unseen", "real"):
+            if group == "real":
+                cells.append(real_worlds[arm])
             values = [(seeds[s].get(group) or {}).get("success") for s in order]
             known = [v for v in values if v is not None]
             cells.append(" / ".join("—" if v is None else f"{v:.1%}" for v in values))
