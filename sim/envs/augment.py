@@ -109,7 +109,8 @@ class ViewJitter:
 
     def apply(self, rgb: np.ndarray) -> np.ndarray:
         """The (h, w, 3) uint8 image shifted down by `shift_rows` (sub-pixel, edge rows repeated), blurred, and with
-        Gaussian noise of `noise_std` x 255 added, rounded and saturated to 0-255."""
+        Gaussian noise of `noise_std` x 255 added (a new window of the episode's noise field at each call), rounded
+        and saturated to 0-255."""
         if self.identity:
             return rgb
         out = np.ascontiguousarray(rgb)

@@ -136,7 +136,8 @@ class EnvConfig(BaseModel):
     lens, motion blur); (0, 0): off."""
     noise_std: tuple[float, float] = (0.0, 0.0)
     """Range of each training episode's sensor-noise level: Gaussian noise of this standard deviation (fraction of
-    full scale) added to every pixel, drawn anew at every step; (0, 0): off."""
+    full scale) added to every pixel, changing at every step (a new window of a noise field drawn once per episode,
+    `augment.NOISE_SHIFT_PX`); (0, 0): off."""
     far_clearance_m: float = Field(10.0, gt=0.0)
     """Beyond this centre distance the clearance is the centre distance minus both half-diagonals (no polygons)."""
 
