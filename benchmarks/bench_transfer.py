@@ -238,7 +238,29 @@ def _seed_table(results: list[dict]) -> list[str]:
             cells.append(" / ".join("—" if v is None else f"{v:.1%}" for v in values))
             cells.append(f"{sum(known) / len(known):.1%}" if known else "—")
         lines.append(f"| {arm} | {', '.join(map(str, order))} | {' | '.join(cells)} |")
-    return [*lines, ""]
+    return [*lines, "", *_baseline_lines(results, {real_worlds[arm] for arm in arms}), ""]
+
+
+def _baseline_lines(results: list[dict], real_sets: set[str]) -> list[str]:
+    """Random and expert success on the same unseen worlds and seeds, from the first result that evaluated them
+    for each set of real worlds in `real_sets` (the arms above share their worlds, so one evaluation serves all)."""
+    lines, done = [], set()
+    for r in results:
+        real = ", ".join(Path(w).parent.name for w in r["real_worlds"]) or "—"
+        if real not in real_sets or real in done:
+            continue
+        for policy in ("random", "expert"):
+            row = r["rows"].get(policy) or {}
+            if row.get("unseen") is None:
+                continue
+            real_success = (row.get("real") or {}).get("success")
+            real_text = "—" if real_success is None else f"{real_success:.1%}"
+            lines.append(
+                f"- {policy} (from {r['name']}): unseen synthetic towns {row['unseen']['success']:.1%}, unseen real "
+                f"drives ({real}) {real_text}"
+            )
+            done.add(real)
+    return ["Baselines on the same worlds and seeds:", "", *lines] if lines else []
 
 
 def write_markdown() -> None:

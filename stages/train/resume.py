@@ -8,6 +8,7 @@ keys the user gives again (`--set`, `--config`, `--total-steps`) change the run'
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -103,8 +104,6 @@ def plan_resume(
 def trained_wall_s(run_dir: Path) -> float:
     """A finished run's training wall time, s, from its manifest (0 for an unfinished one: a run killed mid-way
     resumes from a checkpoint saved before its time limit ran out)."""
-    import json
-
     try:
         return float(json.loads((run_dir / MANIFEST_NAME).read_text())["summary"]["wall_s"])
     except (OSError, KeyError, ValueError, TypeError):
