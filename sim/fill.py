@@ -9,6 +9,10 @@ steps, on one view at a time:
 2. what no frame saw is inpainted (OpenCV's Telea fast marching, `cv2.inpaint`): smooth continuation of the border
    colours, with depth +inf (so an inserted car is drawn over it).
 
+On a GPU the views are filled as one batch (`pull_push_fill`, torch): step 2 there is a pull-push fill (each hole
+pixel takes the normalized average of the seen pixels at the finest level of an image pyramid that has any, blended
+across levels), since OpenCV's inpainting runs on the CPU, one view at a time; neighbouring frames are not used there.
+
 `FillStats` counts, per view, how many pixels each step filled, so a benchmark can say how much of the view is real
 recorded data, neighbour data, or invented.
 """
@@ -19,8 +23,10 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import torch
+from torch.nn.functional import avg_pool2d, interpolate
 
-__all__ = ["FillStats", "hole_box", "inpaint_holes", "merge_into_holes"]
+__all__ = ["FillStats", "hole_box", "inpaint_holes", "merge_into_holes", "pull_push_fill"]
 
 INPAINT_RADIUS_PX = 3
 """Neighbourhood (px) Telea's method averages over for each inpainted pixel: small, the views are 160 x 64."""
@@ -140,3 +146,28 @@ def _inpaint_reduced(rgb: np.ndarray, hole: np.ndarray, radius_px: int) -> None:
     small_rgb = cv2.inpaint(small_rgb, small_hole, max(1, radius_px // 2 + 1), cv2.INPAINT_TELEA)
     large = cv2.resize(small_rgb, (W, H), interpolation=cv2.INTER_LINEAR)
     rgb[hole] = large[hole]
+
+
+def pull_push_fill(rgb: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Views (B, h, w, 3) uint8 with every pixel where `valid` (B, h, w) is False filled from the seen pixels around
+    it, all views at once on their device: the pull-push fill of Gortler et al. (1996). Pull: a pyramid of
+    2x2 averages of colour and coverage; push: from the coarsest level down, each level's pixels keep their own
+    normalized colour in proportion to their coverage and take the coarser level's (bilinear) for the rest. A view
+    with no seen pixel stays as it is. We write it (about twenty lines of torch) because OpenCV's inpainting, the CPU
+    path's, runs one view at a time on the CPU."""
+    if bool(valid.all()):
+        return rgb
+    weight = valid[:, None].to(torch.float32)
+    colour = rgb.permute(0, 3, 1, 2).to(torch.float32) * weight
+    levels = [(colour, weight)]
+    while min(levels[-1][1].shape[-2:]) > 1:
+        c, w = levels[-1]
+        levels.append((avg_pool2d(c, 2, ceil_mode=True), avg_pool2d(w, 2, ceil_mode=True)))
+    c, w = levels[-1]
+    filled = c / w.clamp(min=1e-6)
+    for c, w in reversed(levels[:-1]):
+        coarse = interpolate(filled, size=c.shape[-2:], mode="bilinear", align_corners=False)
+        alpha = w.clamp(max=1.0)
+        filled = c / w.clamp(min=1e-6) * alpha + coarse * (1.0 - alpha)
+    out = filled.add_(0.5).clamp_(0, 255).to(torch.uint8).permute(0, 2, 3, 1)
+    return torch.where(valid[..., None], rgb, out)

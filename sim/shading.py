@@ -136,3 +136,45 @@ def contact_shadow_(
     weight[(z <= 0) | (depth_m[y0:y1, x0:x1] < z - _SHADOW_DEPTH_TOLERANCE_M)] = 0.0
     box = rgb[y0:y1, x0:x1]
     box[...] = (box * (1.0 - weight[..., None]) + 0.5).astype(np.uint8)
+
+
+def contact_shadows_batched(
+    rgb: torch.Tensor,
+    depth_m: torch.Tensor,
+    K: np.ndarray,
+    view_index: torch.Tensor,
+    T_camera_car: torch.Tensor,
+    size_m: torch.Tensor,
+    strength: float,
+) -> torch.Tensor:
+    """`contact_shadow_` for S cars in B uint8 views (B, h, w, 3) at once on their device (the GPU path): car s, with
+    pose T_camera_car[s] (S, 4, 4) and (length, width) size_m[s] (S, 2), darkens view view_index[s] (S,). Returns
+    the shadowed views; the same arithmetic as `contact_shadow_`, over every pixel instead of the footprint's box, and
+    rounded once per view instead of once per car."""
+    B, h, w = depth_m.shape
+    dev = depth_m.device
+    R, t = T_camera_car[:, :3, :3].to(torch.float32), T_camera_car[:, :3, 3].to(torch.float32)
+    half = size_m.to(torch.float32) * 0.5
+    signs = torch.tensor([[sx, sy] for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)], device=dev)
+    corners_z = (signs[None] * (half[:, None] + SHADOW_FADE_M)) @ R[:, 2, :2].unsqueeze(-1)  # (S, 4, 1)
+    in_front = (corners_z[..., 0] + t[:, None, 2] > 0.1).all(dim=1)  # as contact_shadow_: all corners ahead
+    v, u = torch.meshgrid(torch.arange(h, device=dev), torch.arange(w, device=dev), indexing="ij")
+    K_t = torch.as_tensor(np.asarray(K, dtype=np.float64), device=dev).to(torch.float32)
+    rays = torch.stack([(u - K_t[0, 2]) / K_t[0, 0], (v - K_t[1, 2]) / K_t[1, 1], torch.ones((h, w), device=dev)], -1)
+    normal = R[:, :, 2]  # the car's up axis in the camera frame
+    denominator = torch.einsum("hwc,sc->shw", rays, normal)
+    safe = torch.where(denominator.abs() > 1e-9, denominator, torch.ones_like(denominator))
+    z = torch.where(denominator.abs() > 1e-9, (normal * t).sum(-1)[:, None, None] / safe, -torch.ones_like(safe))
+    # The ground point in the car's frame, axis by axis: (ray z - t) . R[:, k].
+    local = [
+        z * torch.einsum("hwc,sc->shw", rays, R[:, :, k]) - (t * R[:, :, k]).sum(-1)[:, None, None] for k in (0, 1)
+    ]
+    outside = torch.hypot((local[0].abs() - half[:, 0, None, None]).clamp(min=0.0),
+                          (local[1].abs() - half[:, 1, None, None]).clamp(min=0.0))  # fmt: skip
+    fade = (1.0 - outside / SHADOW_FADE_M).clamp(0.0, 1.0)
+    weight = strength * fade * fade * (3.0 - 2.0 * fade)
+    occluded = depth_m.index_select(0, view_index) < z - _SHADOW_DEPTH_TOLERANCE_M
+    weight = torch.where((z <= 0) | occluded | ~in_front[:, None, None], torch.zeros_like(weight), weight)
+    # The product of (1 - weight) over a view's cars, as a sum of logs (1 - weight >= 1 - strength > 0 or exactly 1).
+    factor = torch.zeros((B, h, w), device=dev).index_add_(0, view_index, torch.log1p(-weight)).exp_()
+    return (rgb.to(torch.float32) * factor[..., None] + 0.5).to(torch.uint8)

@@ -22,11 +22,17 @@ TIMING_KEYS = ("dynamics", "association", "warp", "raster", "composite", "lighti
 
 
 def make_view_synthesizer(
-    world: World, roi_px: tuple[int, int, int, int], out_width_px: int, out_height_px: int, **view_options: Any
+    world: World,
+    roi_px: tuple[int, int, int, int],
+    out_width_px: int,
+    out_height_px: int,
+    device: str = "cpu",
+    **view_options: Any,
 ) -> ViewSynthesizer:
-    """The world's view synthesizer for a region of interest resized to the policy's observation size."""
+    """The world's view synthesizer for a region of interest resized to the policy's observation size, rendering on
+    torch `device`."""
     config = ViewConfig(roi_px=tuple(roi_px), out_width_px=out_width_px, out_height_px=out_height_px, **view_options)
-    return ViewSynthesizer(world, config)
+    return ViewSynthesizer(world, config, device=device)
 
 
 class Simulator:

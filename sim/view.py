@@ -23,6 +23,11 @@ merged), cars outside the region's frustum are skipped before rasterization, and
 in one call. On CPU the raster is compiled end to end (`raster_kernel.py`), and compositing and the statistical
 harmonization run view by view in place on the uint8 views (a compiled loop and OpenCV); on a GPU both stay batched
 torch operations.
+
+The batched path (the default on a GPU, `batched=True` anywhere): every recorded frame is put on the device once, all
+B views are warped in one `forward_warp` call (its torch path), their holes filled together (`fill.pull_push_fill`
+instead of OpenCV's inpainting; neighbouring frames are not used) and the contact shadows of all cars drawn in one
+call (`shading.contact_shadows_batched`): no per-view work on the device, only the per-view car placement in Python.
 """
 
 from __future__ import annotations
@@ -38,11 +43,11 @@ import pydantic
 import torch
 
 from drivesim.sim import raster_kernel
-from drivesim.sim.fill import FillStats, hole_box, inpaint_holes, merge_into_holes
+from drivesim.sim.fill import FillStats, hole_box, inpaint_holes, merge_into_holes, pull_push_fill
 from drivesim.sim.geometry import invert, scale_intrinsics
 from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer
 from drivesim.sim.raster import PackedScene, Rasterizer, RenderResult, composite, merge_scenes
-from drivesim.sim.shading import Lighting, contact_shadow_
+from drivesim.sim.shading import Lighting, contact_shadow_, contact_shadows_batched
 from drivesim.sim.warp import WarpResult, forward_warp
 from drivesim.sim.world import World, relative_pose
 
@@ -181,14 +186,25 @@ class ViewSynthesizer:
 
     :param world: the loaded world. :param config: the view settings.
     :param device: torch device ("cpu", "cuda"). :param harmonizer: default `StatisticalHarmonizer()`.
+    :param batched: render all views in one batch of torch operations (module docstring); None: on any device but
+        the CPU, and only without `fill_frames` (neighbouring frames are filled view by view).
     """
 
     def __init__(
-        self, world: World, config: ViewConfig | None = None, device: str = "cpu", harmonizer: Harmonizer | None = None
+        self,
+        world: World,
+        config: ViewConfig | None = None,
+        device: str = "cpu",
+        harmonizer: Harmonizer | None = None,
+        batched: bool | None = None,
     ):
         self.world = world
         self.config = config = config or ViewConfig()
         self.device = torch.device(device)
+        if batched and config.fill_frames:
+            raise ValueError("the batched views fill no holes from neighbouring frames: set fill_frames to ()")
+        self.batched = batched if batched is not None else self.device.type != "cpu" and not config.fill_frames
+        self._stack: tuple[torch.Tensor, torch.Tensor, np.ndarray] | None = None
         self.harmonizer = harmonizer if harmonizer is not None else StatisticalHarmonizer()
         self.roi_px = x0, y0, w, h = fit_roi(config.roi_px, world.width_px, world.height_px)
         sx, sy = config.out_width_px / w, config.out_height_px / h
@@ -226,6 +242,28 @@ class ViewSynthesizer:
         if entry is not None:
             self._frames.move_to_end(index)
             return entry
+        rgb_np, depth_np, mean_rgb = self._frame_arrays(index)
+        rgb = torch.from_numpy(np.array(rgb_np, copy=True)).to(self.device)
+        depth = torch.from_numpy(np.array(depth_np, dtype=np.float32, copy=True)).to(self.device)
+        entry = (rgb, depth, mean_rgb)
+        self._frames[index] = entry
+        if len(self._frames) > _FRAME_CACHE_SIZE:
+            self._frames.popitem(last=False)
+        return entry
+
+    def _frame_stack(self) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+        """Every recorded frame as `_frame` prepares it, stacked on the device (N, H, W, 3) uint8 and (N, H, W)
+        float32, and their mean colours (N, 3): made once, for the batched path."""
+        if self._stack is None:
+            arrays = [self._frame_arrays(i) for i in range(self.world.frame_count)]
+            rgb = torch.from_numpy(np.stack([a[0] for a in arrays])).to(self.device)
+            depth = torch.from_numpy(np.stack([a[1] for a in arrays]).astype(np.float32)).to(self.device)
+            self._stack = (rgb, depth, np.stack([a[2] for a in arrays]))
+        return self._stack
+
+    def _frame_arrays(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Recorded frame `index` at the warp's source resolution: (rgb (H, W, 3) uint8, depth (H, W) float32)
+        arrays and its mean colour in [0, 1]."""
         rgb_np = np.ascontiguousarray(self.world.frames[index])
         mean_rgb = np.asarray(cv2.mean(rgb_np)[:3]) / 255.0
         depth_np = np.asarray(self.world.depth_m[index], dtype=np.float32)
@@ -248,13 +286,7 @@ class ViewSynthesizer:
                     np.logical_or(sky, sky_px[dy::f, dx::f], out=sky)
             pooled[np.isposinf(pooled) & ~sky] = 0.0
             depth_np = pooled
-        rgb = torch.from_numpy(np.array(rgb_np, copy=True)).to(self.device)
-        depth = torch.from_numpy(np.array(depth_np, dtype=np.float32, copy=True)).to(self.device)
-        entry = (rgb, depth, mean_rgb)
-        self._frames[index] = entry
-        if len(self._frames) > _FRAME_CACHE_SIZE:
-            self._frames.popitem(last=False)
-        return entry
+        return rgb_np, depth_np, mean_rgb
 
     def _model_scenes(self, model: Any) -> tuple[PackedScene, PackedScene]:
         """(full, light) packed meshes of a vehicle model in its own frame, packed once per model object."""
@@ -320,22 +352,28 @@ class ViewSynthesizer:
         T_camera_world = invert(T_world_camera)
 
         start = time.perf_counter()
-        rgb_views, depth_views = [], []
-        for b in range(B):
-            rgb, depth, _ = self._frame(int(frame_index[b]))
-            T_dst_src = T_camera_world[b] @ self._T_world_camera[frame_index[b]]
-            warped = _warp(rgb, depth, self.K_src, T_dst_src, self.K_view, cfg)
-            warped = self._fill(int(frame_index[b]), T_camera_world[b], warped)
-            rgb_views.append(warped.rgb)
-            depth_views.append(warped.depth_m)
-        rgb_out = torch.stack(rgb_views)
-        depth_out = torch.stack(depth_views)
+        if self.batched:
+            rgb_out, depth_out = self._warp_batched(frame_index, T_camera_world)
+        else:
+            rgb_views, depth_views = [], []
+            for b in range(B):
+                rgb, depth, _ = self._frame(int(frame_index[b]))
+                T_dst_src = T_camera_world[b] @ self._T_world_camera[frame_index[b]]
+                warped = _warp(rgb, depth, self.K_src, T_dst_src, self.K_view, cfg)
+                warped = self._fill(int(frame_index[b]), T_camera_world[b], warped)
+                rgb_views.append(warped.rgb)
+                depth_views.append(warped.depth_m)
+            rgb_out = torch.stack(rgb_views)
+            depth_out = torch.stack(depth_views)
         timings["warp"] = 1e3 * (time.perf_counter() - start)
 
         start = time.perf_counter()
         scenes, poses, viewers, lights, shadows = [], [], [], [], []
-        for b in range(B):
-            placed = self._placed_cars(b, int(frame_index[b]), T_camera_world[b], cars[b])
+        if self.batched:
+            placed_per_view = self._placed_cars_batched(frame_index, T_camera_world, cars)
+        else:
+            placed_per_view = [self._placed_cars(b, int(frame_index[b]), T_camera_world[b], cars[b]) for b in range(B)]
+        for b, placed in enumerate(placed_per_view):
             if len(placed) == 1:  # one car: rendered from its own frame, no copy of its mesh moved into the camera's
                 scenes.append(placed[0][0])
                 poses.append(placed[0][1])
@@ -355,9 +393,12 @@ class ViewSynthesizer:
             car_mask = np.zeros((B, cfg.out_height_px, cfg.out_width_px), dtype=bool)
             return ViewBatch(rgb=rgb_out.cpu().numpy(), car_mask=car_mask, timings_ms=timings)
         start = time.perf_counter()
-        drawn = self.rasterizer.render(scenes, np.stack(poses), self.K_view, lighting=lights)
+        if self.batched:
+            drawn = self._raster_grouped(scenes, np.stack(poses), lights)
+        else:
+            drawn = self.rasterizer.render(scenes, np.stack(poses), self.K_view, lighting=lights)
         timings["raster"] = 1e3 * (time.perf_counter() - start)
-        insert = self._insert_cpu if self.device.type == "cpu" else self._insert_torch
+        insert = self._insert_torch if self.batched or self.device.type != "cpu" else self._insert_cpu
         rgb, car_mask = insert(rgb_out, depth_out, drawn, viewers, timings)
         return ViewBatch(rgb=rgb, car_mask=car_mask, timings_ms=timings)
 
@@ -413,6 +454,68 @@ class ViewSynthesizer:
         car_mask = torch.zeros((B, h, w), dtype=torch.bool, device=self.device).index_copy(0, index, front)
         return rgb.index_copy(0, index, rgb_c).cpu().numpy(), car_mask.cpu().numpy()
 
+    def _placed_cars_batched(
+        self, frame_index: np.ndarray, T_camera_world: np.ndarray, cars: list[list[CarPlacement]]
+    ) -> list[list[tuple[PackedScene, np.ndarray, Any]]]:
+        """`_placed_cars` of every view, its poses, visibility and level of detail computed for all cars at once."""
+        placed: list[list[tuple[PackedScene, np.ndarray, Any]]] = [[] for _ in cars]
+        view = np.array([b for b, view_cars in enumerate(cars) for _ in view_cars], dtype=np.int64)
+        if view.size == 0:
+            return placed
+        flat = [car for view_cars in cars for car in view_cars]
+        x, y, yaw = (np.array([getattr(c, k) for c in flat], dtype=np.float64) for k in ("x_m", "y_m", "yaw_rad"))
+        size = np.array([[c.model.length_m, c.model.width_m, c.model.height_m] for c in flat], dtype=np.float64)
+        f = frame_index[view]
+        q_lat, q_long, q_rot = relative_pose(x, y, yaw, self._path_x[f], self._path_y[f], self._path_yaw[f])
+        T = T_camera_world[view] @ self._T_world_vehicle[f] @ planar_transforms(q_long, q_lat, q_rot)
+        # As `_visible`: the bounding sphere against the near plane, the distance limit and the frustum's sides.
+        centre = T[:, :3, 2] * (0.5 * size[:, 2:3]) + T[:, :3, 3]
+        radius = 0.5 * np.linalg.norm(size, axis=1)
+        visible = (centre[:, 2] + radius >= self.rasterizer.near_m) & (
+            centre[:, 2] - radius <= self.config.max_car_distance_m
+        )
+        visible &= (centre @ self._frustum_normals.T > -radius[:, None]).all(axis=1)
+        size_px = float(self.K_view[0, 0]) * np.maximum(size[:, 0], size[:, 2]) / np.maximum(T[:, 2, 3], 0.1)
+        full_detail = size_px >= self.config.full_detail_min_px
+        for i in np.flatnonzero(visible):
+            full, light = self._model_scenes(flat[i].model)
+            placed[view[i]].append((full if full_detail[i] else light, T[i], flat[i].model))
+        return placed
+
+    def _raster_grouped(self, scenes: list[PackedScene], poses: np.ndarray, lights: list[Lighting]) -> RenderResult:
+        """The cars of the views with one: views showing the same packed scene (model and level of detail) are
+        rasterized in one call each, as one scene seen from many poses (no copy of the mesh per view)."""
+        groups: dict[int, list[int]] = {}
+        for i, scene in enumerate(scenes):
+            groups.setdefault(id(scene), []).append(i)
+        parts = []
+        for members in groups.values():
+            lighting = [lights[i] for i in members]
+            parts.append((members, self.rasterizer.render(scenes[members[0]], poses[members], self.K_view, lighting)))
+        if len(parts) == 1:
+            return parts[0][1]
+        n = len(scenes)
+        out = {}
+        for name in ("rgb", "depth_m", "object_id", "normal_cam"):
+            first = getattr(parts[0][1], name)
+            out[name] = torch.empty((n, *first.shape[1:]), dtype=first.dtype, device=first.device)
+            for members, result in parts:
+                out[name].index_copy_(0, torch.as_tensor(members, device=first.device), getattr(result, name))
+        return RenderResult(**out)
+
+    def _warp_batched(self, frame_index: np.ndarray, T_camera_world: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """All B views' warps (B, h, w, 3) uint8 and depths (B, h, w) in one call from the device's frame stack, holes
+        filled by `pull_push_fill` (counted in `fill_stats` as inpainted)."""
+        rgb_all, depth_all, _ = self._frame_stack()
+        T_dst_src = T_camera_world @ self._T_world_camera[frame_index]
+        warped = _warp(rgb_all, depth_all, self.K_src, T_dst_src, self.K_view, self.config, source_index=frame_index)
+        total, seen = warped.valid.numel(), int(warped.valid.sum())
+        if not self.config.inpaint:
+            self.fill_stats.add(FillStats(total_px=total, frame_px=seen))
+            return warped.rgb, warped.depth_m
+        self.fill_stats.add(FillStats(total_px=total, frame_px=seen, inpainted_px=total - seen))
+        return pull_push_fill(warped.rgb, warped.valid), warped.depth_m
+
     def _fill(self, frame: int, T_camera_world: np.ndarray, warped: WarpResult) -> WarpResult:
         """A view's warp with its holes filled from the neighbouring frames (`ViewConfig.fill_frames`), then
         inpainted (`ViewConfig.inpaint`); the pixel counts go to `fill_stats` (module `sim/fill.py`)."""
@@ -459,6 +562,13 @@ class ViewSynthesizer:
     def _contact_shadows(self, rgb: torch.Tensor, depth: torch.Tensor, shadows: list[tuple]) -> torch.Tensor:
         """The warped views with a soft shadow on the ground under each inserted car, `shadows` holding (view,
         T_camera_car, model) per car (before the cars are composited, so a car covers its own shadow's middle)."""
+        if self.batched:
+            return contact_shadows_batched(
+                rgb, depth, self.K_view, torch.as_tensor([b for b, _, _ in shadows], device=self.device),
+                torch.as_tensor(np.stack([T for _, T, _ in shadows]), device=self.device),
+                torch.as_tensor([[float(m.length_m), float(m.width_m)] for _, _, m in shadows], device=self.device),
+                self.config.contact_shadow,
+            )  # fmt: skip
         rgb_np = rgb.cpu().numpy()
         depth_np = depth.cpu().numpy()
         for b, T_camera_car, model in shadows:
@@ -472,7 +582,7 @@ class ViewSynthesizer:
         """Ambient = the scene's mean colour, directional light from the viewpoint at infinity; or unlit colours."""
         if not self.config.lighting:
             return Lighting(ambient_rgb=np.ones(3), light_dir_cam=np.array([0.0, 0.0, 1.0]), light_rgb=np.zeros(3))
-        mean_rgb = self._frame(frame)[2]
+        mean_rgb = self._frame_stack()[2][frame] if self.batched else self._frame(frame)[2]
         elevation_rad = np.deg2rad(self.config.light_elevation_deg)
         return Lighting(
             ambient_rgb=mean_rgb,
@@ -544,13 +654,15 @@ def _warp(
     K_view: np.ndarray,
     cfg: ViewConfig,
     box: tuple[int, int, int, int] | None = None,
+    source_index: np.ndarray | None = None,
 ) -> WarpResult:
     """One recorded frame warped into one view (the frame's tensors are cached, so its source constants are too), or
     into the box (x0, y0, w, h) of the view only.
 
     The view is passed as the region of a slightly larger destination image (a margin of _WARP_MARGIN_PX on every
     side): hole filling then sees the pixels just outside the view, and the warp only transforms the source pixels
-    that can land in it."""
+    that can land in it. With `source_index` (the batched path) rgb / depth hold N frames and T_dst_src (B, 4, 4) one
+    pose per view, warped by the torch path."""
     m = _WARP_MARGIN_PX
     K_dst = K_view.copy()
     K_dst[0, 2] += m
@@ -559,5 +671,5 @@ def _warp(
     x0, y0, bw, bh = box if box is not None else (0, 0, w, h)
     return forward_warp(
         rgb, depth, K_src, T_dst_src, K_dst, w + 2 * m + 1, h + 2 * m + 1, roi=(m + x0, m + y0, bw, bh),
-        fill_holes=cfg.fill_holes,
+        fill_holes=cfg.fill_holes, source_index=source_index, use_kernel=source_index is None,
     )  # fmt: skip

@@ -242,6 +242,7 @@ def forward_warp(
     roi: tuple[int, int, int, int] | None = None,
     fill_holes: bool = True,
     use_kernel: bool = True,
+    source_index: torch.Tensor | np.ndarray | None = None,
 ) -> WarpResult:
     """Warp B RGB-D source frames into B destination cameras.
 
@@ -255,6 +256,9 @@ def forward_warp(
     :param fill_holes: fill 1-2 px cracks (never large disocclusions).
     :param use_kernel: on CPU, run the compiled kernel (warp_kernel.py, same result); False: the torch path, which
         is what runs on a GPU.
+    :param source_index: (B,) int, view b's frame among the N frames of rgb / depth_m (N need not be B): the frames'
+        constants are then prepared once for all N and cached with those tensors, so a batch of views of frames kept
+        on the device pays no per-call preparation. None: view b warps frame b.
     :returns: WarpResult of size (B, h, w) of the region.
     """
     caller_tensors = (rgb, depth_m)
@@ -262,7 +266,13 @@ def forward_warp(
     if squeeze:
         rgb, depth_m = rgb[None], depth_m[None]
     device = depth_m.device
-    B, H, W = depth_m.shape
+    frame_of_view = None if source_index is None else torch.as_tensor(source_index, device=device).to(torch.int64)
+    if frame_of_view is not None and use_kernel and device.type == "cpu":
+        # The compiled path keeps nothing per frame but its smallest depth: hand it the views' frames.
+        rgb, depth_m = rgb.index_select(0, frame_of_view), depth_m.index_select(0, frame_of_view)
+        caller_tensors, frame_of_view = (rgb, depth_m), None
+    _, H, W = depth_m.shape
+    B = depth_m.shape[0] if frame_of_view is None else int(frame_of_view.numel())
     T = _as_tensor(T_dst_src, device)
     if T.dim() == 2:
         T = T[None].expand(B, 4, 4)
@@ -298,6 +308,8 @@ def forward_warp(
     M = (K_d @ T[:, :3, :3]).to(torch.float32)
     c = (K_d @ T[:, :3, 3:]).to(torch.float32)  # (B, 3, 1)
     P, fin, near, sky = source.points, source.finite[:, 0], source.near, source.sky
+    if frame_of_view is not None:
+        P, fin, near, sky = (t.index_select(0, frame_of_view) for t in (P, fin, near, sky))
     window_pixels = None
     window = None
     if (ew, eh) != (out_width_px, out_height_px):
@@ -347,7 +359,9 @@ def forward_warp(
     valid = keys != _EMPTY_KEY
     depth_out = (keys >> 32).to(torch.int32).view(torch.float32)  # +inf where empty, by the choice of _EMPTY_KEY
     src_index = (keys & _LOW32).clamp_(max=H * W - 1)
-    if B > 1:
+    if frame_of_view is not None:
+        src_index += frame_of_view[:, None] * (H * W)
+    elif B > 1:
         src_index += torch.arange(B, device=device)[:, None] * (H * W)
     src_index = src_index.reshape(-1)
     if rgb.dtype == torch.uint8:

@@ -70,3 +70,19 @@ def test_unknown_override_key_is_one_line_naming_valid_keys(tmp_path: Path) -> N
     assert result.returncode == 2
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "image.widht" in lines[0] and "width_px" in lines[0]
+
+
+def test_a_device_this_machine_lacks_is_one_line(tmp_path: Path) -> None:
+    """`device` and `envs.config.render_device` take a torch device this machine has; a GPU asked for on a machine
+    without one, or a device drivesim does not run on, is refused in one line that says what to give."""
+    import torch
+
+    result = _drivesim("config", "train", "--set", "device=cpu", "--set", "envs.config.render_device=cpu", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    asks = [("envs.config.render_device=tpu", "cpu or cuda"), ("device=gpu0", "not a torch device")]
+    if not torch.cuda.is_available():
+        asks.append(("device=cuda", "no CUDA device"))
+    for setting, reason in asks:
+        result = _drivesim("config", "train", "--set", setting, cwd=tmp_path)
+        lines = [line for line in result.stderr.splitlines() if line.strip()]
+        assert result.returncode == 2 and len(lines) == 1 and reason in lines[0], (setting, result.stderr)

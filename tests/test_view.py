@@ -333,3 +333,44 @@ def test_region_of_interest_fits_smaller_images():
     assert fit_roi((0, 72, 320, 128), 320, 96) == pytest.approx((40, 0, 240, 96))
     # Too far down or right: moved inside, size kept.
     assert fit_roi((100, 100, 240, 100), 320, 200) == pytest.approx((80, 100, 240, 100))
+
+
+CUDA = pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device"))
+
+
+@pytest.mark.parametrize("device", ["cpu", CUDA])
+def test_batched_path_renders_what_the_per_view_path_renders(tmp_path, device):
+    """The batched path (all views in one batch of torch operations: what runs on a GPU, and here on the CPU too)
+    gives the per-view path's views for a batch with two cars, one car and none, off the recorded path: the same car
+    pixels, the same colours up to rounding, its holes filled (no black); and several views of one car model are
+    rasterized as one scene seen from many poses."""
+    world = make_world(tmp_path)
+    per_view = ViewSynthesizer(world, ViewConfig())
+    batched = ViewSynthesizer(world, ViewConfig(), device=device, batched=True if device == "cpu" else None)
+    assert batched.batched and not per_view.batched
+    request = _batch_request(world)
+    a, b = per_view.render(*request), batched.render(*request)
+    holes = ViewSynthesizer(world, ViewConfig(inpaint=False)).render(*request).rgb.max(axis=-1) == 0
+    assert 0.005 < holes.mean() < 0.3, "the test needs some holes to fill"
+    assert a.car_mask.sum() > 1000
+    assert (a.car_mask == b.car_mask).mean() > 0.999
+    difference = np.abs(a.rgb.astype(int) - b.rgb.astype(int)).max(axis=-1)
+    assert (difference[~holes] <= 2).mean() > 0.999
+    assert (b.rgb.max(axis=-1) > 0).all()
+    assert difference[holes].mean() < 25, "filled by pull-push instead of Telea, to similar colours"
+    calls = []
+    original = batched.rasterizer.render
+    batched.rasterizer.render = lambda *args, **kw: calls.append(args[1].shape[0]) or original(*args, **kw)
+    model = box_model()
+    frames, x = np.array([0, 1, 2, 3]), np.array([0.0, 2.0, 4.0, 6.0])
+    cars = [[CarPlacement(model, xi + 12.0, 0.5 * i, 0.0)] for i, xi in enumerate(x)]
+    out = batched.render(frames, x, np.zeros(4), np.zeros(4), cars)
+    assert out.car_mask.reshape(4, -1).any(axis=1).all()
+    assert calls == [4], "four views of one model: one raster call with four poses"
+
+
+def test_batched_path_needs_no_neighbour_frames(tmp_path):
+    world = make_world(tmp_path)
+    with pytest.raises(ValueError, match="fill_frames"):
+        ViewSynthesizer(world, ViewConfig(fill_frames=(-1, 1)), batched=True)
+    assert not ViewSynthesizer(world, ViewConfig(fill_frames=(-1, 1)), device="cpu").batched

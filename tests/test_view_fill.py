@@ -170,3 +170,54 @@ def test_car_on_a_gray_camera_is_gray(tmp_path, gray):
         assert (out.rgb[0].max(axis=-1) == out.rgb[0].min(axis=-1)).all(), "the whole view stays gray"
     else:
         assert (car[:, 0] - car[:, 1]).mean() > 30
+
+
+def test_pull_push_fill_continues_the_border_colours_of_every_view():
+    """The GPU path's hole filling: holes in smooth gradients of a batch of views take colours close to the
+    gradient, seen pixels are kept exactly, and a view with nothing seen is left as it is."""
+    import torch
+
+    from drivesim.sim.fill import pull_push_fill
+
+    u = np.linspace(0, 200, 80)
+    image = np.repeat(np.stack([u, 200 - u, np.full_like(u, 100)], -1)[None], 30, axis=0).astype(np.uint8)
+    views = np.stack([image, image[:, ::-1], np.zeros_like(image)])
+    valid = np.ones((3, 30, 80), bool)
+    valid[0, 5:25, 38:42] = False  # a speck
+    valid[1, :, :16] = False  # a side wedge
+    valid[2] = False  # nothing seen
+    damaged = np.where(valid[..., None], views, 0).astype(np.uint8)
+    out = pull_push_fill(torch.from_numpy(damaged), torch.from_numpy(valid)).numpy()
+    assert np.array_equal(out[valid], views[valid])
+    assert np.abs(out[0][~valid[0]].astype(int) - views[0][~valid[0]]).mean() < 8
+    wedge_error = np.abs(out[1][~valid[1]].astype(int) - views[1][~valid[1]]).mean()
+    assert wedge_error < 40, "a wedge is continued from its border, not left black (error of black: ~100)"
+    assert (out[1].max(axis=-1) > 0).all()
+    assert np.array_equal(out[2], damaged[2])
+
+
+def test_batched_contact_shadows_match_the_per_car_shadow(tmp_path):
+    """contact_shadows_batched (the GPU path) darkens the same pixels as contact_shadow_, by the same amount up to
+    rounding, for two views and three cars (two in one view)."""
+    import torch
+
+    from drivesim.sim.geometry import invert
+    from drivesim.sim.shading import contact_shadow_, contact_shadows_batched
+
+    world = make_world(tmp_path)
+    vs = ViewSynthesizer(world, ViewConfig(**SMALL))
+    warped = vs.render(np.array([2, 3]), np.array([2.0, 3.0]), np.zeros(2), np.zeros(2), [[], []])
+    rgb = warped.rgb.copy()
+    depth = np.full(rgb.shape[:3], np.inf, dtype=np.float32)
+    T_cam_vehicle = invert(T_VC)
+    cars = [(0, pose_2d(12.0, 0.0, 0.0)), (1, pose_2d(9.0, -1.0, 0.2)), (1, pose_2d(15.0, 2.5, 0.0))]
+    expected = rgb.copy()
+    for view, T_vehicle_car in cars:
+        contact_shadow_(expected[view], depth[view], vs.K_view, T_cam_vehicle @ T_vehicle_car, 4.5, 1.9, 0.6)
+    got = contact_shadows_batched(
+        torch.from_numpy(rgb), torch.from_numpy(depth), vs.K_view, torch.tensor([v for v, _ in cars]),
+        torch.from_numpy(np.stack([T_cam_vehicle @ T for _, T in cars])), torch.tensor([[4.5, 1.9]] * 3), 0.6,
+    ).numpy()  # fmt: skip
+    assert (expected != rgb).sum() > 100, "the test needs shadows"
+    assert np.abs(got.astype(int) - expected).max() <= 2
+    assert ((got != rgb) != (expected != rgb)).mean() < 0.002, "the same pixels shadowed"

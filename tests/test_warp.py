@@ -284,3 +284,20 @@ def test_vehicle_composited_into_warped_roi_with_occlusion():
         else:
             assert cars.mask.sum() > 50 and not front.any()  # drawn by the rasterizer, hidden by the wall
             assert torch.equal(rgb, view.rgb)
+
+
+def test_source_index_warps_each_view_from_its_frame():
+    """With source_index, N frames serve B views (frame of view b = source_index[b]): the same pixels as warping each
+    view's frame by itself, on the torch path and the compiled one."""
+    rng = np.random.default_rng(2)
+    rgb = torch.as_tensor(rng.integers(0, 256, (3, H, W, 3), dtype=np.uint8))
+    depth = torch.as_tensor(rng.uniform(2.0, 30.0, (3, H, W)).astype(np.float32))
+    frame_of_view = np.array([2, 0, 2, 1])
+    T = np.stack([g.se3(g.rot_y(0.02 * b), [0.1 * b, 0.0, 0.2]) for b in range(4)])
+    for use_kernel in (False, True):
+        out = forward_warp(rgb, depth, K, T, K, W, H, roi=(40, 60, 200, 80), source_index=frame_of_view,
+                           use_kernel=use_kernel)  # fmt: skip
+        for b, f in enumerate(frame_of_view):
+            one = forward_warp(rgb[f : f + 1], depth[f : f + 1], K, T[b], K, W, H, roi=(40, 60, 200, 80),
+                               use_kernel=use_kernel)  # fmt: skip
+            assert torch.equal(out.rgb[b], one.rgb[0]) and torch.equal(out.depth_m[b], one.depth_m[0])

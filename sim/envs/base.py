@@ -118,7 +118,7 @@ class DrivingEnv(gymnasium.Env):
             c, world = self.config, self.worlds[world_index]
             roi = self.roi_px_of(world_index)
             self._renderers[world_index] = make_view_synthesizer(
-                world, roi, c.observation_width_px, c.observation_height_px
+                world, roi, c.observation_width_px, c.observation_height_px, device=c.render_device
             )
         return self._renderers[world_index]
 

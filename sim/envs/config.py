@@ -4,13 +4,27 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+import torch
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 # Ranges (low, high) whose values are magnitudes (speeds, distances, factors): negative values are refused.
 _NON_NEGATIVE_RANGES = (
     "ego_speed_mps", "other_speed_mps", "follow_speed_mps", "front_distance_m", "front_lateral_m", "gamma",
     "contrast", "saturation", "blur_sigma_px", "noise_std",
 )  # fmt: skip
+
+
+def check_torch_device(value: str) -> str:
+    """A torch device name that this machine has ("cpu", "cuda", "cuda:1"), or a ValueError saying what to give."""
+    try:
+        device = torch.device(value)
+    except (RuntimeError, ValueError) as e:
+        raise ValueError(f"{value!r} is not a torch device: give cpu or cuda") from e
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"{value!r}: torch sees no CUDA device on this machine; give cpu")
+    if device.type not in ("cpu", "cuda"):
+        raise ValueError(f"{value!r}: drivesim runs on cpu or cuda")
+    return value
 
 
 class EnvConfig(BaseModel):
@@ -110,6 +124,10 @@ class EnvConfig(BaseModel):
     (3, height, width) that the run config, the policy and the ONNX export record."""
     observation_height_px: int = Field(64, ge=8, le=4096)
     """Height of the observation (the policy's image), pixels."""
+    render_device: str = "cpu"
+    """torch device the views are rendered on: "cpu", or "cuda" (an NVIDIA GPU), where all the views of a world that
+    one process steps are rendered in one batch of torch operations (sim/view.py, the batched path; holes filled by
+    a pull-push fill instead of OpenCV's inpainting)."""
     augment: bool = True
     """Episode-level photometric augmentation in training (never in evaluation)."""
     gamma: tuple[float, float] = (0.8, 1.25)
@@ -140,6 +158,11 @@ class EnvConfig(BaseModel):
     `augment.NOISE_SHIFT_PX`); (0, 0): off."""
     far_clearance_m: float = Field(10.0, gt=0.0)
     """Beyond this centre distance the clearance is the centre distance minus both half-diagonals (no polygons)."""
+
+    @field_validator("render_device")
+    @classmethod
+    def _render_device(cls, value: str) -> str:
+        return check_torch_device(value)
 
     @model_validator(mode="after")
     def _check_ranges(self) -> EnvConfig:

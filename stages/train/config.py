@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, Field, field_validator, model_validator
 
 from drivesim.pipeline.config import STRICT_MODEL_CONFIG, StageConfig
-from drivesim.sim.envs.config import EnvConfig
+from drivesim.sim.envs.config import EnvConfig, check_torch_device
 from drivesim.sim.envs.registry import TaskName
 from drivesim.stages.net_size import check_network_size
 
@@ -160,6 +160,9 @@ class TrainConfig(StageConfig):
     """Seed of the policy's initialization and of the training episodes."""
     learner_threads: int = Field(2, ge=1, le=4096)
     """torch threads of the learner (this process)."""
+    device: str = "cpu"
+    """torch device of the learner (PPO's updates, the warm start, the imitation): "cpu" or "cuda". With a GPU, set
+    envs.config.render_device too, so the views are rendered there as well."""
     checkpoint_every_steps: int = Field(100_000, ge=1)
     """Keep a numbered checkpoint every this many env steps (checkpoints/last.pt is rewritten after every update)."""
     policy: PolicyConfig = Field(default_factory=PolicyConfig)
@@ -174,6 +177,11 @@ class TrainConfig(StageConfig):
     """Warm start from the privileged expert."""
     imitation: ImitationConfig = Field(default_factory=ImitationConfig)
     """Imitation of the privileged expert alongside PPO."""
+
+    @field_validator("device")
+    @classmethod
+    def _device(cls, value: str) -> str:
+        return check_torch_device(value)
 
     @field_validator("towns")
     @classmethod

@@ -55,14 +55,15 @@ def fit_to_labels(model: Any, data: ChunkData, batches: list[np.ndarray], optimi
     policy.set_training_mode(True)
     losses = []
     for ids in batches:
-        obs = torch.from_numpy(data.obs[ids].reshape(-1, *data.obs.shape[2:]))
-        h = torch.from_numpy(np.ascontiguousarray(data.h[ids].swapaxes(0, 1)))
-        c = torch.from_numpy(np.ascontiguousarray(data.c[ids].swapaxes(0, 1)))
+        dev = policy.device
+        obs = torch.from_numpy(data.obs[ids].reshape(-1, *data.obs.shape[2:])).to(dev)
+        h = torch.from_numpy(np.ascontiguousarray(data.h[ids].swapaxes(0, 1))).to(dev)
+        c = torch.from_numpy(np.ascontiguousarray(data.c[ids].swapaxes(0, 1))).to(dev)
         _, log_prob, _ = policy.evaluate_actions(
             obs.float(),
-            torch.from_numpy(data.labels[ids].reshape(-1, 1)),
+            torch.from_numpy(data.labels[ids].reshape(-1, 1)).to(dev),
             RNNStates((h, c), (h, c)),
-            torch.from_numpy(data.starts[ids].reshape(-1)),
+            torch.from_numpy(data.starts[ids].reshape(-1)).to(dev),
         )
         loss = -log_prob.mean()
         optimizer.zero_grad()

@@ -91,10 +91,10 @@ class ChunkedRolloutBuffer(RecurrentRolloutBuffer):
 
         def take(array: np.ndarray) -> torch.Tensor:
             picked = array[t, e]
-            return torch.from_numpy(picked.reshape(-1, *picked.shape[2:]))
+            return torch.from_numpy(picked.reshape(-1, *picked.shape[2:])).to(self.device)
 
-        h = torch.from_numpy(np.ascontiguousarray(self.chunk_h[k, env].swapaxes(0, 1)))
-        c = torch.from_numpy(np.ascontiguousarray(self.chunk_c[k, env].swapaxes(0, 1)))
+        h = torch.from_numpy(np.ascontiguousarray(self.chunk_h[k, env].swapaxes(0, 1))).to(self.device)
+        c = torch.from_numpy(np.ascontiguousarray(self.chunk_c[k, env].swapaxes(0, 1))).to(self.device)
         returns = take(self.returns)
         return RecurrentRolloutBufferSamples(
             observations=take(self.observations if self.preprocessed is None else self.preprocessed),

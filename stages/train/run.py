@@ -141,7 +141,7 @@ def _make_model(cfg: TrainConfig, venv: Any) -> ChunkedRecurrentPPO:
         },
         sequence_length=pol.sequence_length_steps,
         seed=cfg.seed,
-        device="cpu",
+        device=cfg.device,
         verbose=0,
     )
 

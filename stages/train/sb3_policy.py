@@ -117,7 +117,8 @@ class DrivingLstmPolicy(RecurrentActorCriticPolicy):
         flat = observations.reshape(-1, *observations.shape[-3:])
         with torch.no_grad():
             parts = [
-                encoder.preprocess(torch.from_numpy(flat[i : i + batch])).numpy() for i in range(0, len(flat), batch)
+                encoder.preprocess(torch.from_numpy(flat[i : i + batch]).to(self.device)).cpu().numpy()
+                for i in range(0, len(flat), batch)
             ]
         out = np.concatenate(parts)
         return out.reshape(*observations.shape[:-3], *out.shape[1:])

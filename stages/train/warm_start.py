@@ -12,6 +12,7 @@ nothing and leave PPO no exploration).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -22,6 +23,11 @@ from drivesim.stages.train.config import WarmStartConfig
 from drivesim.stages.train.envs import expert_actions
 from drivesim.stages.train.imitation import ChunkData, cloning_optimizer, fit_to_labels, minibatches, to_chunks
 from drivesim.stages.train.recurrent import ChunkedRecurrentPPO, ChunkedRolloutBuffer
+
+
+def _on(policy: Any, array: np.ndarray) -> torch.Tensor:
+    """An array as a tensor on the policy's device."""
+    return torch.from_numpy(array).to(policy.device)
 
 
 def _collect(
@@ -40,16 +46,16 @@ def _collect(
     for t in range(steps_per_env):
         obs, start, state = carry["obs"], carry["start"], carry["state"]
         if t % L == 0:
-            hs[t // L] = state[0].numpy().swapaxes(0, 1)
-            cs[t // L] = state[1].numpy().swapaxes(0, 1)
+            hs[t // L] = state[0].cpu().numpy().swapaxes(0, 1)
+            cs[t // L] = state[1].cpu().numpy().swapaxes(0, 1)
         with torch.no_grad():
             learner, _, _, new_state = policy.forward(
-                torch.from_numpy(obs), RNNStates(state, state), torch.from_numpy(start.astype(np.float32))
+                _on(policy, obs), RNNStates(state, state), _on(policy, start.astype(np.float32))
             )
         label = expert_actions(venv)
         use_expert = rng.random(n) < beta
         expert_used += int(use_expert.sum())
-        action = np.where(use_expert[:, None], label, learner.numpy().reshape(n, -1))
+        action = np.where(use_expert[:, None], label, learner.cpu().numpy().reshape(n, -1))
         obs_buf[t], starts[t], labels[t] = obs, start, label
         next_obs, _, dones, _ = venv.step(np.clip(action, -1.0, 1.0).astype(np.float32))
         carry.update(obs=next_obs, start=dones.astype(np.float32), state=new_state.pi)
@@ -88,7 +94,7 @@ def _fit_value(
         venv.observation_space,
         venv.action_space,
         (steps_per_env, lstm.num_layers, n, lstm.hidden_size),
-        "cpu",
+        policy.device,
         gae_lambda=model.gae_lambda,
         gamma=model.gamma,
         n_envs=n,
@@ -100,18 +106,17 @@ def _fit_value(
         obs, start, state = carry["obs"], carry["start"], carry["state"]
         with torch.no_grad():
             actions, values, log_probs, new_state = policy.forward(
-                torch.from_numpy(obs), RNNStates(state, state), torch.from_numpy(start.astype(np.float32))
+                _on(policy, obs), RNNStates(state, state), _on(policy, start.astype(np.float32))
             )
-        next_obs, rewards, dones, infos = venv.step(np.clip(actions.numpy(), -1.0, 1.0))
-        buffer.add(obs, actions.numpy(), rewards, start, values, log_probs, lstm_states=RNNStates(state, state))
+        actions_np = actions.cpu().numpy()
+        next_obs, rewards, dones, infos = venv.step(np.clip(actions_np, -1.0, 1.0))
+        buffer.add(obs, actions_np, rewards, start, values, log_probs, lstm_states=RNNStates(state, state))
         carry.update(obs=next_obs, start=dones.astype(np.float32), state=new_state.pi)
     optimizer = torch.optim.Adam(policy.value_net.parameters(), lr=lr)
     loss_value = float("nan")
     for _ in range(2):
         with torch.no_grad():
-            last = policy.predict_values(
-                torch.from_numpy(carry["obs"]), carry["state"], torch.from_numpy(carry["start"])
-            )
+            last = policy.predict_values(_on(policy, carry["obs"]), carry["state"], _on(policy, carry["start"]))
         buffer.compute_returns_and_advantage(last_values=last, dones=dones)
         for _ in range(max(1, epochs // 2)):
             for batch in buffer.get(model.batch_size):
@@ -131,7 +136,7 @@ def _fit_value(
                 )
                 k, env = ids // n, ids % n
                 t = k[:, None] * L + np.arange(L)[None, :]
-                buffer.values[t, np.broadcast_to(env[:, None], t.shape)] = values.numpy().reshape(len(ids), L)
+                buffer.values[t, np.broadcast_to(env[:, None], t.shape)] = values.cpu().numpy().reshape(len(ids), L)
     return loss_value
 
 
@@ -143,7 +148,7 @@ def warm_start(
     policy = model.policy
     layers, hidden = policy.lstm_actor.num_layers, policy.lstm_actor.hidden_size
     n = venv.num_envs
-    zeros = torch.zeros(layers, n, hidden)
+    zeros = torch.zeros(layers, n, hidden, device=policy.device)
     carry = {"obs": venv.reset(), "start": np.ones(n, np.float32), "state": (zeros, zeros.clone())}
     optimizer = cloning_optimizer(model, cfg.learning_rate)
     chunks_per_batch = max(1, model.batch_size // model.sequence_length)
