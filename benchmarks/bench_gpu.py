@@ -3,8 +3,9 @@
 Part 1, frames/s of the batched view path (`ViewSynthesizer(..., device="cuda")`: every recorded frame on the GPU, all
 views warped, hole-filled, shadowed, rasterized, composited and harmonized as one batch) at the policy's view (the
 world's default region resized to 160 x 64), for several batch sizes; each view an agent up to 1 m beside its recorded
-frame, turned up to 0.1 rad, with one other car 8-25 m ahead of it (the share of views where the car was drawn is
-counted from the views' car masks), and the same views without a car. Timed per `render` call, views returned to
+frame, turned up to 0.1 rad, with one other car 8-25 m ahead of it, a model of the env's vehicle library in a paint of
+its own as every episode draws it (the share of views where the car was drawn is counted from the views' car masks),
+and the same views without a car. Timed per `render` call, views returned to
 the host as numpy arrays (what an env hands the policy). The CPU row is the per-view path that the envs use on CPU,
 one torch thread, on the same machine.
 
@@ -80,8 +81,7 @@ def render_rows(world_dir: str, device: str, batches: list[int], cpu_batch: int,
     per-view path."""
     env = make_env("overtake", world_dir, None, "eval", None)
     env.reset(seed=0)
-    sim = env.unwrapped.sim
-    model = next(m for m in sim.models[1:] if m is not None)
+    sim, vehicles = env.unwrapped.sim, env.unwrapped.vehicles
     world, config = sim.renderer.world, sim.renderer.config
     rows = []
     for name, views, sizes in (
@@ -91,7 +91,10 @@ def render_rows(world_dir: str, device: str, batches: list[int], cpu_batch: int,
         torch.set_num_threads(1)
         for count in sizes:
             batch = random_views(world, count, seed=count)
-            with_car = [[CarPlacement(model, cx, cy, cyaw)] for cx, cy, cyaw in zip(*batch[4:], strict=True)]
+            rng = np.random.default_rng(count)  # each view's car a library model in a paint of its own, as episodes
+            with_car = [
+                [CarPlacement(vehicles.sample(rng), cx, cy, cyaw)] for cx, cy, cyaw in zip(*batch[4:], strict=True)
+            ]
             for car, cars in (("one car", with_car), ("no car", [[] for _ in range(count)])):
                 timed = time_renders(views, batch, cars, min_s)
                 row = {"path": name, "views": count, "cars": car, **timed}

@@ -153,7 +153,8 @@ class PackedScene:
         )
 
 
-def _material_row(material: Material) -> np.ndarray:
+def material_row(material: Material) -> np.ndarray:
+    """(7,) float: specular rgb, shininess, metalness, roughness, unlit (0/1): a `PackedScene.material` column."""
     return np.array(
         [
             *material.specular_rgb,
@@ -202,7 +203,7 @@ def pack_meshes(meshes: list[Mesh], device: str | torch.device = "cpu") -> Packe
         else:
             tex_index.append(np.full(n_faces, -1, dtype=np.int64))
         attributes.append(attr)
-        materials.append(np.broadcast_to(_material_row(mesh.material)[:, None], (7, n_faces)))
+        materials.append(np.broadcast_to(material_row(mesh.material)[:, None], (7, n_faces)))
         obj_ids.append(np.full(n_faces, mesh.object_id, dtype=np.int32))
 
     def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype: type) -> torch.Tensor:
@@ -326,6 +327,8 @@ class Rasterizer:
         self.cull_back_faces = bool(cull_back_faces)
         self.use_kernel = bool(use_kernel) and self.device.type == "cpu"
         self._pack_cache: list[tuple[list[Mesh], PackedScene]] = []
+        # (scene ids, scenes, concatenated scene, first triangles, counts, paint flags) of the last library
+        self._library_cache: tuple | None = None
 
     # ------------------------------------------------------------------ packing
     def pack(self, meshes: list[Mesh | PackedScene] | PackedScene) -> PackedScene:
@@ -349,7 +352,7 @@ class Rasterizer:
         meshes: list[Mesh] | list[list[Mesh]] | PackedScene | list[PackedScene],
         T_camera_world: np.ndarray | torch.Tensor,
         K: np.ndarray,
-        lighting: Lighting | list[Lighting] | None = None,
+        lighting: Lighting | list[Lighting] | np.ndarray | None = None,
         background_rgb: tuple[float, float, float] | np.ndarray | None = None,
     ) -> RenderResult:
         """Render meshes from B cameras.
@@ -380,6 +383,75 @@ class Rasterizer:
         K_t = torch.as_tensor(np.asarray(K, dtype=np.float64), device=self.device)
         R_cam_world = torch.as_tensor(T[:, :3, :3], dtype=torch.float32, device=self.device)
         return self._rasterize(scene, v_cam, owner, B, K_t, R_cam_world, lighting, background_rgb)
+
+    def render_instances(
+        self,
+        scenes: list[PackedScene],
+        scene_of_camera: np.ndarray,
+        T_camera_scene: np.ndarray,
+        K: np.ndarray,
+        lighting: Lighting | list[Lighting] | np.ndarray | None = None,
+        paint: tuple[list[np.ndarray], np.ndarray] | None = None,
+    ) -> RenderResult:
+        """B cameras, camera b seeing one instance of `scenes[scene_of_camera[b]]` at pose T_camera_scene[b] (B, 4, 4)
+        (a library of vehicle models seen by many agents): the scenes are packed together once (again only when the
+        list changes) and each camera's triangles are gathered from them, so one call renders any mix of models with
+        no copy of a mesh per camera. The compiled CPU path renders them as `render` with one scene per camera.
+
+        :param lighting: as `render`, or a (B, 9) table of ambient, light direction and light colour per camera.
+        :param paint: each camera's own paint of its instance: (per scene a (T,) bool mask of the triangles painted,
+            (B, 10) diffuse rgb and `_material_row` per camera). A painted triangle's colour is its packed colour
+            (pack the paint's triangles with a white diffuse) times the camera's diffuse, its material the camera's.
+            Not on the compiled CPU path (it raises).
+        """
+        scene_of_camera = np.asarray(scene_of_camera, dtype=np.int64)
+        if self.use_kernel:
+            if paint is not None:
+                raise ValueError("per-camera paint needs the torch path (use_kernel=False)")
+            return self.render([scenes[i] for i in scene_of_camera], T_camera_scene, K, lighting)
+        library, first, count = self._library(scenes, None if paint is None else paint[0])
+        dev = self.device
+        T = _as_poses(T_camera_scene)
+        B = T.shape[0]
+        # As `_to_camera`, in the same order of float operations: T @ translation(origin of the camera's scene).
+        M = T @ np.stack([_translation(scenes[i].origin_m) for i in range(len(scenes))])[scene_of_camera]
+        M = torch.as_tensor(M[:, :3, :], dtype=torch.float32, device=dev)
+        which = torch.as_tensor(scene_of_camera, device=dev)
+        per_camera = count.index_select(0, which)
+        total = int(per_camera.sum())
+        camera = torch.repeat_interleave(torch.arange(B, device=dev), per_camera, output_size=total)
+        start = (per_camera.cumsum(0) - per_camera).index_select(0, camera)
+        triangle = first.index_select(0, which).index_select(0, camera) + torch.arange(total, device=dev) - start
+        X, Y, Z = library.vertex_components.index_select(2, triangle)  # each (3 corners, total)
+        M_c = M.index_select(0, camera)  # (total, 3, 4)
+        v_cam = torch.empty((3, 3, total), dtype=torch.float32, device=dev)
+        for c in range(3):
+            torch.mul(X, M_c[:, c, 0], out=v_cam[c])
+            v_cam[c].add_(M_c[:, c, 3]).addcmul_(Y, M_c[:, c, 1]).addcmul_(Z, M_c[:, c, 2])
+        K_t = torch.as_tensor(np.asarray(K, dtype=np.float64), device=dev)
+        R_cam_scene = torch.as_tensor(T[:, :3, :3], dtype=torch.float32, device=dev)
+        instance_paint = None
+        if paint is not None:
+            rows = torch.as_tensor(np.asarray(paint[1], dtype=np.float32).T.copy(), device=dev)  # (10, B)
+            instance_paint = (self._library_cache[5], rows)
+        return self._rasterize(
+            library, v_cam, camera, B, K_t, R_cam_scene, lighting, None, source=triangle, paint=instance_paint
+        )
+
+    def _library(
+        self, scenes: list[PackedScene], paint_masks: list[np.ndarray] | None
+    ) -> tuple[PackedScene, torch.Tensor, torch.Tensor]:
+        """`scenes` concatenated (each keeps its own origin), and each one's first triangle and triangle count; the
+        paint masks concatenated are kept with them."""
+        key = tuple(id(scene) for scene in scenes)
+        if self._library_cache is None or self._library_cache[0] != key:
+            merged, _ = _concat_scenes(scenes)
+            count = torch.tensor([scene.triangle_count for scene in scenes], dtype=torch.int64, device=self.device)
+            masks = None
+            if paint_masks is not None:
+                masks = torch.as_tensor(np.concatenate(paint_masks).astype(bool), device=self.device)
+            self._library_cache = (key, list(scenes), merged, count.cumsum(0) - count, count, masks)
+        return self._library_cache[2], self._library_cache[3], self._library_cache[4]
 
     def _to_camera(self, scene: PackedScene, T: np.ndarray) -> torch.Tensor:
         """Camera-frame vertices of `scene` seen from poses T (B, 4, 4), component-major: (3 xyz, 3 corners, B * T)
@@ -486,9 +558,13 @@ class Rasterizer:
         B: int,
         K: torch.Tensor,
         R_cam_world: torch.Tensor,
-        lighting: Lighting | list[Lighting] | None,
+        lighting: Lighting | list[Lighting] | np.ndarray | None,
         background_rgb: tuple[float, float, float] | np.ndarray | None,
+        source: torch.Tensor | None = None,
+        paint: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> RenderResult:
+        """Depth test and shading of the candidates `vc`: with `owner`, candidate n is seen by camera owner[n] and is
+        triangle `source[n]` of the scene (n itself when source is None); without, triangle n % T of camera n // T."""
         W, H, dev = self.width_px, self.height_px, self.device
         if self.use_kernel and not scene.textured:
             return self._rasterize_kernel(scene, vc, owner, B, K, R_cam_world, lighting, background_rgb)
@@ -498,12 +574,13 @@ class Rasterizer:
             tri_camera = idx // T_count
             tri_source = idx - tri_camera * T_count
         else:
-            tri_camera, tri_source = owner[idx], idx
+            tri_camera, tri_source = owner[idx], (idx if source is None else source[idx])
         bw = bbox[:, 2] - bbox[:, 0] + 1
         bh = bbox[:, 3] - bbox[:, 1] + 1
         if self.use_kernel:
             zbuf = self._depth_test_kernel(cols, bbox, tri_camera, B)
             return self._resolve(zbuf, scene, cols, tri_camera, tri_source, B, K, R_cam_world, lighting, background_rgb)
+        resolve_paint = {"paint": paint} if paint is not None else {}
         base_pix = tri_camera * (H * W) + bbox[:, 1] * W + bbox[:, 0]
         # Slack after the image: padded tile pixels past the last row land there instead of being clamped.
         zbuf = torch.full((B * H * W + _TILE_PX * (W + 1),), _EMPTY_KEY, dtype=torch.int64, device=dev)
@@ -519,7 +596,9 @@ class Rasterizer:
         members = (~small).nonzero().squeeze(1)
         if members.numel():
             self._raster_tiles(zbuf, cols, bw, bh, base_pix, members, _TILE_PX, _TILE_PX)
-        return self._resolve(zbuf, scene, cols, tri_camera, tri_source, B, K, R_cam_world, lighting, background_rgb)
+        return self._resolve(
+            zbuf, scene, cols, tri_camera, tri_source, B, K, R_cam_world, lighting, background_rgb, **resolve_paint
+        )
 
     def _rasterize_kernel(
         self,
@@ -529,7 +608,7 @@ class Rasterizer:
         B: int,
         K: torch.Tensor,
         R_cam_world: torch.Tensor,
-        lighting: Lighting | list[Lighting] | None,
+        lighting: Lighting | list[Lighting] | np.ndarray | None,
         background_rgb: tuple[float, float, float] | np.ndarray | None,
     ) -> RenderResult:
         """The whole render of an untextured scene in the compiled CPU kernels (set-up, depth test, shading): the
@@ -706,11 +785,13 @@ class Rasterizer:
         B: int,
         K: torch.Tensor,
         R_cam_world: torch.Tensor,
-        lighting: Lighting | list[Lighting] | None,
+        lighting: Lighting | list[Lighting] | np.ndarray | None,
         background_rgb: tuple[float, float, float] | np.ndarray | None,
+        paint: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> RenderResult:
         """Per covered pixel: the winner's perspective-correct barycentrics, attributes and shading. Vectors are kept
-        channel-major, (3, P), so that every op runs over long contiguous rows."""
+        channel-major, (3, P), so that every op runs over long contiguous rows. `paint`: (per scene triangle, whether
+        it takes its camera's paint; (10, B) each camera's diffuse rgb and material row), see `render_instances`."""
         W, H, dev = self.width_px, self.height_px, self.device
         HW = H * W
         bg = (
@@ -744,11 +825,9 @@ class Rasterizer:
         normal_world = attr[0:3]
         if B == 1:
             normal_cam = R_cam_world[0] @ normal_world
-        else:
-            bounds = torch.searchsorted(pix, torch.arange(B + 1, device=dev) * HW).tolist()
-            normal_cam = torch.empty_like(normal_world)
-            for b in range(B):
-                normal_cam[:, bounds[b] : bounds[b + 1]] = R_cam_world[b] @ normal_world[:, bounds[b] : bounds[b + 1]]
+        else:  # each pixel's camera rotation, gathered (no per-camera loop: thousands of cameras on a GPU)
+            R_pixel = R_cam_world.index_select(0, row // H)  # (P, 3, 3)
+            normal_cam = torch.einsum("pij,jp->ip", R_pixel, normal_world)
         K_inv = torch.as_tensor(np.linalg.inv(K.cpu().numpy()), dtype=torch.float32, device=dev)
         ray = torch.addcmul(torch.addcmul(K_inv[:, 2:3], K_inv[:, 0:1], xf), K_inv[:, 1:2], yf)
         to_viewer = normalize3(-ray)
@@ -770,6 +849,8 @@ class Rasterizer:
                 for c in range(3):
                     base[c].index_copy_(0, textured, base[c].index_select(0, textured) * texture[c])
         mat = _take(scene.material, src)
+        if paint is not None:
+            base, mat = _painted(base, mat, src, row // H, paint)
         amb, ldir, lrgb = _lighting_tensors(lighting, B, dev)
         if B > 1:
             cam = row // H
@@ -792,8 +873,34 @@ class Rasterizer:
         )
 
 
-def _lighting_table(lighting: Lighting | list[Lighting] | None, B: int) -> np.ndarray:
-    """(B, 9) float32: ambient, unit light direction and light colour of each camera."""
+def _painted(
+    base: torch.Tensor,
+    mat: torch.Tensor,
+    src: torch.Tensor,
+    cam: torch.Tensor,
+    paint: tuple[torch.Tensor, torch.Tensor],
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Base colour (3, P) and material (7, P) of covered pixels with each painted triangle's pixels in its camera's
+    paint: colour times the paint's diffuse, the paint's material row."""
+    flags, rows = paint
+    painted = flags.index_select(0, src).nonzero().squeeze(1)
+    if painted.numel() == 0:
+        return base, mat
+    r = _take(rows, cam.index_select(0, painted))  # (10, n)
+    base, mat = base.clone(), mat.clone()
+    for c in range(3):
+        base[c].index_copy_(0, painted, base[c].index_select(0, painted) * r[c])
+    for k in range(7):
+        mat[k].index_copy_(0, painted, r[3 + k])
+    return base, mat
+
+
+def _lighting_table(lighting: Lighting | list[Lighting] | np.ndarray | None, B: int) -> np.ndarray:
+    """(B, 9) float32: ambient, unit light direction and light colour of each camera (a table is taken as it is)."""
+    if isinstance(lighting, np.ndarray):
+        if lighting.shape != (B, 9):
+            raise ValueError(f"a lighting table must be ({B}, 9), got {lighting.shape}")
+        return lighting.astype(np.float32)
     if lighting is None:
         lighting = Lighting()
     lights = lighting if isinstance(lighting, list) else [lighting] * B
@@ -809,7 +916,7 @@ def _lighting_table(lighting: Lighting | list[Lighting] | None, B: int) -> np.nd
 
 
 def _lighting_tensors(
-    lighting: Lighting | list[Lighting] | None, B: int, device: torch.device
+    lighting: Lighting | list[Lighting] | np.ndarray | None, B: int, device: torch.device
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(B, 3) ambient, unit light direction and light colour."""
     t = torch.as_tensor(_lighting_table(lighting, B), device=device)

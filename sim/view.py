@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -46,8 +46,8 @@ from drivesim.sim import raster_kernel
 from drivesim.sim.fill import FillStats, hole_box, inpaint_holes, merge_into_holes, pull_push_fill
 from drivesim.sim.geometry import invert, scale_intrinsics
 from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer
-from drivesim.sim.raster import PackedScene, Rasterizer, RenderResult, composite, merge_scenes
-from drivesim.sim.shading import Lighting, contact_shadow_, contact_shadows_batched
+from drivesim.sim.raster import PackedScene, Rasterizer, RenderResult, composite, material_row, merge_scenes
+from drivesim.sim.shading import contact_shadow_, contact_shadows_batched
 from drivesim.sim.warp import WarpResult, forward_warp
 from drivesim.sim.world import World, relative_pose
 
@@ -58,6 +58,8 @@ __all__ = [
 
 TIMING_KEYS = ("warp", "raster", "composite", "lighting", "harmonize")
 _FRAME_CACHE_SIZE = 2048  # recorded frames kept as tensors (about 0.1 MB each at the default view)
+_MODEL_CACHE_SIZE = 256  # packed vehicle models kept (about 0.5 MB each; every episode's car is a new repaint)
+_PAINT_CACHE_SIZE = 65536  # the batched path's (geometry slot, paint) of models seen lately (a few hundred bytes each)
 _WARP_MARGIN_PX = 3
 # Holes of fewer pixels than this are inpainted at once (disocclusion specks); neighbours are warped only for more.
 _FILL_MIN_HOLE_PX = 24
@@ -205,6 +207,10 @@ class ViewSynthesizer:
             raise ValueError("the batched views fill no holes from neighbouring frames: set fill_frames to ()")
         self.batched = batched if batched is not None else self.device.type != "cpu" and not config.fill_frames
         self._stack: tuple[torch.Tensor, torch.Tensor, np.ndarray] | None = None
+        self._geometries: list[tuple[PackedScene, np.ndarray]] = []
+        self._geometry_slot: dict[tuple, int] = {}
+        self._geometry_meshes: list[list[Any]] = []
+        self._geometry_of: OrderedDict[tuple[int, bool], tuple[Any, int, np.ndarray]] = OrderedDict()
         self.harmonizer = harmonizer if harmonizer is not None else StatisticalHarmonizer()
         self.roi_px = x0, y0, w, h = fit_roi(config.roi_px, world.width_px, world.height_px)
         sx, sy = config.out_width_px / w, config.out_height_px / h
@@ -297,6 +303,10 @@ class ViewSynthesizer:
             light = full if not light_meshes else self.rasterizer.pack(list(light_meshes))
             entry = (model, full, light)
             self._packed[id(model)] = entry  # holds the model, so its id stays unique
+            if len(self._packed) > _MODEL_CACHE_SIZE:  # every episode's car is a new (repainted) model
+                self._packed.pop(next(iter(self._packed)))
+        else:
+            self._packed[id(model)] = self._packed.pop(id(model))  # most recently used last
         return entry[1], entry[2]
 
     def _frustum_planes(self) -> np.ndarray:
@@ -368,22 +378,13 @@ class ViewSynthesizer:
         timings["warp"] = 1e3 * (time.perf_counter() - start)
 
         start = time.perf_counter()
-        scenes, poses, viewers, lights, shadows = [], [], [], [], []
         if self.batched:
             placed_per_view = self._placed_cars_batched(frame_index, T_camera_world, cars)
         else:
             placed_per_view = [self._placed_cars(b, int(frame_index[b]), T_camera_world[b], cars[b]) for b in range(B)]
-        for b, placed in enumerate(placed_per_view):
-            if len(placed) == 1:  # one car: rendered from its own frame, no copy of its mesh moved into the camera's
-                scenes.append(placed[0][0])
-                poses.append(placed[0][1])
-            elif placed:
-                scenes.append(merge_scenes([scene.transformed(T) for scene, T, _ in placed]))
-                poses.append(np.eye(4))
-            if placed:
-                viewers.append(b)
-                lights.append(self._lighting(int(frame_index[b])))
-                shadows.extend((b, T, model) for _, T, model in placed)
+        viewers = [b for b, placed in enumerate(placed_per_view) if placed]
+        shadows = [(b, T, model) for b in viewers for model, T, _ in placed_per_view[b]]
+        lights = self._lighting_table(frame_index[viewers])
         timings["lighting"] = 1e3 * (time.perf_counter() - start)
         if shadows and cfg.contact_shadow > 0:
             start = time.perf_counter()
@@ -393,10 +394,10 @@ class ViewSynthesizer:
             car_mask = np.zeros((B, cfg.out_height_px, cfg.out_width_px), dtype=bool)
             return ViewBatch(rgb=rgb_out.cpu().numpy(), car_mask=car_mask, timings_ms=timings)
         start = time.perf_counter()
-        if self.batched:
-            drawn = self._raster_grouped(scenes, np.stack(poses), lights)
+        if self.batched and not self.rasterizer.use_kernel:
+            drawn = self._raster_instances([placed_per_view[b] for b in viewers], lights)
         else:
-            drawn = self.rasterizer.render(scenes, np.stack(poses), self.K_view, lighting=lights)
+            drawn = self._raster_scenes([placed_per_view[b] for b in viewers], lights)
         timings["raster"] = 1e3 * (time.perf_counter() - start)
         insert = self._insert_torch if self.batched or self.device.type != "cpu" else self._insert_cpu
         rgb, car_mask = insert(rgb_out, depth_out, drawn, viewers, timings)
@@ -478,30 +479,97 @@ class ViewSynthesizer:
         size_px = float(self.K_view[0, 0]) * np.maximum(size[:, 0], size[:, 2]) / np.maximum(T[:, 2, 3], 0.1)
         full_detail = size_px >= self.config.full_detail_min_px
         for i in np.flatnonzero(visible):
-            full, light = self._model_scenes(flat[i].model)
-            placed[view[i]].append((full if full_detail[i] else light, T[i], flat[i].model))
+            placed[view[i]].append((flat[i].model, T[i], bool(full_detail[i])))
         return placed
 
-    def _raster_grouped(self, scenes: list[PackedScene], poses: np.ndarray, lights: list[Lighting]) -> RenderResult:
-        """The cars of the views with one: views showing the same packed scene (model and level of detail) are
-        rasterized in one call each, as one scene seen from many poses (no copy of the mesh per view)."""
-        groups: dict[int, list[int]] = {}
-        for i, scene in enumerate(scenes):
-            groups.setdefault(id(scene), []).append(i)
+    def _raster_scenes(self, placed_per_view: list[list[tuple]], lights: np.ndarray) -> RenderResult:
+        """The cars of views that show any, each view's (model, T_camera_car, full detail) list, one raster call: a
+        view of one car renders its packed model from the car's own frame, several cars are moved into the camera's
+        frame and merged."""
+        scenes, poses = [], []
+        for placed in placed_per_view:
+            packed = [self._model_scenes(model)[0 if full else 1] for model, _, full in placed]
+            if len(placed) == 1:  # one car: rendered from its own frame, no copy of its mesh moved into the camera's
+                scenes.append(packed[0])
+                poses.append(placed[0][1])
+            else:
+                moved = [scene.transformed(T) for scene, (_, T, _) in zip(packed, placed, strict=True)]
+                scenes.append(merge_scenes(moved))
+                poses.append(np.eye(4))
+        return self.rasterizer.render(scenes, np.stack(poses), self.K_view, lighting=lights)
+
+    def _raster_instances(self, placed_per_view: list[list[tuple]], lights: np.ndarray) -> RenderResult:
+        """`_raster_scenes` for the batched torch path: views of one car in one `render_instances` call over the
+        library of the models' unpainted geometry, each with its own paint (a repainted car is not packed again);
+        views of several cars through `_raster_scenes`."""
+        one = [i for i, placed in enumerate(placed_per_view) if len(placed) == 1]
+        several = [i for i, placed in enumerate(placed_per_view) if len(placed) > 1]
         parts = []
-        for members in groups.values():
-            lighting = [lights[i] for i in members]
-            parts.append((members, self.rasterizer.render(scenes[members[0]], poses[members], self.K_view, lighting)))
+        if one:
+            slots, paints = zip(*(self._geometry(*placed_per_view[i][0][::2]) for i in one), strict=True)
+            poses = np.stack([placed_per_view[i][0][1] for i in one])
+            masks = [mask for _, mask in self._geometries]
+            drawn = self.rasterizer.render_instances(
+                [scene for scene, _ in self._geometries], np.array(slots), poses, self.K_view, lights[one],
+                paint=(masks, np.stack(paints)),
+            )  # fmt: skip
+            parts.append((one, drawn))
+        if several:
+            parts.append((several, self._raster_scenes([placed_per_view[i] for i in several], lights[several])))
         if len(parts) == 1:
             return parts[0][1]
-        n = len(scenes)
         out = {}
         for name in ("rgb", "depth_m", "object_id", "normal_cam"):
             first = getattr(parts[0][1], name)
-            out[name] = torch.empty((n, *first.shape[1:]), dtype=first.dtype, device=first.device)
+            out[name] = torch.empty((len(placed_per_view), *first.shape[1:]), dtype=first.dtype, device=first.device)
             for members, result in parts:
                 out[name].index_copy_(0, torch.as_tensor(members, device=first.device), getattr(result, name))
         return RenderResult(**out)
+
+    def _geometry(self, model: Any, full: bool) -> tuple[int, np.ndarray]:
+        """The slot of a model's geometry at a level of detail in the batched path's library (packed once per shape,
+        its paint group white), and the model's paint: (10,) diffuse rgb and material row (`raster._material_row`);
+        repainted copies of a model share its meshes' vertex arrays, hence its slot."""
+        known = self._geometry_of.get((id(model), full))
+        if known is not None and known[0] is model:
+            self._geometry_of.move_to_end((id(model), full))
+            return known[1], known[2]
+        meshes = list(model.full if full or not getattr(model, "light", None) else model.light)
+        key = tuple((id(m.vertices_m), id(m.faces)) for m in meshes)
+        group = getattr(model, "paint_group", None)
+        slot = self._geometry_slot.get(key)
+        if slot is None:
+            white = [
+                replace(m, material=replace(m.material, diffuse_rgb=(1.0, 1.0, 1.0))) if k == group else m
+                for k, m in enumerate(meshes)
+            ]
+            mask = np.concatenate([np.full(len(m.faces), k == group) for k, m in enumerate(meshes) if len(m.faces)])
+            slot = self._geometry_slot[key] = len(self._geometries)
+            self._geometries.append((self.rasterizer.pack(white), mask))
+            self._geometry_meshes.append(meshes)  # held, so that the ids of the key stay unique
+        paint = np.zeros(10, dtype=np.float32)
+        if group is not None:
+            material = meshes[group].material
+            paint = np.concatenate([np.asarray(material.diffuse_rgb, np.float32), material_row(material)])
+        self._geometry_of[(id(model), full)] = (model, slot, paint)  # held, so that its id stays unique
+        if len(self._geometry_of) > _PAINT_CACHE_SIZE:
+            self._geometry_of.popitem(last=False)
+        return slot, paint
+
+    def _lighting_table(self, frame_index: np.ndarray) -> np.ndarray:
+        """(n, 9) lighting of views from recorded frames `frame_index` (`_lighting`, for all at once)."""
+        n = len(frame_index)
+        if not self.config.lighting:
+            return np.tile(np.array([1, 1, 1, 0, 0, 1, 0, 0, 0], dtype=np.float32), (n, 1))
+        if self.batched:
+            mean_rgb = self._frame_stack()[2][frame_index]
+        else:
+            mean_rgb = np.array([self._frame(int(f))[2] for f in frame_index], dtype=np.float64).reshape(-1, 3)
+        elevation_rad = np.deg2rad(self.config.light_elevation_deg)
+        direction = np.array([0.0, np.sin(elevation_rad), np.cos(elevation_rad)])
+        return np.concatenate(
+            [mean_rgb, np.tile(direction, (n, 1)), self.config.directional_gain * mean_rgb], axis=1
+        ).astype(np.float32)
 
     def _warp_batched(self, frame_index: np.ndarray, T_camera_world: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """All B views' warps (B, h, w, 3) uint8 and depths (B, h, w) in one call from the device's frame stack, holes
@@ -578,19 +646,6 @@ class ViewSynthesizer:
             )  # fmt: skip
         return rgb if rgb.device.type == "cpu" else torch.from_numpy(rgb_np).to(rgb.device)
 
-    def _lighting(self, frame: int) -> Lighting:
-        """Ambient = the scene's mean colour, directional light from the viewpoint at infinity; or unlit colours."""
-        if not self.config.lighting:
-            return Lighting(ambient_rgb=np.ones(3), light_dir_cam=np.array([0.0, 0.0, 1.0]), light_rgb=np.zeros(3))
-        mean_rgb = self._frame_stack()[2][frame] if self.batched else self._frame(frame)[2]
-        elevation_rad = np.deg2rad(self.config.light_elevation_deg)
-        return Lighting(
-            ambient_rgb=mean_rgb,
-            # The light travels forward and, when raised, downward: +z and +y of the optical frame.
-            light_dir_cam=np.array([0.0, np.sin(elevation_rad), np.cos(elevation_rad)]),
-            light_rgb=self.config.directional_gain * mean_rgb,
-        )
-
     def _placed_cars(
         self, b: int, frame: int, T_camera_world: np.ndarray, cars: list[CarPlacement]
     ) -> list[tuple[PackedScene, np.ndarray, Any]]:
@@ -608,10 +663,8 @@ class ViewSynthesizer:
         for car, T in zip(cars, T_camera_car, strict=True):
             if not self._visible(T, car.model):
                 continue
-            full, light = self._model_scenes(car.model)
             size_px = fx * max(float(car.model.length_m), float(car.model.height_m)) / max(float(T[2, 3]), 0.1)
-            scene = full if size_px >= self.config.full_detail_min_px else light
-            placed.append((scene, T, car.model))
+            placed.append((car.model, T, size_px >= self.config.full_detail_min_px))
         return placed
 
 

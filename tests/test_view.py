@@ -374,3 +374,32 @@ def test_batched_path_needs_no_neighbour_frames(tmp_path):
     with pytest.raises(ValueError, match="fill_frames"):
         ViewSynthesizer(world, ViewConfig(fill_frames=(-1, 1)), batched=True)
     assert not ViewSynthesizer(world, ViewConfig(fill_frames=(-1, 1)), device="cpu").batched
+
+
+def test_batched_torch_path_draws_repainted_library_cars_and_memory_stays_bounded(tmp_path):
+    """The GPU's path (batched views, torch raster from one library of unpainted geometry, each car its own paint;
+    run here on the CPU) draws the procedural library's repainted cars as the per-view path does; and 300 episodes'
+    repainted cars keep at most the model cache's worth of packed cars and one geometry per shape and detail."""
+    from drivesim.sim import view as view_module
+    from drivesim.sim.vehicle_library import VehicleLibrary
+
+    world = make_world(tmp_path)
+    library = VehicleLibrary.procedural(count=3, seed=0)
+    rng = np.random.default_rng(0)
+    models = [library.sample(rng) for _ in range(4)]
+    frames, x = np.array([0, 1, 2, 3]), np.array([0.0, 2.0, 4.0, 6.0])
+    cars = [[CarPlacement(models[i], xi + 9.0 + 4 * i, 0.6 * (i - 1.5), 0.1)] for i, xi in enumerate(x)]
+    per_view = ViewSynthesizer(world, ViewConfig())
+    batched = ViewSynthesizer(world, ViewConfig(), batched=True)
+    batched.rasterizer.use_kernel = False
+    a = per_view.render(frames, x, np.zeros(4), np.zeros(4), cars)
+    b = batched.render(frames, x, np.zeros(4), np.zeros(4), cars)
+    assert a.car_mask.reshape(4, -1).any(axis=1).all()
+    assert (a.car_mask == b.car_mask).mean() > 0.999
+    both = a.car_mask & b.car_mask
+    assert (np.abs(a.rgb[both].astype(int) - b.rgb[both]) <= 2).mean() > 0.99
+    for _ in range(300):
+        per_view._model_scenes(library.sample(rng))
+        batched._geometry(library.sample(rng), True)
+    assert len(per_view._packed) <= view_module._MODEL_CACHE_SIZE
+    assert len(batched._geometries) <= 2 * len(library.models)
