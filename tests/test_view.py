@@ -358,9 +358,11 @@ def test_batched_path_renders_what_the_per_view_path_renders(tmp_path, device):
     assert (difference[~holes] <= 2).mean() > 0.999
     assert (b.rgb.max(axis=-1) > 0).all()
     assert difference[holes].mean() < 25, "filled by pull-push instead of Telea, to similar colours"
-    calls = []
-    original = batched.rasterizer.render
-    batched.rasterizer.render = lambda *args, **kw: calls.append(args[1].shape[0]) or original(*args, **kw)
+    calls = []  # cameras of each raster call: `render` on the CPU's compiled path, `render_instances` on torch's
+    rasterizer = batched.rasterizer
+    render, instances = rasterizer.render, rasterizer.render_instances
+    rasterizer.render = lambda *args, **kw: calls.append(len(args[1])) or render(*args, **kw)
+    rasterizer.render_instances = lambda *args, **kw: calls.append(len(args[2])) or instances(*args, **kw)
     model = box_model()
     frames, x = np.array([0, 1, 2, 3]), np.array([0.0, 2.0, 4.0, 6.0])
     cars = [[CarPlacement(model, xi + 12.0, 0.5 * i, 0.0)] for i, xi in enumerate(x)]
