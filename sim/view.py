@@ -26,8 +26,10 @@ torch operations.
 
 The batched path (the default on a GPU, `batched=True` anywhere): every recorded frame is put on the device once, all
 B views are warped in one `forward_warp` call (its torch path), their holes filled together (`fill.pull_push_fill`
-instead of OpenCV's inpainting; neighbouring frames are not used) and the contact shadows of all cars drawn in one
-call (`shading.contact_shadows_batched`): no per-view work on the device, only the per-view car placement in Python.
+instead of OpenCV's inpainting; neighbouring frames are not used), the cars placed for all views at once and drawn in
+one call (`Rasterizer.render_instances`: every model's geometry packed once, unpainted, each car with its own paint,
+so an episode's repainted car is not packed again), and the contact shadows of all cars drawn in one call
+(`shading.contact_shadows_batched`): no per-view work on the device.
 """
 
 from __future__ import annotations
@@ -457,9 +459,9 @@ class ViewSynthesizer:
 
     def _placed_cars_batched(
         self, frame_index: np.ndarray, T_camera_world: np.ndarray, cars: list[list[CarPlacement]]
-    ) -> list[list[tuple[PackedScene, np.ndarray, Any]]]:
+    ) -> list[list[tuple[Any, np.ndarray, bool]]]:
         """`_placed_cars` of every view, its poses, visibility and level of detail computed for all cars at once."""
-        placed: list[list[tuple[PackedScene, np.ndarray, Any]]] = [[] for _ in cars]
+        placed: list[list[tuple[Any, np.ndarray, bool]]] = [[] for _ in cars]
         view = np.array([b for b, view_cars in enumerate(cars) for _ in view_cars], dtype=np.int64)
         if view.size == 0:
             return placed
@@ -648,9 +650,9 @@ class ViewSynthesizer:
 
     def _placed_cars(
         self, b: int, frame: int, T_camera_world: np.ndarray, cars: list[CarPlacement]
-    ) -> list[tuple[PackedScene, np.ndarray, Any]]:
-        """The visible cars of view b: each car's packed mesh (in its own frame, at the level of detail its projected
-        size asks for), its pose in the camera frame, T_camera_car, and its model."""
+    ) -> list[tuple[Any, np.ndarray, bool]]:
+        """The visible cars of view b: each car's model, its pose in the camera frame, T_camera_car, and whether its
+        projected size asks for the full level of detail (else the light one)."""
         if not cars:
             return []
         x = np.array([c.x_m for c in cars], dtype=np.float64)
