@@ -400,7 +400,7 @@ class Rasterizer:
 
         :param lighting: as `render`, or a (B, 9) table of ambient, light direction and light colour per camera.
         :param paint: each camera's own paint of its instance: (per scene a (T,) bool mask of the triangles painted,
-            (B, 10) diffuse rgb and `_material_row` per camera). A painted triangle's colour is its packed colour
+            (B, 10) diffuse rgb and `material_row` per camera). A painted triangle's colour is its packed colour
             (pack the paint's triangles with a white diffuse) times the camera's diffuse, its material the camera's.
             Not on the compiled CPU path (it raises).
         """
