@@ -152,6 +152,14 @@ def device_name(device: str) -> str:
     return platform.processor() or platform.machine()
 
 
+def world_line(world_dir: str) -> str:
+    """Frames, image size and path length of a world folder (its world.json and camera.json)."""
+    info = json.loads((Path(world_dir) / "world.json").read_text())
+    camera = json.loads((Path(world_dir) / "camera.json").read_text())
+    size = f"{camera['width_px']} x {camera['height_px']} px"
+    return f"{info['frame_count']} frames, {size}, {info['path_length_m']:.0f} m"
+
+
 def markdown(render: list[dict], train: list[dict], args: argparse.Namespace) -> str:
     """The result file."""
     import os
@@ -162,7 +170,7 @@ def markdown(render: list[dict], train: list[dict], args: argparse.Namespace) ->
         "",
         f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {platform.node()}: "
         f"{device_name(args.device)}; {os.cpu_count()} CPU cores, torch {torch.__version__}; load average after: "
-        f"{load[0]:.2f}. World `{Path(args.world).name}`, the policy's view 160 x 64. "
+        f"{load[0]:.2f}. World `{args.world}` ({world_line(args.world)}), the policy's view 160 x 64. "
         "`python benchmarks/bench_gpu.py --world WORLD` redoes it (module docstring: what each row times).",
         "",
         "## Views per second",

@@ -154,7 +154,7 @@ def plot(result: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 3.6))
+    fig, ax = plt.subplots(figsize=(9, 3.6))
     curve = result["curve"]
     if curve:
         ax.plot([c[0] for c in curve], [c[2] for c in curve], "o-", label="held-back success (training worlds)")
@@ -174,7 +174,7 @@ def plot(result: dict, path: Path) -> None:
     ax.set_ylabel("success")
     ax.set_ylim(0, 1.02)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="lower right")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes: it hides no point
     ax.set_title(f"{result['name']}: {result.get('task', 'overtake')}, held-back success and baselines")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
