@@ -31,13 +31,16 @@ CLEAR_STEER = 0.5  # the expert's |action| above which it is swerving to pass
 SAME_SIDE = 0.25  # the policy's action counted as a swerve to that side
 
 
-def first_actions(policy_path: str, world: str, episodes: int) -> tuple[np.ndarray, np.ndarray]:
-    """(expert, policy) first actions over seeds 0 .. episodes-1 of the policy's task in `world`."""
+def first_actions(
+    policy_path: str, world: str, episodes: int, overrides: dict[str, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """(expert, policy) first actions over seeds 0 .. episodes-1 of the policy's task in `world`, with the policy's
+    env config and `overrides` over it (as `drivesim eval --set env.KEY=VALUE`)."""
     from drivesim.sim.envs.registry import task_spec
     from drivesim.stages.policy.run_folder import load_policy
 
     policy = load_policy(policy_path)
-    env = task_spec(policy.task).env_class()(world, None, mode="eval", config=policy.env_config)
+    env = task_spec(policy.task).env_class()(world, None, mode="eval", config={**policy.env_config, **overrides})
     expert, learned = np.zeros(episodes), np.zeros(episodes)
     for seed in range(episodes):
         obs, _ = env.reset(seed=seed)
@@ -77,7 +80,8 @@ def write_markdown() -> None:
             f"## {r['name']}",
             "",
             f"Measured {r['measured_utc']} on {r['machine']}; {r['episodes']} starts per world (seeds 0-"
-            f"{r['episodes'] - 1}). Worlds: " + ", ".join(f"{k} `{v}`" for k, v in r["worlds"].items()) + ".",
+            f"{r['episodes'] - 1}). Worlds: " + ", ".join(f"{k} `{v}`" for k, v in r["worlds"].items()) + ". "
+            f"Env config over each policy's own: {r.get('env_overrides') or 'none'}.",
             "",
             "| policy | " + " | ".join(labels) + " |",
             "|---|" + "---|" * len(labels),
@@ -104,18 +108,28 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=200, help="starts per world (seeds 0 .. N-1)")
     parser.add_argument("--name", required=True, help="name of the result (first_action_<name>.json)")
     parser.add_argument("--notes", default="", help="a paragraph printed under the table")
+    parser.add_argument(
+        "--env-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an env config value over every policy's own, e.g. min_path_length_m=60 (the same starts for policies "
+        "trained with different values)",
+    )
     args = parser.parse_args()
     worlds = dict(item.split("=", 1) for item in args.world)
+    overrides = {key: float(value) for key, value in (item.split("=", 1) for item in args.env_set)}
     rows = {}
     for policy in args.policy:
         rows[policy] = {}
         for label, world in worlds.items():
-            rows[policy][label] = agreement(*first_actions(policy, world, args.episodes))
+            rows[policy][label] = agreement(*first_actions(policy, world, args.episodes, overrides))
             print(policy, label, rows[policy][label], flush=True)
     result = {
         "name": args.name,
         "episodes": args.episodes,
         "worlds": worlds,
+        "env_overrides": overrides,
         "rows": rows,
         "machine": machine(),
         "measured_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),

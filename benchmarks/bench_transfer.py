@@ -113,8 +113,16 @@ def checkpoint_points(run: Path) -> list[tuple[float, int, str]]:
             checkpoint = torch.load(path, map_location="cpu", weights_only=False)
             points.append((float(checkpoint["wall_s"]) / 60.0, int(checkpoint.get("num_timesteps", 0)), str(path)))
     summary = json.loads((run / "manifest.json").read_text()).get("summary", {})
-    points.append((float(summary.get("wall_s", math.nan)) / 60.0, int(summary.get("steps", 0)), str(run)))
-    return points
+    final = (float(summary.get("wall_s", math.nan)) / 60.0, int(summary.get("steps", 0)), str(run))
+    if points and points[-1][1] == final[1]:  # the run ended at a checkpoint: the final weights are those
+        points.pop()
+    return [*points, final]
+
+
+def distinct_points(curve: list[dict]) -> list[dict]:
+    """The curve's points without a checkpoint that repeats the next point's step count (a run that ended at a
+    checkpoint evaluated its final weights twice before checkpoint_points dropped the repeat)."""
+    return [p for i, p in enumerate(curve) if i + 1 == len(curve) or curve[i + 1]["steps"] != p["steps"]]
 
 
 def unseen_curve(args: argparse.Namespace, run: Path, task: str, workspace: Path) -> list[dict]:
@@ -159,7 +167,7 @@ def plot(result: dict, path: Path) -> None:
     if curve:
         ax.plot([c[0] for c in curve], [c[2] for c in curve], "o-", label="held-back success (training worlds)")
     for group, style in (("unseen", "s-"), ("real", "^-")):
-        points = [p for p in result.get("unseen_curve", []) if p.get(group)]
+        points = [p for p in distinct_points(result.get("unseen_curve", [])) if p.get(group)]
         if points:
             label = f"checkpoints on {'unseen towns' if group == 'unseen' else 'the unseen real drive'}"
             ax.plot([p["minutes"] for p in points], [p[group]["success"] for p in points], style, label=label)
@@ -213,11 +221,13 @@ def _seed_table(results: list[dict]) -> list[str]:
     """Final-policy success of every arm run with more than one seed, per seed and the mean over seeds."""
     arms: dict[str, dict[int, dict]] = {}
     real_worlds: dict[str, str] = {}
+    tasks: dict[str, str] = {}
     for r in results:
         arm, seed = arm_and_seed(r["name"])
         if (r["rows"].get("final") or {}).get("unseen") is not None:
             arms.setdefault(arm, {})[seed] = r["rows"]["final"]
             real_worlds[arm] = ", ".join(Path(w).parent.name for w in r["real_worlds"]) or "—"
+            tasks[arm] = r.get("task", "overtake")
     arms = {arm: seeds for arm, seeds in arms.items() if len(seeds) > 1}
     if not arms:
         return []
@@ -238,16 +248,18 @@ def _seed_table(results: list[dict]) -> list[str]:
             cells.append(" / ".join("—" if v is None else f"{v:.1%}" for v in values))
             cells.append(f"{sum(known) / len(known):.1%}" if known else "—")
         lines.append(f"| {arm} | {', '.join(map(str, order))} | {' | '.join(cells)} |")
-    return [*lines, "", *_baseline_lines(results, {real_worlds[arm] for arm in arms}), ""]
+    return [*lines, "", *_baseline_lines(results, {(tasks[arm], real_worlds[arm]) for arm in arms}), ""]
 
 
-def _baseline_lines(results: list[dict], real_sets: set[str]) -> list[str]:
+def _baseline_lines(results: list[dict], real_sets: set[tuple[str, str]]) -> list[str]:
     """Random and expert success on the same unseen worlds and seeds, from the first result that evaluated them
-    for each set of real worlds in `real_sets` (the arms above share their worlds, so one evaluation serves all)."""
+    for each (task, set of real worlds) in `real_sets` (the arms above share their worlds, so one evaluation serves
+    all arms of a task)."""
     lines, done = [], set()
     for r in results:
-        real = ", ".join(Path(w).parent.name for w in r["real_worlds"]) or "—"
-        if real not in real_sets or real in done:
+        key = (r.get("task", "overtake"), ", ".join(Path(w).parent.name for w in r["real_worlds"]) or "—")
+        task, real = key
+        if key not in real_sets or key in done:
             continue
         for policy in ("random", "expert"):
             row = r["rows"].get(policy) or {}
@@ -256,10 +268,11 @@ def _baseline_lines(results: list[dict], real_sets: set[str]) -> list[str]:
             real_success = (row.get("real") or {}).get("success")
             real_text = "—" if real_success is None else f"{real_success:.1%}"
             lines.append(
-                f"- {policy} (from {r['name']}): unseen synthetic towns {row['unseen']['success']:.1%}, unseen real "
-                f"drives ({real}) {real_text}"
+                f"- {task}, {policy} (from {r['name']}, {r['episodes']} episodes per world): unseen synthetic towns "
+                f"{row['unseen']['success']:.1%}, "
+                f"unseen real drives ({real}) {real_text}"
             )
-            done.add(real)
+            done.add(key)
     return ["Baselines on the same worlds and seeds:", "", *lines] if lines else []
 
 
@@ -300,7 +313,7 @@ def write_markdown() -> None:
             points = "; ".join(
                 f"{p['minutes']:.0f} min ({p['steps']} steps): {p['unseen']['success']:.0%}"
                 + (f", real {p['real']['success']:.0%}" if p.get("real") else "")
-                for p in r["unseen_curve"]
+                for p in distinct_points(r["unseen_curve"])
                 if p.get("unseen")
             )
             reached = r.get("time_to_target_min")
