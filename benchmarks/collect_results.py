@@ -30,6 +30,7 @@ ORDER = [
     "poses",
     "depth",
     "stereo",
+    "stereo_quiet",
     "preprocess_world",
     "fidelity",
 ]
