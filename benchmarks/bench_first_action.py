@@ -4,8 +4,9 @@ For each policy (a run folder, or one of its checkpoints) and each world, over s
 is reset in eval mode (the same start states `drivesim eval` draws) and the policy's first action (zero LSTM state,
 deterministic) is set against the privileged expert's. Where the expert steers clearly to one side (|a| >= 0.5: the
 front car is close to the ego's line and it swerves to pass), the row counts how often the policy steers to the same
-side by at least 0.25. A policy that passes the cars of one world but reacts to few of another's at the first step
-does not see the car in that world's images; one that keeps its lane there but still fails does.
+side by at least 0.25. A low share on one world says the policy does not read the car from that world's images at
+the start; a high share does not promise success there (the policy must still hold the lane afterwards), so read it
+beside the world's `drivesim eval` figures.
 
     python benchmarks/bench_first_action.py --policy RUN --policy RUN/checkpoints/warm_start.pt \
         --world town=W1 --world real=W2 --episodes 200 --name NAME
