@@ -10,8 +10,10 @@ from drivesim.stages.preprocess.depth_mvs import (
     _FILLED,
     _PLANE,
     _STEREO,
-    _best_k_mean,
+    _box,
+    _k_smallest_mean,
     _plane_where_no_better,
+    _visible_best_k_mean,
     guided_filter,
 )
 
@@ -20,12 +22,27 @@ def test_best_k_counts_only_the_neighbours_that_see_the_pixel() -> None:
     costs = torch.ones(3, 2, 1, 2)  # 3 neighbours, 2 hypotheses, pixels A (all see it) and B (only neighbour 0)
     costs[:, :, 0, 0] = torch.tensor([[0.1, 0.5], [0.2, 0.6], [0.3, 0.7]])
     costs[0, :, 0, 1] = torch.tensor([0.1, 0.4])
-    plain = _best_k_mean(costs, 2, visible_only=False)
-    visible = _best_k_mean(costs, 2, visible_only=True)
+    plain = _k_smallest_mean(iter(costs), 2)
+    visible = _visible_best_k_mean(costs, 2)
     np.testing.assert_allclose(plain[:, 0, 0], visible[:, 0, 0])  # seen by all: the same best-2 mean
     np.testing.assert_allclose(visible[:, 0, 0], [0.15, 0.55], atol=1e-6)
     np.testing.assert_allclose(plain[:, 0, 1], [0.55, 0.7], atol=1e-6)  # the unseen count as mismatches ...
     np.testing.assert_allclose(visible[:, 0, 1], [0.1, 0.4], atol=1e-6)  # ... or are left out
+
+
+def test_streamed_k_smallest_mean_equals_the_sorted_one() -> None:
+    costs = torch.rand(5, 7, 4, 6, generator=torch.Generator().manual_seed(0))
+    for k in (1, 2, 3, 5):
+        expected = torch.topk(costs, k, dim=0, largest=False).values.mean(dim=0)
+        torch.testing.assert_close(_k_smallest_mean(iter(costs), k), expected)
+
+
+def test_the_cpu_box_filter_is_the_running_sum_window_mean_with_replicated_borders() -> None:
+    x = torch.rand(2, 3, 9, 11, generator=torch.Generator().manual_seed(1))
+    size = 5
+    padded = torch.nn.functional.pad(x, (2, 2, 2, 2), mode="replicate")
+    expected = torch.nn.functional.avg_pool2d(padded, size, stride=1)
+    torch.testing.assert_close(_box(x, size), expected, atol=1e-6, rtol=1e-5)
 
 
 def test_a_guessed_road_pixel_takes_the_plane_unless_its_guess_matches_better() -> None:

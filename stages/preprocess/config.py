@@ -73,13 +73,13 @@ class MvsConfig(StageConfig):
     neighbour_offsets: list[int] = Field(default_factory=lambda: [-3, -1, 1, 3])
     """Frames matched against each frame, as index offsets (0 not allowed); at the ends of the drive an offset past
     the end takes the last frame on that side."""
-    num_hypotheses: int = Field(32, ge=4, le=512)
+    num_hypotheses: int = Field(48, ge=4, le=512)
     """Fronto-parallel depth planes swept, spaced evenly in inverse depth between min_depth_m and max_depth_m."""
-    min_depth_m: float = Field(2.0, gt=0.0)
+    min_depth_m: float = Field(3.0, gt=0.0)
     """Nearest depth swept (m)."""
     patch_size_px: int = Field(13, ge=3, le=31)
     """Side of the square window of the ZNCC matching cost, in matching-resolution pixels (odd)."""
-    matching_width_px: int = Field(320, ge=32)
+    matching_width_px: int = Field(448, ge=32)
     """Width of the images the sweep runs on (matching resolution); frames wider than this are downscaled."""
     aggregation_radius_px: int = Field(0, ge=0, le=15)
     """Edge-aware cost aggregation: the matching cost of each hypothesis is smoothed by a guided filter of this
@@ -97,7 +97,7 @@ class MvsConfig(StageConfig):
     """Stereo is trusted only where the best aggregated ZNCC score is at least this."""
     min_distinctness: float = Field(0.02, ge=0.0)
     """Stereo is trusted only where the second-best cost minimum (away from the best) is this much worse."""
-    min_parallax_px: float = Field(0.5, ge=0.0)
+    min_parallax_px: float = Field(0.25, ge=0.0)
     """Stereo is trusted only where a 25 % depth change moves the pixel at least this far (matching pixels) in the
     widest-baseline neighbour: near the focus of expansion of a forward drive there is no parallax to measure."""
     plane_margin: float = Field(0.03, ge=0.0)
