@@ -142,7 +142,7 @@ def test_bad_input_is_one_line_and_no_report(tmp_path, case):
     expect = {
         "missing_run": "no such run folder",
         "unfinished_run": "unfinished",
-        "other_task_run": "follow policy, not overtake",
+        "other_task_run": "trained on follow, not overtake",
         "short_world": "needs at least 100",
         "not_a_world": "not a world folder",
     }[case]
