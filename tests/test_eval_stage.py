@@ -327,7 +327,7 @@ def test_onnx_policy_gives_the_torch_policy_metrics(tmp_path):
         assert b[key]["value"] == pytest.approx(a[key]["value"], abs=1e-4), key
     # An ONNX policy of another task is refused like a run folder.
     result = _run_cli(tmp_path / "ws2", *_fake_args(world), "--task", "follow", "--policy", str(onnx_path))
-    assert result.returncode == 2 and "overtake policy, not follow" in result.stderr
+    assert result.returncode == 2 and "trained on overtake, not follow" in result.stderr
 
 
 def test_random_policy_is_a_baseline_that_repeats_its_episodes(tmp_path):
