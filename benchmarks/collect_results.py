@@ -30,7 +30,6 @@ ORDER = [
     "poses",
     "depth",
     "stereo",
-    "stereo_quiet",
     "preprocess_world",
     "fidelity",
 ]
