@@ -131,7 +131,9 @@ def _open_and_check(cfg: EvalConfig, factory: Any, policy_spec: Any, world: Path
         policy = _load_policy(policy_spec, env)
         run_task = getattr(policy, "task", None)
         if policy_spec.kind != "expert" and run_task and run_task != cfg.task:
-            raise InputError(f"this policy was trained on {run_task}, not {cfg.task}; use --task {run_task}", policy_spec.path)
+            raise InputError(
+                f"this policy was trained on {run_task}, not {cfg.task}; use --task {run_task}", policy_spec.path
+            )
         env_config = dict(getattr(policy, "env_config", {}) or {})
         if env_config:  # the policy's own env settings (its view), then the user's overrides
             env.close()
