@@ -76,7 +76,8 @@ class MvsConfig(StageConfig):
     num_hypotheses: int = Field(48, ge=4, le=512)
     """Fronto-parallel depth planes swept, spaced evenly in inverse depth between min_depth_m and max_depth_m."""
     min_depth_m: float = Field(3.0, gt=0.0)
-    """Nearest depth swept (m)."""
+    """Nearest depth swept (m). The planes are even in inverse depth, so from 2 m the 2-3 m slice took a third of
+    them; the road nearer than this keeps its own per-pixel hypothesis, the ground plane (results/depth.md)."""
     patch_size_px: int = Field(13, ge=3, le=31)
     """Side of the square window of the ZNCC matching cost, in matching-resolution pixels (odd)."""
     matching_width_px: int = Field(448, ge=32)
