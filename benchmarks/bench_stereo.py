@@ -43,6 +43,8 @@ def main() -> None:
         progress=print,
     )
     load_after = os.getloadavg()
+    if result.figure and Path(result.figure).is_relative_to(HERE.parent):  # the report names it from the repo root
+        result.figure = str(Path(result.figure).relative_to(HERE.parent))
     command = f"python benchmarks/bench_stereo.py --methods {','.join(methods)}"
     command += "".join(f" --world {w}" for w in args.world)
     report = stereo_markdown(result, machine_line(), command, datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"))
