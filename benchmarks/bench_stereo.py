@@ -28,6 +28,10 @@ def main() -> None:
     parser.add_argument("--methods", default="plane,mvs")
     parser.add_argument("--world", type=Path, action="append", default=[], help="a world built from the folder")
     parser.add_argument("--output", type=Path, default=RESULTS)
+    parser.add_argument(
+        "--fill-frames", default=None, help="neighbour frames for the 'holes filled' column, e.g. -1,1,-2 (default: "
+        "the simulator's, ViewConfig.fill_frames)"
+    )  # fmt: skip
     args = parser.parse_args()
 
     from drivesim.diagnostics.stereo import REFERENCE, run_stereo_bench, stereo_markdown
@@ -41,12 +45,15 @@ def main() -> None:
         tuple(args.world),
         figure_path=args.output.with_name(f"{args.output.stem}_worst.png"),
         progress=print,
+        **({} if args.fill_frames is None else {"fill_frames": tuple(int(v) for v in args.fill_frames.split(","))}),
     )
     load_after = os.getloadavg()
     if result.figure and Path(result.figure).is_relative_to(HERE.parent):  # the report names it from the repo root
         result.figure = str(Path(result.figure).relative_to(HERE.parent))
     command = f"python benchmarks/bench_stereo.py --methods {','.join(methods)}"
     command += "".join(f" --world {w}" for w in args.world)
+    command += "" if args.fill_frames is None else f" --fill-frames={args.fill_frames}"
+    command += "" if args.output == RESULTS else f" --output {args.output}"
     report = stereo_markdown(result, machine_line(), command, datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"))
     report += (
         f"\nLoad (the machine is shared; s / frame vary with it): before `{load_before}`; 1/5/15-min load average "

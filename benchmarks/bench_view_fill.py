@@ -31,7 +31,7 @@ RESULTS = HERE / "results" / "view_fill.md"
 POSES = ((0.0, 0.0), (1.0, 0.0), (2.5, 0.0), (0.0, 0.5), (2.5, 0.5), (-2.5, -0.5))
 VARIANTS = {
     "warp only (today)": {"fill_frames": (), "inpaint": False},
-    "+ neighbour frames": {"inpaint": False},
+    "+ neighbour frames (side wedges)": {"inpaint": False},
     "+ inpainting (default)": {},
 }
 

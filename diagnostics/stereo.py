@@ -29,7 +29,7 @@ import torch
 
 from drivesim.diagnostics.fidelity import colour_depth, image_metrics
 from drivesim.pipeline.errors import InputError
-from drivesim.sim.fill import hole_box, inpaint_holes, merge_into_holes
+from drivesim.sim.fill import fill_wedges_from_neighbours, inpaint_holes
 from drivesim.sim.geometry import camera_mount, invert, scale_intrinsics
 from drivesim.sim.view import ViewConfig
 from drivesim.sim.warp import forward_warp
@@ -143,10 +143,16 @@ def warp_to_right(
 
 
 def filled_right_view(
-    k: int, left: np.ndarray, depth_m: np.ndarray, T_world_camera: np.ndarray, K: np.ndarray, baseline_m: float
+    k: int,
+    left: np.ndarray,
+    depth_m: np.ndarray,
+    T_world_camera: np.ndarray,
+    K: np.ndarray,
+    baseline_m: float,
+    fill_frames: tuple[int, ...] = FILL_FRAMES,
 ) -> np.ndarray:
     """Left frame k warped into the right camera with its holes filled as the simulator fills the policy's view
-    (`sim/fill.py`): the neighbouring left frames (FILL_FRAMES) warped into the holes and merged by depth, then
+    (`sim/fill.py`): the neighbouring left frames `fill_frames` warped into the side wedges and merged by depth, then
     inpainted. `left` (N, h, w, 3), `depth_m` (N, h, w), `T_world_camera` (N, 4, 4) of consecutive frames."""
     h, w = depth_m.shape[1:]
 
@@ -158,14 +164,12 @@ def filled_right_view(
         return out.rgb.numpy().copy(), out.depth_m.numpy().copy(), out.valid.numpy().astype(bool)
 
     rgb, depth, valid = warp(k, None)
-    hole, filled = ~valid, np.zeros_like(valid)
-    box = hole_box(valid)
-    for offset in FILL_FRAMES:
-        if box is None:
-            break
-        if 0 <= k + offset < len(left):
-            merge_into_holes(rgb, depth, hole, filled, box, *warp(k + offset, box))
-            box = hole_box(~hole | filled)
+
+    def neighbour(offset: int, box: tuple[int, int, int, int]) -> tuple[np.ndarray, ...] | None:
+        return warp(k + offset, box) if 0 <= k + offset < len(left) else None
+
+    filled, _ = fill_wedges_from_neighbours(rgb, depth, valid, fill_frames, neighbour)
+    hole = ~valid
     inpaint_holes(rgb, hole & ~filled)
     return rgb
 
@@ -205,6 +209,7 @@ class StereoResult:
     rows: list[StereoRow]
     figure: str = ""
     worst: dict[str, Any] = field(default_factory=dict)
+    fill_frames: list[int] = field(default_factory=lambda: list(FILL_FRAMES))
 
     def row(self, name: str) -> StereoRow:
         """The row named `name`."""
@@ -261,6 +266,7 @@ def run_stereo_bench(
     figure_path: Path | None = None,
     figure_row: str | None = None,
     progress: Callable[[str], None] | None = None,
+    fill_frames: tuple[int, ...] = FILL_FRAMES,
 ) -> StereoResult:
     """Measure each depth source's warp of the left frames into the right camera against the real right images.
 
@@ -268,6 +274,7 @@ def run_stereo_bench(
     :param worlds: built world folders of this drive; their stored depth is a row each.
     :param depth_config: settings of every method (its `method` is replaced per row).
     :param figure_path: where to save the worst frame of `figure_row` (default: the last method) as a PNG.
+    :param fill_frames: the neighbour frames the 'holes filled' column fills from (default: the simulator's).
     """
     cfg = depth_config or DepthConfig()
     drive = read_stereo_folder(folder, width_px)
@@ -301,11 +308,14 @@ def run_stereo_bench(
         for k in range(len(frames)):
             image, valid = warp_to_right(left[k], depth[k], K_eval, drive.baseline_m)
             per_frame.append(view_metrics(image, right[k], valid))
-            filled = filled_right_view(k, left, depth, T_eval, K_eval, drive.baseline_m)
+            filled = filled_right_view(k, left, depth, T_eval, K_eval, drive.baseline_m, fill_frames)
             per_frame[-1]["psnr_all_filled_db"] = view_metrics(filled, right[k], np.ones(valid.shape, bool))["psnr_db"]
             warped.setdefault(name, []).append(image)
         rows.append(_row(name, per_frame, seconds[name]))
-    result = StereoResult(str(folder), [int(drive.index[i]) for i in frames], [W, H], [ew, eh], drive.baseline_m, rows)
+    result = StereoResult(
+        str(folder), [int(drive.index[i]) for i in frames], [W, H], [ew, eh], drive.baseline_m, rows,
+        fill_frames=list(fill_frames),
+    )  # fmt: skip
     if figure_path is not None:
         chosen = figure_row or ("mvs" if "mvs" in methods else [*depths][0])
         worst = int(np.argmin(result.row(chosen).per_frame_psnr_db))
@@ -393,9 +403,9 @@ def stereo_markdown(result: StereoResult, machine: str, command: str, date: str)
         "- PSNR and SSIM over the pixels the warp fills; 'PSNR all' over the whole image with holes black; 'PSNR all,"
         " holes filled' over the whole image with the holes filled as the policy's view is ("
         + (
-            f"the neighbouring left frames {', '.join(f'{o:+d}' for o in FILL_FRAMES)} warped into them and merged by "
-            "depth, then inpainted)"
-            if FILL_FRAMES
+            f"the neighbouring left frames {', '.join(f'{o:+d}' for o in result.fill_frames)} warped into the side "
+            "wedges, merged by depth, then inpainted)"
+            if result.fill_frames
             else "inpainted: the simulator's default fills from no neighbour frame)"
         ),
         "",

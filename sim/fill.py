@@ -1,11 +1,15 @@
 """No black in the policy's view (issue 20): fill what the recorded frame's warp leaves empty.
 
-A forward warp of one recorded frame leaves two kinds of hole: wedges along the image side where the agent looks past
-what the camera saw (lateral offset, rotation), and disocclusions behind poles and trees. Both are filled in two
+A forward warp of one recorded frame leaves two kinds of hole: wedges along the image sides where the agent looks past
+what the camera saw (lateral offset, rotation), and disocclusions behind poles and trees. They are filled in two
 steps, on one view at a time:
-1. neighbouring recorded frames (the two or three nearest) are warped into the holes' bounding box only and merged
-   by depth and visibility: a hole pixel takes the nearest surface any neighbour puts there (a z-buffer over the
-   neighbours), pixels the frame itself filled are kept;
+1. neighbouring recorded frames (the two or three nearest) are warped into the side wedges' bounding boxes only (the
+   holes joined to an image side, `side_wedges`) and merged by depth and visibility: a hole pixel takes the nearest
+   surface any neighbour puts there (a z-buffer over the neighbours), pixels the frame itself filled are kept
+   (`fill_wedges_from_neighbours`). Only the wedges: on the real stereo snippet's lateral view they are two thirds of
+   the holes and nearly all of the error that holes add (filled with the true right image, the wedges take the
+   whole-image PSNR from 22.8 to 23.9 dB, the disocclusions to 22.9), while the box of the disocclusions spans the
+   view and would cost a neighbour warp of all of it at every step;
 2. what no frame saw is inpainted (OpenCV's Telea fast marching, `cv2.inpaint`): smooth continuation of the border
    colours, with depth +inf (so an inserted car is drawn over it).
 
@@ -19,6 +23,7 @@ recorded data, neighbour data, or invented.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -26,7 +31,15 @@ import numpy as np
 import torch
 from torch.nn.functional import avg_pool2d, interpolate
 
-__all__ = ["FillStats", "hole_box", "inpaint_holes", "merge_into_holes", "pull_push_fill"]
+__all__ = [
+    "FillStats",
+    "fill_wedges_from_neighbours",
+    "hole_box",
+    "inpaint_holes",
+    "merge_into_holes",
+    "pull_push_fill",
+    "side_wedges",
+]
 
 INPAINT_RADIUS_PX = 3
 """Neighbourhood (px) Telea's method averages over for each inpainted pixel: small, the views are 160 x 64."""
@@ -34,6 +47,17 @@ FULL_RESOLUTION_MAX_PX = 256
 """Holes of more pixels than this are inpainted at reduced resolution (`inpaint_holes`)."""
 REDUCED_FACTOR = 4
 """How much a view with large holes is shrunk for inpainting (each axis)."""
+WEDGE_MIN_PX = 24
+"""Side wedges of fewer pixels than this are left to inpainting (no neighbour warp for them)."""
+NEIGHBOUR_MIN_GAIN = 0.1
+"""A neighbour frame that fills less than this fraction of a wedge still open ends the search for that wedge (what is
+left no nearby frame saw: a wedge turned past the recorded field of view)."""
+
+Box = tuple[int, int, int, int]
+"""(x0, y0, w, h) of an image region, pixels."""
+NeighbourWarp = Callable[[int, Box], "tuple[np.ndarray, np.ndarray, np.ndarray] | None"]
+"""(frame offset, box) -> that neighbour frame's warp of the box (rgb (h, w, 3) uint8, depth (h, w), valid (h, w)
+bool), or None when there is no such frame."""
 
 
 @dataclass
@@ -74,6 +98,78 @@ def hole_box(valid: np.ndarray) -> tuple[int, int, int, int] | None:
         return None
     cols = np.flatnonzero(~valid[rows[0] : rows[-1] + 1].all(axis=0))
     return int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)
+
+
+def side_wedges(valid: np.ndarray, min_px: int = WEDGE_MIN_PX) -> list[Box]:
+    """Bounding boxes (x0, y0, w, h) of the side wedges of a view whose seen pixels are `valid` (h, w) bool: the
+    unseen pixels left of the first seen pixel of their row (left wedge), right of the last (right wedge), and in the
+    same way above and below the seen pixels of their column (top and bottom wedges); a row or column with no seen
+    pixel belongs to both of its wedges. Order: left, right, top, bottom; wedges of fewer than `min_px` pixels are
+    left out."""
+    H, W = valid.shape
+    boxes = []
+    for (before, after), transposed in ((_outside_seen(valid), False), (_outside_seen(valid.T), True)):
+        n = H if transposed else W
+        for width_px, from_start in ((before, True), (after, False)):
+            lines = np.flatnonzero(width_px > 0)
+            if lines.size == 0 or int(width_px.sum()) < min_px:
+                continue
+            w = int(width_px.max())
+            start, first, count = (0 if from_start else n - w), int(lines[0]), int(lines[-1] - lines[0] + 1)
+            boxes.append((first, start, count, w) if transposed else (start, first, w, count))
+    return boxes
+
+
+def _outside_seen(valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of `valid` (h, w) bool: how many unseen pixels precede its first seen pixel and follow its last (all
+    w for a row with none)."""
+    W = valid.shape[1]
+    any_seen = valid.any(axis=1)
+    before = np.where(any_seen, np.argmax(valid, axis=1), W)
+    after = np.where(any_seen, np.argmax(valid[:, ::-1], axis=1), W)
+    return before, after
+
+
+def fill_wedges_from_neighbours(
+    rgb: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, offsets: Sequence[int], warp: NeighbourWarp
+) -> tuple[np.ndarray, int]:
+    """Fill the side wedges of a view in place from neighbouring recorded frames: for each wedge, the frames at
+    `offsets` (in order) are warped into its box by `warp` and merged by depth (`merge_into_holes`), until the wedge
+    is closed or a frame adds less than NEIGHBOUR_MIN_GAIN of what is open (pixels given up on are not searched again
+    for another wedge they are in). Returns the (h, w) bool mask of the
+    pixels filled this way and their count. :param rgb, depth_m, valid: the view's own warp (changed in place)."""
+    hole, filled = ~valid, np.zeros_like(valid)
+    tried = np.zeros_like(valid)  # hole pixels a wedge's search already gave up on (a corner is in two wedges)
+    total = 0
+    for wedge in side_wedges(valid):
+        box = _open_box(hole, filled | tried, wedge)
+        open_px = 0 if box is None else int(np.count_nonzero(_cut(hole, box) & ~_cut(filled, box)))
+        for offset in offsets if box is not None else ():
+            other = warp(offset, box)
+            if other is None:
+                continue
+            newly = merge_into_holes(rgb, depth_m, hole, filled, box, *other)
+            total += newly
+            open_px -= newly
+            if newly < NEIGHBOUR_MIN_GAIN * (open_px + newly):
+                break
+            box = _open_box(hole, filled, box)
+            if box is None:
+                break
+        _cut(tried, wedge)[...] |= _cut(hole, wedge) & ~_cut(filled, wedge)
+    return filled, total
+
+
+def _cut(image: np.ndarray, box: Box) -> np.ndarray:
+    """The part of `image` inside `box` (a view, not a copy)."""
+    x0, y0, w, h = box
+    return image[y0 : y0 + h, x0 : x0 + w]
+
+
+def _open_box(hole: np.ndarray, filled: np.ndarray, box: Box) -> Box | None:
+    """The bounding box of the hole pixels not yet filled inside `box`, in image coordinates; None when none is."""
+    inner = hole_box(~_cut(hole, box) | _cut(filled, box))
+    return None if inner is None else (inner[0] + box[0], inner[1] + box[1], inner[2], inner[3])
 
 
 def merge_into_holes(

@@ -45,7 +45,7 @@ import pydantic
 import torch
 
 from drivesim.sim import raster_kernel
-from drivesim.sim.fill import FillStats, hole_box, inpaint_holes, merge_into_holes, pull_push_fill
+from drivesim.sim.fill import FillStats, fill_wedges_from_neighbours, inpaint_holes, pull_push_fill
 from drivesim.sim.geometry import invert, scale_intrinsics
 from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer
 from drivesim.sim.raster import PackedScene, Rasterizer, RenderResult, composite, material_row, merge_scenes
@@ -63,10 +63,6 @@ _FRAME_CACHE_SIZE = 2048  # recorded frames kept as tensors (about 0.1 MB each a
 _MODEL_CACHE_SIZE = 256  # packed vehicle models kept (about 0.5 MB each; every episode's car is a new repaint)
 _PAINT_CACHE_SIZE = 65536  # the batched path's (geometry slot, paint) of models seen lately (a few hundred bytes each)
 _WARP_MARGIN_PX = 3
-# Holes of fewer pixels than this are inpainted at once (disocclusion specks); neighbours are warped only for more.
-_FILL_MIN_HOLE_PX = 24
-# A neighbour frame that fills less than this fraction of the holes still open ends the search for that view.
-_FILL_MIN_GAIN = 0.1
 _LUMA = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma weights, as cv2.COLOR_RGB2GRAY
 _MONOCHROME_SAMPLES = 8  # frames looked at to tell a gray camera
 _MONOCHROME_TOLERANCE = 2  # grey levels of channel difference a gray camera's frames may show (compression)
@@ -104,12 +100,12 @@ class ViewConfig(pydantic.BaseModel):
     fill_holes: bool = True
     """Fill 1-2 px cracks of the warp (never larger disocclusions)."""
     fill_frames: tuple[int, ...] = ()
-    """Neighbouring recorded frames (index offsets from the view's own frame) warped into what the view's own frame
-    leaves empty (side wedges off the recorded path, disocclusions), in this order, merged by depth; () = none. Each
-    is warped only into the bounding box of the holes still open, and only while holes remain (`sim/fill.py`).
-    Default () (inpainting alone): (-1, 1, -2) recovers recorded data for lateral wedges (real lateral view, holes
-    counted: 0.45 dB below the filled pixels instead of 1.0 dB) but cost 2.8x the warp per follow step where
-    inpainting alone costs 1.4x (benchmarks/results/view_fill_speed.md, stereo_filled.md)."""
+    """Neighbouring recorded frames (index offsets from the view's own frame) warped into the side wedges the view's
+    own frame leaves empty (off the recorded path), in this order, merged by depth; () = none. Each is warped only
+    into a wedge's bounding box, while it stays open (`sim/fill.py`). Default () (inpainting alone): (-1, 1, -2)
+    recovers recorded data for lateral wedges (real lateral view, holes counted: 0.3 dB below the filled pixels
+    instead of 1.0 dB, benchmarks/results/stereo_filled.md) but costs about 3x the warp per follow step where
+    inpainting alone costs 1.4-1.6x (view_fill_speed.md)."""
     inpaint: bool = True
     """Inpaint (OpenCV Telea) what no frame saw, so the policy never sees black; off: such pixels stay black."""
     contact_shadow: float = pydantic.Field(0.6, ge=0.0, le=1.0)
@@ -590,8 +586,7 @@ class ViewSynthesizer:
         """A view's warp with its holes filled from the neighbouring frames (`ViewConfig.fill_frames`), then
         inpainted (`ViewConfig.inpaint`); the pixel counts go to `fill_stats` (module `sim/fill.py`)."""
         valid = warped.valid.cpu().numpy()
-        box = hole_box(valid)
-        if box is None:
+        if valid.all():
             self.fill_stats.add(FillStats(total_px=valid.size, frame_px=valid.size))
             return warped
         stats = FillStats(total_px=valid.size, frame_px=int(valid.sum()))
@@ -599,27 +594,22 @@ class ViewSynthesizer:
             self.fill_stats.add(stats)
             return warped
         rgb, depth = warped.rgb.cpu().numpy().copy(), warped.depth_m.cpu().numpy().copy()
-        hole, filled = ~valid, np.zeros_like(valid)
-        open_px = valid.size - stats.frame_px
-        for offset in self.config.fill_frames if open_px >= _FILL_MIN_HOLE_PX else ():
+
+        def neighbour_warp(offset: int, box: tuple[int, int, int, int]) -> tuple[np.ndarray, ...] | None:
             neighbour = frame + offset
-            if box is None:
-                break
             if not 0 <= neighbour < self.world.frame_count:
-                continue
+                return None
             n_rgb, n_depth, _ = self._frame(neighbour)
             other = _warp(
                 n_rgb, n_depth, self.K_src, T_camera_world @ self._T_world_camera[neighbour], self.K_view,
                 self.config, box,
             )  # fmt: skip
-            newly = merge_into_holes(
-                rgb, depth, hole, filled, box, other.rgb.numpy(), other.depth_m.numpy(), other.valid.numpy()
-            )
-            stats.neighbour_px += newly
-            box = hole_box(~hole | filled)
-            if newly < _FILL_MIN_GAIN * open_px:
-                break  # what is left no nearby frame saw (a wedge turned past the recorded field of view)
-            open_px -= newly
+            return other.rgb.numpy(), other.depth_m.numpy(), other.valid.numpy()
+
+        filled, stats.neighbour_px = fill_wedges_from_neighbours(
+            rgb, depth, valid, self.config.fill_frames, neighbour_warp
+        )
+        hole = ~valid
         if self.config.inpaint:
             stats.inpainted_px = inpaint_holes(rgb, hole & ~filled)
         self.fill_stats.add(stats)

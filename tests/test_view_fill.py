@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivesim.sim.fill import hole_box, inpaint_holes
+from drivesim.sim.fill import fill_wedges_from_neighbours, hole_box, inpaint_holes, side_wedges
 from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, pose_2d
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer, frames_are_monochrome
@@ -121,6 +121,57 @@ def test_neighbour_frames_fill_the_side_wedge_with_what_is_really_there(tmp_path
     assert (out_full.rgb[0].max(axis=-1) > 0).all()
     # Pixels the frame itself filled are the same whatever fills the holes.
     assert np.array_equal(out_full.rgb[0][~hole], out_alone.rgb[0][~hole])
+
+
+def test_side_wedges_are_the_holes_at_the_image_sides_and_not_the_disocclusions():
+    """A triangle of holes in the top-left corner (a left and a top wedge), a right wedge, and a hole in the middle (a
+    disocclusion): the wedges' boxes, none for the middle hole; a wedge smaller than the minimum is left out; a row
+    with no seen pixel is in the left and the right wedge, but not in the top one when seen rows are above it."""
+    valid = np.ones((20, 50), bool)
+    for row in range(10):
+        valid[row, : 10 - row] = False  # 10 px wide at the top, 1 px at row 9
+    valid[5:15, 45:] = False  # right wedge
+    valid[8:12, 20:24] = False  # disocclusion
+    valid[19, 30:33] = False  # a 3-px bottom wedge
+    assert side_wedges(valid) == [(0, 0, 10, 10), (45, 5, 5, 10), (0, 0, 10, 10)]
+    assert side_wedges(valid, min_px=51) == [(0, 0, 10, 10), (0, 0, 10, 10)], "the right wedge has 50 px"
+    assert side_wedges(valid, min_px=3)[-1] == (30, 19, 3, 1)
+    valid[:, 45:] = True
+    valid[3, :] = False
+    assert side_wedges(valid) == [(0, 0, 50, 10), (0, 3, 50, 1), (0, 0, 10, 10)]
+
+
+def test_neighbours_fill_only_the_wedges_nearest_surface_first():
+    """The neighbour warps are asked for the wedge's box only (never for the disocclusion's); where two neighbours
+    both see a wedge pixel, the nearer surface wins; a neighbour that adds nothing ends the search, and what it gave
+    up on is not searched again for the top and bottom wedges the same columns make."""
+    rgb = np.zeros((10, 30, 3), np.uint8)
+    depth = np.full((10, 30), np.inf, np.float32)
+    valid = np.ones((10, 30), bool)
+    valid[:, 24:] = False  # right wedge, 6 px wide
+    valid[4:6, 10:12] = False  # disocclusion
+    asked = []
+
+    def warp(offset, box):
+        asked.append((offset, box))
+        x0, y0, w, h = box
+        if offset == 3:
+            return None  # no such frame
+        shade = {-1: 50, 1: 100, -2: 150, 2: 200}[offset]
+        columns = np.arange(x0, x0 + w)[None, :]
+        rows = np.arange(y0, y0 + h)[:, None]
+        # -1 sees columns 24-25 of rows 0-4 at 9 m; +1 sees columns 24-27 of every row at 11 m; -2 sees nothing,
+        # 2 everything (it is never asked: -2 ended the search).
+        seen = {-1: (columns < 26) & (rows < 5), 1: (columns < 28) & (rows >= 0), -2: columns < 0, 2: columns >= 0}
+        other_valid = seen[offset]
+        return np.full((h, w, 3), shade, np.uint8), np.full((h, w), 10.0 + offset, np.float32), other_valid
+
+    filled, count = fill_wedges_from_neighbours(rgb, depth, valid, (3, -1, 1, -2, 2), warp)
+    assert [box for _, box in asked] == [(24, 0, 6, 10)] * 3 + [(28, 0, 2, 10)]
+    assert count == 40 and filled.sum() == 40 and not filled[4:6, 10:12].any()
+    assert (rgb[:5, 24:26] == 50).all(), "frame -1 is nearer (9 m) than frame +1 (11 m) where both see"
+    assert (rgb[5:, 24:26] == 100).all() and (depth[5:, 24:26] == 11.0).all()
+    assert (rgb[:, 26:28] == 100).all() and (rgb[:, 28:] == 0).all()
 
 
 def test_inpainting_continues_the_border_colours():
