@@ -145,3 +145,21 @@ def test_view_distance_culls_far_surfaces_only(world, small_cfg):
     assert np.allclose(depth_near[close], depth_all[close], rtol=1e-3)
     assert np.isinf(depth_near).sum() > np.isinf(depth_all).sum()
     assert np.nanmax(np.where(np.isinf(depth_near), np.nan, depth_near)) < 60.0 + 2 * 90.0
+
+
+def test_a_town_without_edge_lines_paints_only_the_dashed_centre_line():
+    """road.edge_lines off: across the asphalt texture, no white at the lanes' outer edges, the dashed centre line as
+    before, and the rest of the texture (the same seed's noise) unchanged."""
+    from drivesim.stages.synth.textures import LINE_WIDTH_M, ROAD_PX_PER_M, RoadLayout, asphalt_texture
+
+    with_lines, without = (
+        asphalt_texture(np.random.default_rng(3), RoadLayout(3.5, 5.7, edge_lines=flag)) for flag in (True, False)
+    )
+    lateral_m = 5.7 - (np.arange(with_lines.shape[1]) + 0.5) / ROAD_PX_PER_M
+    edge = np.abs(np.abs(lateral_m) - 3.5) < LINE_WIDTH_M / 2
+    centre = np.abs(lateral_m) < LINE_WIDTH_M / 2
+    dash_rows = slice(0, int(2.5 * ROAD_PX_PER_M))
+    assert with_lines[:, edge].mean() > 160 and without[:, edge].mean() < 110
+    assert without[dash_rows][:, centre].mean() > 160
+    far = np.abs(np.abs(lateral_m) - 3.5) > 0.5
+    assert np.array_equal(with_lines[:, far], without[:, far])

@@ -84,7 +84,7 @@ def write_map(
     s = np.arange(s0, s1, 0.5)
     pts, _, n = world.road.frames(s)
     lw = 72.0 * textures.LINE_WIDTH_M * 9.0 / span * 4  # line width in points, roughly to scale
-    for side in (1.0, -1.0):
+    for side in (1.0, -1.0) if road_cfg.edge_lines else ():
         edge = pts + side * road_cfg.lane_width_m * n
         ax.plot(edge[:, 0], edge[:, 1], color="white", lw=max(lw, 0.6), solid_capstyle="butt")
     dash_on = (s % textures.DASH_PERIOD_M) < textures.DASH_LENGTH_M

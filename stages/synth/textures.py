@@ -40,15 +40,17 @@ class RoadLayout:
 
     :param lane_width_m: width of each lane; edge lines at +-lane_width_m.
     :param half_width_m: half the asphalt width (lanes + parking strip), where the curbs are.
+    :param edge_lines: whether the edge lines are painted (the dashed centre line always is).
     """
 
     lane_width_m: float
     half_width_m: float
+    edge_lines: bool = True
 
 
 def asphalt_texture(rng: np.random.Generator, layout: RoadLayout) -> np.ndarray:
     """One dash period of road (rows = along the road, v down = forward; columns = across, u = 0 at the left curb):
-    asphalt with grain, wear, white edge lines and a dashed centre line."""
+    asphalt with grain, wear, white edge lines (unless `layout.edge_lines` is off) and a dashed centre line."""
     h = int(round(DASH_PERIOD_M * ROAD_PX_PER_M))
     w = int(round(2 * layout.half_width_m * ROAD_PX_PER_M))
     grain = periodic_noise(rng, h, w, 0.5)
@@ -63,8 +65,9 @@ def asphalt_texture(rng: np.random.Generator, layout: RoadLayout) -> np.ndarray:
     base = 74.0 + 6.0 * blotch - 7.0 * track[None, :] + 5.0 * parking[None, :] + 11.0 * grain * (1 - 0.4 * track)
     rgb = np.stack([base, base + 1.0, base + 4.0], axis=-1)
     paint = np.zeros((h, w))
-    edge = np.abs(np.abs(lateral_m) - layout.lane_width_m) < LINE_WIDTH_M / 2
-    paint[:, edge] = 1.0
+    if layout.edge_lines:
+        edge = np.abs(np.abs(lateral_m) - layout.lane_width_m) < LINE_WIDTH_M / 2
+        paint[:, edge] = 1.0
     centre = np.abs(lateral_m) < LINE_WIDTH_M / 2
     along_m = (np.arange(h) + 0.5) / ROAD_PX_PER_M
     dash = along_m < DASH_LENGTH_M

@@ -295,7 +295,7 @@ def _ribbon(
 
 def _road_mesh(road: RoadPath, road_cfg, rng: np.random.Generator) -> Mesh:
     half = road_half_width_m(road_cfg)
-    tex = textures.asphalt_texture(rng, textures.RoadLayout(road_cfg.lane_width_m, half))
+    tex = textures.asphalt_texture(rng, textures.RoadLayout(road_cfg.lane_width_m, half, road_cfg.edge_lines))
     buf = MeshBuffer()
     v, f, uv = _ribbon(road, textures.DASH_PERIOD_M, half, -half, 0.0, 0.0)
     buf.add(v, f, uv=uv)
