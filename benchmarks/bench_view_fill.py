@@ -2,13 +2,14 @@
 
 (a) Coverage on a real drive: agents at lateral offsets and heading rotations up to the task's largest (max_lateral_m
     2.5 m, max_rotation_rad 0.5 rad), at every 2nd frame of the drive; the fraction of the policy's view from the
-    view's own recorded frame, from neighbouring frames, inpainted, and left unfilled, for the warp alone (today),
-    with neighbours, and with neighbours and inpainting (the default).
+    view's own recorded frame, from neighbouring frames, inpainted, and left unfilled, for the warp alone, with the
+    neighbour frames (an option), with them and inpainting, and with inpainting alone (the default).
 (b) Speed: expert steps of the lane and follow tasks, one env in one process; warp ms per step (which includes the
-    filling) and total ms per step with filling off (today's warp), on (the default) and two cheaper settings, in the
-    same run.
+    filling) and total ms per step with filling off (the warp alone), inpainting alone (the default) and with
+    neighbour frames, in the same run.
 
-    .venv/bin/python benchmarks/bench_view_fill.py --coverage-world /tmp/dh/ws-st/world --speed-world W ...
+    .venv/bin/python benchmarks/bench_view_fill.py --coverage-world W --skip speed
+    .venv/bin/python benchmarks/bench_view_fill.py --speed-world W --skip coverage --output .../view_fill_speed.md
 
 Writes benchmarks/results/view_fill.md.
 """
@@ -29,17 +30,19 @@ from drivesim.diagnostics.machine import machine_line
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "view_fill.md"
 POSES = ((0.0, 0.0), (1.0, 0.0), (2.5, 0.0), (0.0, 0.5), (2.5, 0.5), (-2.5, -0.5))
+OPTION = (-1, 1, -2)  # ViewConfig.fill_frames to try: the frame behind, the one ahead, the second behind
 VARIANTS = {
-    "warp only (today)": {"fill_frames": (), "inpaint": False},
-    "+ neighbour frames (side wedges)": {"inpaint": False},
-    "+ inpainting (default)": {},
+    "warp only": {"fill_frames": (), "inpaint": False},
+    "+ neighbour frames -1, +1, -2 (side wedges; an option)": {"fill_frames": OPTION, "inpaint": False},
+    "+ inpainting (the option's whole fill)": {"fill_frames": OPTION},
+    "inpainting alone (the default)": {},
 }
 
 SPEED_VARIANTS = {
-    "off (today)": {"fill_frames": (), "inpaint": False},
-    "inpainting only": {"fill_frames": ()},
+    "off (the warp alone)": {"fill_frames": (), "inpaint": False},
+    "inpainting alone (the default)": {},
     "frame -1 + inpainting": {"fill_frames": (-1,)},
-    "on (default: -1, +1, -2 + inpainting)": {},
+    "frames -1, +1, -2 + inpainting (an option)": {"fill_frames": OPTION},
 }
 
 

@@ -139,6 +139,8 @@ def fill_wedges_from_neighbours(
     for another wedge they are in). Returns the (h, w) bool mask of the
     pixels filled this way and their count. :param rgb, depth_m, valid: the view's own warp (changed in place)."""
     hole, filled = ~valid, np.zeros_like(valid)
+    if not offsets:
+        return filled, 0
     tried = np.zeros_like(valid)  # hole pixels a wedge's search already gave up on (a corner is in two wedges)
     total = 0
     for wedge in side_wedges(valid):
@@ -231,17 +233,21 @@ def _inpaint_reduced(rgb: np.ndarray, hole: np.ndarray, radius_px: int) -> None:
     H, W = hole.shape
     f = REDUCED_FACTOR
     small = (max(1, -(-W // f)), max(1, -(-H // f)))
-    seen = (~hole).astype(np.float32)
-    weight = cv2.resize(seen, small, interpolation=cv2.INTER_AREA)
-    colour = cv2.resize(rgb.astype(np.float32) * seen[..., None], small, interpolation=cv2.INTER_AREA)
-    colour = colour / np.maximum(weight, 1e-6)[..., None]
+    seen = (~hole).view(np.uint8)
+    weight = cv2.resize(seen.astype(np.float32), small, interpolation=cv2.INTER_AREA)
+    masked = cv2.bitwise_and(rgb, rgb, mask=seen).astype(np.float32)  # the holes' colours left out of the averages
+    colour = cv2.resize(masked, small, interpolation=cv2.INTER_AREA)
+    colour /= np.maximum(weight, 1e-6)[..., None]
     small_rgb = np.clip(colour + 0.5, 0, 255).astype(np.uint8)
     small_hole = (weight < 0.5).view(np.uint8)
     if small_hole.all():
         return
     small_rgb = cv2.inpaint(small_rgb, small_hole, max(1, radius_px // 2 + 1), cv2.INPAINT_TELEA)
     large = cv2.resize(small_rgb, (W, H), interpolation=cv2.INTER_LINEAR)
-    rgb[hole] = large[hole]
+    if rgb.flags.c_contiguous:
+        cv2.copyTo(large, hole.view(np.uint8), rgb)  # in place; numpy's masked assignment took 0.1 ms at 160 x 64
+    else:
+        rgb[hole] = large[hole]
 
 
 def pull_push_fill(rgb: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
