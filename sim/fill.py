@@ -136,8 +136,10 @@ def fill_wedges_from_neighbours(
     """Fill the side wedges of a view in place from neighbouring recorded frames: for each wedge, the frames at
     `offsets` (in order) are warped into its box by `warp` and merged by depth (`merge_into_holes`), until the wedge
     is closed or a frame adds less than NEIGHBOUR_MIN_GAIN of what is open (pixels given up on are not searched again
-    for another wedge they are in). Returns the (h, w) bool mask of the
-    pixels filled this way and their count. :param rgb, depth_m, valid: the view's own warp (changed in place)."""
+    for another wedge they are in). Returns the (h, w) bool mask of the pixels filled this way and their count.
+
+    :param rgb, depth_m, valid: the view's own warp (rgb and depth changed in place).
+    """
     hole, filled = ~valid, np.zeros_like(valid)
     if not offsets:
         return filled, 0
@@ -155,7 +157,7 @@ def fill_wedges_from_neighbours(
             open_px -= newly
             if newly < NEIGHBOUR_MIN_GAIN * (open_px + newly):
                 break
-            box = _open_box(hole, filled, box)
+            box = _open_box(hole, filled | tried, box)
             if box is None:
                 break
         _cut(tried, wedge)[...] |= _cut(hole, wedge) & ~_cut(filled, wedge)
@@ -168,9 +170,10 @@ def _cut(image: np.ndarray, box: Box) -> np.ndarray:
     return image[y0 : y0 + h, x0 : x0 + w]
 
 
-def _open_box(hole: np.ndarray, filled: np.ndarray, box: Box) -> Box | None:
-    """The bounding box of the hole pixels not yet filled inside `box`, in image coordinates; None when none is."""
-    inner = hole_box(~_cut(hole, box) | _cut(filled, box))
+def _open_box(hole: np.ndarray, closed: np.ndarray, box: Box) -> Box | None:
+    """The bounding box of the hole pixels not `closed` (filled, or given up on) inside `box`, in image coordinates;
+    None when there is none."""
+    inner = hole_box(~_cut(hole, box) | _cut(closed, box))
     return None if inner is None else (inner[0] + box[0], inner[1] + box[1], inner[2], inner[3])
 
 

@@ -104,8 +104,8 @@ class ViewConfig(pydantic.BaseModel):
     own frame leaves empty (off the recorded path), in this order, merged by depth; () = none. Each is warped only
     into a wedge's bounding box, while it stays open (`sim/fill.py`). Default () (inpainting alone): (-1, 1, -2)
     recovers recorded data for lateral wedges (real lateral view, holes counted: 0.3 dB below the filled pixels
-    instead of 1.0 dB, benchmarks/results/stereo_filled.md) but costs about 3x the warp per follow step where
-    inpainting alone costs 1.4-1.6x (view_fill_speed.md)."""
+    instead of 1.0 dB, benchmarks/results/stereo_filled.md) but costs 3.3x the warp alone per follow step where
+    inpainting alone costs 1.3x (view_fill_speed.md)."""
     inpaint: bool = True
     """Inpaint (OpenCV Telea) what no frame saw, so the policy never sees black; off: such pixels stay black."""
     contact_shadow: float = pydantic.Field(0.6, ge=0.0, le=1.0)
