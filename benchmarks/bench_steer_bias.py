@@ -9,6 +9,11 @@ spread steers the same way wherever it is on that drive: it drifts off the lane 
 scene, which is how the lane policies fail on KITTI raw 0001 (`transfer.md`).
 
     .venv/bin/python benchmarks/bench_steer_bias.py --run LABEL=RUN ... --world NAME=WORLD ... [--starts 12]
+        [--top-from NAME]
+
+With --top-from NAME, each other world gets a second column: the same views with their top TOP_FRACTION of rows (sky,
+trees, buildings: what lies above the road) taken from world NAME's views, start by start; a bias that goes away
+there comes from above the road.
 
 Writes benchmarks/results/steer_bias.md (--output to change).
 """
@@ -29,6 +34,8 @@ from drivesim.diagnostics.report import write_markdown
 RESULTS = Path(__file__).resolve().parent / "results" / "steer_bias.md"
 SETTLE_STEPS = 8
 """Steps the same view is shown before the action is read (the LSTM's state from zero settles in a few)."""
+TOP_FRACTION = 3 / 8
+"""Share of the view's rows (from the top) swapped with --top-from: 24 of the policy's 64."""
 
 
 def recorded_pose_views(world: str, starts: int) -> np.ndarray:
@@ -75,6 +82,7 @@ def main() -> None:
     parser.add_argument("--run", action="append", required=True, help="LABEL=RUN_FOLDER of a lane run (repeatable)")
     parser.add_argument("--world", action="append", required=True, help="NAME=WORLD_FOLDER (repeatable)")
     parser.add_argument("--starts", type=int, default=12)
+    parser.add_argument("--top-from", default=None, help="a --world NAME whose views' tops replace the others'")
     parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args()
     import torch
@@ -82,22 +90,39 @@ def main() -> None:
     torch.set_num_threads(1)
     runs, worlds = _pairs(args.run, "run"), _pairs(args.world, "world")
     views = {name: recorded_pose_views(path, args.starts) for name, path in worlds}
+    if args.top_from is not None:
+        if args.top_from not in views:
+            sys.exit(f"error: --top-from {args.top_from!r} is not one of the --world names")
+        top = views[args.top_from]
+        rows = round(top.shape[2] * TOP_FRACTION)
+        for name, _ in list(worlds):
+            if name != args.top_from:
+                mixed = views[name].copy()
+                mixed[:, :, :rows] = top[:, :, :rows]
+                views[f"{name}, top from {args.top_from}"] = mixed
     lines = [
         "# Lane policies' steering at the recorded poses of each world (issue 19)",
         "",
         f"- machine: {machine_line()}, load average {os.getloadavg()[0]:.1f}",
         f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
         f"- command: `python benchmarks/bench_steer_bias.py {' '.join(f'--run {r}' for r in args.run)} "
-        f"{' '.join(f'--world {w}' for w in args.world)} --starts {args.starts}`",
+        f"{' '.join(f'--world {w}' for w in args.world)} --starts {args.starts}"
+        + (f" --top-from {args.top_from}`" if args.top_from else "`"),
         f"- the steering action (-1 .. 1, + = left) at the recorded pose of {args.starts} starts per world, after "
-        f"{SETTLE_STEPS} steps of the same view: mean ± standard deviation over the starts",
+        f"{SETTLE_STEPS} steps of the same view: mean ± standard deviation over the starts"
+        + (
+            f"; 'top from {args.top_from}': the top {TOP_FRACTION:.0%} of each view's rows replaced by those of "
+            f"{args.top_from}'s view of the same start number"
+            if args.top_from
+            else ""
+        ),
         "",
-        "| run | " + " | ".join(name for name, _ in worlds) + " |",
-        "|---|" + "---:|" * len(worlds),
+        "| run | " + " | ".join(views) + " |",
+        "|---|" + "---:|" * len(views),
     ]
     for label, run in runs:
         cells = []
-        for name, _ in worlds:
+        for name in views:
             action = steering(run, views[name])
             cells.append(f"{action.mean():+.2f} ± {action.std():.2f}")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
