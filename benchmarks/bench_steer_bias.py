@@ -21,7 +21,6 @@ Writes benchmarks/results/steer_bias.md (--output to change).
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from datetime import UTC, datetime
 from pathlib import Path
@@ -103,7 +102,7 @@ def main() -> None:
     lines = [
         "# Lane policies' steering at the recorded poses of each world (issue 19)",
         "",
-        f"- machine: {machine_line()}, load average {os.getloadavg()[0]:.1f}",
+        f"- machine: {machine_line()}",
         f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
         f"- command: `python benchmarks/bench_steer_bias.py {' '.join(f'--run {r}' for r in args.run)} "
         f"{' '.join(f'--world {w}' for w in args.world)} --starts {args.starts}"
@@ -111,7 +110,7 @@ def main() -> None:
         f"- the steering action (-1 .. 1, + = left) at the recorded pose of {args.starts} starts per world, after "
         f"{SETTLE_STEPS} steps of the same view: mean ± standard deviation over the starts"
         + (
-            f"; 'top from {args.top_from}': the top {TOP_FRACTION:.0%} of each view's rows replaced by those of "
+            f"; 'top from {args.top_from}': the top {TOP_FRACTION:.1%} of each view's rows replaced by those of "
             f"{args.top_from}'s view of the same start number"
             if args.top_from
             else ""
