@@ -1,19 +1,16 @@
-"""Why lane policies fail on a real drive they never saw (issue 19): their steering at the recorded poses.
+"""Why lane policies fail on a real drive they never saw (issue 19): how they steer at and around the recorded poses.
 
-At the recorded pose (the ego centred on the recorded path and aligned with it) a lane policy should steer about as
-much as the road curves (KITTI raw 0001's path: |curvature| <= 0.003 1/m, a steering action near 0). For each run and
-world this script shows the policy the view at the recorded pose of N episode starts (the eval starts of seeds
-0 .. N-1, no lateral or heading offset, no augmentation) for 8 steps (the LSTM's state from zero) and reports the mean
-and spread of the steering action (-1 .. 1, + = left) over the starts. A policy whose mean is far from 0 with a small
-spread steers the same way wherever it is on that drive: it drifts off the lane at a steady heading, whatever the
-scene, which is how the lane policies fail on KITTI raw 0001 (`transfer.md`).
+A lane policy that keeps its lane steers back when it is turned or shifted off the recorded path. For each run and
+world this script places the ego at the recorded pose of N episode starts (the eval starts of seeds 0 .. N-1, no
+augmentation, the view the run trained with), shows the policy that view for 8 steps (the LSTM's state from zero) and
+reads its steering action (-1 .. 1, + = left), at five poses: on the path, turned +-ROTATION_RAD, shifted
++-LATERAL_M. Per world it reports
+- bias: the mean (± standard deviation over the starts) on the path, where the road's curvature asks for about 0;
+- rotation response: steering turned right minus steering turned left (> 0: it steers back);
+- lateral response: steering shifted right minus steering shifted left (> 0: it steers back).
+A policy whose responses are <= 0 on a world drives away from the path there, whatever its bias.
 
     .venv/bin/python benchmarks/bench_steer_bias.py --run LABEL=RUN ... --world NAME=WORLD ... [--starts 12]
-        [--top-from NAME]
-
-With --top-from NAME, each other world gets a second column: the same views with their top TOP_FRACTION of rows (sky,
-trees, buildings: what lies above the road) taken from world NAME's views, start by start; a bias that goes away
-there comes from above the road.
 
 Writes benchmarks/results/steer_bias.md (--output to change).
 """
@@ -24,6 +21,7 @@ import argparse
 import sys
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -33,37 +31,57 @@ from drivesim.diagnostics.report import write_markdown
 RESULTS = Path(__file__).resolve().parent / "results" / "steer_bias.md"
 SETTLE_STEPS = 8
 """Steps the same view is shown before the action is read (the LSTM's state from zero settles in a few)."""
-TOP_FRACTION = 3 / 8
-"""Share of the view's rows (from the top) swapped with --top-from: 24 of the policy's 64."""
+ROTATION_RAD = 0.2
+LATERAL_M = 1.0
+POSES = ((0.0, 0.0), (0.0, ROTATION_RAD), (0.0, -ROTATION_RAD), (LATERAL_M, 0.0), (-LATERAL_M, 0.0))
+"""(lateral m, heading offset rad) from the recorded pose, + = left."""
 
 
-def recorded_pose_views(world: str, starts: int) -> np.ndarray:
-    """(starts, C, H, W) uint8: the lane task's eval views at the recorded pose of the starts of seeds 0 .. starts-1
-    (no lateral or heading offset, no augmentation; starts >= 40 m from the path's end)."""
+def views_at(world: str, env_config: dict[str, Any], starts: int) -> dict[tuple[float, float], np.ndarray]:
+    """For each of POSES, (starts, C, H, W) uint8: the lane task's eval views of seeds 0 .. starts-1 with the ego
+    moved from the recorded pose by that offset, rendered with `env_config` (a run's) without augmentation."""
     import gymnasium
 
     import drivesim.sim.envs  # noqa: F401  (registers the envs)
+    from drivesim.sim.dynamics import BicycleState
 
-    config = {"initial_lateral_m": 0.0, "initial_yaw_rad": 0.0, "min_path_length_m": 40.0, "augment": False}
+    keys = ("roi_fov_deg", "roi_horizon_fraction", "observation_width_px", "observation_height_px")  # not roi_px: a
+    config = {k: env_config[k] for k in keys if env_config.get(k) is not None}  # pixel region of its own worlds
+    config.update(initial_lateral_m=0.0, initial_yaw_rad=0.0, min_path_length_m=40.0, augment=False)
     env = gymnasium.make("drivesim/Lane-v0", world=world, meshes=None, mode="eval", config=config)
-    views = np.stack([np.asarray(env.reset(seed=seed)[0]) for seed in range(starts)])
+    base = env.unwrapped
+    out: dict[tuple[float, float], list[np.ndarray]] = {pose: [] for pose in POSES}
+    for seed in range(starts):
+        env.reset(seed=seed)
+        ego, reference = base.sim.agents[0], base.sim.reference
+        for lateral_m, heading_rad in POSES:
+            x, y, yaw = reference.pose(ego.arc_m, lateral_m)
+            ego.state = BicycleState(x, y, yaw + heading_rad, 0.0, ego.state.speed_mps)
+            ego.lateral_m = lateral_m
+            out[(lateral_m, heading_rad)].append(np.asarray(base.observation_from(base.sim.views([0])[0])))
     env.close()
-    return views
+    return {pose: np.stack(images) for pose, images in out.items()}
 
 
-def steering(run: str, views: np.ndarray) -> np.ndarray:
-    """The run's deterministic steering action for each view, shown SETTLE_STEPS times from a zero LSTM state."""
+def steering(net: Any, views: np.ndarray) -> np.ndarray:
+    """The policy's deterministic steering action for each view, shown SETTLE_STEPS times from a zero LSTM state."""
     import torch
 
-    from drivesim.stages.policy.run_folder import load_policy
-
-    net = load_policy(run).net
     images = torch.from_numpy(views)
     state = net.initial_state(len(views))
     with torch.no_grad():
         for k in range(SETTLE_STEPS):
             action, _, state = net.step(images, state, torch.full((len(views),), float(k == 0)))
     return action[:, 0].clamp(-1.0, 1.0).numpy()
+
+
+def world_cell(net: Any, views: dict[tuple[float, float], np.ndarray]) -> str:
+    """'bias ± spread / rotation response / lateral response' of one run on one world."""
+    mean = {pose: float(steering(net, images).mean()) for pose, images in views.items()}
+    on_path = steering(net, views[(0.0, 0.0)])
+    rotation = mean[(0.0, -ROTATION_RAD)] - mean[(0.0, ROTATION_RAD)]
+    lateral = mean[(-LATERAL_M, 0.0)] - mean[(LATERAL_M, 0.0)]
+    return f"{on_path.mean():+.2f} ± {on_path.std():.2f} / {rotation:+.2f} / {lateral:+.2f}"
 
 
 def _pairs(values: list[str], what: str) -> list[tuple[str, str]]:
@@ -81,49 +99,37 @@ def main() -> None:
     parser.add_argument("--run", action="append", required=True, help="LABEL=RUN_FOLDER of a lane run (repeatable)")
     parser.add_argument("--world", action="append", required=True, help="NAME=WORLD_FOLDER (repeatable)")
     parser.add_argument("--starts", type=int, default=12)
-    parser.add_argument("--top-from", default=None, help="a --world NAME whose views' tops replace the others'")
     parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args()
     import torch
 
+    from drivesim.stages.policy.run_folder import load_policy
+
     torch.set_num_threads(1)
     runs, worlds = _pairs(args.run, "run"), _pairs(args.world, "world")
-    views = {name: recorded_pose_views(path, args.starts) for name, path in worlds}
-    if args.top_from is not None:
-        if args.top_from not in views:
-            sys.exit(f"error: --top-from {args.top_from!r} is not one of the --world names")
-        top = views[args.top_from]
-        rows = round(top.shape[2] * TOP_FRACTION)
-        for name, _ in list(worlds):
-            if name != args.top_from:
-                mixed = views[name].copy()
-                mixed[:, :, :rows] = top[:, :, :rows]
-                views[f"{name}, top from {args.top_from}"] = mixed
     lines = [
-        "# Lane policies' steering at the recorded poses of each world (issue 19)",
+        "# Lane policies' steering at and around the recorded poses of each world (issue 19)",
         "",
         f"- machine: {machine_line()}",
         f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
         f"- command: `python benchmarks/bench_steer_bias.py {' '.join(f'--run {r}' for r in args.run)} "
-        f"{' '.join(f'--world {w}' for w in args.world)} --starts {args.starts}"
-        + (f" --top-from {args.top_from}`" if args.top_from else "`"),
-        f"- the steering action (-1 .. 1, + = left) at the recorded pose of {args.starts} starts per world, after "
-        f"{SETTLE_STEPS} steps of the same view: mean ± standard deviation over the starts"
-        + (
-            f"; 'top from {args.top_from}': the top {TOP_FRACTION:.1%} of each view's rows replaced by those of "
-            f"{args.top_from}'s view of the same start number"
-            if args.top_from
-            else ""
-        ),
+        f"{' '.join(f'--world {w}' for w in args.world)} --starts {args.starts}`",
+        f"- per world: bias (the steering action, -1 .. 1, + = left, on the recorded path: mean ± standard deviation "
+        f"over {args.starts} starts) / rotation response (steering turned {ROTATION_RAD} rad right minus turned left) "
+        f"/ lateral response (shifted {LATERAL_M} m right minus shifted left); a response > 0 steers back to the path",
         "",
-        "| run | " + " | ".join(views) + " |",
-        "|---|" + "---:|" * len(views),
+        "| run | " + " | ".join(name for name, _ in worlds) + " |",
+        "|---|" + "---:|" * len(worlds),
     ]
+    cache: dict[tuple[str, str], dict] = {}
     for label, run in runs:
+        policy = load_policy(run)
         cells = []
-        for name in views:
-            action = steering(run, views[name])
-            cells.append(f"{action.mean():+.2f} ± {action.std():.2f}")
+        for _, world in worlds:
+            key = (world, repr(sorted((k, v) for k, v in policy.env_config.items() if k.startswith(("roi", "obs")))))
+            if key not in cache:
+                cache[key] = views_at(world, policy.env_config, args.starts)
+            cells.append(world_cell(policy.net, cache[key]))
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     write_markdown(args.output, lines + [""])
 
