@@ -248,24 +248,21 @@ def real_env_rows(world: Path, steps: int, envs: int) -> list[Row]:
 
     rows = []
     # Batched envs in the learner's process (`envs` of them, then 8), 8 split over 2 worker processes that step in
-    # parallel (the preset), the same with the paper's 10 epochs, and SB3's one process per env as the alternative.
-    variants = ((4, "batched", envs, 1), (4, "batched", 8, 1), (4, "batched", 8, 2), (10, "batched", 8, 2),
-                (4, "subproc", 2, 1))  # fmt: skip
-    for epochs, vec_env, count, processes in variants:
-        cfg = load_config(
-            TrainConfig,
-            preset="train/overtake",
-            overrides=[
-                f"ppo.epochs={epochs}",
-                f"envs.count={count}",
-                f"envs.vec_env={vec_env}",
-                f"envs.processes={processes}",
-                f"ppo.buffer_steps={steps}",
-            ],
-        )
+    # parallel (the learner with its 2 torch threads throughout, then with 1 while it collects the rollout), the
+    # same with the paper's 10 epochs, and SB3's one process per env as the alternative.
+    variants = ((4, "batched", envs, 1, None), (4, "batched", 8, 1, None), (4, "batched", 8, 2, None),
+                (4, "batched", 8, 2, 1), (10, "batched", 8, 2, 1), (4, "subproc", 2, 1, None))  # fmt: skip
+    for epochs, vec_env, count, processes, rollout_threads in variants:
+        overrides = [f"ppo.epochs={epochs}", f"envs.count={count}", f"envs.vec_env={vec_env}",
+                     f"envs.processes={processes}", f"ppo.buffer_steps={steps}"]  # fmt: skip
+        if rollout_threads is not None:
+            overrides.append(f"rollout_threads={rollout_threads}")
+        cfg = load_config(TrainConfig, preset="train/overtake", overrides=overrides)
         source = EnvSource(task="overtake", worlds=[world], processes=cfg.envs.processes)
         venv = source.make_vec(cfg.envs.count, cfg.envs.vec_env, seed=0)
         where = f"{processes} worker processes" if processes > 1 else "in the learner's process"
+        if rollout_threads is not None:
+            where += f", {rollout_threads} learner thread during rollouts"
         rows.append(
             measure(
                 f"overtake, real simulator ({cfg.envs.vec_env}, {count} envs"

@@ -115,6 +115,36 @@ def test_fused_recurrent_pass_is_exact() -> None:
         assert torch.allclose(values.flatten(), batch.old_values, atol=1e-4)
 
 
+class ThreadRecordingEnv(CostFreeDrivingEnv):
+    """The cost-free env that notes the learner's torch thread count at every step."""
+
+    seen_threads: list[int] = []
+
+    def step(self, action: np.ndarray) -> Any:
+        ThreadRecordingEnv.seen_threads.append(torch.get_num_threads())
+        return super().step(action)
+
+
+def test_rollouts_run_with_their_own_thread_count() -> None:
+    """rollout_threads: the rollout runs with 1 torch thread, the optimization with the process's 2 again."""
+    cfg = small_config(256, ["rollout_threads=1", "learner_threads=2"])
+    venv = DummyVecEnv([lambda: ThreadRecordingEnv(episode_steps=40) for _ in range(2)])
+    model = build_model(cfg, venv)
+    model.set_logger(Logger(None, []))
+    threads_in_updates: list[int] = []
+    model.update_hooks.append(lambda: threads_in_updates.append(torch.get_num_threads()))
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    ThreadRecordingEnv.seen_threads = []
+    try:
+        model.learn(256)
+        assert set(ThreadRecordingEnv.seen_threads) == {1}
+        assert threads_in_updates and set(threads_in_updates) == {2}
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ws = Workspace(tmp_path_factory.mktemp("ws"))

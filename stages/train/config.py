@@ -160,6 +160,10 @@ class TrainConfig(StageConfig):
     """Seed of the policy's initialization and of the training episodes."""
     learner_threads: int = Field(2, ge=1, le=4096)
     """torch threads of the learner (this process)."""
+    rollout_threads: int | None = Field(None, ge=1, le=4096)
+    """torch threads of the learner while it collects a rollout (None: learner_threads). With the envs in worker
+    processes (envs.processes > 1), 1 leaves the cores to the workers: the learner only runs the policy on the
+    envs' images then, and its idle torch threads would compete with them."""
     device: str = "cpu"
     """torch device of the learner (PPO's updates, the warm start, the imitation): "cpu" or "cuda". With a GPU, set
     envs.config.render_device too, so the views are rendered there as well."""

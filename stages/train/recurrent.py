@@ -135,11 +135,16 @@ class ChunkedRecurrentPPO(RecurrentPPO):
     """sb3-contrib RecurrentPPO with `ChunkedRolloutBuffer` and a record of where the time goes.
 
     :param sequence_length: chunk length [steps].
+    :param rollout_threads: torch threads while collecting a rollout (None: as set for the process); the thread
+        count the optimization runs with is restored after each rollout.
     (other parameters: RecurrentPPO's)
     """
 
-    def __init__(self, *args: Any, sequence_length: int = 16, **kwargs: Any) -> None:
+    def __init__(
+        self, *args: Any, sequence_length: int = 16, rollout_threads: int | None = None, **kwargs: Any
+    ) -> None:
         self.sequence_length = int(sequence_length)
+        self.rollout_threads = rollout_threads
         self.time_s = {"rollout": 0.0, "optimization": 0.0}
         self.update_hooks: list[Callable[[], None]] = []
         super().__init__(*args, **kwargs)
@@ -161,9 +166,13 @@ class ChunkedRecurrentPPO(RecurrentPPO):
 
     def collect_rollouts(self, *args: Any, **kwargs: Any) -> bool:
         start = time.perf_counter()
+        threads = torch.get_num_threads()
+        if self.rollout_threads is not None:
+            torch.set_num_threads(self.rollout_threads)
         try:
             return super().collect_rollouts(*args, **kwargs)
         finally:
+            torch.set_num_threads(threads)
             self.time_s["rollout"] += time.perf_counter() - start
 
     def train(self) -> None:

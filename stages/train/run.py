@@ -140,6 +140,7 @@ def _make_model(cfg: TrainConfig, venv: Any) -> ChunkedRecurrentPPO:
             "log_std_init": pol.log_std_init,
         },
         sequence_length=pol.sequence_length_steps,
+        rollout_threads=cfg.rollout_threads,
         seed=cfg.seed,
         device=cfg.device,
         verbose=0,
