@@ -9,8 +9,10 @@ reads its steering action (-1 .. 1, + = left), at five poses: on the path, turne
 - rotation response: steering turned right minus steering turned left (> 0: it steers back);
 - lateral response: steering shifted right minus steering shifted left (> 0: it steers back).
 A policy whose responses are <= 0 on a world drives away from the path there, whatever its bias.
+With --blank REGION (top-left, top-right: quarters of the policy's image; top, bottom: halves) that part of every view
+is set to the view's mean colour before the policy sees it: which part of a world's picture makes the response.
 
-    .venv/bin/python benchmarks/bench_steer_bias.py --run LABEL=RUN ... --world NAME=WORLD ... [--starts 12]
+    .venv/bin/python benchmarks/bench_steer_bias.py --run LABEL=RUN ... --world NAME=WORLD ... [--starts 12] [--blank R]
 
 Writes benchmarks/results/steer_bias.md (--output to change).
 """
@@ -63,6 +65,22 @@ def views_at(world: str, env_config: dict[str, Any], starts: int) -> dict[tuple[
     return {pose: np.stack(images) for pose, images in out.items()}
 
 
+BLANK_REGIONS = {"top-left": (0.0, 0.5, 0.0, 0.5), "top-right": (0.0, 0.5, 0.5, 1.0), "top": (0.0, 0.5, 0.0, 1.0),
+                 "bottom": (0.5, 1.0, 0.0, 1.0)}  # fmt: skip
+"""(top, bottom, left, right) of each region, fractions of the image's height and width."""
+
+
+def blank(views: np.ndarray, region: str) -> np.ndarray:
+    """(N, C, H, W) uint8 views with `region` (a key of BLANK_REGIONS) set to each view's mean colour."""
+    top, bottom, left, right = BLANK_REGIONS[region]
+    out = views.copy()
+    H, W = views.shape[2:]
+    mean = np.rint(views.mean(axis=(2, 3), keepdims=True)).astype(np.uint8)
+    rows, cols = slice(int(top * H), int(bottom * H)), slice(int(left * W), int(right * W))
+    out[:, :, rows, cols] = mean
+    return out
+
+
 def steering(net: Any, views: np.ndarray) -> np.ndarray:
     """The policy's deterministic steering action for each view, shown SETTLE_STEPS times from a zero LSTM state."""
     import torch
@@ -99,6 +117,7 @@ def main() -> None:
     parser.add_argument("--run", action="append", required=True, help="LABEL=RUN_FOLDER of a lane run (repeatable)")
     parser.add_argument("--world", action="append", required=True, help="NAME=WORLD_FOLDER (repeatable)")
     parser.add_argument("--starts", type=int, default=12)
+    parser.add_argument("--blank", choices=sorted(BLANK_REGIONS), default=None, help="neutralize this part of views")
     parser.add_argument("--output", type=Path, default=RESULTS)
     args = parser.parse_args()
     import torch
@@ -113,7 +132,8 @@ def main() -> None:
         f"- machine: {machine_line()}",
         f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
         f"- command: `python benchmarks/bench_steer_bias.py {' '.join(f'--run {r}' for r in args.run)} "
-        f"{' '.join(f'--world {w}' for w in args.world)} --starts {args.starts}`",
+        f"{' '.join(f'--world {w}' for w in args.world)} --starts {args.starts}"
+        f"{f' --blank {args.blank}' if args.blank else ''}`",
         f"- per world: bias (the steering action, -1 .. 1, + = left, on the recorded path: mean ± standard deviation "
         f"over {args.starts} starts) / rotation response (steering turned {ROTATION_RAD} rad right minus turned left) "
         f"/ lateral response (shifted {LATERAL_M} m right minus shifted left); a response > 0 steers back to the path",
@@ -129,6 +149,8 @@ def main() -> None:
             key = (world, repr(sorted((k, v) for k, v in policy.env_config.items() if k.startswith(("roi", "obs")))))
             if key not in cache:
                 cache[key] = views_at(world, policy.env_config, args.starts)
+                if args.blank:
+                    cache[key] = {pose: blank(images, args.blank) for pose, images in cache[key].items()}
             cells.append(world_cell(policy.net, cache[key]))
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     write_markdown(args.output, lines + [""])
