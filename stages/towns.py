@@ -40,12 +40,25 @@ class TownsConfig(StageConfig):
     """Overrides of the town chain's stage configs, as in a run preset: synth, ingest, preprocess, build-world
     (e.g. {preprocess: {depth: {method: mvs}}}); each stage's own preset is the base."""
 
+    per_town: dict[int, dict[str, dict[str, Any]]] = {}
+    """Overrides for single towns, by seed, applied over `stages` (same form): the preset makes towns 8 and 9
+    tree-lined this way (configs/towns.yaml)."""
+
     @field_validator("stages")
     @classmethod
     def _known_stages(cls, value: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
         unknown = sorted(set(value) - {"synth", *TOWN_STAGES})
         if unknown:
             raise ValueError(f"unknown stage(s) {', '.join(unknown)}; a town's stages: synth, {', '.join(TOWN_STAGES)}")
+        return value
+
+    @field_validator("per_town")
+    @classmethod
+    def _known_towns_and_stages(cls, value: dict[int, dict[str, dict[str, Any]]]) -> dict[int, dict[str, Any]]:
+        for seed, stages in value.items():
+            if seed < 0:
+                raise ValueError(f"per_town: town seed {seed}: seeds are 0 or more")
+            cls._known_stages(stages)
         return value
 
 
@@ -93,9 +106,10 @@ def check_seeds(seeds: Iterable[int]) -> list[int]:
 
 
 def town_overrides(cfg: TownsConfig, seed: int) -> dict[str, Any]:
-    """The per-stage overrides of town `seed`'s chain: the seed and drive length, then the config's stages."""
+    """The per-stage overrides of town `seed`'s chain: the seed and drive length, then the config's stages, then
+    the config's overrides for this town."""
     base: dict[str, Any] = {"synth": {"seed": seed, "drive": {"duration_s": cfg.duration_s}}}
-    return _merged(base, cfg.stages)
+    return _merged(_merged(base, cfg.stages), cfg.per_town.get(seed, {}))
 
 
 def _merged(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:

@@ -149,3 +149,25 @@ def test_town_overrides_put_the_seed_and_drive_length_under_the_config() -> None
     assert overrides["synth"]["seed"] == 9 and overrides["synth"]["drive"] == {"duration_s": 1.5}
     assert overrides["synth"]["camera"] == {"width_px": 160, "height_px": 100}
     assert overrides["preprocess"] == {"depth": {"method": "plane"}}
+
+
+def test_per_town_overrides_apply_to_their_town_only() -> None:
+    trees = {"synth": {"world": {"scenery": {"tree_spacing_m": 4.0}}}}
+    cfg = TownsConfig.model_validate({**TINY, "per_town": {8: trees}})
+    eight, nine = towns_module.town_overrides(cfg, 8), towns_module.town_overrides(cfg, 9)
+    assert eight["synth"]["world"]["scenery"] == {"view_distance_m": 60, "tree_spacing_m": 4.0}  # merged with stages
+    assert nine["synth"]["world"]["scenery"] == {"view_distance_m": 60}
+    assert eight["synth"]["camera"] == nine["synth"]["camera"] == {"width_px": 160, "height_px": 100}
+    assert eight["synth"]["seed"] == 8 and eight["preprocess"] == {"depth": {"method": "plane"}}
+    with pytest.raises(ValueError, match="unknown stage"):
+        TownsConfig.model_validate({"per_town": {8: {"export": {}}}})
+
+
+def test_the_preset_makes_towns_8_and_9_tree_lined() -> None:
+    from drivesim.pipeline.config import load_config
+
+    cfg = load_config(TownsConfig, preset="towns")
+    for seed in (8, 9):
+        scenery = towns_module.town_overrides(cfg, seed)["synth"]["world"]["scenery"]
+        assert scenery["building_probability"] < 0.5 and scenery["tree_spacing_m"] < 14.0
+    assert "world" not in towns_module.town_overrides(cfg, 1)["synth"]
