@@ -34,6 +34,8 @@ def build_command(
 
     A town that is fresh (same settings) is skipped, stage by stage; Ctrl-C keeps the stages done and writes nothing
     half: the same command continues. `drivesim train` uses these towns when its config's `towns` key names them.
+    Towns 8 and 9 are tree-lined (rows of trees beside the road; `per_town` in configs/towns.yaml), the others
+    mostly built up.
     """
     from drivesim.stages.towns import PRESET, TownsConfig, TownStage, build_towns, check_seeds
 
