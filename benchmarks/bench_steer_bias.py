@@ -127,7 +127,8 @@ def main() -> None:
     torch.set_num_threads(1)
     runs, worlds = _pairs(args.run, "run"), _pairs(args.world, "world")
     lines = [
-        "# Lane policies' steering at and around the recorded poses of each world (issue 19)",
+        "# Lane policies' steering at and around the recorded poses of each world (issue 19)"
+        + (f": the {args.blank} of every view blanked" if args.blank else ""),
         "",
         f"- machine: {machine_line()}",
         f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
