@@ -95,8 +95,9 @@ def steering(net: Any, views: np.ndarray) -> np.ndarray:
 
 def world_cell(net: Any, views: dict[tuple[float, float], np.ndarray]) -> str:
     """'bias ± spread / rotation response / lateral response' of one run on one world."""
-    mean = {pose: float(steering(net, images).mean()) for pose, images in views.items()}
-    on_path = steering(net, views[(0.0, 0.0)])
+    actions = {pose: steering(net, images) for pose, images in views.items()}
+    mean = {pose: float(action.mean()) for pose, action in actions.items()}
+    on_path = actions[(0.0, 0.0)]
     rotation = mean[(0.0, -ROTATION_RAD)] - mean[(0.0, ROTATION_RAD)]
     lateral = mean[(-LATERAL_M, 0.0)] - mean[(LATERAL_M, 0.0)]
     return f"{on_path.mean():+.2f} ± {on_path.std():.2f} / {rotation:+.2f} / {lateral:+.2f}"
