@@ -277,6 +277,30 @@ def test_view_jitter_shifts_blurs_and_adds_noise() -> None:
     assert ViewJitter().apply(image) is image
 
 
+def test_cutout_erases_its_rectangles_to_one_colour_each_and_moves_them_every_step() -> None:
+    """cutout_count (2, 2): each call changes two rectangles of the asked size range (no more of the image), each to
+    one colour, in new places at the next call; a range of (0, 0) leaves the image as it is."""
+    image = np.full((40, 60, 3), 128, np.uint8)
+    jitter = ViewJitter(cutout_count=(2, 2), cutout_size=(0.2, 0.3), noise_rng=np.random.default_rng(0))
+    first, second = jitter.apply(image), jitter.apply(image)
+    for out in (first, second):
+        changed = np.any(out != image, axis=2)
+        assert 0 < changed.mean() <= 2 * 0.3 * 0.3 + 1e-9  # at most two rectangles of at most 30 % x 30 %
+        assert len(np.unique(out[changed], axis=0)) <= 2  # one colour per rectangle
+    assert np.any(first != second)  # redrawn at every step
+    np.testing.assert_array_equal(image, 128)  # the input is left alone
+    assert ViewJitter(cutout_count=(0, 0)).apply(image) is image
+
+
+def test_cutout_sizes_outside_zero_to_one_are_refused() -> None:
+    """cutout_size is a fraction of the image's sides: 0 or above 1 is refused with the key named."""
+    from drivesim.sim.envs.config import EnvConfig
+
+    for bad in ((0.0, 0.5), (0.2, 1.5)):
+        with pytest.raises(ValueError, match="cutout_size"):
+            EnvConfig(cutout_size=bad)
+
+
 def test_a_pitched_episode_sees_its_view_shifted_and_evaluation_never(world_dir: Path) -> None:
     """pitch_jitter_deg: the training observation is the plain episode's shifted by the drawn pitch's rows (the same
     start state: the draw comes last), within the asked angle at the image's focal length; evaluation is unchanged."""

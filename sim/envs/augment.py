@@ -1,6 +1,6 @@
 """Episode-level augmentation of the uint8 observation: photometric (gamma, brightness, contrast, saturation, and
 whole episodes in grey: a grey camera, as every KITTI drive is, seen by a policy trained on colour worlds), and in
-image space (`ViewJitter`: camera pitch, blur, sensor noise)."""
+image space (`ViewJitter`: camera pitch, blur, sensor noise, erased rectangles)."""
 
 from __future__ import annotations
 
@@ -74,12 +74,17 @@ of it at a random offset at each step: fresh-looking noise every step for the co
 @dataclass
 class ViewJitter:
     """One episode's image-space draw, applied after `Augmentation`: a camera pitch shown as the vertical shift of
-    the image it makes, a Gaussian blur, and sensor noise that changes at every call (its own generator, so the
-    episode's other draws do not depend on how many steps it ran)."""
+    the image it makes, a Gaussian blur, rectangles erased at random places, and sensor noise; the rectangles and
+    the noise change at every call (their own generator, so the episode's other draws do not depend on how many
+    steps it ran)."""
 
     shift_rows: float = 0.0
     blur_sigma_px: float = 0.0
     noise_std: float = 0.0
+    cutout_count: tuple[int, int] = (0, 0)
+    """Range (low, high, both included) of the number of rectangles erased at each call."""
+    cutout_size: tuple[float, float] = (0.1, 0.4)
+    """Range of each erased rectangle's width and height, fractions of the image's."""
     noise_rng: np.random.Generator | None = field(default=None, compare=False, repr=False)
     _noise_field: np.ndarray | None = field(default=None, init=False, compare=False, repr=False)
 
@@ -91,26 +96,33 @@ class ViewJitter:
         focal_rows_px: float,
         blur_sigma_px: tuple[float, float],
         noise_std: tuple[float, float],
+        cutout_count: tuple[int, int] = (0, 0),
+        cutout_size: tuple[float, float] = (0.1, 0.4),
     ) -> ViewJitter:
         """A pitch in +-`pitch_deg` (as rows at the image's vertical focal length `focal_rows_px`: a small pitch
-        moves the whole image by about f tan(pitch)), a blur and a noise level from their (low, high) ranges."""
+        moves the whole image by about f tan(pitch)), a blur and a noise level from their (low, high) ranges; the
+        cutout ranges are kept as given (the rectangles are drawn at each call)."""
         pitch_rad = np.radians(float(rng.uniform(-pitch_deg, pitch_deg)))
         return cls(
             shift_rows=float(focal_rows_px * np.tan(pitch_rad)),
             blur_sigma_px=float(rng.uniform(*blur_sigma_px)),
             noise_std=float(rng.uniform(*noise_std)),
+            cutout_count=cutout_count,
+            cutout_size=cutout_size,
             noise_rng=np.random.default_rng(int(rng.integers(2**63))),
         )
 
     @property
     def identity(self) -> bool:
         """True when it changes nothing."""
-        return self.shift_rows == 0.0 and self.blur_sigma_px == 0.0 and self.noise_std == 0.0
+        return (
+            self.shift_rows == 0.0 and self.blur_sigma_px == 0.0 and self.noise_std == 0.0 and self.cutout_count[1] == 0
+        )
 
     def apply(self, rgb: np.ndarray) -> np.ndarray:
-        """The (h, w, 3) uint8 image shifted down by `shift_rows` (sub-pixel, edge rows repeated), blurred, and with
-        Gaussian noise of `noise_std` x 255 added (a new window of the episode's noise field at each call), rounded
-        and saturated to 0-255."""
+        """The (h, w, 3) uint8 image shifted down by `shift_rows` (sub-pixel, edge rows repeated), blurred, with
+        `cutout_count` rectangles erased (each to one random colour), and with Gaussian noise of `noise_std` x 255
+        added (a new window of the episode's noise field at each call), rounded and saturated to 0-255."""
         if self.identity:
             return rgb
         out = np.ascontiguousarray(rgb)
@@ -120,8 +132,25 @@ class ViewJitter:
                                  borderMode=cv2.BORDER_REPLICATE)  # fmt: skip
         if self.blur_sigma_px > 0.0:
             out = cv2.GaussianBlur(out, (0, 0), self.blur_sigma_px, borderType=cv2.BORDER_REPLICATE)
+        if self.cutout_count[1] > 0:
+            out = self._erase_rectangles(out)
         if self.noise_std > 0.0:
             out = self._add_noise(out)
+        return out
+
+    def _erase_rectangles(self, image: np.ndarray) -> np.ndarray:
+        """A copy of `image` with a drawn number of rectangles, each of a drawn size and place, set to one random
+        colour each (random erasing, as RAD's cutout-colour: a policy that must drive with any part of its view
+        hidden cannot lean on one region's scenery)."""
+        if self.noise_rng is None:
+            self.noise_rng = np.random.default_rng()
+        rng, (h, w) = self.noise_rng, image.shape[:2]
+        out = image.copy()
+        for _ in range(int(rng.integers(self.cutout_count[0], self.cutout_count[1] + 1))):
+            rect_h = max(1, round(h * rng.uniform(*self.cutout_size)))
+            rect_w = max(1, round(w * rng.uniform(*self.cutout_size)))
+            top, left = int(rng.integers(0, h - rect_h + 1)), int(rng.integers(0, w - rect_w + 1))
+            out[top : top + rect_h, left : left + rect_w] = rng.integers(0, 256, size=out.shape[2:], dtype=np.uint8)
         return out
 
     def _add_noise(self, image: np.ndarray) -> np.ndarray:

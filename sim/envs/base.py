@@ -197,14 +197,21 @@ class DrivingEnv(gymnasium.Env):
         self._measure()
 
     def _sample_jitter(self, rng: np.random.Generator) -> ViewJitter:
-        """The episode's pitch, blur and noise (`ViewJitter`); nothing is drawn when all three are off, so the draws
-        of a config without them stay as they were."""
+        """The episode's pitch, blur, noise and erased rectangles (`ViewJitter`); nothing is drawn when all are off,
+        so the draws of a config without them stay as they were."""
         c = self.config
-        if c.pitch_jitter_deg == 0.0 and max(c.blur_sigma_px) == 0.0 and max(c.noise_std) == 0.0:
+        if (
+            c.pitch_jitter_deg == 0.0
+            and max(c.blur_sigma_px) == 0.0
+            and max(c.noise_std) == 0.0
+            and c.cutout_count[1] == 0
+        ):
             return ViewJitter()
         world = self.worlds[self._world_index]
         focal_rows_px = float(world.K[1, 1]) * c.observation_height_px / self.roi_px_of(self._world_index)[3]
-        return ViewJitter.sample(rng, c.pitch_jitter_deg, focal_rows_px, c.blur_sigma_px, c.noise_std)
+        return ViewJitter.sample(
+            rng, c.pitch_jitter_deg, focal_rows_px, c.blur_sigma_px, c.noise_std, c.cutout_count, c.cutout_size
+        )
 
     # --- task hooks (a task subclass overrides what it needs; the base never asks which task it is) -----------
     def _speeds(self, rng: np.random.Generator) -> tuple[float, float]:

@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 # Ranges (low, high) whose values are magnitudes (speeds, distances, factors): negative values are refused.
 _NON_NEGATIVE_RANGES = (
     "ego_speed_mps", "other_speed_mps", "follow_speed_mps", "front_distance_m", "front_lateral_m", "gamma",
-    "contrast", "saturation", "blur_sigma_px", "noise_std",
+    "contrast", "saturation", "blur_sigma_px", "noise_std", "cutout_count", "cutout_size",
 )  # fmt: skip
 
 
@@ -156,6 +156,12 @@ class EnvConfig(BaseModel):
     """Range of each training episode's sensor-noise level: Gaussian noise of this standard deviation (fraction of
     full scale) added to every pixel, changing at every step (a new window of a noise field drawn once per episode,
     `augment.NOISE_SHIFT_PX`); (0, 0): off."""
+    cutout_count: tuple[int, int] = (0, 0)
+    """Range (low, high, both included) of the number of rectangles erased, each to one random colour, from the
+    policy's image at every training step (random erasing: a view with any part hidden, so the policy cannot lean
+    on one region's scenery); (0, 0): off."""
+    cutout_size: tuple[float, float] = Field((0.1, 0.4))
+    """Range of each erased rectangle's width and height, fractions of the image's width and height."""
     far_clearance_m: float = Field(10.0, gt=0.0)
     """Beyond this centre distance the clearance is the centre distance minus both half-diagonals (no polygons)."""
 
@@ -171,6 +177,8 @@ class EnvConfig(BaseModel):
                 raise ValueError(f"{name}: the range ({value[0]}, {value[1]}) is reversed; give (low, high)")
             if name in _NON_NEGATIVE_RANGES and value[0] < 0:
                 raise ValueError(f"{name}: ({value[0]}, {value[1]}) must not be negative")
+        if not (0.0 < self.cutout_size[0] and self.cutout_size[1] <= 1.0):
+            raise ValueError(f"cutout_size: {self.cutout_size} must lie in (0, 1]: fractions of the image's sides")
         if self.gamma[0] <= 0:
             raise ValueError(f"gamma: ({self.gamma[0]}, {self.gamma[1]}) must be positive")
         if self.roi_px is not None and self.roi_fov_deg is not None:
