@@ -237,6 +237,12 @@ class ViewSynthesizer:
         self.monochrome = config.monochrome if config.monochrome is not None else frames_are_monochrome(world.frames)
         self.fill_stats = FillStats()
         """Where the pixels of every view rendered so far came from (own frame, neighbours, inpainting)."""
+        if not self.batched and world.frame_count <= _FRAME_CACHE_SIZE:
+            # Every frame prepared now (about 0.3 ms each), not at its first view: an episode meets a new frame at
+            # nearly every step, so lazily each view paid it until all frames had been seen (10 % of a car-drawn
+            # overtake step, measured); the cache would hold them all in the end anyway.
+            for index in range(world.frame_count):
+                self._frame(index)
 
     # ------------------------------------------------------------------ caches
     def _frame(self, index: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:

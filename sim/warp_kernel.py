@@ -84,31 +84,37 @@ def fill_cracks(depth: np.ndarray, index: np.ndarray, radius: int) -> tuple[np.n
     the nearest surface of their (2r+1)^2 neighbourhood, for r = 1, then 2, ... `radius` (warp._fill_cracks's
     rule). Changes the arrays in place and returns them."""
     h, w = depth.shape
-    # The empty pixels, once; each pass visits only those still empty and applies its fills after deciding all of
-    # them (a fill never feeds another fill of the same pass, as in the torch path).
-    empty = np.flatnonzero(index.ravel() < 0)
-    fill_z = np.empty(len(empty), dtype=np.float32)
-    fill_i = np.empty(len(empty), dtype=np.int64)
+    # Whether each pixel is warped, with a border of `radius` unwarped pixels so that no look-up needs a bounds test.
+    seen = np.zeros((h + 2 * radius, w + 2 * radius), dtype=np.bool_)
+    for y in range(h):
+        for x in range(w):
+            seen[y + radius, x + radius] = index[y, x] >= 0
+    # The empty pixels that can be filled, once; each pass visits only those still empty and applies its fills after
+    # deciding all of them (a fill never feeds another fill of the same pass, as in the torch path). A pixel filled
+    # in pass r has a warped pixel within r px, so none farther than 1 + 2 + ... + radius px from the splat's pixels
+    # is ever filled: the inside of a large hole (a side wedge, a third of the empty pixels) is left out at once.
+    near = _near_warped(index, radius * (radius + 1) // 2)
+    count = 0
+    for y in range(h):
+        for x in range(w):
+            if index[y, x] < 0 and near[y, x]:
+                count += 1
+    ys = np.empty(count, dtype=np.int64)
+    xs = np.empty(count, dtype=np.int64)
+    n = 0
+    for y in range(h):
+        for x in range(w):
+            if index[y, x] < 0 and near[y, x]:
+                ys[n], xs[n] = y, x
+                n += 1
+    fill_z = np.empty(count, dtype=np.float32)
+    fill_i = np.empty(count, dtype=np.int64)
+    filled = np.zeros(count, dtype=np.bool_)
     for r in range(1, radius + 1):
-        filled = np.zeros(len(empty), dtype=np.bool_)
-        for n in range(len(empty)):
-            y, x = empty[n] // w, empty[n] % w
-            enclosed = False
-            for k in range(4):
-                dy = 0 if k == 0 else 1
-                dx = 1 if k == 0 else (0 if k == 1 else (1 if k == 2 else -1))
-                side_a = False
-                side_b = False
-                for d in range(1, r + 1):
-                    ya, xa, yb, xb = y + d * dy, x + d * dx, y - d * dy, x - d * dx
-                    if 0 <= ya < h and 0 <= xa < w and index[ya, xa] >= 0:
-                        side_a = True
-                    if 0 <= yb < h and 0 <= xb < w and index[yb, xb] >= 0:
-                        side_b = True
-                if side_a and side_b:
-                    enclosed = True
-                    break
-            if not enclosed:
+        for n in range(count):
+            y, x = ys[n], xs[n]
+            filled[n] = _enclosed(seen, y + radius, x + radius, r)
+            if not filled[n]:
                 continue
             best_z, best_i = np.float32(np.inf), np.int64(-1)
             for yy in range(max(y - r, 0), min(y + r + 1, h)):
@@ -116,18 +122,64 @@ def fill_cracks(depth: np.ndarray, index: np.ndarray, radius: int) -> tuple[np.n
                     z, i = depth[yy, xx], index[yy, xx]
                     if i >= 0 and (best_i < 0 or z < best_z or (z == best_z and i < best_i)):
                         best_z, best_i = z, i
-            filled[n] = True
             fill_z[n], fill_i[n] = best_z, best_i
         kept = 0
-        for n in range(len(empty)):
+        for n in range(count):
+            y, x = ys[n], xs[n]
             if filled[n]:
-                y, x = empty[n] // w, empty[n] % w
                 depth[y, x], index[y, x] = fill_z[n], fill_i[n]
+                seen[y + radius, x + radius] = True
             else:
-                empty[kept] = empty[n]
+                ys[kept], xs[kept] = y, x
                 kept += 1
-        empty = empty[:kept]
+        count = kept
     return depth, index
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _enclosed(seen: np.ndarray, y: int, x: int, r: int) -> bool:
+    """Whether padded pixel (y, x) of `seen` has seen pixels within r px on both sides along its row, its column or
+    a diagonal."""
+    for k in range(4):
+        dy = 0 if k == 0 else 1
+        dx = 1 if k == 0 else (0 if k == 1 else (1 if k == 2 else -1))
+        side_a = False
+        side_b = False
+        for d in range(1, r + 1):
+            side_a |= seen[y + d * dy, x + d * dx]
+            side_b |= seen[y - d * dy, x - d * dx]
+        if side_a and side_b:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def _near_warped(index: np.ndarray, reach: int) -> np.ndarray:
+    """(h, w) bool: a warped pixel (index >= 0) lies within `reach` px (Chebyshev distance); a row sweep each way,
+    then a column sweep each way over the rows' result."""
+    h, w = index.shape
+    far = reach + 1
+    row_near = np.zeros((h, w), dtype=np.bool_)
+    for y in range(h):
+        gap = far  # columns since the last warped pixel, sweeping right, then left
+        for x in range(w):
+            gap = 0 if index[y, x] >= 0 else gap + 1
+            row_near[y, x] = gap <= reach
+        gap = far
+        for x in range(w - 1, -1, -1):
+            gap = 0 if index[y, x] >= 0 else gap + 1
+            row_near[y, x] |= gap <= reach
+    near = np.zeros((h, w), dtype=np.bool_)
+    for x in range(w):
+        gap = far
+        for y in range(h):
+            gap = 0 if row_near[y, x] else gap + 1
+            near[y, x] = gap <= reach
+        gap = far
+        for y in range(h - 1, -1, -1):
+            gap = 0 if row_near[y, x] else gap + 1
+            near[y, x] |= gap <= reach
+    return near
 
 
 @njit(cache=True, nogil=True)

@@ -99,6 +99,19 @@ def projected_bbox(vs: ViewSynthesizer, model: BoxModel, T_vehicle_car: np.ndarr
     return uv[0].min(), uv[1].min(), uv[0].max(), uv[1].max()
 
 
+def test_every_frame_is_prepared_when_the_synthesizer_is_made(tmp_path, monkeypatch):
+    """The CPU path prepares each recorded frame once, when it is made: rendering views of every frame afterwards
+    prepares none again."""
+    world = make_world(tmp_path, n=6)
+    view = ViewSynthesizer(world, ViewConfig(**NO_EFFECTS))
+    prepared = []
+    monkeypatch.setattr(view, "_frame_arrays", lambda index: prepared.append(index))
+    for frame in range(6):
+        x, y, yaw = world.pose(frame)
+        view.render(np.array([frame]), np.array([x]), np.array([y]), np.array([yaw]), [[]])
+    assert prepared == []
+
+
 def test_car_ahead_at_projected_position_and_size(tmp_path):
     world = make_world(tmp_path)
     vs = ViewSynthesizer(world, ViewConfig(**NO_EFFECTS))

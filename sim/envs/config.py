@@ -177,7 +177,7 @@ class EnvConfig(BaseModel):
                 raise ValueError(f"{name}: the range ({value[0]}, {value[1]}) is reversed; give (low, high)")
             if name in _NON_NEGATIVE_RANGES and value[0] < 0:
                 raise ValueError(f"{name}: ({value[0]}, {value[1]}) must not be negative")
-        if not (0.0 < self.cutout_size[0] and self.cutout_size[1] <= 1.0):
+        if not (self.cutout_size[0] > 0.0 and self.cutout_size[1] <= 1.0):
             raise ValueError(f"cutout_size: {self.cutout_size} must lie in (0, 1]: fractions of the image's sides")
         if self.gamma[0] <= 0:
             raise ValueError(f"gamma: ({self.gamma[0]}, {self.gamma[1]}) must be positive")
