@@ -35,6 +35,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
+from drivesim.sim import association_kernel
 from drivesim.sim.geometry import wrap_angle
 
 WORLD_FORMAT_VERSION = 1
@@ -195,6 +196,23 @@ class World:
         x = np.atleast_1d(np.asarray(x_m, dtype=float))
         y = np.atleast_1d(np.asarray(y_m, dtype=float))
         yaw = np.atleast_1d(np.asarray(yaw_rad, dtype=float))
+        if self.frame_count <= association_kernel.BRUTE_FORCE_MAX_FRAMES:
+            near = np.full(len(x), -1, dtype=np.int64) if near_index is None else near_index
+            best = association_kernel.closest_frames(
+                x, y, yaw, np.broadcast_to(np.asarray(near, dtype=np.int64), x.shape), self.path["x_m"],
+                self.path["y_m"], self.path["yaw_rad"], self.path["arc_length_m"], _CANDIDATES, float(max_arc_gap_m),
+            )  # fmt: skip
+        else:
+            best = self._closest_frames_by_tree(x, y, yaw, near_index, max_arc_gap_m)
+        q_lat, q_long, q_rot = relative_pose(
+            x, y, yaw, self.path["x_m"][best], self.path["y_m"][best], self.path["yaw_rad"][best]
+        )
+        return best.astype(np.int64), q_lat, q_long, q_rot
+
+    def _closest_frames_by_tree(
+        self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, near_index: np.ndarray | None, max_arc_gap_m: float
+    ) -> np.ndarray:
+        """closest_frames's frame indices from the KD-tree's nearest candidates (drives of many frames)."""
         k = min(_CANDIDATES, self.frame_count)
         dist, cand = self._tree.query(np.column_stack([x, y]), k=k)
         dist = dist.reshape(len(x), k)
@@ -209,11 +227,7 @@ class World:
             near = np.broadcast_to(np.asarray(near_index, dtype=int), x.shape)
             gap = np.abs(arc[cand] - arc[near][:, None])
             penalty += np.where(gap > max_arc_gap_m, 1e3, 0.0)
-        best = cand[np.arange(len(x)), np.argmin(dist + penalty, axis=1)]
-        q_lat, q_long, q_rot = relative_pose(
-            x, y, yaw, self.path["x_m"][best], self.path["y_m"][best], self.path["yaw_rad"][best]
-        )
-        return best.astype(np.int64), q_lat, q_long, q_rot
+        return cand[np.arange(len(x)), np.argmin(dist + penalty, axis=1)]
 
     def closest_frame(
         self, x_m: float, y_m: float, yaw_rad: float, near_index: int | None = None, max_arc_gap_m: float = 15.0

@@ -115,6 +115,25 @@ def test_batched_lookup_agrees_with_single(circle_world: World) -> None:
         assert abs(single.q_long_m) < 0.6 * (1.0 + abs(single.q_lat_m) / 20.0)
 
 
+def test_compiled_lookup_picks_the_kd_trees_frames(tmp_path: Path) -> None:
+    """The compiled search over every frame and the KD-tree's candidates give the same frames, on a path that passes
+    nearly the same places twice (a spiral: an exact tie between two frames may go either way), for agents turned
+    any way, with and without the previous association."""
+    angle = np.linspace(0.0, 4 * np.pi, 252, endpoint=False)
+    radius_m = 20.0 + 0.1 * angle
+    world = World.load(
+        _write_world(tmp_path / "w", radius_m * np.cos(angle), radius_m * np.sin(angle), angle + np.pi / 2)
+    )
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(-23, 23, 400), rng.uniform(-23, 23, 400)
+    yaw = rng.uniform(-np.pi, np.pi, 400)
+    near = rng.integers(0, 252, 400)
+    for near_index in (None, near):
+        compiled = world.closest_frames(x, y, yaw, near_index=near_index)
+        by_tree = world._closest_frames_by_tree(x, y, yaw, near_index, 15.0)
+        np.testing.assert_array_equal(compiled[0], by_tree)
+
+
 def test_world_load_names_the_missing_file(tmp_path: Path) -> None:
     root = _write_world(tmp_path / "w", np.arange(5.0), np.zeros(5), np.zeros(5))
     (root / "depth_m.npy").unlink()
