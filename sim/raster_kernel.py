@@ -334,3 +334,50 @@ def composite_uint8(
             if nearer:
                 for c in range(3):
                     rgb[y, x, c] = np.uint8(car_rgb[y, x, c] * np.float32(255.0) + np.float32(0.5))
+
+
+@njit(cache=True, nogil=True)
+def contact_shadow_uint8(
+    rgb: np.ndarray,
+    depth_m: np.ndarray,
+    K: np.ndarray,
+    T_camera_car: np.ndarray,
+    length_m: float,
+    width_m: float,
+    strength: float,
+    fade_m: float,
+    depth_tolerance_m: float,
+) -> None:
+    """`shading.contact_shadow_` in one compiled loop (its numpy form took about 0.08 ms per car): the same ground
+    plane, box, fade and depth test, in float64."""
+    R, t = T_camera_car[:3, :3], T_camera_car[:3, 3]
+    half_l, half_w = 0.5 * length_m + fade_m, 0.5 * width_m + fade_m
+    h, w = depth_m.shape
+    u_lo, u_hi, v_lo, v_hi = np.inf, -np.inf, np.inf, -np.inf
+    for sx in (-1.0, 1.0):
+        for sy in (-1.0, 1.0):
+            p = R[:, 0] * (sx * half_l) + R[:, 1] * (sy * half_w) + t
+            if p[2] <= 0.1:
+                return
+            u = (K[0, 0] * p[0] + K[0, 1] * p[1] + K[0, 2] * p[2]) / p[2]
+            v = (K[1, 0] * p[0] + K[1, 1] * p[1] + K[1, 2] * p[2]) / p[2]
+            u_lo, u_hi, v_lo, v_hi = min(u_lo, u), max(u_hi, u), min(v_lo, v), max(v_hi, v)
+    x0, y0 = max(int(np.floor(u_lo)), 0), max(int(np.floor(v_lo)), 0)
+    x1, y1 = min(int(np.ceil(u_hi)) + 1, w), min(int(np.ceil(v_hi)) + 1, h)
+    n0, n1, n2 = R[0, 2], R[1, 2], R[2, 2]  # the car's up axis in the camera
+    n_dot_t = n0 * t[0] + n1 * t[1] + n2 * t[2]
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            rx, ry = (x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1]
+            denominator = rx * n0 + ry * n1 + n2
+            z = n_dot_t / denominator if abs(denominator) > 1e-9 else -1.0
+            if z <= 0 or depth_m[y, x] < z - depth_tolerance_m:
+                continue
+            px, py, pz = rx * z - t[0], ry * z - t[1], z - t[2]
+            local_x = px * R[0, 0] + py * R[1, 0] + pz * R[2, 0]
+            local_y = px * R[0, 1] + py * R[1, 1] + pz * R[2, 1]
+            outside = np.hypot(max(abs(local_x) - 0.5 * length_m, 0.0), max(abs(local_y) - 0.5 * width_m, 0.0))
+            fade = min(max(1.0 - outside / fade_m, 0.0), 1.0)
+            weight = strength * fade * fade * (3.0 - 2.0 * fade)
+            for c in range(3):
+                rgb[y, x, c] = np.uint8(rgb[y, x, c] * (1.0 - weight) + 0.5)

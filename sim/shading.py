@@ -109,33 +109,12 @@ def contact_shadow_(
     `depth_m` (h, w) is nearer than the plane by more than half a metre (something in front of the shadow) are left
     alone. Nothing is drawn when a corner of the widened footprint is behind the camera.
     """
-    R, t = T_camera_car[:3, :3], T_camera_car[:3, 3]
-    half = np.array([0.5 * length_m + SHADOW_FADE_M, 0.5 * width_m + SHADOW_FADE_M])
-    corners = np.array([[sx * half[0], sy * half[1], 0.0] for sx in (-1, 1) for sy in (-1, 1)]) @ R.T + t
-    if (corners[:, 2] <= 0.1).any():
-        return
-    uv = corners @ K.T
-    uv = uv[:, :2] / uv[:, 2:3]
-    h, w = depth_m.shape
-    x0, y0 = max(int(np.floor(uv[:, 0].min())), 0), max(int(np.floor(uv[:, 1].min())), 0)
-    x1, y1 = min(int(np.ceil(uv[:, 0].max())) + 1, w), min(int(np.ceil(uv[:, 1].max())) + 1, h)
-    if x1 <= x0 or y1 <= y0:
-        return
-    # Rays K^-1 (u, v, 1) of the box (z = 1), cut with the plane n . P = n . t (n the car's up axis in the camera).
-    u, v = np.meshgrid(np.arange(x0, x1, dtype=np.float64), np.arange(y0, y1, dtype=np.float64))
-    ray = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
-    normal = R[:, 2]
-    denominator = ray @ normal
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z = np.where(np.abs(denominator) > 1e-9, (normal @ t) / denominator, -1.0)
-    local = (ray * z[..., None] - t) @ R  # the ground point in the car's frame
-    outside = np.hypot(np.maximum(np.abs(local[..., 0]) - 0.5 * length_m, 0.0),
-                       np.maximum(np.abs(local[..., 1]) - 0.5 * width_m, 0.0))  # fmt: skip
-    fade = np.clip(1.0 - outside / SHADOW_FADE_M, 0.0, 1.0)
-    weight = strength * fade * fade * (3.0 - 2.0 * fade)  # smoothstep: no visible edge where the shadow ends
-    weight[(z <= 0) | (depth_m[y0:y1, x0:x1] < z - _SHADOW_DEPTH_TOLERANCE_M)] = 0.0
-    box = rgb[y0:y1, x0:x1]
-    box[...] = (box * (1.0 - weight[..., None]) + 0.5).astype(np.uint8)
+    from drivesim.sim import raster_kernel  # numba compiles (or loads its cache) on first import
+
+    raster_kernel.contact_shadow_uint8(
+        rgb, depth_m, np.asarray(K, dtype=np.float64), np.asarray(T_camera_car, dtype=np.float64), float(length_m),
+        float(width_m), float(strength), SHADOW_FADE_M, _SHADOW_DEPTH_TOLERANCE_M,
+    )  # fmt: skip
 
 
 def contact_shadows_batched(
