@@ -155,8 +155,8 @@ def _enclosed(seen: np.ndarray, y: int, x: int, r: int) -> bool:
 
 @njit(cache=True, nogil=True)
 def _near_warped(index: np.ndarray, reach: int) -> np.ndarray:
-    """(h, w) bool: a warped pixel (index >= 0) lies within `reach` px (Chebyshev distance); a row sweep each way,
-    then a column sweep each way over the rows' result."""
+    """(h, w) bool: a warped pixel (index >= 0) lies within `reach` px (Chebyshev distance); a sweep each way along
+    the rows, then each way down the columns over the rows' result (row by row, in memory order)."""
     h, w = index.shape
     far = reach + 1
     row_near = np.zeros((h, w), dtype=np.bool_)
@@ -170,15 +170,16 @@ def _near_warped(index: np.ndarray, reach: int) -> np.ndarray:
             gap = 0 if index[y, x] >= 0 else gap + 1
             row_near[y, x] |= gap <= reach
     near = np.zeros((h, w), dtype=np.bool_)
-    for x in range(w):
-        gap = far
-        for y in range(h):
-            gap = 0 if row_near[y, x] else gap + 1
-            near[y, x] = gap <= reach
-        gap = far
-        for y in range(h - 1, -1, -1):
-            gap = 0 if row_near[y, x] else gap + 1
-            near[y, x] |= gap <= reach
+    gaps = np.full(w, far, dtype=np.int64)  # rows since the last near row, per column: row-major sweeps down, then up
+    for y in range(h):
+        for x in range(w):
+            gaps[x] = 0 if row_near[y, x] else gaps[x] + 1
+            near[y, x] = gaps[x] <= reach
+    gaps[:] = far
+    for y in range(h - 1, -1, -1):
+        for x in range(w):
+            gaps[x] = 0 if row_near[y, x] else gaps[x] + 1
+            near[y, x] |= gaps[x] <= reach
     return near
 
 
