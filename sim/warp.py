@@ -151,32 +151,18 @@ def _source_window(
     d_lo to infinity is convex and, when all its vertices (and directions) lie in front of the source camera, projects
     into the convex hull of their projections.
     """
+    from drivesim.sim import warp_kernel  # numba compiles (or loads its cache) on first import
+
     H, W = src_size
     rays_src, corners_dst = _window_rays(
         np.asarray(K_src, dtype=np.float64).tobytes(), np.asarray(K_dst, dtype=np.float64).tobytes(),
         tuple(src_size), tuple(int(v) for v in region),
     )  # fmt: skip
-    # All B destination cameras at once (the union of their windows): numpy over (B, corners, xyz).
-    T = np.asarray(T_dst_src, dtype=np.float64).reshape(-1, 4, 4)
-    R, t = T[:, :3, :3], T[:, :3, 3]
-    m = (rays_src @ R[:, 2, :].T).min(axis=0)  # (B,)
-    d_lo = min_depth_m * m + t[:, 2] if np.isfinite(min_depth_m) else np.full(len(T), np.inf)
-    if (m <= 0).any() or (d_lo < 0.1).any():
-        return None
-    directions = np.einsum("kj,bji->bki", corners_dst, R)  # R^T r: destination rays in the source frame
-    if np.isfinite(min_depth_m):
-        points = np.einsum("bkj,bji->bki", d_lo[:, None, None] * corners_dst[None] - t[:, None, :], R)
-    else:
-        points = directions
-    both = np.concatenate([points, directions], axis=1)
-    if (both[..., 2] <= 1e-6).any():
-        return None
-    uv = both @ np.asarray(K_src, dtype=np.float64).T
-    uv = uv[..., :2] / uv[..., 2:3]
-    lo, hi = uv.reshape(-1, 2).min(axis=0), uv.reshape(-1, 2).max(axis=0)
-    x0, y0 = max(int(np.floor(lo[0])) - 2, 0), max(int(np.floor(lo[1])) - 2, 0)
-    x1, y1 = min(int(np.ceil(hi[0])) + 3, W), min(int(np.ceil(hi[1])) + 3, H)
-    return (x0, y0, max(x1, x0), max(y1, y0))
+    window = warp_kernel.source_window(
+        float(min_depth_m), rays_src, corners_dst, np.asarray(K_src, dtype=np.float64),
+        np.ascontiguousarray(np.asarray(T_dst_src, dtype=np.float64).reshape(-1, 4, 4)), W, H,
+    )  # fmt: skip
+    return None if window[0] < 0 else tuple(int(v) for v in window)
 
 
 @functools.lru_cache(maxsize=64)

@@ -193,3 +193,47 @@ def gather_colour(index: np.ndarray, colour: np.ndarray, y0: int, x0: int, out: 
             i = index[y0 + y, x0 + x]
             for k in range(3):
                 out[y, x, k] = colour[i, k] if i >= 0 else 0
+
+
+@njit(cache=True, nogil=True)
+def source_window(
+    min_depth_m: float,
+    rays_src: np.ndarray,
+    corners_dst: np.ndarray,
+    K_src: np.ndarray,
+    T_dst_src: np.ndarray,
+    width_src: int,
+    height_src: int,
+) -> np.ndarray:
+    """`warp._source_window`'s rectangle (x0, y0, x1, y1) as int64, or (-1, -1, -1, -1) for none, from its constants
+    (rays_src (4, 3) of the source image's corners, corners_dst (4, 3) of the destination region's) and the B poses
+    T_dst_src (B, 4, 4), float64 throughout: its numpy form took about 20 us per view, mostly per-call costs."""
+    none = np.full(4, -1, dtype=np.int64)
+    lo_u, lo_v, hi_u, hi_v = np.inf, np.inf, -np.inf, -np.inf
+    finite = np.isfinite(min_depth_m)
+    for b in range(T_dst_src.shape[0]):
+        R, t = T_dst_src[b, :3, :3], T_dst_src[b, :3, 3]
+        m = np.inf
+        for k in range(4):
+            m = min(m, rays_src[k, 0] * R[2, 0] + rays_src[k, 1] * R[2, 1] + rays_src[k, 2] * R[2, 2])
+        d_lo = min_depth_m * m + t[2] if finite else np.inf
+        if m <= 0 or d_lo < 0.1:
+            return none
+        for k in range(8):  # the region's corners at d_lo, then its directions (points at infinity)
+            c = corners_dst[k % 4]
+            q = c * d_lo - t if (finite and k < 4) else c.copy()
+            # R^T q: the destination point or ray in the source frame
+            x = R[0, 0] * q[0] + R[1, 0] * q[1] + R[2, 0] * q[2]
+            y = R[0, 1] * q[0] + R[1, 1] * q[1] + R[2, 1] * q[2]
+            z = R[0, 2] * q[0] + R[1, 2] * q[1] + R[2, 2] * q[2]
+            if z <= 1e-6:
+                return none
+            w = K_src[2, 0] * x + K_src[2, 1] * y + K_src[2, 2] * z
+            u = (K_src[0, 0] * x + K_src[0, 1] * y + K_src[0, 2] * z) / w
+            v = (K_src[1, 0] * x + K_src[1, 1] * y + K_src[1, 2] * z) / w
+            lo_u, lo_v, hi_u, hi_v = min(lo_u, u), min(lo_v, v), max(hi_u, u), max(hi_v, v)
+    x0, y0 = max(int(np.floor(lo_u)) - 2, 0), max(int(np.floor(lo_v)) - 2, 0)
+    x1, y1 = min(int(np.ceil(hi_u)) + 3, width_src), min(int(np.ceil(hi_v)) + 3, height_src)
+    out = np.empty(4, dtype=np.int64)
+    out[0], out[1], out[2], out[3] = x0, y0, max(x1, x0), max(y1, y0)
+    return out
