@@ -411,7 +411,8 @@ def _warp_with_kernel(
     K_s = np.asarray(K_src.cpu().numpy() if isinstance(K_src, torch.Tensor) else K_src, dtype=np.float64)
     K_d = np.asarray(K_dst.cpu().numpy() if isinstance(K_dst, torch.Tensor) else K_dst, dtype=np.float64)
     T = np.asarray(T_dst_src.cpu().numpy() if isinstance(T_dst_src, torch.Tensor) else T_dst_src, dtype=np.float64)
-    T = np.broadcast_to(T, (B, 4, 4)) if T.ndim == 2 else T
+    if T.ndim == 2:  # one pose for every frame (a view: B = 1, where indexing is cheaper than broadcast_to)
+        T = T[None] if B == 1 else np.broadcast_to(T, (B, 4, 4))
     rays = _rays(H, W, torch.from_numpy(K_s)).numpy()
     window = None
     if partial:  # only the source pixels that can land in the region: a rectangle of the source frame

@@ -94,19 +94,14 @@ def fill_cracks(depth: np.ndarray, index: np.ndarray, radius: int) -> tuple[np.n
     # in pass r has a warped pixel within r px, so none farther than 1 + 2 + ... + radius px from the splat's pixels
     # is ever filled: the inside of a large hole (a side wedge, a third of the empty pixels) is left out at once.
     near = _near_warped(index, radius * (radius + 1) // 2)
+    ys = np.empty(h * w, dtype=np.int64)
+    xs = np.empty(h * w, dtype=np.int64)
     count = 0
     for y in range(h):
         for x in range(w):
             if index[y, x] < 0 and near[y, x]:
+                ys[count], xs[count] = y, x
                 count += 1
-    ys = np.empty(count, dtype=np.int64)
-    xs = np.empty(count, dtype=np.int64)
-    n = 0
-    for y in range(h):
-        for x in range(w):
-            if index[y, x] < 0 and near[y, x]:
-                ys[n], xs[n] = y, x
-                n += 1
     fill_z = np.empty(count, dtype=np.float32)
     fill_i = np.empty(count, dtype=np.int64)
     filled = np.zeros(count, dtype=np.bool_)
