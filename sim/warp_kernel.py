@@ -135,6 +135,13 @@ def fill_cracks(depth: np.ndarray, index: np.ndarray, radius: int) -> tuple[np.n
 def _enclosed(seen: np.ndarray, y: int, x: int, r: int) -> bool:
     """Whether padded pixel (y, x) of `seen` has seen pixels within r px on both sides along its row, its column or
     a diagonal."""
+    if r == 1:  # the first pass, over every candidate: the four pairs of opposite neighbours, unrolled
+        return (
+            (seen[y, x - 1] and seen[y, x + 1])
+            or (seen[y - 1, x] and seen[y + 1, x])
+            or (seen[y - 1, x - 1] and seen[y + 1, x + 1])
+            or (seen[y - 1, x + 1] and seen[y + 1, x - 1])
+        )
     for k in range(4):
         dy = 0 if k == 0 else 1
         dx = 1 if k == 0 else (0 if k == 1 else (1 if k == 2 else -1))
