@@ -377,8 +377,10 @@ class ViewSynthesizer:
                 warped = self._fill(int(frame_index[b]), T_camera_world[b], warped)
                 rgb_views.append(warped.rgb)
                 depth_views.append(warped.depth_m)
-            rgb_out = torch.stack(rgb_views)
-            depth_out = torch.stack(depth_views)
+            if B == 1:  # one view (an env's step): a leading axis on the warp's own arrays, no copy
+                rgb_out, depth_out = rgb_views[0].unsqueeze(0), depth_views[0].unsqueeze(0)
+            else:
+                rgb_out, depth_out = torch.stack(rgb_views), torch.stack(depth_views)
         timings["warp"] = 1e3 * (time.perf_counter() - start)
 
         start = time.perf_counter()
