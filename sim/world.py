@@ -234,9 +234,11 @@ class World:
     ) -> Association:
         """The recorded frame to synthesise an agent's view from, and the agent's (q_lat, q_long, q_rot) relative to it.
 
-        The frame is the nearest in position (KD-tree) among those heading the same way as the agent (within 90°);
+        The frame is the nearest in position among those heading the same way as the agent (within 90°);
         with `near_index` (the previous association) frames more than `max_arc_gap_m` of arc length away are
-        avoided, so a path that passes the same place twice does not make the agent jump between passes.
+        avoided, so a path that passes the same place twice does not make the agent jump between passes. Only the
+        8 nearest frames are candidates: found by a compiled loop over every frame (`association_kernel`), or by the
+        KD-tree for drives of more than 20,000 frames.
         Unpack as `index, q_lat_m, q_long_m, q_rot_rad = world.closest_frame(x, y, yaw)`.
         """
         idx, q_lat, q_long, q_rot = self.closest_frames(

@@ -292,6 +292,31 @@ def test_cutout_erases_its_rectangles_to_one_colour_each_and_moves_them_every_st
     assert ViewJitter(cutout_count=(0, 0)).apply(image) is image
 
 
+def test_a_training_episode_with_cutout_sees_erased_rectangles_and_evaluation_never(world_dir: Path) -> None:
+    """cutout_count (1, 1): each training observation differs from the plain episode's (the same start state, the
+    same photometric draw) in one rectangle, a new one at each step; an evaluation episode is the plain one."""
+    still = {"gamma": (1.0, 1.0), "brightness": (0.0, 0.0), "contrast": (1.0, 1.0), "saturation": (1.0, 1.0)}
+    cut = {"cutout_count": (1, 1), "cutout_size": (0.3, 0.3)}
+    plain, erased = _make(world_dir, "lane", **still), _make(world_dir, "lane", **still, **cut)
+    obs_plain, info_plain = plain.reset(seed=3)
+    obs_erased, info_erased = erased.reset(seed=3)
+    assert info_erased["episode"] == info_plain["episode"]
+    masks = []
+    for _ in range(2):
+        changed = np.any(obs_erased != obs_plain, axis=0)
+        rows, cols = np.nonzero(changed)
+        assert changed.any() and changed.mean() <= 0.3 * 0.3 + 0.02  # one rectangle of 30 % x 30 % (rounded)
+        assert (rows.max() - rows.min() + 1) * (cols.max() - cols.min() + 1) <= changed.size * 0.1
+        masks.append(changed)
+        action = np.array([0.0], np.float32)
+        obs_plain, obs_erased = plain.step(action)[0], erased.step(action)[0]
+    assert not np.array_equal(masks[0], masks[1])  # redrawn at every step
+    evaluation = _make(world_dir, "lane", "eval", **still, **cut)
+    np.testing.assert_array_equal(
+        evaluation.reset(seed=5)[0], _make(world_dir, "lane", "eval", **still).reset(seed=5)[0]
+    )
+
+
 def test_cutout_sizes_outside_zero_to_one_are_refused() -> None:
     """cutout_size is a fraction of the image's sides: 0 or above 1 is refused with the key named."""
     from drivesim.sim.envs.config import EnvConfig

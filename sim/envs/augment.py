@@ -96,8 +96,8 @@ class ViewJitter:
         focal_rows_px: float,
         blur_sigma_px: tuple[float, float],
         noise_std: tuple[float, float],
-        cutout_count: tuple[int, int] = (0, 0),
-        cutout_size: tuple[float, float] = (0.1, 0.4),
+        cutout_count: tuple[int, int],
+        cutout_size: tuple[float, float],
     ) -> ViewJitter:
         """A pitch in +-`pitch_deg` (as rows at the image's vertical focal length `focal_rows_px`: a small pitch
         moves the whole image by about f tan(pitch)), a blur and a noise level from their (low, high) ranges; the

@@ -160,7 +160,7 @@ class EnvConfig(BaseModel):
     """Range (low, high, both included) of the number of rectangles erased, each to one random colour, from the
     policy's image at every training step (random erasing: a view with any part hidden, so the policy cannot lean
     on one region's scenery); (0, 0): off."""
-    cutout_size: tuple[float, float] = Field((0.1, 0.4))
+    cutout_size: tuple[float, float] = (0.1, 0.4)
     """Range of each erased rectangle's width and height, fractions of the image's width and height."""
     far_clearance_m: float = Field(10.0, gt=0.0)
     """Beyond this centre distance the clearance is the centre distance minus both half-diagonals (no polygons)."""
