@@ -32,6 +32,10 @@ def main() -> None:
         "--fill-frames", default=None, help="neighbour frames for the 'holes filled' column, e.g. -1,1,-2 (default: "
         "the simulator's, ViewConfig.fill_frames)"
     )  # fmt: skip
+    parser.add_argument(
+        "--source-margin", type=float, default=None, help="margins of each frame for the 'holes filled' column "
+        "(fraction of its width; default: the simulator's, ViewConfig.source_margin)"
+    )  # fmt: skip
     args = parser.parse_args()
 
     from drivesim.diagnostics.stereo import REFERENCE, run_stereo_bench, stereo_markdown
@@ -46,6 +50,7 @@ def main() -> None:
         figure_path=args.output.with_name(f"{args.output.stem}_worst.png"),
         progress=print,
         **({} if args.fill_frames is None else {"fill_frames": tuple(int(v) for v in args.fill_frames.split(","))}),
+        **({} if args.source_margin is None else {"source_margin": args.source_margin}),
     )
     load_after = os.getloadavg()
     if result.figure and Path(result.figure).is_relative_to(HERE.parent):  # the report names it from the repo root
@@ -53,6 +58,7 @@ def main() -> None:
     command = f"python benchmarks/bench_stereo.py --methods {','.join(methods)}"
     command += "".join(f" --world {w}" for w in args.world)
     command += "" if args.fill_frames is None else f" --fill-frames={args.fill_frames}"
+    command += "" if args.source_margin is None else f" --source-margin={args.source_margin}"
     command += "" if args.output == RESULTS else f" --output {args.output}"
     report = stereo_markdown(result, machine_line(), command, datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"))
     report += (

@@ -1,12 +1,16 @@
 """No black in the policy's view (issue 20): where the view's pixels come from, and what filling costs per step.
 
 (a) Coverage on a real drive: agents at lateral offsets and heading rotations up to the task's largest (max_lateral_m
-    2.5 m, max_rotation_rad 0.5 rad), at every 2nd frame of the drive; the fraction of the policy's view from the
-    view's own recorded frame, from neighbouring frames, inpainted, and left unfilled, for the warp alone, with the
-    neighbour frames (an option), with them and inpainting, and with inpainting alone (the default).
-(b) Speed: expert steps of the lane and follow tasks, one env in one process; warp ms per step (which includes the
-    filling) and total ms per step with filling off (the warp alone), inpainting alone (the default) and with
-    neighbour frames, in the same run.
+    2.5 m, max_rotation_rad 0.5 rad), at every 2nd frame of the drive; the fraction of the policy's view from recorded
+    data (the view's own frame, its margins filled from the neighbouring frames, the per-view neighbour frames of
+    an option), inpainted, and left unfilled, for the warp alone, with margins, with the per-view neighbour frames,
+    and with inpainting. The margins' share is the margin variant's recorded share less the warp alone's at the same
+    poses (the margins only add pixels where the frame alone leaves holes: the frame's own pixels are the same).
+(b) Speed: expert steps of the lane and follow tasks, one env in one process per variant (a subprocess each, in
+    turn, `--rounds` times); warp ms per step (which includes the filling) and total ms per step with filling off
+    (the warp alone), inpainting alone, margins and inpainting (the default) and the per-view neighbour frames; with
+    `--issue-day-code F` also the code of the day issue 20 was filed (a folder holding its `drivesim` package tree,
+    `F/drivesim/{sim,...}`, e.g. `git archive 0bc1b72`), whose warp filled nothing, in the same rounds.
 
     .venv/bin/python benchmarks/bench_view_fill.py --coverage-world W --skip speed
     .venv/bin/python benchmarks/bench_view_fill.py --speed-world W --skip coverage --output .../view_fill_speed.md
@@ -17,9 +21,10 @@ Writes benchmarks/results/view_fill.md.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
-import time
+import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -32,18 +37,57 @@ RESULTS = HERE / "results" / "view_fill.md"
 POSES = ((0.0, 0.0), (1.0, 0.0), (2.5, 0.0), (0.0, 0.5), (2.5, 0.5), (-2.5, -0.5))
 OPTION = (-1, 1, -2)  # ViewConfig.fill_frames to try: the frame behind, the one ahead, the second behind
 VARIANTS = {
-    "warp only": {"fill_frames": (), "inpaint": False},
-    "+ neighbour frames -1, +1, -2 (side wedges; an option)": {"fill_frames": OPTION, "inpaint": False},
+    "warp only, no margins": {"fill_frames": (), "inpaint": False, "source_margin": 0.0},
+    "warp with margins": {"fill_frames": (), "inpaint": False},
+    "+ neighbour frames -1, +1, -2 per view (an option)": {"fill_frames": OPTION, "inpaint": False},
     "+ inpainting (the option's whole fill)": {"fill_frames": OPTION},
-    "inpainting alone (the default)": {},
+    "inpainting alone, no margins (the default until 2026-11-26)": {"fill_frames": (), "source_margin": 0.0},
+    "margins + inpainting (the default)": {},
 }
+NO_MARGIN_BASE = "warp only, no margins"  # the own frame's share each margin variant is compared with
 
 SPEED_VARIANTS = {
-    "off (the warp alone)": {"fill_frames": (), "inpaint": False},
-    "inpainting alone (the default)": {},
-    "frame -1 + inpainting": {"fill_frames": (-1,)},
-    "frames -1, +1, -2 + inpainting (an option)": {"fill_frames": OPTION},
+    "off (the warp alone, no margins)": {"fill_frames": (), "inpaint": False, "source_margin": 0.0},
+    "inpainting alone, no margins (the default until 2026-11-26)": {"fill_frames": (), "source_margin": 0.0},
+    "margins + inpainting (the default)": {},
+    "margins + frames -1, +1, -2 per view + inpainting (an option)": {"fill_frames": OPTION},
 }
+ISSUE_DAY = "the warp alone, code of the day issue 20 was filed"
+
+_CHILD = """
+import json, sys, time
+import gymnasium, torch
+import drivesim.sim.envs
+from drivesim.sim.view import ViewSynthesizer
+world, task, steps, flags = sys.argv[1], sys.argv[2], int(sys.argv[3]), json.loads(sys.argv[4])
+torch.set_num_threads(1)
+env = gymnasium.make(f"drivesim/{task.capitalize()}-v0", world=world, meshes=None)
+base = env.unwrapped
+env.reset(seed=0)
+vs = None
+if flags is not None:
+    vs = ViewSynthesizer(base.worlds[0], base.sim.renderer.config.model_copy(update=flags))
+    base._renderers[0] = base.sim.renderer = vs  # the same view, filling switched as named
+for _ in range(5):
+    env.step(base.expert_action())
+env.reset(seed=0)
+if vs is not None:
+    base.sim.renderer = vs
+    vs.fill_stats.__init__()
+base.reset_timings()
+episode, start = 0, time.perf_counter()
+for _ in range(steps):
+    _, _, terminated, truncated, _ = env.step(base.expert_action())
+    if terminated or truncated:
+        episode += 1
+        env.reset(seed=episode)
+        if vs is not None:
+            base.sim.renderer = vs
+seconds = time.perf_counter() - start
+n = max(int(base.step_count), 1)
+fractions = vs.fill_stats.fractions() if vs is not None else None
+print(json.dumps({"warp_ms": base.timings_ms["warp"] / n, "total_ms": 1e3 * seconds / steps, "fractions": fractions}))
+"""
 
 
 def coverage_rows(world_path: str, step: int = 2) -> list[dict]:
@@ -71,47 +115,47 @@ def coverage_rows(world_path: str, step: int = 2) -> list[dict]:
                 T = world.path["T_world_vehicle"][f] @ planar_transforms(0.0, lat, rot)[0]
                 vs.render(np.array([f]), T[0, 3:4], T[1, 3:4], np.atleast_1d(yaw_of(T)), [[]])
             rows.append({"variant": name, "lateral_m": lat, "rotation_rad": rot, **vs.fill_stats.fractions()})
+    own = {(r["lateral_m"], r["rotation_rad"]): r["frame"] for r in rows if r["variant"] == NO_MARGIN_BASE}
+    for r in rows:
+        with_margins = VARIANTS[r["variant"]].get("source_margin") != 0.0
+        r["margins"] = r["frame"] - own[(r["lateral_m"], r["rotation_rad"])] if with_margins else 0.0
+        r["frame"] -= r["margins"]
     return rows
 
 
-def speed_rows(world_path: str, tasks: tuple[str, ...], steps: int) -> list[dict]:
-    """(b): ms per expert step (warp and total) with filling off and on, one env in this process."""
-    import gymnasium
-    import torch
+def _measure(code: Path | None, world: str, task: str, steps: int, flags: dict | None) -> dict:
+    """One subprocess's figures with the `drivesim` package of folder `code` (None: this checkout)."""
+    env = dict(os.environ)
+    if code is not None:
+        env["PYTHONPATH"] = f"{code}{os.pathsep}{env.get('PYTHONPATH', '')}"
+    out = subprocess.run(
+        [sys.executable, "-c", _CHILD, world, task, str(steps), json.dumps(flags)],
+        capture_output=True, text=True, env=env, check=True,
+    )  # fmt: skip
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
-    import drivesim.sim.envs  # noqa: F401  (registers the envs)
-    from drivesim.sim.view import ViewSynthesizer
 
-    torch.set_num_threads(1)
+def speed_rows(world_path: str, tasks: tuple[str, ...], steps: int, rounds: int, issue_day: Path | None) -> list[dict]:
+    """(b): ms per expert step (warp and total) with filling off and on, each variant in a subprocess, in turn."""
+    variants: dict[str, tuple[Path | None, dict | None]] = {}
+    if issue_day is not None:
+        variants[ISSUE_DAY] = (issue_day, None)
+    variants.update({name: (None, flags) for name, flags in SPEED_VARIANTS.items()})
     rows = []
     for task in tasks:
-        for name, flags in SPEED_VARIANTS.items():
-            env = gymnasium.make(f"drivesim/{task.capitalize()}-v0", world=world_path, meshes=None)
-            base = env.unwrapped
-            env.reset(seed=0)
-            old = base.sim.renderer
-            vs = ViewSynthesizer(base.worlds[0], old.config.model_copy(update=flags))
-            base._renderers[0] = base.sim.renderer = vs  # the same view, filling switched as named
-            for _ in range(5):
-                env.step(base.expert_action())
-            env.reset(seed=0)
-            base.sim.renderer = vs
-            base.reset_timings()
-            vs.fill_stats.__init__()
-            episode, start = 0, time.perf_counter()
-            for _ in range(steps):
-                _, _, terminated, truncated, _ = env.step(base.expert_action())
-                if terminated or truncated:
-                    episode += 1
-                    env.reset(seed=episode)
-                    base.sim.renderer = vs
-            seconds = time.perf_counter() - start
-            n = max(int(base.step_count), 1)
-            fractions = vs.fill_stats.fractions()
-            rows.append({"task": task, "filling": name, "warp_ms": base.timings_ms["warp"] / n,
-                         "total_ms": 1e3 * seconds / steps, "frame": fractions["frame"],
-                         "filled_other": fractions["neighbour"] + fractions["inpainted"]})  # fmt: skip
-            env.close()
+        runs: dict[str, list[dict]] = {name: [] for name in variants}
+        for _ in range(rounds):
+            for name, (code, flags) in variants.items():
+                runs[name].append(_measure(code, world_path, task, steps, flags))
+        for name, results in runs.items():
+            fractions = results[-1]["fractions"]
+            rows.append({
+                "task": task, "filling": name,
+                "warp_ms": float(np.mean([r["warp_ms"] for r in results])),
+                "total_ms": float(np.mean([r["total_ms"] for r in results])),
+                "frame": None if fractions is None else fractions["frame"],
+                "filled_other": None if fractions is None else fractions["neighbour"] + fractions["inpainted"],
+            })  # fmt: skip
     return rows
 
 
@@ -123,7 +167,9 @@ def markdown(coverage: list[dict], speed: list[dict], args: argparse.Namespace, 
         f"- machine: {machine_line()}",
         f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
         f"- command: `python benchmarks/bench_view_fill.py --coverage-world {args.coverage_world} --speed-world "
-        f"{args.speed_world} --steps {args.steps}{''.join(f' --skip {s}' for s in args.skip)}`",
+        f"{args.speed_world} --steps {args.steps} --rounds {args.rounds}"
+        + (f" --issue-day-code {args.issue_day_code}" if args.issue_day_code else "")
+        + f"{''.join(f' --skip {s}' for s in args.skip)}`",
         f"- load: {load}",
         "",
     ]
@@ -133,30 +179,48 @@ def markdown(coverage: list[dict], speed: list[dict], args: argparse.Namespace, 
             "",
             "Agents at the pose offsets below from every 2nd recorded frame; fractions of all the view's pixels.",
             "",
-            "| variant | lateral m | rotation rad | own frame | neighbour frames | inpainted | unfilled (black) |",
-            "|---|---:|---:|---:|---:|---:|---:|",
+            "| variant | lateral m | rotation rad | own frame | its margins (neighbours) | neighbour frames per "
+            "view | inpainted | unfilled (black) |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for r in coverage:
             lines.append(
                 f"| {r['variant']} | {r['lateral_m']:+.1f} | {r['rotation_rad']:+.2f} | {r['frame']:.3f} | "
-                f"{r['neighbour']:.3f} | {r['inpainted']:.3f} | {r['unfilled']:.4f} |"
+                f"{r['margins']:.3f} | {r['neighbour']:.3f} | {r['inpainted']:.3f} | {r['unfilled']:.4f} |"
             )
         lines.append("")
     if speed:
         lines += [
             f"## (b) Cost per step, world `{args.speed_world}`, {args.steps} expert steps, one env, one process",
             "",
-            "| task | filling | warp ms / step (filling included) | total ms / step | view from own frame | "
-            "filled from neighbours or inpainting |",
+            "| task | filling | warp ms / step (filling included) | total ms / step | recorded data (own frame and "
+            "its margins) | neighbour frames per view or inpainting |",
             "|---|---|---:|---:|---:|---:|",
         ]
         for r in speed:
+            frame = "" if r["frame"] is None else f"{r['frame']:.4f}"
+            other = "" if r["filled_other"] is None else f"{r['filled_other']:.4f}"
             lines.append(
-                f"| {r['task']} | {r['filling']} | {r['warp_ms']:.3f} | {r['total_ms']:.3f} | {r['frame']:.4f} | "
-                f"{r['filled_other']:.4f} |"
+                f"| {r['task']} | {r['filling']} | {r['warp_ms']:.3f} | {r['total_ms']:.3f} | {frame} | {other} |"
             )
-        lines.append("")
+        lines += ["", *_ratio_lines(speed), ""]
     return "\n".join(lines)
+
+
+def _ratio_lines(speed: list[dict]) -> list[str]:
+    """Each filling's warp ms per step over the warp alone's (same code) and the issue day's code's, per task."""
+    lines = []
+    for task in dict.fromkeys(r["task"] for r in speed):
+        warp = {r["filling"]: r["warp_ms"] for r in speed if r["task"] == task}
+        alone = warp["off (the warp alone, no margins)"]
+        for name, ms in warp.items():
+            if name in (ISSUE_DAY, "off (the warp alone, no margins)"):
+                continue
+            against = f"{ms / alone:.2f}x the warp alone"
+            if ISSUE_DAY in warp:
+                against += f", {ms / warp[ISSUE_DAY]:.2f}x the issue day's warp"
+            lines.append(f"- {task}, {name}: {against}")
+    return lines
 
 
 def main() -> None:
@@ -167,10 +231,19 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=600)
     parser.add_argument("--skip", choices=("coverage", "speed"), action="append", default=[])
     parser.add_argument("--output", type=Path, default=RESULTS)
+    parser.add_argument("--rounds", type=int, default=2, help="subprocess runs per variant, in turn (their mean)")
+    parser.add_argument(
+        "--issue-day-code", type=Path, default=None, help="a folder with the drivesim package tree of the day issue "
+        "20 was filed (F/drivesim/sim, ...): its warp alone is measured in the same rounds"
+    )  # fmt: skip
     args = parser.parse_args()
     before = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     coverage = [] if "coverage" in args.skip else coverage_rows(args.coverage_world)
-    speed = [] if "speed" in args.skip else speed_rows(args.speed_world, tuple(args.tasks.split(",")), args.steps)
+    speed = (
+        []
+        if "speed" in args.skip
+        else speed_rows(args.speed_world, tuple(args.tasks.split(",")), args.steps, args.rounds, args.issue_day_code)
+    )
     after = os.getloadavg()
     load = f"before `{before}`; 1/5/15-min load average after {after[0]:.2f} / {after[1]:.2f} / {after[2]:.2f}"
     report = markdown(coverage, speed, args, load)

@@ -29,7 +29,7 @@ import torch
 
 from drivesim.diagnostics.fidelity import colour_depth, image_metrics
 from drivesim.pipeline.errors import InputError
-from drivesim.sim.fill import fill_wedges_from_neighbours, inpaint_holes
+from drivesim.sim.fill import WideFrame, fill_wedges_from_neighbours, inpaint_holes, widen_frame
 from drivesim.sim.geometry import camera_mount, invert, scale_intrinsics
 from drivesim.sim.view import ViewConfig
 from drivesim.sim.warp import forward_warp
@@ -43,7 +43,9 @@ from drivesim.stages.world.build import resize_depth, resize_frames
 IDENTITY = "identity (left as right)"
 REFERENCE = "stereo: SGBM on the true pair (reference)"
 DEFAULT_METHODS = ("plane", "mvs")
-FILL_FRAMES = ViewConfig().fill_frames  # the simulator's default (neighbour frames to fill from, then inpainting)
+FILL_FRAMES = ViewConfig().fill_frames  # the simulator's default (neighbour frames warped per view; then inpainting)
+SOURCE_MARGIN = ViewConfig().source_margin  # the simulator's default margins of each recorded frame (fraction of width)
+MARGIN_FRAMES = ViewConfig().margin_frames  # ... and the frames that fill them
 _IMAGE_EXT = (".png", ".jpg", ".jpeg")
 
 
@@ -150,17 +152,27 @@ def filled_right_view(
     K: np.ndarray,
     baseline_m: float,
     fill_frames: tuple[int, ...] = FILL_FRAMES,
+    source_margin: float = SOURCE_MARGIN,
 ) -> np.ndarray:
     """Left frame k warped into the right camera with its holes filled as the simulator fills the policy's view
-    (`sim/fill.py`): the neighbouring left frames `fill_frames` warped into the side wedges and merged by depth, then
-    inpainted. `left` (N, h, w, 3), `depth_m` (N, h, w), `T_world_camera` (N, 4, 4) of consecutive frames."""
+    (`sim/fill.py`): every left frame widened by margins of `source_margin` of its width filled from its neighbours
+    (`MARGIN_FRAMES`), the neighbouring left frames `fill_frames` warped into the side wedges and merged by depth,
+    then inpainted. `left` (N, h, w, 3), `depth_m` (N, h, w), `T_world_camera` (N, 4, 4) of consecutive frames."""
     h, w = depth_m.shape[1:]
+
+    def widened(j: int) -> WideFrame:
+        T_camera_world = invert(T_world_camera[j])
+        neighbours = [
+            (left[j + o], depth_m[j + o], T_camera_world @ T_world_camera[j + o])
+            for o in MARGIN_FRAMES
+            if 0 <= j + o < len(left)
+        ]
+        return widen_frame(left[j], depth_m[j], K, round(source_margin * w), neighbours)
 
     def warp(j: int, box: tuple[int, int, int, int] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         T = right_from_left(baseline_m) @ invert(T_world_camera[k]) @ T_world_camera[j]
-        rgb_j = torch.from_numpy(np.ascontiguousarray(left[j]))
-        depth_j = torch.from_numpy(np.ascontiguousarray(depth_m[j], np.float32))
-        out = forward_warp(rgb_j, depth_j, K, T, K, w, h, roi=box)
+        wide = widened(j)
+        out = forward_warp(torch.from_numpy(wide.rgb), torch.from_numpy(wide.depth_m), wide.K, T, K, w, h, roi=box)
         return out.rgb.numpy().copy(), out.depth_m.numpy().copy(), out.valid.numpy().astype(bool)
 
     rgb, depth, valid = warp(k, None)
@@ -210,6 +222,7 @@ class StereoResult:
     figure: str = ""
     worst: dict[str, Any] = field(default_factory=dict)
     fill_frames: list[int] = field(default_factory=lambda: list(FILL_FRAMES))
+    source_margin: float = SOURCE_MARGIN
 
     def row(self, name: str) -> StereoRow:
         """The row named `name`."""
@@ -267,6 +280,7 @@ def run_stereo_bench(
     figure_row: str | None = None,
     progress: Callable[[str], None] | None = None,
     fill_frames: tuple[int, ...] = FILL_FRAMES,
+    source_margin: float = SOURCE_MARGIN,
 ) -> StereoResult:
     """Measure each depth source's warp of the left frames into the right camera against the real right images.
 
@@ -274,7 +288,8 @@ def run_stereo_bench(
     :param worlds: built world folders of this drive; their stored depth is a row each.
     :param depth_config: settings of every method (its `method` is replaced per row).
     :param figure_path: where to save the worst frame of `figure_row` (default: the last method) as a PNG.
-    :param fill_frames: the neighbour frames the 'holes filled' column fills from (default: the simulator's).
+    :param fill_frames: the neighbour frames the 'holes filled' column warps per view (default: the simulator's).
+    :param source_margin: the margins of each left frame the 'holes filled' column widens it by (as the simulator).
     """
     cfg = depth_config or DepthConfig()
     drive = read_stereo_folder(folder, width_px)
@@ -308,13 +323,13 @@ def run_stereo_bench(
         for k in range(len(frames)):
             image, valid = warp_to_right(left[k], depth[k], K_eval, drive.baseline_m)
             per_frame.append(view_metrics(image, right[k], valid))
-            filled = filled_right_view(k, left, depth, T_eval, K_eval, drive.baseline_m, fill_frames)
+            filled = filled_right_view(k, left, depth, T_eval, K_eval, drive.baseline_m, fill_frames, source_margin)
             per_frame[-1]["psnr_all_filled_db"] = view_metrics(filled, right[k], np.ones(valid.shape, bool))["psnr_db"]
             warped.setdefault(name, []).append(image)
         rows.append(_row(name, per_frame, seconds[name]))
     result = StereoResult(
         str(folder), [int(drive.index[i]) for i in frames], [W, H], [ew, eh], drive.baseline_m, rows,
-        fill_frames=list(fill_frames),
+        fill_frames=list(fill_frames), source_margin=source_margin,
     )  # fmt: skip
     if figure_path is not None:
         chosen = figure_row or ("mvs" if "mvs" in methods else [*depths][0])
@@ -389,6 +404,22 @@ def save_worst_frame(
     cv2.imwrite(str(path), np.concatenate(tiles, axis=0))
 
 
+def _fill_sentence(result: StereoResult) -> str:
+    """How the 'holes filled' column filled the holes, in words."""
+    steps = []
+    if result.source_margin > 0:
+        steps.append(
+            f"every left frame widened by {result.source_margin:.0%} of its width on each side, filled from its "
+            f"neighbours {', '.join(f'{o:+d}' for o in MARGIN_FRAMES)} (the nearest first)"
+        )
+    if result.fill_frames:
+        steps.append(
+            f"the neighbouring left frames {', '.join(f'{o:+d}' for o in result.fill_frames)} warped into the side "
+            "wedges, merged by depth"
+        )
+    return "; ".join(steps + ["then inpainted"]) if steps else "inpainted only"
+
+
 def stereo_markdown(result: StereoResult, machine: str, command: str, date: str) -> str:
     """The result as a markdown report."""
     lines = [
@@ -401,13 +432,7 @@ def stereo_markdown(result: StereoResult, machine: str, command: str, date: str)
         f"{result.working_size_px[0]}x{result.working_size_px[1]}, measured at {result.eval_size_px[0]}x"
         f"{result.eval_size_px[1]}; baseline {result.baseline_m:.3f} m (right camera to the right)",
         "- PSNR and SSIM over the pixels the warp fills; 'PSNR all' over the whole image with holes black; 'PSNR all,"
-        " holes filled' over the whole image with the holes filled as the policy's view is ("
-        + (
-            f"the neighbouring left frames {', '.join(f'{o:+d}' for o in result.fill_frames)} warped into the side "
-            "wedges, merged by depth, then inpainted)"
-            if result.fill_frames
-            else "inpainted: the simulator's default fills from no neighbour frame)"
-        ),
+        " holes filled' over the whole image with the holes filled as the policy's view is: " + _fill_sentence(result),
         "",
         "| depth | PSNR dB (filled) | SSIM (filled) | filled | PSNR dB (all) | PSNR dB (all, holes filled) | "
         "worst frame dB | s / frame |",

@@ -45,7 +45,7 @@ import pydantic
 import torch
 
 from drivesim.sim import raster_kernel
-from drivesim.sim.fill import FillStats, fill_wedges_from_neighbours, inpaint_holes, pull_push_fill
+from drivesim.sim.fill import FillStats, fill_wedges_from_neighbours, inpaint_holes, pull_push_fill, widen_frame
 from drivesim.sim.geometry import invert, scale_intrinsics
 from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer
 from drivesim.sim.raster import PackedScene, Rasterizer, RenderResult, composite, material_row, merge_scenes
@@ -60,6 +60,7 @@ __all__ = [
 
 TIMING_KEYS = ("warp", "raster", "composite", "lighting", "harmonize")
 _FRAME_CACHE_SIZE = 2048  # recorded frames kept as tensors (about 0.1 MB each at the default view)
+_NARROW_CACHE_SIZE = 8  # frames kept before widening (a frame's widening reads the few around it)
 _MODEL_CACHE_SIZE = 256  # packed vehicle models kept (about 0.5 MB each; every episode's car is a new repaint)
 _PAINT_CACHE_SIZE = 65536  # the batched path's (geometry slot, paint) of models seen lately (a few hundred bytes each)
 _WARP_MARGIN_PX = 3
@@ -106,6 +107,14 @@ class ViewConfig(pydantic.BaseModel):
     recovers recorded data for lateral wedges (real lateral view, holes counted: 0.3 dB below the filled pixels
     instead of 1.0 dB, benchmarks/results/stereo_filled.md) but costs 3.3x the warp alone per follow step where
     inpainting alone costs 1.3x (view_fill_speed.md)."""
+    source_margin: float = pydantic.Field(0.25, ge=0.0, le=1.0)
+    """Margins added to the left and right of every recorded frame (each a fraction of the frame's width), filled once,
+    when the frame is prepared, from the neighbouring frames `margin_frames` merged by depth (`sim/fill.py`,
+    `widen_frame`): a view that looks past the camera's sides (off the recorded path) then warps recorded data there
+    instead of leaving a wedge to inpaint. 0: no margins."""
+    margin_frames: tuple[int, ...] = (-1, -2, -3, 1)
+    """Neighbouring recorded frames (index offsets) that fill the margins, the frames behind first (from farther back
+    the camera saw more to the sides)."""
     inpaint: bool = True
     """Inpaint (OpenCV Telea) what no frame saw, so the policy never sees black; off: such pixels stay black."""
     contact_shadow: float = pydantic.Field(0.6, ge=0.0, le=1.0)
@@ -220,9 +229,12 @@ class ViewSynthesizer:
         self.K_view[1, 2] -= y0 * sy
         factor = max(1, int(np.floor(min(w / config.out_width_px, h / config.out_height_px) + 1e-9)))
         self.source_factor = factor if config.source_downsample else 1
-        self.K_src = scale_intrinsics(
+        self._K_frame = scale_intrinsics(
             np.asarray(world.K, dtype=np.float64), 1 / self.source_factor, 1 / self.source_factor
         )
+        self.margin_px = round(config.source_margin * (world.width_px // self.source_factor))
+        self.K_src = self._K_frame.copy()  # the widened frames' intrinsics (`_frame_arrays`)
+        self.K_src[0, 2] += self.margin_px
         self.T_vehicle_camera = np.asarray(world.T_vehicle_camera, dtype=np.float64)
         self.T_camera_vehicle = invert(self.T_vehicle_camera)
         self._T_world_vehicle = np.asarray(world.path["T_world_vehicle"], dtype=np.float64)
@@ -232,6 +244,7 @@ class ViewSynthesizer:
         self._path_yaw = np.asarray(world.path["yaw_rad"], dtype=np.float64)
         self.rasterizer = Rasterizer(config.out_width_px, config.out_height_px, self.device, cull_back_faces=True)
         self._frames: OrderedDict[int, tuple[torch.Tensor, torch.Tensor, np.ndarray]] = OrderedDict()
+        self._narrow: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
         self._packed: dict[int, tuple[Any, PackedScene, PackedScene]] = {}
         self._frustum_normals = self._frustum_planes()
         self.monochrome = config.monochrome if config.monochrome is not None else frames_are_monochrome(world.frames)
@@ -272,8 +285,33 @@ class ViewSynthesizer:
         return self._stack
 
     def _frame_arrays(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Recorded frame `index` at the warp's source resolution: (rgb (H, W, 3) uint8, depth (H, W) float32)
-        arrays and its mean colour in [0, 1]."""
+        """Recorded frame `index` as the warp reads it: at the source resolution, widened by `margin_px` on each side
+        from the frames `ViewConfig.margin_frames` (intrinsics `K_src`); (rgb (H, W, 3) uint8, depth (H, W) float32)
+        arrays and the frame's own mean colour in [0, 1]."""
+        rgb, depth, mean_rgb = self._narrow_arrays(index)
+        if self.margin_px == 0:
+            return rgb, depth, mean_rgb
+        T_camera_world = invert(self._T_world_camera[index])
+        neighbours = [
+            (*self._narrow_arrays(index + offset)[:2], T_camera_world @ self._T_world_camera[index + offset])
+            for offset in self.config.margin_frames
+            if 0 <= index + offset < self.world.frame_count
+        ]
+        wide = widen_frame(rgb, depth, self._K_frame, self.margin_px, neighbours)
+        return wide.rgb, wide.depth_m, mean_rgb
+
+    def _narrow_arrays(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Recorded frame `index` at the warp's source resolution, not widened: (rgb (H, W, 3) uint8, depth (H, W)
+        float32) arrays and its mean colour in [0, 1]. The last few are kept: widening a frame reads its neighbours."""
+        entry = self._narrow.get(index)
+        if entry is None:
+            entry = self._narrow[index] = self._source_arrays(index)
+            if len(self._narrow) > _NARROW_CACHE_SIZE:
+                self._narrow.popitem(last=False)
+        return entry
+
+    def _source_arrays(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Recorded frame `index` reduced to the warp's source resolution (`ViewConfig.source_downsample`)."""
         rgb_np = np.ascontiguousarray(self.world.frames[index])
         mean_rgb = np.asarray(cv2.mean(rgb_np)[:3]) / 255.0
         depth_np = np.asarray(self.world.depth_m[index], dtype=np.float32)

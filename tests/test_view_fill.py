@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivesim.sim.fill import fill_wedges_from_neighbours, hole_box, inpaint_holes, side_wedges
-from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, pose_2d
+from drivesim.sim.fill import fill_wedges_from_neighbours, hole_box, inpaint_holes, side_wedges, widen_frame
+from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert, pose_2d
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer, frames_are_monochrome
 from drivesim.sim.world import World
@@ -103,9 +103,9 @@ def test_neighbour_frames_fill_the_side_wedge_with_what_is_really_there(tmp_path
     ground, and what they put there is the true ground (as close to it as the frame's own pixels are, while a wrong
     pose would put the stripes elsewhere); inpainting leaves no black pixel."""
     world = make_world(tmp_path)
-    alone = ViewSynthesizer(world, ViewConfig(**SMALL, fill_frames=(), inpaint=False))
-    merged = ViewSynthesizer(world, ViewConfig(**SMALL, fill_frames=(-1, -2, 1), inpaint=False))
-    full = ViewSynthesizer(world, ViewConfig(**SMALL))
+    alone = ViewSynthesizer(world, ViewConfig(**SMALL, fill_frames=(), inpaint=False, source_margin=0.0))
+    merged = ViewSynthesizer(world, ViewConfig(**SMALL, fill_frames=(-1, -2, 1), inpaint=False, source_margin=0.0))
+    full = ViewSynthesizer(world, ViewConfig(**SMALL, source_margin=0.0))
     out_alone, out_merged, out_full = (render(vs, 4, 2.0) for vs in (alone, merged, full))
     hole = out_alone.rgb[0].max(axis=-1) == 0
     assert hole.mean() > 0.05, "the test needs a wedge"
@@ -121,6 +121,53 @@ def test_neighbour_frames_fill_the_side_wedge_with_what_is_really_there(tmp_path
     assert (out_full.rgb[0].max(axis=-1) > 0).all()
     # Pixels the frame itself filled are the same whatever fills the holes.
     assert np.array_equal(out_full.rgb[0][~hole], out_alone.rgb[0][~hole])
+
+
+def test_widened_frame_keeps_the_frame_and_shows_what_the_frames_behind_saw_beside_it(tmp_path):
+    """Frame 4 widened by 40 px on each side from frames 3 and 2: the middle is the frame itself, the intrinsics move
+    by the margin, and the margins hold the true ground beside the frame's view (a wrong pose would shift the
+    stripes); a later neighbour fills only what the earlier ones left, even with nearer surfaces."""
+    world = make_world(tmp_path)
+    T_wc = world.path["T_world_camera"]
+    neighbours = [(world.frames[j], world.depth_m[j], invert(T_wc[4]) @ T_wc[j]) for j in (3, 2)]
+    wide = widen_frame(world.frames[4], world.depth_m[4], K, 40, neighbours)
+    assert wide.rgb.shape == (H_PX, W_PX + 80, 3)
+    assert np.array_equal(wide.rgb[:, 40:-40], world.frames[4])
+    assert np.array_equal(wide.depth_m[:, 40:-40], world.depth_m[4])
+    assert wide.K[0, 2] == pytest.approx(K[0, 2] + 40)
+    truth, truth_depth = true_view(T_wc[4], wide.K, W_PX + 80, H_PX)
+    margins = np.zeros((H_PX, W_PX + 80), dtype=bool)
+    margins[:, :40] = margins[:, -40:] = True
+    filled = margins & (wide.depth_m > 0)
+    ground = filled & (wide.depth_m < SKY_M - 1)
+    assert wide.neighbour_px == int(filled.sum())
+    assert ground.sum() > 0.5 * (margins & (truth_depth < SKY_M)).sum()
+    assert psnr_db(wide.rgb[ground], truth[ground]) > 20.0
+    white = np.full_like(world.frames[3], 255)
+    nearer_white = [neighbours[0], (white, world.depth_m[3] * 0.5, neighbours[0][2])]
+    first_wins = widen_frame(world.frames[4], world.depth_m[4], K, 40, nearer_white)
+    first_only = widen_frame(world.frames[4], world.depth_m[4], K, 40, neighbours[:1])
+    taken = first_only.depth_m > 0
+    assert np.array_equal(first_wins.rgb[taken], first_only.rgb[taken])
+
+
+def test_margins_fill_the_side_wedge_with_what_is_really_there(tmp_path):
+    """2 m to the left of frame 4, frames widened from their neighbours (the default) leave a fraction of the wedge
+    the frame alone leaves, and show the true ground in it; the rest of the view is unchanged."""
+    world = make_world(tmp_path)
+    narrow = ViewSynthesizer(world, ViewConfig(**SMALL, inpaint=False, source_margin=0.0))
+    wide = ViewSynthesizer(world, ViewConfig(**SMALL, inpaint=False))
+    out_narrow, out_wide = render(narrow, 4, 2.0).rgb[0], render(wide, 4, 2.0).rgb[0]
+    hole_narrow, hole_wide = out_narrow.max(axis=-1) == 0, out_wide.max(axis=-1) == 0
+    assert hole_narrow.mean() > 0.05, "the test needs a wedge"
+    assert hole_wide.mean() < 0.25 * hole_narrow.mean()
+    assert wide.fill_stats.fractions()["unfilled"] == pytest.approx(hole_wide.mean(), abs=1e-6)
+    truth, _ = true_view(pose_2d(4.0, 2.0, 0.0) @ T_VC, wide.K_view, 80, 30)
+    filled = hole_narrow & ~hole_wide
+    own_db = psnr_db(out_narrow[~hole_narrow], truth[~hole_narrow])
+    assert psnr_db(out_wide[filled], truth[filled]) > max(own_db - 1.0, 20.0)
+    same = np.all(out_wide == out_narrow, axis=-1)[~hole_narrow]
+    assert same.mean() > 0.98
 
 
 def test_side_wedges_are_the_holes_at_the_image_sides_and_not_the_disocclusions():
