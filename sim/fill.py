@@ -331,9 +331,9 @@ def widen_frame(
     open_px[:, margin_px : margin_px + w] = False
     boxes = ((0, 0, margin_px, h), (margin_px + w, 0, margin_px, h)) if margin_px > 0 else ()
     for other_rgb, other_depth_m, T_this_other in neighbours:
-        other = (
-            torch.from_numpy(np.ascontiguousarray(other_rgb)),
-            torch.from_numpy(np.ascontiguousarray(other_depth_m, dtype=np.float32)),
+        other = (  # writable arrays: a world's frames are read-only memory maps, which torch warns about
+            torch.from_numpy(np.require(other_rgb, np.uint8, ("C", "W"))),
+            torch.from_numpy(np.require(other_depth_m, np.float32, ("C", "W"))),
         )
         for box in boxes:
             out = forward_warp(*other, K, T_this_other, K_wide, wide_w, h, roi=box)
