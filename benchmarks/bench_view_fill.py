@@ -166,10 +166,7 @@ def markdown(coverage: list[dict], speed: list[dict], args: argparse.Namespace, 
         "",
         f"- machine: {machine_line()}",
         f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
-        f"- command: `python benchmarks/bench_view_fill.py --coverage-world {args.coverage_world} --speed-world "
-        f"{args.speed_world} --steps {args.steps} --rounds {args.rounds}"
-        + (f" --issue-day-code {args.issue_day_code}" if args.issue_day_code else "")
-        + f"{''.join(f' --skip {s}' for s in args.skip)}`",
+        f"- command: `python benchmarks/bench_view_fill.py{_command_arguments(args)}`",
         f"- load: {load}",
         "",
     ]
@@ -205,6 +202,16 @@ def markdown(coverage: list[dict], speed: list[dict], args: argparse.Namespace, 
             )
         lines += ["", *_ratio_lines(speed), ""]
     return "\n".join(lines)
+
+
+def _command_arguments(args: argparse.Namespace) -> str:
+    """The command line's arguments that the measured parts used."""
+    words = "" if "coverage" in args.skip else f" --coverage-world {args.coverage_world}"
+    if "speed" not in args.skip:
+        words += f" --speed-world {args.speed_world} --tasks {args.tasks} --steps {args.steps} --rounds {args.rounds}"
+        words += f" --issue-day-code {args.issue_day_code}" if args.issue_day_code else ""
+    words += "".join(f" --skip {part}" for part in args.skip)
+    return words + ("" if args.output == RESULTS else f" --output {args.output}")
 
 
 def _ratio_lines(speed: list[dict]) -> list[str]:
