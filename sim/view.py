@@ -102,11 +102,11 @@ class ViewConfig(pydantic.BaseModel):
     """Fill 1-2 px cracks of the warp (never larger disocclusions)."""
     fill_frames: tuple[int, ...] = ()
     """Neighbouring recorded frames (index offsets from the view's own frame) warped into the side wedges the view's
-    own frame leaves empty (off the recorded path), in this order, merged by depth; () = none. Each is warped only
-    into a wedge's bounding box, while it stays open (`sim/fill.py`). Default () (inpainting alone): (-1, 1, -2)
-    recovers recorded data for lateral wedges (real lateral view, holes counted: 0.3 dB below the filled pixels
-    instead of 1.0 dB, benchmarks/results/stereo_filled.md) but costs 3.3x the warp alone per follow step where
-    inpainting alone costs 1.3x (view_fill_speed.md)."""
+    own frame (and its margins, `source_margin`) leaves empty, in this order, merged by depth, at every view; () =
+    none (the default). Each is warped only into a wedge's bounding box, while it stays open (`sim/fill.py`). Over the
+    margins, (-1, 1, -2) adds 2-10 % of recorded data at the task's largest offsets (mostly disocclusions that reach
+    an image side) but costs 3.0x the black-hole warp per follow step where the default costs 1.5x
+    (benchmarks/results/view_fill.md, view_fill_speed.md)."""
     source_margin: float = pydantic.Field(0.25, ge=0.0, le=1.0)
     """Margins added to the left and right of every recorded frame (each a fraction of the frame's width), filled once,
     when the frame is prepared, from the neighbouring frames `margin_frames` merged by depth (`sim/fill.py`,
