@@ -242,7 +242,8 @@ def test_augmentation_follows_its_formula() -> None:
 
 def test_a_mirrored_episode_flips_the_image_and_the_steering(world_dir: Path) -> None:
     """mirror_probability 1: the policy sees the plain episode's image flipped left to right, its steering +a moves
-    the ego as -a does in the plain episode, the expert's label is negated; evaluation is never mirrored."""
+    the ego as -a does in the plain episode, the expert's label and the lane position are negated; evaluation is
+    never mirrored."""
     still = {"gamma": (1.0, 1.0), "brightness": (0.0, 0.0), "contrast": (1.0, 1.0), "saturation": (1.0, 1.0)}
     plain, mirrored = _make(world_dir, "lane", **still), _make(world_dir, "lane", **still, mirror_probability=1.0)
     obs_plain, _ = plain.reset(seed=5)
@@ -256,6 +257,10 @@ def test_a_mirrored_episode_flips_the_image_and_the_steering(world_dir: Path) ->
     assert info_plain["state"]["q_lat_m"] < -0.05  # steered right of the centre line
     assert info_mirrored["state"]["q_lat_m"] == info_plain["state"]["q_lat_m"]
     np.testing.assert_array_equal(obs_mirrored, obs_plain[:, :, ::-1])
+    # the lane position (lane_aux's target) is the state's, mirrored with the picture
+    state = info_plain["state"]
+    np.testing.assert_allclose(plain.unwrapped.lane_position(), [state["q_lat_m"], state["q_rot_rad"]], rtol=1e-6)
+    np.testing.assert_allclose(mirrored.unwrapped.lane_position(), -plain.unwrapped.lane_position())
     evaluation = _make(world_dir, "lane", "eval", **still, mirror_probability=1.0)
     np.testing.assert_array_equal(evaluation.reset(seed=5)[0], plain.reset(seed=5)[0])
 

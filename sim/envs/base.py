@@ -409,6 +409,12 @@ class DrivingEnv(gymnasium.Env):
         """The ego's last view (h, w, 3) uint8, without augmentation."""
         return self._last_rgb
 
+    def lane_position(self) -> np.ndarray:
+        """The ego's lateral offset from the lane centre (m, + = left) and its heading relative to the lane (rad) now,
+        as the policy's picture shows them (mirrored with a mirrored episode): (2,) float32."""
+        sign = -1.0 if self._mirrored else 1.0
+        return np.array([sign * self._m["q_lat_m"], sign * self._m["q_rot_rad"]], dtype=np.float32)
+
     def expert_action(self) -> np.ndarray:
         """The privileged expert's action for the current state, (1,) float32 (it steers to
         `expert_target_offset()`)."""

@@ -143,6 +143,16 @@ class ImitationConfig(_Section):
     """Adam learning rate of the cloning (the std is left to PPO)."""
 
 
+class LaneAuxConfig(_Section):
+    """An auxiliary target for the image encoder after each PPO update: the ego's lateral offset and heading relative
+    to its lane, which the simulator knows (stages/train/lane_aux.py); off by default."""
+
+    epochs: int = Field(0, ge=0, le=1000)
+    """Passes over each rollout after its PPO update (0: off)."""
+    learning_rate: float = Field(1e-4, gt=0.0, le=1.0)
+    """Adam learning rate of the encoder and the target's linear head."""
+
+
 class TrainConfig(StageConfig):
     """`drivesim train`: PPO with a CNN and an LSTM (paper §III-C, §IV-A)."""
 
@@ -181,6 +191,8 @@ class TrainConfig(StageConfig):
     """Warm start from the privileged expert."""
     imitation: ImitationConfig = Field(default_factory=ImitationConfig)
     """Imitation of the privileged expert alongside PPO."""
+    lane_aux: LaneAuxConfig = Field(default_factory=LaneAuxConfig)
+    """The encoder's auxiliary target (where the ego is in its lane) alongside PPO."""
 
     @field_validator("device")
     @classmethod

@@ -62,6 +62,10 @@ class CostFreeDrivingEnv(gymnasium.Env):
         """The privileged expert: steer proportionally back to the centre."""
         return np.array([np.clip(-5.0 * self.offset, -1.0, 1.0)], np.float32)
 
+    def lane_position(self) -> np.ndarray:
+        """The stripe's offset as a lateral offset in metres (the half-width of 1 taken as 2.5 m), heading 0: (2,)."""
+        return np.array([2.5 * self.offset, 0.0], np.float32)
+
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         a = float(np.clip(np.asarray(action).reshape(-1)[0], -1.0, 1.0))
         self.offset += 0.1 * a + float(self.np_random.normal(0.0, self.drift))

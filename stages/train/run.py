@@ -24,6 +24,7 @@ from drivesim.stages.train.callbacks import RunState, TrainingCallback
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.envs import EnvSource
 from drivesim.stages.train.imitation import ExpertLabels, ImitationRegularizer
+from drivesim.stages.train.lane_aux import LanePositionAux, LanePositionLabels
 from drivesim.stages.train.periodic_eval import PeriodicEvaluator
 from drivesim.stages.train.recurrent import ChunkedRecurrentPPO, TimedVecEnv
 from drivesim.stages.train.run_files import (
@@ -216,7 +217,10 @@ def train_in_folder(
     except (ValueError, FileNotFoundError) as e:  # the envs' one-line errors (short world, missing meshes, ...)
         raise DrivesimError(f"cannot make the {cfg.task} env: {str(e).splitlines()[0]}") from e
     labelled = ExpertLabels(timed, cfg.steps_per_env()) if cfg.imitation.epochs > 0 else None
-    venv = VecNormalize(labelled or timed, norm_obs=False, norm_reward=cfg.ppo.normalize_reward, gamma=cfg.ppo.gamma)
+    placed = LanePositionLabels(labelled or timed, cfg.steps_per_env()) if cfg.lane_aux.epochs > 0 else None
+    venv = VecNormalize(
+        placed or labelled or timed, norm_obs=False, norm_reward=cfg.ppo.normalize_reward, gamma=cfg.ppo.gamma
+    )
     run_dir.mkdir(parents=True, exist_ok=True)
     evaluator = None
     try:
@@ -235,6 +239,11 @@ def train_in_folder(
         if labelled is not None:
             model.update_hooks.append(
                 ImitationRegularizer(model, labelled, cfg.imitation.epochs, cfg.imitation.learning_rate, cfg.seed)
+            )
+        if placed is not None:
+            scales = (float(env_config["max_lateral_m"]), float(env_config["max_rotation_rad"]))
+            model.update_hooks.append(
+                LanePositionAux(model, placed, cfg.lane_aux.epochs, cfg.lane_aux.learning_rate, scales, cfg.seed)
             )
         state = RunState()
         figures: dict[str, float] = {}
