@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -80,22 +81,36 @@ def cloning_optimizer(model: Any, learning_rate: float) -> torch.optim.Adam:
     return torch.optim.Adam(params, lr=learning_rate)
 
 
-class ExpertLabels(VecEnvWrapper):
-    """Records the expert's action for the state each step starts from, the last `steps` steps of all envs."""
+class StepLabels(VecEnvWrapper):
+    """Records `read(venv)`, an (n_envs, k) array about the state each step starts from, for the last `steps` steps
+    of all envs (in `values`, oldest first): labels aligned with the observations PPO's rollout buffer holds."""
 
-    def __init__(self, venv: VecEnv, steps: int) -> None:
+    def __init__(self, venv: VecEnv, steps: int, read: Callable[[VecEnv], np.ndarray]) -> None:
         super().__init__(venv)
-        self.labels: deque[np.ndarray] = deque(maxlen=steps)
+        self.read = read
+        self.values: deque[np.ndarray] = deque(maxlen=steps)
 
     def reset(self) -> Any:
         return self.venv.reset()
 
     def step_async(self, actions: np.ndarray) -> None:
-        self.labels.append(expert_actions(self.venv))
+        self.values.append(self.read(self.venv))
         self.venv.step_async(actions)
 
     def step_wait(self) -> Any:
         return self.venv.step_wait()
+
+
+class ExpertLabels(StepLabels):
+    """Records the expert's action for the state each step starts from, the last `steps` steps of all envs."""
+
+    def __init__(self, venv: VecEnv, steps: int) -> None:
+        super().__init__(venv, steps, expert_actions)
+
+    @property
+    def labels(self) -> deque[np.ndarray]:
+        """The recorded expert actions, (n_envs, 1) each, oldest first."""
+        return self.values
 
 
 class ImitationRegularizer:

@@ -19,8 +19,10 @@ from typing import Any
 
 import numpy as np
 import torch
-from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+from stable_baselines3.common.vec_env import VecEnv
 from torch import nn
+
+from drivesim.stages.train.imitation import StepLabels
 
 
 def lane_positions(venv: VecEnv) -> np.ndarray:
@@ -28,22 +30,16 @@ def lane_positions(venv: VecEnv) -> np.ndarray:
     return np.stack([np.asarray(p, np.float32).reshape(2) for p in venv.env_method("lane_position")])
 
 
-class LanePositionLabels(VecEnvWrapper):
+class LanePositionLabels(StepLabels):
     """Records every env's lane position for the state each step starts from, the last `steps` steps of all envs."""
 
     def __init__(self, venv: VecEnv, steps: int) -> None:
-        super().__init__(venv)
-        self.positions: deque[np.ndarray] = deque(maxlen=steps)
+        super().__init__(venv, steps, lane_positions)
 
-    def reset(self) -> Any:
-        return self.venv.reset()
-
-    def step_async(self, actions: np.ndarray) -> None:
-        self.positions.append(lane_positions(self.venv))
-        self.venv.step_async(actions)
-
-    def step_wait(self) -> Any:
-        return self.venv.step_wait()
+    @property
+    def positions(self) -> deque[np.ndarray]:
+        """The recorded lane positions, (n_envs, 2) each, oldest first."""
+        return self.values
 
 
 class LanePositionAux:
