@@ -109,12 +109,13 @@ class ViewConfig(pydantic.BaseModel):
     (benchmarks/results/view_fill.md, view_fill_speed.md)."""
     source_margin: float = pydantic.Field(0.25, ge=0.0, le=1.0)
     """Margins added to the left and right of every recorded frame (each a fraction of the frame's width), filled once,
-    when the frame is prepared, from the neighbouring frames `margin_frames` merged by depth (`sim/fill.py`,
-    `widen_frame`): a view that looks past the camera's sides (off the recorded path) then warps recorded data there
-    instead of leaving a wedge to inpaint. 0: no margins."""
+    when the frame is prepared, from the neighbouring frames `margin_frames` (`sim/fill.py`, `widen_frame`): a view
+    that looks past the camera's sides (off the recorded path) then warps recorded data there instead of leaving a
+    wedge to inpaint. 0: no margins."""
     margin_frames: tuple[int, ...] = (-1, -2, -3, 1)
-    """Neighbouring recorded frames (index offsets) that fill the margins, the frames behind first (from farther back
-    the camera saw more to the sides)."""
+    """Neighbouring recorded frames (index offsets) that fill the margins, in this order: each fills only what the ones
+    before it left (the nearer in time, the smaller the pose change its depth errors are warped over); the frames
+    behind first, as from farther back the camera saw more to the sides."""
     inpaint: bool = True
     """Inpaint (OpenCV Telea) what no frame saw, so the policy never sees black; off: such pixels stay black."""
     contact_shadow: float = pydantic.Field(0.6, ge=0.0, le=1.0)
@@ -304,7 +305,9 @@ class ViewSynthesizer:
         """Recorded frame `index` at the warp's source resolution, not widened: (rgb (H, W, 3) uint8, depth (H, W)
         float32) arrays and its mean colour in [0, 1]. The last few are kept: widening a frame reads its neighbours."""
         entry = self._narrow.get(index)
-        if entry is None:
+        if entry is not None:
+            self._narrow.move_to_end(index)
+        else:
             entry = self._narrow[index] = self._source_arrays(index)
             if len(self._narrow) > _NARROW_CACHE_SIZE:
                 self._narrow.popitem(last=False)
