@@ -6,6 +6,7 @@ import csv
 import math
 
 import numpy as np
+import pytest
 import torch
 from stable_baselines3.common.vec_env import DummyVecEnv
 from test_train import small_config, small_ppo
@@ -55,10 +56,13 @@ def test_labels_belong_to_the_states_ppo_acted_in_and_cloning_fits_them():
     assert "imitation" in model.time_s
 
 
-def test_a_run_with_imitation_logs_its_loss_and_time(tmp_path):
-    cfg = small_config(512, ["imitation.epochs=1", "eval.every_steps=0"])
+@pytest.mark.parametrize("setting, name", [("imitation.epochs=1", "imitation"), ("lane_aux.epochs=1", "lane_aux")])
+def test_a_run_with_an_update_phase_logs_its_loss_and_time(tmp_path, setting, name):
+    """The phases after each PPO update (the imitation regularizer, the encoder's lane target) log their loss and
+    time in progress.csv."""
+    cfg = small_config(512, [setting, "eval.every_steps=0"])
     run = run_training(Workspace(tmp_path / "ws"), cfg).path
     rows = list(csv.DictReader((run / "progress.csv").open()))
     assert len(rows) == 2
-    assert all(math.isfinite(float(row["loss_imitation_loss"])) for row in rows)
-    assert float(rows[-1]["time_imitation_s"]) > 0
+    assert all(math.isfinite(float(row[f"loss_{name}_loss"])) for row in rows)
+    assert float(rows[-1][f"time_{name}_s"]) > 0

@@ -1,20 +1,15 @@
-"""The encoder's auxiliary target (issue 19): lane positions aligned with PPO's rollout states, a fit that learns
-them, and a run that logs it."""
+"""The encoder's auxiliary target (issue 19): lane positions aligned with PPO's rollout states and a fit that learns
+them (a run that logs it: test_imitation.py)."""
 
 from __future__ import annotations
-
-import csv
-import math
 
 import numpy as np
 import torch
 from stable_baselines3.common.vec_env import DummyVecEnv
-from test_train import small_config, small_ppo
+from test_train import small_ppo
 
-from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
 from drivesim.stages.train.lane_aux import LanePositionAux, LanePositionLabels
-from drivesim.stages.train.stage import run_training
 
 SHAPE = (3, 16, 40)
 SCALES = (2.5, 0.5)
@@ -60,12 +55,3 @@ def test_lane_positions_belong_to_the_states_ppo_acted_in_and_the_encoder_learns
     assert losses[-1] < 0.02 < losses[0], losses
     assert model.time_s["lane_aux"] > 0
     assert model.logger.name_to_value["train/lane_aux_loss"] == losses[-1]
-
-
-def test_a_run_with_the_lane_target_logs_its_loss_and_time(tmp_path):
-    cfg = small_config(512, ["lane_aux.epochs=1", "eval.every_steps=0"])
-    run = run_training(Workspace(tmp_path / "ws"), cfg).path
-    rows = list(csv.DictReader((run / "progress.csv").open()))
-    assert len(rows) == 2
-    assert all(math.isfinite(float(row["loss_lane_aux_loss"])) for row in rows)
-    assert float(rows[-1]["time_lane_aux_s"]) > 0
