@@ -313,7 +313,8 @@ def widen_frame(
     own warp, at no cost per view but a wider source.
 
     Why once per frame and not per view (`fill_wedges_from_neighbours`): the neighbours are merged in the frame's own
-    camera when it is prepared, instead of being warped again at every step (3.8x the warp alone per follow step).
+    camera when it is prepared, instead of being warped again at every step (per view, frames -1, +1, -2 cost 3.0x
+    the warp alone per follow step, benchmarks/results/view_fill_speed.md).
     Why the first neighbour wins and not the nearest surface: the nearer a frame is in time, the smaller the pose
     change its depth errors are warped over; on the real stereo snippet's lateral view (`diagnostics/stereo.py`) a
     depth test across frames -1, -2, -3, +1 gave 23.18 dB with holes counted against 23.41 dB this way, and adding
