@@ -50,7 +50,7 @@ from drivesim.sim.geometry import invert, scale_intrinsics
 from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer
 from drivesim.sim.raster import PackedScene, Rasterizer, RenderResult, composite, material_row, merge_scenes
 from drivesim.sim.shading import contact_shadow_, contact_shadows_batched
-from drivesim.sim.warp import WarpResult, forward_warp
+from drivesim.sim.warp import KernelWarp, WarpResult, forward_warp, rendered_region
 from drivesim.sim.world import World, relative_pose
 
 __all__ = [
@@ -251,6 +251,14 @@ class ViewSynthesizer:
         self.monochrome = config.monochrome if config.monochrome is not None else frames_are_monochrome(world.frames)
         self.fill_stats = FillStats()
         """Where the pixels of every view rendered so far came from (own frame, neighbours, inpainting)."""
+        self._min_depth: dict[int, float] = {}  # each prepared frame's smallest finite depth (the warp's window)
+        self._kernel_warp: KernelWarp | None = None
+        if not self.batched and self.device.type == "cpu":
+            src_size = (
+                world.height_px // self.source_factor,
+                world.width_px // self.source_factor + 2 * self.margin_px,
+            )
+            self._kernel_warp = _view_kernel_warp(self.K_src, src_size, self.K_view, config)
         if not self.batched and world.frame_count <= _FRAME_CACHE_SIZE:
             # Every frame prepared now (about 0.3 ms each), not at its first view: an episode meets a new frame at
             # nearly every step, so lazily each view paid it until all frames had been seen (10 % of a car-drawn
@@ -270,6 +278,8 @@ class ViewSynthesizer:
         rgb = torch.from_numpy(np.array(rgb_np, copy=True)).to(self.device)
         depth = torch.from_numpy(np.array(depth_np, dtype=np.float32, copy=True)).to(self.device)
         entry = (rgb, depth, mean_rgb)
+        finite = depth_np[(depth_np > 0) & np.isfinite(depth_np)]
+        self._min_depth[index] = float(finite.min()) if finite.size else float("inf")
         self._frames[index] = entry
         if len(self._frames) > _FRAME_CACHE_SIZE:
             self._frames.popitem(last=False)
@@ -412,12 +422,9 @@ class ViewSynthesizer:
         else:
             rgb_views, depth_views = [], []
             for b in range(B):
-                rgb, depth, _ = self._frame(int(frame_index[b]))
-                T_dst_src = T_camera_world[b] @ self._T_world_camera[frame_index[b]]
-                warped = _warp(rgb, depth, self.K_src, T_dst_src, self.K_view, cfg)
-                warped = self._fill(int(frame_index[b]), T_camera_world[b], warped)
-                rgb_views.append(warped.rgb)
-                depth_views.append(warped.depth_m)
+                rgb, depth = self._view_warp(int(frame_index[b]), T_camera_world[b])
+                rgb_views.append(rgb)
+                depth_views.append(depth)
             if B == 1:  # one view (an env's step): a leading axis on the warp's own arrays, no copy
                 rgb_out, depth_out = rgb_views[0].unsqueeze(0), depth_views[0].unsqueeze(0)
             else:
@@ -631,18 +638,34 @@ class ViewSynthesizer:
         self.fill_stats.add(FillStats(total_px=total, frame_px=seen, inpainted_px=total - seen))
         return pull_push_fill(warped.rgb, warped.valid), warped.depth_m
 
-    def _fill(self, frame: int, T_camera_world: np.ndarray, warped: WarpResult) -> WarpResult:
-        """A view's warp with its holes filled from the neighbouring frames (`ViewConfig.fill_frames`), then
-        inpainted (`ViewConfig.inpaint`); the pixel counts go to `fill_stats` (module `sim/fill.py`)."""
-        valid = warped.valid.cpu().numpy()
+    def _view_warp(self, frame: int, T_camera_world: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """One view of recorded frame `frame` from camera pose T_camera_world: the frame warped, its holes filled
+        (`_fill`), as (h, w, 3) uint8 and (h, w) float32 depth tensors on the device. On the CPU through the view's
+        `KernelWarp` (its constants made once), elsewhere through `forward_warp`'s torch path."""
+        rgb, depth, _ = self._frame(frame)
+        T_dst_src = T_camera_world @ self._T_world_camera[frame]
+        if self._kernel_warp is not None:
+            rgb_np, depth_np, valid = self._kernel_warp(rgb.numpy(), depth.numpy(), self._min_depth[frame], T_dst_src)
+        else:
+            warped = _warp(rgb, depth, self.K_src, T_dst_src, self.K_view, self.config)
+            rgb_np, depth_np = warped.rgb.cpu().numpy().copy(), warped.depth_m.cpu().numpy().copy()
+            valid = warped.valid.cpu().numpy()
+        self._fill(frame, T_camera_world, rgb_np, depth_np, valid)
+        return torch.from_numpy(rgb_np).to(self.device), torch.from_numpy(depth_np).to(self.device)
+
+    def _fill(
+        self, frame: int, T_camera_world: np.ndarray, rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray
+    ) -> None:
+        """Fill a view's holes (`valid` False) in its warp `rgb`, `depth` in place: from the neighbouring frames
+        (`ViewConfig.fill_frames`), then by inpainting (`ViewConfig.inpaint`); the pixel counts go to `fill_stats`
+        (module `sim/fill.py`)."""
         if valid.all():
             self.fill_stats.add(FillStats(total_px=valid.size, frame_px=valid.size))
-            return warped
-        stats = FillStats(total_px=valid.size, frame_px=int(valid.sum()))
+            return
+        stats = FillStats(total_px=valid.size, frame_px=int(np.count_nonzero(valid)))
         if not (self.config.fill_frames or self.config.inpaint):
             self.fill_stats.add(stats)
-            return warped
-        rgb, depth = warped.rgb.cpu().numpy().copy(), warped.depth_m.cpu().numpy().copy()
+            return
 
         def neighbour_warp(offset: int, box: tuple[int, int, int, int]) -> tuple[np.ndarray, ...] | None:
             neighbour = frame + offset
@@ -658,15 +681,9 @@ class ViewSynthesizer:
         filled, stats.neighbour_px = fill_wedges_from_neighbours(
             rgb, depth, valid, self.config.fill_frames, neighbour_warp
         )
-        hole = ~valid
         if self.config.inpaint:
-            stats.inpainted_px = inpaint_holes(rgb, hole & ~filled)
+            stats.inpainted_px = inpaint_holes(rgb, ~valid & ~filled)
         self.fill_stats.add(stats)
-        device = warped.rgb.device
-        return WarpResult(
-            rgb=torch.from_numpy(rgb).to(device), depth_m=torch.from_numpy(depth).to(device),
-            valid=torch.from_numpy(~hole | filled).to(device),
-        )  # fmt: skip
 
     def _contact_shadows(self, rgb: torch.Tensor, depth: torch.Tensor, shadows: list[tuple]) -> torch.Tensor:
         """The warped views with a soft shadow on the ground under each inserted car, `shadows` holding (view,
@@ -740,6 +757,24 @@ def _harmonized_uint8(rgb: torch.Tensor, harmonized: torch.Tensor, mask: torch.T
     return torch.where(mask[..., None], (harmonized * 255.0 + 0.5).clamp_(0, 255).to(torch.uint8), rgb)
 
 
+def _view_destination(K_view: np.ndarray, cfg: ViewConfig) -> tuple[np.ndarray, int, int, tuple[int, int, int, int]]:
+    """The destination `_warp` warps a view into: the view as the region of a slightly larger image (a margin of
+    _WARP_MARGIN_PX on every side), as (K_dst, width, height, roi (x0, y0, w, h))."""
+    m = _WARP_MARGIN_PX
+    K_dst = K_view.copy()
+    K_dst[0, 2] += m
+    K_dst[1, 2] += m
+    w, h = cfg.out_width_px, cfg.out_height_px
+    return K_dst, w + 2 * m + 1, h + 2 * m + 1, (m, m, w, h)
+
+
+def _view_kernel_warp(K_src: np.ndarray, src_size: tuple[int, int], K_view: np.ndarray, cfg: ViewConfig) -> KernelWarp:
+    """`_warp` of a whole view on the CPU as a `KernelWarp` (the same destination, its constants made once)."""
+    K_dst, width, height, roi = _view_destination(K_view, cfg)
+    rendered = rendered_region(width, height, roi, cfg.fill_holes)
+    return KernelWarp(K_src, src_size, K_dst, rendered, roi, cfg.fill_holes, partial=rendered[2:] != (width, height))
+
+
 def _warp(
     rgb: torch.Tensor,
     depth: torch.Tensor,
@@ -757,13 +792,9 @@ def _warp(
     side): hole filling then sees the pixels just outside the view, and the warp only transforms the source pixels
     that can land in it. With `source_index` (the batched path) rgb / depth hold N frames and T_dst_src (B, 4, 4) one
     pose per view, warped by the torch path."""
-    m = _WARP_MARGIN_PX
-    K_dst = K_view.copy()
-    K_dst[0, 2] += m
-    K_dst[1, 2] += m
-    w, h = cfg.out_width_px, cfg.out_height_px
+    K_dst, width, height, (m, _, w, h) = _view_destination(K_view, cfg)
     x0, y0, bw, bh = box if box is not None else (0, 0, w, h)
     return forward_warp(
-        rgb, depth, K_src, T_dst_src, K_dst, w + 2 * m + 1, h + 2 * m + 1, roi=(m + x0, m + y0, bw, bh),
+        rgb, depth, K_src, T_dst_src, K_dst, width, height, roi=(m + x0, m + y0, bw, bh),
         fill_holes=cfg.fill_holes, source_index=source_index, use_kernel=source_index is None,
     )  # fmt: skip

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from torch.nn.functional import pad
 
-__all__ = ["WarpResult", "forward_warp"]
+__all__ = ["KernelWarp", "WarpResult", "forward_warp", "rendered_region"]
 
 _INF_BITS = 0x7F800000  # float32 +inf
 # Empty z-buffer entry: larger than every real key, and its high half decodes to a depth of +inf.
@@ -220,6 +220,18 @@ def _fill_cracks(keys: torch.Tensor, radius: int = _FILL_RADIUS_PX) -> torch.Ten
     return keys
 
 
+def rendered_region(
+    out_width_px: int, out_height_px: int, roi: tuple[int, int, int, int], fill_holes: bool
+) -> tuple[int, int, int, int]:
+    """(ex0, ey0, ew, eh): the part of the destination image a warp into `roi` (x0, y0, w, h) renders, the ROI plus
+    the margin crack filling reads, clipped to the image."""
+    x0, y0, w, h = roi
+    margin = _FILL_RADIUS_PX if fill_holes else 0
+    ex0, ey0 = max(x0 - margin, 0), max(y0 - margin, 0)
+    ex1, ey1 = min(x0 + w + margin, out_width_px), min(y0 + h + margin, out_height_px)
+    return ex0, ey0, ex1 - ex0, ey1 - ey0
+
+
 def forward_warp(
     rgb: torch.Tensor,
     depth_m: torch.Tensor,
@@ -270,11 +282,8 @@ def forward_warp(
     x0, y0, w, h = roi if roi is not None else (0, 0, out_width_px, out_height_px)
     if w <= 0 or h <= 0 or x0 < 0 or y0 < 0 or x0 + w > out_width_px or y0 + h > out_height_px:
         raise ValueError(f"roi {roi} is not inside the {out_width_px}x{out_height_px} destination image")
-    margin = _FILL_RADIUS_PX if fill_holes else 0
-    # Rendered region: the ROI plus the margin hole filling reads, clipped to the full destination image.
-    ex0, ey0 = max(x0 - margin, 0), max(y0 - margin, 0)
-    ex1, ey1 = min(x0 + w + margin, out_width_px), min(y0 + h + margin, out_height_px)
-    ew, eh = ex1 - ex0, ey1 - ey0
+    ex0, ey0, ew, eh = rendered_region(out_width_px, out_height_px, (x0, y0, w, h), fill_holes)
+    ex1, ey1 = ex0 + ew, ey0 + eh
 
     if use_kernel and device.type == "cpu":
         result = _warp_with_kernel(
@@ -384,6 +393,79 @@ def _min_depth(depth_m: torch.Tensor, caller_tensors: tuple[torch.Tensor, torch.
     return min_depth
 
 
+class KernelWarp:
+    """`forward_warp`'s CPU kernel path for one camera pair and region, with everything that does not depend on the
+    frame or the pose (rays, the source window's corner rays, the region) computed once: a view synthesizer warps a
+    frame per step into the same view, and at the policy's few thousand pixels the per-call preparation cost about as
+    much as the compiled splat itself.
+
+    :param K_src: (3, 3) source intrinsics. :param src_size: (H, W) of the source frames.
+    :param K_dst: (3, 3) destination intrinsics. :param rendered: (ex0, ey0, ew, eh) the region rendered (the ROI
+        plus the hole-filling margin). :param roi: (x0, y0, w, h) the region returned. :param fill_holes: fill cracks.
+    :param partial: whether the rendered region is smaller than the destination image (then a source window).
+    """
+
+    def __init__(
+        self,
+        K_src: np.ndarray,
+        src_size: tuple[int, int],
+        K_dst: np.ndarray,
+        rendered: tuple[int, int, int, int],
+        roi: tuple[int, int, int, int],
+        fill_holes: bool,
+        partial: bool,
+    ) -> None:
+        self.K_src = np.array(K_src, dtype=np.float64)
+        self.K_dst = np.array(K_dst, dtype=np.float64)
+        self.src_size = H, W = int(src_size[0]), int(src_size[1])
+        self.rendered = np.asarray(rendered, dtype=np.int64)
+        self.roi = np.asarray(roi, dtype=np.int64)
+        self.radius = _FILL_RADIUS_PX if fill_holes else 0
+        self.partial = partial
+        self.rays = _rays(H, W, torch.from_numpy(self.K_src)).numpy()
+        ex0, ey0, ew, eh = rendered
+        self._window_rays = _window_rays(
+            self.K_src.tobytes(), self.K_dst.tobytes(), (H, W), (ex0, ey0, ex0 + ew, ey0 + eh)
+        )
+        self._whole = np.array([0, 0, W, H], dtype=np.int64)
+
+    def __call__(
+        self, rgb: np.ndarray, depth_m: np.ndarray, min_depth_m: float, T_dst_src: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One frame (rgb (H, W, 3), depth_m (H, W) float32, its smallest finite depth) warped to pose T_dst_src
+        (4, 4): the region's (rgb (h, w, 3), depth (h, w) float32 +inf where empty, valid (h, w) bool) arrays."""
+        from drivesim.sim import warp_kernel  # numba compiles (or loads its cache) on first import
+
+        H, W = self.src_size
+        T = np.asarray(T_dst_src, dtype=np.float64).reshape(1, 4, 4)
+        window = self._whole
+        if self.partial:  # only the source pixels that can land in the region: a rectangle of the source frame
+            found = warp_kernel.source_window(float(min_depth_m), *self._window_rays, self.K_src, T, W, H)
+            window = self._whole if found[0] < 0 else found
+        # q = K_dst (R P + t finite): finite points move with the camera, points at infinity only turn.
+        M = (self.K_dst @ T[:, :3, :3]).astype(np.float32)[0]
+        c = (self.K_dst @ T[:, :3, 3:])[0, :, 0].astype(np.float32)
+        h, w = int(self.roi[3]), int(self.roi[2])
+        rgb_out = np.empty((h, w, 3), dtype=rgb.dtype)
+        depth_out = np.empty((h, w), dtype=np.float32)
+        valid = np.empty((h, w), dtype=bool)
+        warp_kernel.warp_region(
+            self.rays, depth_m.reshape(H * W), rgb.reshape(H * W, 3), _NEAR_M, M, c, window, W, self.rendered,
+            self.roi, self.radius, rgb_out, depth_out, valid,
+        )  # fmt: skip
+        return rgb_out, depth_out, valid
+
+
+@functools.lru_cache(maxsize=16)
+def _kernel_warp(
+    K_src: bytes, src_size: tuple[int, int], K_dst: bytes, rendered: tuple, roi: tuple, fill_holes: bool, partial: bool
+) -> KernelWarp:
+    """A KernelWarp per camera pair and region (intrinsics as float64 bytes, so that they can key the cache)."""
+    K_s = np.frombuffer(K_src, dtype=np.float64).reshape(3, 3)
+    K_d = np.frombuffer(K_dst, dtype=np.float64).reshape(3, 3)
+    return KernelWarp(K_s, src_size, K_d, rendered, roi, fill_holes, partial)
+
+
 def _warp_with_kernel(
     rgb: torch.Tensor,
     depth_m: torch.Tensor,
@@ -396,46 +478,29 @@ def _warp_with_kernel(
     caller_tensors: tuple[torch.Tensor, torch.Tensor],
     partial: bool,
 ) -> WarpResult:
-    """forward_warp's CPU path for (B, H, W) frames: each frame through warp_kernel (splat, crack filling, colour
+    """forward_warp's CPU path for (B, H, W) frames: each frame through `KernelWarp` (splat, crack filling, colour
     gather), with no per-frame preparation but the smallest depth (for the source window).
 
     :param rendered: (ex0, ey0, ew, eh) the rendered region (the ROI plus the hole-filling margin).
     :param roi: (x0, y0, w, h) the region returned.
     :param partial: whether the rendered region is smaller than the destination image (then a source window).
     """
-    from drivesim.sim import warp_kernel  # numba compiles (or loads its cache) on first import
-
-    ex0, ey0, ew, eh = rendered
-    x0, y0, w, h = roi
     B, H, W = depth_m.shape
     K_s = np.asarray(K_src.cpu().numpy() if isinstance(K_src, torch.Tensor) else K_src, dtype=np.float64)
     K_d = np.asarray(K_dst.cpu().numpy() if isinstance(K_dst, torch.Tensor) else K_dst, dtype=np.float64)
     T = np.asarray(T_dst_src.cpu().numpy() if isinstance(T_dst_src, torch.Tensor) else T_dst_src, dtype=np.float64)
-    if T.ndim == 2:  # one pose for every frame (a view: B = 1, where indexing is cheaper than broadcast_to)
-        T = T[None] if B == 1 else np.broadcast_to(T, (B, 4, 4))
-    rays = _rays(H, W, torch.from_numpy(K_s)).numpy()
-    window = None
-    if partial:  # only the source pixels that can land in the region: a rectangle of the source frame
-        window = _source_window(
-            _min_depth(depth_m, caller_tensors), K_s, (H, W), T, K_d, (ex0, ey0, ex0 + ew, ey0 + eh)
-        )
-    window_np = np.asarray(window if window is not None else (0, 0, W, H), dtype=np.int64)
-    # q = K_dst (R P + t finite): finite points move with the camera, points at infinity only turn.
-    M = (K_d @ T[:, :3, :3]).astype(np.float32)
-    c = (K_d @ T[:, :3, 3:])[..., 0].astype(np.float32)
-    depth_src = depth_m.reshape(B, H * W).to(torch.float32).numpy()
-    colour = rgb.reshape(B, H * W, 3).numpy()
+    T = np.broadcast_to(T.reshape(-1, 4, 4), (B, 4, 4))
+    warp = _kernel_warp(
+        K_s.tobytes(), (H, W), K_d.tobytes(), tuple(int(v) for v in rendered), tuple(int(v) for v in roi),
+        bool(fill_holes), bool(partial),
+    )  # fmt: skip
+    min_depth = _min_depth(depth_m, caller_tensors) if partial else float("inf")
+    depth_src = depth_m.to(torch.float32).numpy()
+    colour = rgb.numpy()
+    x0, y0, w, h = roi
     depth_out = np.empty((B, h, w), dtype=np.float32)
     valid = np.empty((B, h, w), dtype=bool)
     rgb_out = np.empty((B, h, w, 3), dtype=colour.dtype)
-    region = (slice(y0 - ey0, y0 - ey0 + h), slice(x0 - ex0, x0 - ex0 + w))
     for b in range(B):
-        depth = np.full((eh, ew), np.inf, dtype=np.float32)
-        index = np.full((eh, ew), -1, dtype=np.int64)
-        warp_kernel.splat(rays, depth_src[b], _NEAR_M, M[b], c[b], window_np, W, ex0, ey0, depth, index)
-        if fill_holes:
-            depth, index = warp_kernel.fill_cracks(depth, index, _FILL_RADIUS_PX)
-        depth_out[b] = depth[region]
-        valid[b] = index[region] >= 0
-        warp_kernel.gather_colour(index, colour[b], y0 - ey0, x0 - ex0, rgb_out[b])
+        rgb_out[b], depth_out[b], valid[b] = warp(colour[b], depth_src[b], min_depth, T[b])
     return WarpResult(rgb=torch.from_numpy(rgb_out), depth_m=torch.from_numpy(depth_out), valid=torch.from_numpy(valid))

@@ -198,6 +198,40 @@ def gather_colour(index: np.ndarray, colour: np.ndarray, y0: int, x0: int, out: 
 
 
 @njit(cache=True, nogil=True)
+def warp_region(
+    rays: np.ndarray,
+    depth_src: np.ndarray,
+    colour: np.ndarray,
+    near_m: float,
+    M: np.ndarray,
+    c: np.ndarray,
+    window: np.ndarray,
+    width_src: int,
+    rendered: np.ndarray,
+    roi: np.ndarray,
+    radius: int,
+    rgb_out: np.ndarray,
+    depth_out: np.ndarray,
+    valid_out: np.ndarray,
+) -> None:
+    """One frame's splat, crack filling (`radius` px, 0: none) and colour gather in one call: the z-buffer of the
+    rendered region (ex0, ey0, ew, eh) is made here, and its part `roi` (x0, y0, w, h) written to rgb_out (h, w, 3),
+    depth_out (h, w) float32 (+inf where empty) and valid_out (h, w) bool. Arguments as `splat`; colour (H*W, 3)."""
+    ex0, ey0, ew, eh = rendered[0], rendered[1], rendered[2], rendered[3]
+    depth = np.full((eh, ew), np.inf, dtype=np.float32)
+    index = np.full((eh, ew), -1, dtype=np.int64)
+    splat(rays, depth_src, near_m, M, c, window, width_src, ex0, ey0, depth, index)
+    if radius > 0:
+        fill_cracks(depth, index, radius)
+    y0, x0 = roi[1] - ey0, roi[0] - ex0
+    for y in range(depth_out.shape[0]):
+        for x in range(depth_out.shape[1]):
+            depth_out[y, x] = depth[y0 + y, x0 + x]
+            valid_out[y, x] = index[y0 + y, x0 + x] >= 0
+    gather_colour(index, colour, y0, x0, rgb_out)
+
+
+@njit(cache=True, nogil=True)
 def source_window(
     min_depth_m: float,
     rays_src: np.ndarray,
