@@ -9,13 +9,13 @@ three steps:
 2. an option, per view (`ViewConfig.fill_frames`, off by default): neighbouring recorded frames are warped into the
    side wedges' bounding boxes (the holes joined to an image side, `side_wedges`) and merged by depth and visibility
    (`fill_wedges_from_neighbours`): it reaches some disocclusions too, but warps up to three more frames per step;
-3. what no frame saw is inpainted (OpenCV's Telea fast marching, `cv2.inpaint`): smooth continuation of the border
-   colours, with depth +inf (so an inserted car is drawn over it).
+3. what no frame saw is inpainted (`inpaint_holes`, a pull-push fill): smooth continuation of the border colours,
+   with depth +inf (so an inserted car is drawn over it).
 
 On a GPU the views are filled as one batch: step 1 as on the CPU (the widened frames are the device's frame stack),
-step 2 not at all, and step 3 is a pull-push fill (`pull_push_fill`, torch: each hole pixel takes the normalized
-average of the seen pixels at the finest level of an image pyramid that has any, blended across levels), since
-OpenCV's inpainting runs on the CPU, one view at a time.
+step 2 not at all, and step 3 is the same pull-push fill as torch operations over the batch (`pull_push_fill`: each
+hole pixel takes the normalized average of the seen pixels at the finest level of an image pyramid that has any,
+blended across levels); the CPU's is a compiled loop of the same arithmetic (`fill_kernel.py`).
 
 `FillStats` counts, per view, how many pixels each step filled, so a benchmark can say how much of the view is real
 recorded data, neighbour data, or invented; what step 1 brings counts as the view's own frame (a benchmark that
@@ -27,11 +27,11 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import torch
 from torch.nn.functional import avg_pool2d, interpolate
 
+from drivesim.sim import fill_kernel
 from drivesim.sim.warp import forward_warp
 
 __all__ = [
@@ -46,12 +46,6 @@ __all__ = [
     "widen_frame",
 ]
 
-INPAINT_RADIUS_PX = 3
-"""Neighbourhood (px) Telea's method averages over for each inpainted pixel: small, the views are 160 x 64."""
-FULL_RESOLUTION_MAX_PX = 256
-"""Holes of more pixels than this are inpainted at reduced resolution (`inpaint_holes`)."""
-REDUCED_FACTOR = 4
-"""How much a view with large holes is shrunk for inpainting (each axis)."""
 WEDGE_MIN_PX = 24
 """Side wedges of fewer pixels than this are left to inpainting (no neighbour warp for them)."""
 NEIGHBOUR_MIN_GAIN = 0.1
@@ -211,51 +205,15 @@ def merge_into_holes(
     return newly
 
 
-def inpaint_holes(rgb: np.ndarray, hole: np.ndarray, radius_px: int = INPAINT_RADIUS_PX) -> int:
-    """Inpaint the pixels of `hole` (h, w) bool in the uint8 view `rgb` (h, w, 3) in place (Telea); returns how
-    many there were. Small holes are inpainted at full resolution over their bounding box (plus a margin); large ones
-    (a side wedge) at 1/`REDUCED_FACTOR` resolution, upsampled into the holes: Telea's cost grows with the hole's area,
-    and a wedge no frame saw gets a smooth continuation either way."""
+def inpaint_holes(rgb: np.ndarray, hole: np.ndarray) -> int:
+    """Inpaint the pixels of `hole` (h, w) bool in the uint8 view `rgb` (h, w, 3) in place; returns how many there
+    were. The pull-push fill of `pull_push_fill` (the GPU path's) in one compiled call (`fill_kernel.py`): smooth
+    continuation of the colours around each hole, small or a whole side wedge. A view that is all hole stays as it
+    is (black)."""
     count = int(np.count_nonzero(hole))
-    if count == 0:
-        return 0
-    if count == hole.size:  # nothing to continue from: leave the view as it is (black)
-        return count
-    if count > FULL_RESOLUTION_MAX_PX:
-        _inpaint_reduced(rgb, hole, radius_px)
-        return count
-    box = hole_box(~hole)
-    assert box is not None
-    x0, y0, w, h = box
-    H, W = hole.shape
-    m = radius_px + 1
-    ys, xs = slice(max(y0 - m, 0), min(y0 + h + m, H)), slice(max(x0 - m, 0), min(x0 + w + m, W))
-    patch = np.ascontiguousarray(rgb[ys, xs])
-    rgb[ys, xs] = cv2.inpaint(patch, hole[ys, xs].view(np.uint8), radius_px, cv2.INPAINT_TELEA)
+    if 0 < count < hole.size:
+        fill_kernel.pull_push_fill_(rgb, hole)
     return count
-
-
-def _inpaint_reduced(rgb: np.ndarray, hole: np.ndarray, radius_px: int) -> None:
-    """inpaint_holes for large holes: the view shrunk by REDUCED_FACTOR with the holes left out of every average
-    (normalized area averaging), inpainted where a reduced pixel is mostly hole, enlarged (bilinear) into the holes."""
-    H, W = hole.shape
-    f = REDUCED_FACTOR
-    small = (max(1, -(-W // f)), max(1, -(-H // f)))
-    seen = (~hole).view(np.uint8)
-    weight = cv2.resize(seen.astype(np.float32), small, interpolation=cv2.INTER_AREA)
-    masked = cv2.bitwise_and(rgb, rgb, mask=seen).astype(np.float32)  # the holes' colours left out of the averages
-    colour = cv2.resize(masked, small, interpolation=cv2.INTER_AREA)
-    colour /= np.maximum(weight, 1e-6)[..., None]
-    small_rgb = np.clip(colour + 0.5, 0, 255).astype(np.uint8)
-    small_hole = (weight < 0.5).view(np.uint8)
-    if small_hole.all():
-        return
-    small_rgb = cv2.inpaint(small_rgb, small_hole, max(1, radius_px // 2 + 1), cv2.INPAINT_TELEA)
-    large = cv2.resize(small_rgb, (W, H), interpolation=cv2.INTER_LINEAR)
-    if rgb.flags.c_contiguous:
-        cv2.copyTo(large, hole.view(np.uint8), rgb)  # in place; numpy's masked assignment took 0.1 ms at 160 x 64
-    else:
-        rgb[hole] = large[hole]
 
 
 def pull_push_fill(rgb: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -263,8 +221,8 @@ def pull_push_fill(rgb: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     it, all views at once on their device: the pull-push fill of Gortler et al. (1996). Pull: a pyramid of
     2x2 averages of colour and coverage; push: from the coarsest level down, each level's pixels keep their own
     normalized colour in proportion to their coverage and take the coarser level's (bilinear) for the rest. A view
-    with no seen pixel stays as it is. We write it (about twenty lines of torch) because OpenCV's inpainting, the CPU
-    path's, runs one view at a time on the CPU."""
+    with no seen pixel stays as it is. We write it (about twenty lines of torch) because OpenCV's inpainting runs one
+    view at a time on the CPU; `inpaint_holes` is the same fill for one view on the CPU."""
     if bool(valid.all()):
         return rgb
     weight = valid[:, None].to(torch.float32)

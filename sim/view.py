@@ -117,7 +117,7 @@ class ViewConfig(pydantic.BaseModel):
     before it left (the nearer in time, the smaller the pose change its depth errors are warped over); the frames
     behind first, as from farther back the camera saw more to the sides."""
     inpaint: bool = True
-    """Inpaint (OpenCV Telea) what no frame saw, so the policy never sees black; off: such pixels stay black."""
+    """Inpaint (a pull-push fill) what no frame saw, so the policy never sees black; off: such pixels stay black."""
     contact_shadow: float = pydantic.Field(0.6, ge=0.0, le=1.0)
     """Darkening of the ground under an inserted car (fraction of the ground's colour removed under its footprint,
     fading to none 0.5 m outside it); 0 = no shadow."""

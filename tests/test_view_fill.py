@@ -222,10 +222,10 @@ def test_neighbours_fill_only_the_wedges_nearest_surface_first():
 
 
 def test_inpainting_continues_the_border_colours():
-    """A hole in a smooth gradient is inpainted close to the gradient, at full and at reduced resolution."""
+    """A hole in a smooth gradient is inpainted close to the gradient, a speck and a large hole alike."""
     u = np.linspace(0, 200, 80)
     image = np.repeat(np.stack([u, 200 - u, np.full_like(u, 100)], -1)[None], 30, axis=0).astype(np.uint8)
-    for hole_cols in (slice(38, 42), slice(20, 60)):  # 120 px (full resolution), 1200 px (reduced)
+    for hole_cols in (slice(38, 42), slice(20, 60)):  # 120 px, 1200 px
         hole = np.zeros((30, 80), bool)
         hole[5:25, hole_cols] = True
         damaged = np.where(hole[..., None], 0, image).astype(np.uint8)
@@ -268,6 +268,29 @@ def test_car_on_a_gray_camera_is_gray(tmp_path, gray):
         assert (out.rgb[0].max(axis=-1) == out.rgb[0].min(axis=-1)).all(), "the whole view stays gray"
     else:
         assert (car[:, 0] - car[:, 1]).mean() > 30
+
+
+def test_the_cpu_inpainting_is_the_gpu_paths_pull_push():
+    """`inpaint_holes` (one view, compiled) fills like `pull_push_fill` (torch, a batch) up to a grey level, for
+    sizes that halve evenly and not, specks and wedges, and leaves seen pixels and all-hole views as they are."""
+    import torch
+
+    from drivesim.sim.fill import pull_push_fill
+
+    rng = np.random.default_rng(0)
+    for h, w, share in ((64, 160, 0.02), (33, 77, 0.3), (30, 80, 0.9), (5, 7, 0.5)):
+        image = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        hole = rng.random((h, w)) < share
+        hole[:, : w // 4] = True
+        ours = image.copy()
+        assert inpaint_holes(ours, hole) == hole.sum()
+        torch_fill = pull_push_fill(torch.from_numpy(image[None].copy()), torch.from_numpy(~hole[None])).numpy()[0]
+        assert np.array_equal(ours[~hole], image[~hole])
+        assert np.abs(ours.astype(int) - torch_fill).max() <= 1
+        assert (np.abs(ours.astype(int) - torch_fill) > 0).mean() < 0.001
+    everything = np.ones((4, 6), bool)
+    black = np.zeros((4, 6, 3), np.uint8)
+    assert inpaint_holes(black, everything) == 24 and not black.any()
 
 
 def test_pull_push_fill_continues_the_border_colours_of_every_view():
