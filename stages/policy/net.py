@@ -26,10 +26,28 @@ def standardize_images(image_u8: torch.Tensor, pool: int = 1) -> torch.Tensor:
     x = image_u8.float()
     if pool > 1:
         # Pooling first makes the standardization 4x cheaper (it was half the cost of a training pass).
-        x = functional.avg_pool2d(x, pool)
-    var, mean = torch.var_mean(x.flatten(1), dim=1)
+        x = _average_pool(x, pool)
+    # Two passes written out: torch.var_mean took 275 us for 8 pooled 3 x 32 x 80 images on one CPU thread, this 22.
+    flat = x.flatten(1)
+    mean = flat.mean(dim=1, keepdim=True)
+    centred = flat - mean
+    var = (centred * centred).sum(dim=1, keepdim=True) / max(flat.shape[1] - 1, 1)  # unbiased, as var_mean
     scale = torch.rsqrt(var.clamp_min((STANDARDIZE_EPS * 255.0) ** 2))
-    return (x - mean.view(-1, 1, 1, 1)) * scale.view(-1, 1, 1, 1)
+    return (centred * scale).view(x.shape)
+
+
+def _average_pool(x: torch.Tensor, pool: int) -> torch.Tensor:
+    """avg_pool2d(x, pool) (the last rows and columns that do not fill a window dropped) as sums of strided views:
+    on the CPU avg_pool2d took 350 us for 8 images of 3 x 64 x 160, this 50; the sums of whole grey levels are exact
+    in float32, so both give the same values. It exports to ONNX as slices and adds."""
+    h, w = x.shape[-2] - x.shape[-2] % pool, x.shape[-1] - x.shape[-1] % pool
+    rows = x[..., 0:h:pool, :w]
+    for dy in range(1, pool):
+        rows = rows + x[..., dy:h:pool, :w]
+    total = rows[..., 0::pool]
+    for dx in range(1, pool):
+        total = total + rows[..., dx::pool]
+    return total / float(pool * pool)
 
 
 def conv_out_size(size_px: int, kernel: int, stride: int) -> int:
