@@ -10,7 +10,7 @@ polygons (> 0), and a collision in training an overlap above 5 % of the ego's ar
 from __future__ import annotations
 
 import numpy as np
-from shapely import Polygon, distance, intersection_all
+from shapely import Polygon, distance, intersection_all, polygons
 
 # The paper's dilation of the ego polygon for R_collision (§IV-A): +1 m in length, +0.4 m in width.
 COLLISION_DILATION_LENGTH_M = 1.0
@@ -24,6 +24,23 @@ def footprint(x_m: float, y_m: float, yaw_rad: float, length_m: float, width_m: 
     c, s = np.cos(yaw_rad), np.sin(yaw_rad)
     rotated = corners @ np.array([[c, s], [-s, c]])
     return Polygon(rotated + np.array([x_m, y_m]))
+
+
+def footprint_corners(
+    x_m: np.ndarray, y_m: np.ndarray, yaw_rad: np.ndarray, length_m: float, width_m: float
+) -> np.ndarray:
+    """(n, 4, 2) corners of n rectangles as `footprint` makes them (arrays of n poses, one size)."""
+    half_l, half_w = 0.5 * length_m, 0.5 * width_m
+    corners = np.array([[half_l, half_w], [-half_l, half_w], [-half_l, -half_w], [half_l, -half_w]])
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    x = corners[None, :, 0] * c[:, None] - corners[None, :, 1] * s[:, None] + np.asarray(x_m)[:, None]
+    y = corners[None, :, 0] * s[:, None] + corners[None, :, 1] * c[:, None] + np.asarray(y_m)[:, None]
+    return np.stack([x, y], axis=-1)
+
+
+def footprints(x_m: np.ndarray, y_m: np.ndarray, yaw_rad: np.ndarray, length_m: float, width_m: float) -> np.ndarray:
+    """`footprint` of n poses at once: an (n,) array of shapely Polygons (made in one call, not one object each)."""
+    return polygons(footprint_corners(x_m, y_m, yaw_rad, length_m, width_m))
 
 
 def overlap_fraction(ego: Polygon, other: Polygon, ego_area_m2: float | None = None) -> float:

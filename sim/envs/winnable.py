@@ -21,6 +21,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+from numba import njit
+
 INTEGRATION_STEP_S = 0.005
 """Step of the swerve's integration [s]; 1/20 of the env's step, fine against the 0.1-s decision."""
 CHECK_EVERY_S = 0.02
@@ -76,35 +79,75 @@ def _swerve_clears(
     """Whether the hardest swerve toward `side` (+1 left, -1 right) gets the ego's footprint wholly beside the front
     car's (their lateral extents apart) without the footprints overlapping, the centre leaving the lane or the heading
     passing the over-rotation limit, within `horizon_s`. The footprints are the env's rectangles, the ego's turned by
-    its heading (its front corner swings away from the car as it turns)."""
-    from drivesim.sim.footprint import footprint
+    its heading (its front corner swings away from the car as it turns).
 
-    max_steer_rad = math.atan(limits.max_curvature_1pm * limits.wheelbase_m)
-    v = start.ego_speed_mps
-    x, y, heading, steer, t, since_check = 0.0, start.ego_lateral_m, start.ego_yaw_rad, 0.0, 0.0, math.inf
-    other_half_w = 0.5 * start.other_width_m
+    The swerve is integrated first (`_swerve_checks`), up to the first check that finds the ego beside the car
+    (straightening out then only swings its rear further away); the footprints of all its checks are then compared in
+    one vectorized call."""
+    import shapely
+
+    from drivesim.sim.footprint import footprints
+
+    checks = _swerve_checks(
+        start.ego_speed_mps, start.ego_lateral_m, start.ego_yaw_rad, 0.5 * start.ego_length_m,
+        0.5 * start.ego_width_m, side * start.other_lateral_m + 0.5 * start.other_width_m, side, horizon_s,
+        heading_cap_rad, math.atan(limits.max_curvature_1pm * limits.wheelbase_m), limits.max_steering_rate_radps,
+        limits.wheelbase_m, limits.max_lateral_m,
+    )  # fmt: skip
+    if checks is None:
+        return False
+    xs, ys, headings, ts = checks
+    egos = footprints(xs, ys, headings, start.ego_length_m, start.ego_width_m)
+    others = footprints(
+        start.gap_m + start.other_speed_mps * ts, np.full(len(ts), start.other_lateral_m), np.zeros(len(ts)),
+        start.other_length_m, start.other_width_m,
+    )  # fmt: skip
+    return not bool(shapely.intersects(egos, others).any())
+
+
+@njit(cache=True)
+def _swerve_checks(
+    speed_mps: float,
+    lateral_m: float,
+    yaw_rad: float,
+    half_length_m: float,
+    half_width_m: float,
+    clear_of_m: float,
+    side: float,
+    horizon_s: float,
+    heading_cap_rad: float,
+    max_steer_rad: float,
+    steering_rate_radps: float,
+    wheelbase_m: float,
+    max_lateral_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The ego's poses (x, y, heading, t arrays) at the checks of `_swerve_clears`'s swerve, up to and with the first
+    that has its footprint wholly past `clear_of_m` (the car's side, times `side`); None when the centre leaves the
+    lane or the horizon passes first. A compiled loop: the same loop in Python took 1.8 ms per start (8 swerves)."""
+    n_max = int(horizon_s / CHECK_EVERY_S) + 2
+    xs, ys, hs, ts = np.empty(n_max), np.empty(n_max), np.empty(n_max), np.empty(n_max)
+    n = 0
+    x, y, heading, steer, t, since_check = 0.0, lateral_m, yaw_rad, 0.0, 0.0, np.inf
     while t <= horizon_s:
         if since_check >= CHECK_EVERY_S:
             since_check = 0.0
-            other_x = start.gap_m + start.other_speed_mps * t
-            ego = footprint(x, y, heading, start.ego_length_m, start.ego_width_m)
-            other = footprint(other_x, start.other_lateral_m, 0.0, start.other_length_m, start.other_width_m)
-            if ego.intersects(other):
-                return False
-            _, min_y, _, max_y = ego.bounds
-            if side * (min_y if side > 0 else max_y) > side * start.other_lateral_m + other_half_w:
-                return True  # wholly beside it: straightening out only swings the ego's rear further away
+            xs[n], ys[n], hs[n], ts[n] = x, y, heading, t
+            n += 1
+            # The footprint's lateral extent, as its corners give it: y +- (half_l |sin| + half_w |cos|).
+            reach = half_length_m * abs(np.sin(heading)) + half_width_m * abs(np.cos(heading))
+            if side * (y - side * reach) > clear_of_m:
+                return xs[:n], ys[:n], hs[:n], ts[:n]
         dt = INTEGRATION_STEP_S
-        steer = min(steer + limits.max_steering_rate_radps * dt, max_steer_rad)
-        heading += side * v * math.tan(steer) / limits.wheelbase_m * dt
+        steer = min(steer + steering_rate_radps * dt, max_steer_rad)
+        heading += side * speed_mps * np.tan(steer) / wheelbase_m * dt
         heading = max(-heading_cap_rad, min(heading_cap_rad, heading))
-        x += v * math.cos(heading) * dt
-        y += v * math.sin(heading) * dt
-        if abs(y) > limits.max_lateral_m:
-            return False
+        x += speed_mps * np.cos(heading) * dt
+        y += speed_mps * np.sin(heading) * dt
+        if abs(y) > max_lateral_m:
+            return None
         t += dt
         since_check += dt
-    return False
+    return None
 
 
 def is_winnable(start: OvertakeStart, limits: SteeringLimits) -> bool:
