@@ -250,6 +250,28 @@ def test_packed_scene_is_cached_and_reusable():
     assert torch.equal(a.depth_m, b.depth_m)
 
 
+def test_a_repainted_model_is_packed_from_its_first_packing():
+    """A repaint (same geometry arrays, new body material) packs as `pack_meshes` would, from the rasterizer's cached
+    packing of the model, and renders the new colour; a different geometry is packed afresh."""
+    from dataclasses import replace
+
+    from drivesim.sim.raster import repainted_pack
+
+    car = car_meshes(object_id=0)
+    red = Material(diffuse_rgb=(0.9, 0.1, 0.1), metalness=0.3)
+    repaint = [replace(m, material=red) if k == 0 else m for k, m in enumerate(car)]
+    rasterizer = Rasterizer(W, H)
+    original = rasterizer.pack(car)
+    derived = rasterizer.pack(repaint)
+    fresh = pack_meshes(repaint)
+    for name in ("vertex_components", "attribute_table", "material", "texture_index", "object_id", "texels"):
+        assert torch.equal(getattr(derived, name), getattr(fresh, name)), name
+    assert not torch.equal(derived.attribute_table, original.attribute_table), "the body's colour changed"
+    assert rasterizer.pack(repaint) is derived
+    moved = [m.transformed(g.pose_2d(1.0, 0.0, 0.0)) for m in car]
+    assert repainted_pack(original, car, moved) is None
+
+
 def test_far_from_origin_world_keeps_precision():
     """ENU coordinates kilometres away: packing relative to the scene centre keeps depth at float32 precision."""
     offset = g.se3(np.eye(3), [3000.0, -2000.0, 0.0])
