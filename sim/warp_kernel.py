@@ -44,6 +44,10 @@ def splat(
     near = np.float32(near_m)
     zero = np.float32(0.0)
     ew_f, eh_f = np.float32(ew), np.float32(eh)
+    # The transform in locals: the loop writes to depth and index, so the compiler cannot keep M's and c's entries
+    # in registers by itself (they might alias).
+    m00, m01, m02, m10, m11, m12 = M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2]
+    m20, m21, m22, c0, c1, c2 = M[2, 0], M[2, 1], M[2, 2], c[0], c[1], c[2]
     for sy in range(window[1], window[3]):
         row_start = sy * width_src
         for i in range(row_start + window[0], row_start + window[2]):
@@ -52,18 +56,18 @@ def splat(
                 continue
             if z == inf:  # sky: the ray turns with the camera, no translation
                 px, py, pz = rays[0, i], rays[1, i], rays[2, i]
-                qz = M[2, 0] * px + M[2, 1] * py + M[2, 2] * pz
+                qz = m20 * px + m21 * py + m22 * pz
                 if not qz > zero:
                     continue
-                qx = M[0, 0] * px + M[0, 1] * py + M[0, 2] * pz
-                qy = M[1, 0] * px + M[1, 1] * py + M[1, 2] * pz
+                qx = m00 * px + m01 * py + m02 * pz
+                qy = m10 * px + m11 * py + m12 * pz
             else:
                 px, py, pz = rays[0, i] * z, rays[1, i] * z, rays[2, i] * z
-                qz = c[2] + M[2, 0] * px + M[2, 1] * py + M[2, 2] * pz
+                qz = c2 + m20 * px + m21 * py + m22 * pz
                 if not qz > near:
                     continue
-                qx = c[0] + M[0, 0] * px + M[0, 1] * py + M[0, 2] * pz
-                qy = c[1] + M[1, 0] * px + M[1, 1] * py + M[1, 2] * pz
+                qx = c0 + m00 * px + m01 * py + m02 * pz
+                qy = c1 + m10 * px + m11 * py + m12 * pz
             inv_z = np.float32(1.0) / qz
             u = off_u + qx * inv_z
             v = off_v + qy * inv_z
