@@ -14,7 +14,6 @@ from collections.abc import Sequence
 
 import torch
 from torch import nn
-from torch.nn import functional
 
 STANDARDIZE_EPS = 1e-3
 """Floor of an image's standard deviation (in [0, 1] intensity units) in the per-image standardization."""
