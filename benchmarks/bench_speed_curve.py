@@ -30,6 +30,7 @@ from drivesim.diagnostics.machine import machine_line
 RESULTS = Path(__file__).parent / "results"
 DRIVESIM = Path(sys.executable).parent / "drivesim"
 VERSIONS = ("before", "after")
+BASELINES = ("random", "expert")
 _CLI = "import sys; from drivesim.cli.main import main; sys.argv[0] = 'drivesim'; main()"
 
 
@@ -83,12 +84,13 @@ def curves(run: Path) -> dict[str, list[tuple[int, float]]]:
     }
 
 
-def final_eval(run: Path, world: Path, episodes: int, workdir: Path, name: str) -> dict:
-    """`drivesim eval` (this checkout's simulator) of a run's final policy on `world`: its metrics.json."""
+def evaluate(policy: str, world: Path, episodes: int, workdir: Path, name: str) -> dict:
+    """`drivesim eval` (this checkout's simulator) of a policy (a run folder, random or expert) on `world`: its
+    metrics.json."""
     out = workdir / "eval-ws" / "eval" / name / "metrics.json"
     if not out.is_file():
         subprocess.run(
-            [str(DRIVESIM), "--workspace", str(workdir / "eval-ws"), "eval", "--task", "overtake", "--policy", str(run),
+            [str(DRIVESIM), "--workspace", str(workdir / "eval-ws"), "eval", "--task", "overtake", "--policy", policy,
              "--world", str(world), "--episodes", str(episodes), "--record", "none", "--name", name],
             check=True,
         )  # fmt: skip
@@ -132,7 +134,8 @@ def markdown(data: dict, args: argparse.Namespace, command: str) -> str:
         + f"; held-back evaluation every {args.eval_every} steps, {args.eval_episodes} episodes; one core each, "
         f"side by side; before: the code in `{args.before}`",
         f"- final policies: {args.final_episodes} evaluation episodes each on `{args.unseen}` (never trained on), "
-        "evaluated with this checkout's simulator, the same seeds",
+        "evaluated with this checkout's simulator, the same seeds; random steering and the privileged expert beside "
+        "them (no warm start: these runs have none)",
         "",
         "| env steps | " + " | ".join(f"held-back success, {v}" for v in VERSIONS) + " |",
         "|---:|---:|---:|",
@@ -141,15 +144,15 @@ def markdown(data: dict, args: argparse.Namespace, command: str) -> str:
     for step in sorted(set(by_step["before"]) | set(by_step["after"])):
         cells = [f"{100 * by_step[v][step]:.0f} %" if step in by_step[v] else "" for v in VERSIONS]
         lines.append(f"| {step} | " + " | ".join(cells) + " |")
-    lines += ["", "| final policy | success | intervention | collision | off lane | min clearance, all episodes [m] | "
+    lines += ["", "| policy | success | intervention | collision | off lane | min clearance, all episodes [m] | "
               "training wall time [min] |", "|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
-    for v in VERSIONS:
+    for v in (*VERSIONS, *BASELINES):
         a = data[v]["final"]["aggregate"]
-        wall = data[v]["wall_s"][0] / 60 if data[v]["wall_s"] else float("nan")
+        wall = f"{data[v]['wall_s'][0] / 60:.1f}" if data[v].get("wall_s") else ""
         lines.append(
             f"| {v} | {100 * a['success']['value']:.1f} % | {a['intervention']['value']:.3f} | "
             f"{100 * a['collision']['value']:.1f} % | {100 * a['off_lane']['value']:.1f} % | "
-            f"{a['min_clearance_m']['value']:.2f} | {wall:.1f} |"
+            f"{a['min_clearance_m']['value']:.2f} | {wall} |"
         )
     lines += ["", "![curves](learning_speed_ab.png)", ""]
     return "\n".join(lines)
@@ -179,7 +182,9 @@ def main() -> None:
     for version in VERSIONS:
         run = run_folder(args.workdir / version)
         data[version] = curves(run)
-        data[version]["final"] = final_eval(run, args.unseen, args.final_episodes, args.workdir, f"final-{version}")
+        data[version]["final"] = evaluate(str(run), args.unseen, args.final_episodes, args.workdir, f"final-{version}")
+    for baseline in BASELINES:  # the same seeds, for scale
+        data[baseline] = {"final": evaluate(baseline, args.unseen, args.final_episodes, args.workdir, baseline)}
     plot(data, args.out.with_suffix(".png"))
     command = "python benchmarks/bench_speed_curve.py " + " ".join(sys.argv[1:])
     args.out.write_text(markdown(data, args, command))
