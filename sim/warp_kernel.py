@@ -6,14 +6,20 @@ scatter_reduce, shifted minima, gathers), each a pass over memory with its own d
 resolution (about 10^4 source points per view) those fixed costs dominate and the warp took 3 ms of a 5.7 ms
 simulator step. One loop over the points does the same work in a few tens of microseconds. The arithmetic and the
 z-buffer order (nearest depth, then smallest source pixel index) are those of the torch path's packed key, so both
-give the same image up to float rounding at pixel borders (tests/test_warp.py compares them). The z-buffer here is
-a depth image plus a source-index image (-1: empty), which needs no bit casts.
+give the same image up to float rounding at pixel borders (tests/test_warp.py compares them). The z-buffer is that
+packed key too: one int64 per pixel, so a splat is one compare and a crack's fill one minimum over its neighbourhood
+(a depth image beside an index image took twice the reads, and the crack filling was half of a 320 x 200 warp).
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+EMPTY_KEY = np.int64((0x7F800000 << 32) | 0xFFFFFFFF)
+"""An empty z-buffer pixel: depth +inf and the largest index, so that it sorts after every warped point (the torch
+path's `_EMPTY_KEY`)."""
+_INDEX_MASK = np.int64(0xFFFFFFFF)
 
 
 @njit(cache=True, nogil=True)
@@ -27,25 +33,29 @@ def splat(
     width_src: int,
     ex0: int,
     ey0: int,
-    depth: np.ndarray,
-    index: np.ndarray,
+    keys: np.ndarray,
 ) -> None:
-    """Splat the source pixels of `window` (x0, y0, x1, y1) into the z-buffer (depth (eh, ew) float32 filled with
-    +inf, index (eh, ew) int64 filled with -1), whose pixel (0, 0) is destination pixel (ex0, ey0).
+    """Splat the source pixels of `window` (x0, y0, x1, y1) into the z-buffer `keys` (eh, ew) int64 filled with
+    EMPTY_KEY, whose pixel (0, 0) is destination pixel (ex0, ey0). A key packs the float32 depth's bits above the
+    source pixel index, as the torch path's does: positive float bits sort like the floats, so the smallest key is the
+    nearest point, and of equally near ones the smallest index (one compare per point).
 
     rays (3, H*W) float32 K_src^-1 [u, v, 1]; depth_src (H*W,) float32 source depth: a point z * ray for z > 0, a
     point at infinity (the ray, rotated only) for +inf, nothing for z <= 0 or NaN; points nearer than near_m to the
     destination camera are not drawn. M (3, 3), c (3,) float32: q = M p + c (c only for finite points).
     """
-    eh, ew = depth.shape
+    eh, ew = keys.shape
     off_u = np.float32(0.5 - ex0)
     off_v = np.float32(0.5 - ey0)
     inf = np.float32(np.inf)
     near = np.float32(near_m)
     zero = np.float32(0.0)
     ew_f, eh_f = np.float32(ew), np.float32(eh)
-    # The transform in locals: the loop writes to depth and index, so the compiler cannot keep M's and c's entries
-    # in registers by itself (they might alias).
+    # The float's bits through a one-element array seen as both types (numba has no scalar bit cast).
+    depth_buf = np.empty(1, dtype=np.float32)
+    bits_buf = depth_buf.view(np.int32)
+    # The transform in locals: the loop writes to keys, so the compiler cannot keep M's and c's entries in registers
+    # by itself (they might alias).
     m00, m01, m02, m10, m11, m12 = M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2]
     m20, m21, m22, c0, c1, c2 = M[2, 0], M[2, 1], M[2, 2], c[0], c[1], c[2]
     for sy in range(window[1], window[3]):
@@ -74,40 +84,37 @@ def splat(
             # In range, int() truncates like floor (the comparisons also reject NaN).
             if not (u >= zero and u < ew_f and v >= zero and v < eh_f):
                 continue
-            zd = inf if z == inf else qz
+            depth_buf[0] = inf if z == inf else qz
+            key = (np.int64(bits_buf[0]) << 32) | i
             row, col = int(v), int(u)
-            old_z = depth[row, col]
-            if zd < old_z or (zd == old_z and (index[row, col] < 0 or i < index[row, col])):
-                depth[row, col] = zd
-                index[row, col] = i
+            if key < keys[row, col]:
+                keys[row, col] = key
 
 
 @njit(cache=True, nogil=True)
-def fill_cracks(depth: np.ndarray, index: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
-    """Empty pixels (index -1) with warped pixels on both sides along a row, column or diagonal within r px take
-    the nearest surface of their (2r+1)^2 neighbourhood, for r = 1, then 2, ... `radius` (warp._fill_cracks's
-    rule). Changes the arrays in place and returns them."""
-    h, w = depth.shape
+def fill_cracks(keys: np.ndarray, radius: int) -> np.ndarray:
+    """Empty pixels (EMPTY_KEY) with warped pixels on both sides along a row, column or diagonal within r px take
+    the nearest surface (the smallest key) of their (2r+1)^2 neighbourhood, for r = 1, then 2, ... `radius`
+    (warp._fill_cracks's rule). Changes `keys` in place and returns it."""
+    h, w = keys.shape
     # Whether each pixel is warped, with a border of `radius` unwarped pixels so that no look-up needs a bounds test.
     seen = np.zeros((h + 2 * radius, w + 2 * radius), dtype=np.bool_)
     for y in range(h):
         for x in range(w):
-            seen[y + radius, x + radius] = index[y, x] >= 0
-    # The empty pixels that can be filled, once; each pass visits only those still empty and applies its fills after
-    # deciding all of them (a fill never feeds another fill of the same pass, as in the torch path). A pixel filled
-    # in pass r has a warped pixel within r px, so none farther than 1 + 2 + ... + radius px from the splat's pixels
-    # is ever filled: the inside of a large hole (a side wedge, a third of the empty pixels) is left out at once.
-    near = _near_warped(index, radius * (radius + 1) // 2)
+            seen[y + radius, x + radius] = keys[y, x] != EMPTY_KEY
+    # The empty pixels, once; each pass visits only those still empty and applies its fills after deciding all of them
+    # (a fill never feeds another fill of the same pass, as in the torch path). The pass's own test is the cheapest
+    # filter: a pixel inside a large hole fails it at its first look-ups (a distance-to-warped mask computed to skip
+    # those cost more than the tests it saved).
     ys = np.empty(h * w, dtype=np.int64)
     xs = np.empty(h * w, dtype=np.int64)
     count = 0
     for y in range(h):
         for x in range(w):
-            if index[y, x] < 0 and near[y, x]:
+            if not seen[y + radius, x + radius]:
                 ys[count], xs[count] = y, x
                 count += 1
-    fill_z = np.empty(count, dtype=np.float32)
-    fill_i = np.empty(count, dtype=np.int64)
+    fill_k = np.empty(count, dtype=np.int64)
     filled = np.zeros(count, dtype=np.bool_)
     for r in range(1, radius + 1):
         for n in range(count):
@@ -115,24 +122,22 @@ def fill_cracks(depth: np.ndarray, index: np.ndarray, radius: int) -> tuple[np.n
             filled[n] = _enclosed(seen, y + radius, x + radius, r)
             if not filled[n]:
                 continue
-            best_z, best_i = np.float32(np.inf), np.int64(-1)
+            best = EMPTY_KEY  # empty pixels sort last, so the minimum is the nearest warped one
             for yy in range(max(y - r, 0), min(y + r + 1, h)):
                 for xx in range(max(x - r, 0), min(x + r + 1, w)):
-                    z, i = depth[yy, xx], index[yy, xx]
-                    if i >= 0 and (best_i < 0 or z < best_z or (z == best_z and i < best_i)):
-                        best_z, best_i = z, i
-            fill_z[n], fill_i[n] = best_z, best_i
+                    best = min(best, keys[yy, xx])
+            fill_k[n] = best
         kept = 0
         for n in range(count):
             y, x = ys[n], xs[n]
             if filled[n]:
-                depth[y, x], index[y, x] = fill_z[n], fill_i[n]
+                keys[y, x] = fill_k[n]
                 seen[y + radius, x + radius] = True
             else:
                 ys[kept], xs[kept] = y, x
                 kept += 1
         count = kept
-    return depth, index
+    return keys
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -160,48 +165,6 @@ def _enclosed(seen: np.ndarray, y: int, x: int, r: int) -> bool:
 
 
 @njit(cache=True, nogil=True)
-def _near_warped(index: np.ndarray, reach: int) -> np.ndarray:
-    """(h, w) bool: a warped pixel (index >= 0) lies within `reach` px (Chebyshev distance); a sweep each way along
-    the rows, then each way down the columns over the rows' result (row by row, in memory order)."""
-    h, w = index.shape
-    far = reach + 1
-    row_near = np.zeros((h, w), dtype=np.bool_)
-    for y in range(h):
-        gap = far  # columns since the last warped pixel, sweeping right, then left
-        for x in range(w):
-            gap = 0 if index[y, x] >= 0 else gap + 1
-            row_near[y, x] = gap <= reach
-        gap = far
-        for x in range(w - 1, -1, -1):
-            gap = 0 if index[y, x] >= 0 else gap + 1
-            row_near[y, x] |= gap <= reach
-    near = np.zeros((h, w), dtype=np.bool_)
-    gaps = np.full(w, far, dtype=np.int64)  # rows since the last near row, per column: row-major sweeps down, then up
-    for y in range(h):
-        for x in range(w):
-            gaps[x] = 0 if row_near[y, x] else gaps[x] + 1
-            near[y, x] = gaps[x] <= reach
-    gaps[:] = far
-    for y in range(h - 1, -1, -1):
-        for x in range(w):
-            gaps[x] = 0 if row_near[y, x] else gaps[x] + 1
-            near[y, x] |= gaps[x] <= reach
-    return near
-
-
-@njit(cache=True, nogil=True)
-def gather_colour(index: np.ndarray, colour: np.ndarray, y0: int, x0: int, out: np.ndarray) -> None:
-    """out (h, w, 3): the colour (colour (H*W, 3), any dtype) of the source pixel of each pixel of the region
-    starting at (y0, x0) of the z-buffer's source indices, 0 where empty."""
-    h, w = out.shape[0], out.shape[1]
-    for y in range(h):
-        for x in range(w):
-            i = index[y0 + y, x0 + x]
-            for k in range(3):
-                out[y, x, k] = colour[i, k] if i >= 0 else 0
-
-
-@njit(cache=True, nogil=True)
 def warp_region(
     rays: np.ndarray,
     depth_src: np.ndarray,
@@ -222,17 +185,20 @@ def warp_region(
     rendered region (ex0, ey0, ew, eh) is made here, and its part `roi` (x0, y0, w, h) written to rgb_out (h, w, 3),
     depth_out (h, w) float32 (+inf where empty) and valid_out (h, w) bool. Arguments as `splat`; colour (H*W, 3)."""
     ex0, ey0, ew, eh = rendered[0], rendered[1], rendered[2], rendered[3]
-    depth = np.full((eh, ew), np.inf, dtype=np.float32)
-    index = np.full((eh, ew), -1, dtype=np.int64)
-    splat(rays, depth_src, near_m, M, c, window, width_src, ex0, ey0, depth, index)
+    keys = np.full((eh, ew), EMPTY_KEY, dtype=np.int64)
+    splat(rays, depth_src, near_m, M, c, window, width_src, ex0, ey0, keys)
     if radius > 0:
-        fill_cracks(depth, index, radius)
+        fill_cracks(keys, radius)
     y0, x0 = roi[1] - ey0, roi[0] - ex0
+    depth_bits = depth_out.view(np.int32)  # EMPTY_KEY's upper half is +inf's bits
     for y in range(depth_out.shape[0]):
         for x in range(depth_out.shape[1]):
-            depth_out[y, x] = depth[y0 + y, x0 + x]
-            valid_out[y, x] = index[y0 + y, x0 + x] >= 0
-    gather_colour(index, colour, y0, x0, rgb_out)
+            key = keys[y0 + y, x0 + x]
+            depth_bits[y, x] = np.int32(key >> 32)
+            valid_out[y, x] = key != EMPTY_KEY
+            i = key & _INDEX_MASK
+            for k in range(3):
+                rgb_out[y, x, k] = colour[i, k] if key != EMPTY_KEY else 0
 
 
 @njit(cache=True, nogil=True)
