@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 from shapely import Polygon, distance, intersection_all, polygons
 
+from drivesim.sim import footprint_kernel
+
 # The paper's dilation of the ego polygon for R_collision (§IV-A): +1 m in length, +0.4 m in width.
 COLLISION_DILATION_LENGTH_M = 1.0
 COLLISION_DILATION_WIDTH_M = 0.4
@@ -69,6 +71,19 @@ def collision_overlap(
     length_m, width_m = ego_size_m
     extra_l = COLLISION_DILATION_LENGTH_M if dilate else 0.0
     extra_w = COLLISION_DILATION_WIDTH_M if dilate else 0.0
-    ego = footprint(*ego_pose, length_m + extra_l, width_m + extra_w)
-    other = footprint(*other_pose, *other_size_m)
-    return overlap_fraction(ego, other, ego_area_m2=length_m * width_m)
+    ego = footprint_kernel.rectangle(*ego_pose, length_m + extra_l, width_m + extra_w)
+    other = footprint_kernel.rectangle(*other_pose, *other_size_m)
+    return footprint_kernel.shared_area_m2(ego, other) / (length_m * width_m)
+
+
+def pose_clearance_m(
+    ego_pose: tuple[float, float, float],
+    ego_size_m: tuple[float, float],
+    other_pose: tuple[float, float, float],
+    other_size_m: tuple[float, float],
+) -> float:
+    """`clearance_m` of two vehicles' footprints given as poses (x_m, y_m, yaw_rad) and sizes (length_m, width_m),
+    without making polygons (what an env step measures)."""
+    ego = footprint_kernel.rectangle(*ego_pose, *ego_size_m)
+    other = footprint_kernel.rectangle(*other_pose, *other_size_m)
+    return float(footprint_kernel.distance_m(ego, other))

@@ -27,7 +27,7 @@ from drivesim.sim.envs.config import EnvConfig
 from drivesim.sim.envs.rewards import collision_reward, comfort_reward, lane_reward
 from drivesim.sim.envs.roi import roi_for
 from drivesim.sim.envs.termination import termination_flags
-from drivesim.sim.footprint import clearance_m, collision_overlap, footprint
+from drivesim.sim.footprint import collision_overlap, pose_clearance_m
 from drivesim.sim.simulator import TIMING_KEYS, Simulator, make_view_synthesizer, render_requests
 from drivesim.sim.world import World
 
@@ -363,9 +363,7 @@ class DrivingEnv(gymnasium.Env):
             else:
                 ego_pose, other_pose = (s.x_m, s.y_m, s.yaw_rad), (o.x_m, o.y_m, o.yaw_rad)
                 ego_size, other_size = (ego.length_m, ego.width_m), (other.length_m, other.width_m)
-                m["clearance_m"] = clearance = clearance_m(
-                    footprint(*ego_pose, *ego_size), footprint(*other_pose, *other_size)
-                )
+                m["clearance_m"] = clearance = pose_clearance_m(ego_pose, ego_size, other_pose, other_size)
                 # The dilated ego reaches at most 0.5 m further than the ego: beyond that no overlap to compute.
                 if clearance < 0.6:
                     m["overlap_frac"] = collision_overlap(ego_pose, ego_size, other_pose, other_size, dilate=False)
