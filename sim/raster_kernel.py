@@ -321,19 +321,32 @@ def render_untextured(
 
 @njit(cache=True, nogil=True)
 def composite_uint8(
-    rgb: np.ndarray, depth: np.ndarray, car_rgb: np.ndarray, car_depth: np.ndarray, front: np.ndarray
+    rgb: np.ndarray, depth: np.ndarray, car_rgb: np.ndarray, car_depth: np.ndarray, front: np.ndarray, gray: bool
 ) -> None:
     """`raster.composite` for one uint8 view, in place: where the drawn car (car_rgb (h, w, 3) float [0, 1],
     car_depth (h, w)) is nearer than the view's depth (h, w), its colour replaces the view's (rgb (h, w, 3) uint8);
-    front (h, w) bool receives where."""
+    front (h, w) bool receives where. With `gray` (a gray camera's world) the car's pixels take their luma in all
+    three channels, with OpenCV's RGB2GRAY arithmetic to the grey level (15-bit fixed point; checked against
+    cv2.cvtColor on every 8-bit colour in tests/test_raster.py)."""
     h, w = depth.shape
     for y in range(h):
         for x in range(w):
             nearer = car_depth[y, x] < depth[y, x]
             front[y, x] = nearer
-            if nearer:
-                for c in range(3):
-                    rgb[y, x, c] = np.uint8(car_rgb[y, x, c] * np.float32(255.0) + np.float32(0.5))
+            if not nearer:
+                continue
+            r = np.uint8(car_rgb[y, x, 0] * np.float32(255.0) + np.float32(0.5))
+            g = np.uint8(car_rgb[y, x, 1] * np.float32(255.0) + np.float32(0.5))
+            b = np.uint8(car_rgb[y, x, 2] * np.float32(255.0) + np.float32(0.5))
+            if gray:
+                r = g = b = luma_uint8(r, g, b)
+            rgb[y, x, 0], rgb[y, x, 1], rgb[y, x, 2] = r, g, b
+
+
+@njit(cache=True, nogil=True, inline="always")
+def luma_uint8(r: np.uint8, g: np.uint8, b: np.uint8) -> np.uint8:
+    """OpenCV's RGB2GRAY of one 8-bit colour: (9798 R + 19235 G + 3735 B + 2^14) >> 15."""
+    return np.uint8((np.int32(r) * 9798 + np.int32(g) * 19235 + np.int32(b) * 3735 + 16384) >> 15)
 
 
 @njit(cache=True, nogil=True)

@@ -468,10 +468,8 @@ class ViewSynthesizer:
         car_mask = np.zeros(depth_np.shape, dtype=bool)
         car_rgb, car_depth = drawn.rgb.numpy(), drawn.depth_m.numpy()
         for i, b in enumerate(viewers):
-            raster_kernel.composite_uint8(rgb_np[b], depth_np[b], car_rgb[i], car_depth[i], car_mask[b])
-        if self.monochrome:
-            for b in viewers:
-                _gray_under_mask_(rgb_np[b], car_mask[b])
+            gray = bool(self.monochrome)  # a gray camera's world: the car in gray too, in the same pass
+            raster_kernel.composite_uint8(rgb_np[b], depth_np[b], car_rgb[i], car_depth[i], car_mask[b], gray)
         timings["composite"] += 1e3 * (time.perf_counter() - start)
         if self.config.harmonization:
             start = time.perf_counter()
@@ -739,17 +737,6 @@ def frames_are_monochrome(frames: np.ndarray) -> bool:
         if np.abs(frame[..., 2] - frame[..., 1]).max() > _MONOCHROME_TOLERANCE:
             return False
     return True
-
-
-def _gray_under_mask_(rgb: np.ndarray, mask: np.ndarray) -> None:
-    """Replace the pixels of a uint8 view (h, w, 3) under `mask` (h, w) by their luma, in place."""
-    ys, xs = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
-    if ys.size == 0:
-        return
-    box = rgb[ys[0] : ys[-1] + 1, xs[0] : xs[-1] + 1]
-    gray = cv2.cvtColor(np.ascontiguousarray(box), cv2.COLOR_RGB2GRAY)
-    under = mask[ys[0] : ys[-1] + 1, xs[0] : xs[-1] + 1]
-    box[under] = gray[under][:, None]
 
 
 def _harmonized_uint8(rgb: torch.Tensor, harmonized: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -15,6 +16,7 @@ from drivesim.diagnostics.gl_reference import (
     textured_quad,
 )
 from drivesim.sim import geometry as g
+from drivesim.sim import raster_kernel
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.raster import Lighting, PackedScene, Rasterizer, pack_meshes
 from drivesim.sim.shading import specular_exponent
@@ -420,3 +422,20 @@ def test_instances_take_each_cameras_own_paint():
         assert direct.mask[0].sum() > 2000
         assert (direct.rgb[0] - gathered.rgb[b]).abs().max() < 1e-5
     assert (gathered.rgb[0] - gathered.rgb[1]).abs().amax(-1)[gathered.mask[0]].mean() > 0.1, "two paints"
+
+
+def test_gray_composite_matches_opencvs_rgb2gray_on_every_colour() -> None:
+    """A gray camera's car is composited in gray in the same pass: its luma must be cv2.cvtColor's RGB2GRAY to the
+    grey level, checked on all 2^24 8-bit colours (a row of 65536 car pixels per red level)."""
+    green_blue = np.arange(65536)
+    for red in range(256):
+        colours = np.stack([np.full(65536, red), green_blue >> 8, green_blue & 255], axis=-1).astype(np.uint8)[None]
+        view = np.zeros_like(colours)
+        front = np.zeros((1, 65536), dtype=bool)
+        car_rgb = colours.astype(np.float32) / np.float32(255.0)
+        raster_kernel.composite_uint8(
+            view, np.full((1, 65536), np.inf, np.float32), car_rgb, np.ones((1, 65536), np.float32), front, True
+        )
+        expected = cv2.cvtColor(colours, cv2.COLOR_RGB2GRAY)
+        assert front.all()
+        np.testing.assert_array_equal(view, np.repeat(expected[..., None], 3, axis=-1), err_msg=f"red {red}")
