@@ -124,6 +124,11 @@ class ViewConfig(pydantic.BaseModel):
     monochrome: bool | None = None
     """Whether the camera is monochrome: inserted cars are then drawn and harmonized in gray (luminance). None:
     detected from the world's frames (every sampled frame has equal R, G and B, as KITTI's gray cameras give)."""
+    render_threads: int = pydantic.Field(1, ge=1, le=16)
+    """CPU threads one view's warp is split over (1: none): the view is cut into that many horizontal bands, warped,
+    crack-filled and gathered at the same time in numba's threads, with the same pixels as one warp. For a single env
+    whose step latency matters, e.g. against VISTA, whose renderer (llvmpipe) uses every core; training already keeps
+    every core busy with envs, so the presets leave it at 1."""
     source_downsample: bool = True
     """Warp from recorded frames reduced by the integer factor closest to (not above) roi / out, colour area-averaged
     and depth min-pooled (the nearest surface wins): about that factor squared fewer points to warp, at the policy's
@@ -759,7 +764,8 @@ def _view_kernel_warp(K_src: np.ndarray, src_size: tuple[int, int], K_view: np.n
     """`_warp` of a whole view on the CPU as a `KernelWarp` (the same destination, its constants made once)."""
     K_dst, width, height, roi = _view_destination(K_view, cfg)
     rendered = rendered_region(width, height, roi, cfg.fill_holes)
-    return KernelWarp(K_src, src_size, K_dst, rendered, roi, cfg.fill_holes, partial=rendered[2:] != (width, height))
+    partial = rendered[2:] != (width, height)
+    return KernelWarp(K_src, src_size, K_dst, rendered, roi, cfg.fill_holes, partial, bands=cfg.render_threads)
 
 
 def _warp(

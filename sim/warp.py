@@ -403,6 +403,8 @@ class KernelWarp:
     :param K_dst: (3, 3) destination intrinsics. :param rendered: (ex0, ey0, ew, eh) the region rendered (the ROI
         plus the hole-filling margin). :param roi: (x0, y0, w, h) the region returned. :param fill_holes: fill cracks.
     :param partial: whether the rendered region is smaller than the destination image (then a source window).
+    :param bands: horizontal bands the region is cut into, warped at the same time in numba's threads (1: one warp
+        in the calling thread); the pixels are the same (`_band_regions`).
     """
 
     def __init__(
@@ -414,6 +416,7 @@ class KernelWarp:
         roi: tuple[int, int, int, int],
         fill_holes: bool,
         partial: bool,
+        bands: int = 1,
     ) -> None:
         self.K_src = np.array(K_src, dtype=np.float64)
         self.K_dst = np.array(K_dst, dtype=np.float64)
@@ -423,10 +426,13 @@ class KernelWarp:
         self.radius = _FILL_RADIUS_PX if fill_holes else 0
         self.partial = partial
         self.rays = _rays(H, W, torch.from_numpy(self.K_src)).numpy()
-        ex0, ey0, ew, eh = rendered
-        self._window_rays = _window_rays(
-            self.K_src.tobytes(), self.K_dst.tobytes(), (H, W), (ex0, ey0, ex0 + ew, ey0 + eh)
-        )
+        self._band_rendered, self._band_roi = _band_regions(self.rendered, self.roi, self.radius, bands)
+        if len(self._band_roi) > 1:  # each band's source window is narrower than the whole region's
+            self.partial = True
+        self._window_rays = [
+            _window_rays(self.K_src.tobytes(), self.K_dst.tobytes(), (H, W), (ex0, ey0, ex0 + ew, ey0 + eh))
+            for ex0, ey0, ew, eh in self._band_rendered.tolist()
+        ]
         self._whole = np.array([0, 0, W, H], dtype=np.int64)
 
     def __call__(
@@ -438,10 +444,12 @@ class KernelWarp:
 
         H, W = self.src_size
         T = np.asarray(T_dst_src, dtype=np.float64).reshape(1, 4, 4)
-        window = self._whole
-        if self.partial:  # only the source pixels that can land in the region: a rectangle of the source frame
-            found = warp_kernel.source_window(float(min_depth_m), *self._window_rays, self.K_src, T, W, H)
-            window = self._whole if found[0] < 0 else found
+        windows = np.empty((len(self._window_rays), 4), dtype=np.int64)
+        for b, window_rays in enumerate(self._window_rays):
+            windows[b] = self._whole
+            if self.partial:  # only the source pixels that can land in the region: a rectangle of the source frame
+                found = warp_kernel.source_window(float(min_depth_m), *window_rays, self.K_src, T, W, H)
+                windows[b] = self._whole if found[0] < 0 else found
         # q = K_dst (R P + t finite): finite points move with the camera, points at infinity only turn.
         M = (self.K_dst @ T[:, :3, :3]).astype(np.float32)[0]
         c = (self.K_dst @ T[:, :3, 3:])[0, :, 0].astype(np.float32)
@@ -449,11 +457,34 @@ class KernelWarp:
         rgb_out = np.empty((h, w, 3), dtype=rgb.dtype)
         depth_out = np.empty((h, w), dtype=np.float32)
         valid = np.empty((h, w), dtype=bool)
-        warp_kernel.warp_region(
-            self.rays, depth_m.reshape(H * W), rgb.reshape(H * W, 3), _NEAR_M, M, c, window, W, self.rendered,
-            self.roi, self.radius, rgb_out, depth_out, valid,
-        )  # fmt: skip
+        arrays = (self.rays, depth_m.reshape(H * W), rgb.reshape(H * W, 3), _NEAR_M, M, c)
+        if len(windows) == 1:
+            warp_kernel.warp_region(
+                *arrays, windows[0], W, self.rendered, self.roi, self.radius, rgb_out, depth_out, valid
+            )  # fmt: skip
+        else:
+            warp_kernel.warp_bands(
+                *arrays, windows, W, self._band_rendered, self._band_roi, self.radius, rgb_out, depth_out, valid
+            )  # fmt: skip
         return rgb_out, depth_out, valid
+
+
+def _band_regions(rendered: np.ndarray, roi: np.ndarray, radius: int, bands: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rendered (n, 4), roi (n, 4)) of `roi` cut into n = `bands` horizontal bands (at most one per row): each band
+    renders its rows plus those its crack filling reads across a cut (radius + (radius - 1) + ... + 1 px: pass r reads
+    r px of the results of pass r - 1), within the whole region's `rendered`, so that its pixels are exactly those
+    of the whole region's warp."""
+    x0, y0, w, h = (int(v) for v in roi)
+    ex0, ey0, ew, eh = (int(v) for v in rendered)
+    reach = radius * (radius + 1) // 2
+    cuts = np.linspace(0, h, max(min(bands, h), 1) + 1).round().astype(int).tolist()
+    band_rendered, band_roi = [], []
+    for top, bottom in zip(cuts[:-1], cuts[1:], strict=True):
+        r0 = ey0 if top == 0 else max(y0 + top - reach, ey0)
+        r1 = ey0 + eh if bottom == h else min(y0 + bottom + reach, ey0 + eh)
+        band_rendered.append((ex0, r0, ew, r1 - r0))
+        band_roi.append((x0, y0 + top, w, bottom - top))
+    return np.array(band_rendered, dtype=np.int64), np.array(band_roi, dtype=np.int64)
 
 
 @functools.lru_cache(maxsize=16)

@@ -14,7 +14,7 @@ packed key too: one int64 per pixel, so a splat is one compare and a crack's fil
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 EMPTY_KEY = np.int64((0x7F800000 << 32) | 0xFFFFFFFF)
 """An empty z-buffer pixel: depth +inf and the largest index, so that it sorts after every warped point (the torch
@@ -199,6 +199,35 @@ def warp_region(
             i = key & _INDEX_MASK
             for k in range(3):
                 rgb_out[y, x, k] = colour[i, k] if key != EMPTY_KEY else 0
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def warp_bands(
+    rays: np.ndarray,
+    depth_src: np.ndarray,
+    colour: np.ndarray,
+    near_m: float,
+    M: np.ndarray,
+    c: np.ndarray,
+    windows: np.ndarray,
+    width_src: int,
+    rendered: np.ndarray,
+    rois: np.ndarray,
+    radius: int,
+    rgb_out: np.ndarray,
+    depth_out: np.ndarray,
+    valid_out: np.ndarray,
+) -> None:
+    """`warp_region` of n horizontal bands at the same time, one per thread: band b has its source window
+    windows[b], its rendered region rendered[b] and its rows rois[b] (x0, y0, w, h), which land in rows
+    rois[b, 1] - rois[0, 1] onwards of the outputs (the whole region's rgb_out, depth_out, valid_out)."""
+    for b in prange(rois.shape[0]):
+        top = rois[b, 1] - rois[0, 1]
+        bottom = top + rois[b, 3]
+        warp_region(
+            rays, depth_src, colour, near_m, M, c, windows[b], width_src, rendered[b], rois[b], radius,
+            rgb_out[top:bottom], depth_out[top:bottom], valid_out[top:bottom],
+        )  # fmt: skip
 
 
 @njit(cache=True, nogil=True)

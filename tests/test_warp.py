@@ -226,6 +226,34 @@ def test_cpu_kernel_matches_the_torch_path(T_dst_src, roi, dtype):
     assert torch.equal(torch.isinf(kernel.depth_m) & kernel.valid, torch.isinf(reference.depth_m) & reference.valid)
 
 
+@pytest.mark.parametrize("bands", [2, 3, 7])
+@pytest.mark.parametrize(
+    ("T_dst_src", "rendered", "roi"),
+    [
+        (g.se3(g.rot_y(0.03), [0.6, 0.0, -1.5]), (0, 0, W, H), (0, 0, W, H)),  # the whole image, cracks
+        (g.se3(g.rot_y(-0.2) @ g.rot_x(0.05), [-0.8, 0.1, 0.5]), (78, 98, 164, 68), (80, 100, 160, 64)),
+    ],
+)
+def test_a_warp_cut_into_bands_gives_the_same_pixels(T_dst_src, rendered, roi, bands):
+    """`KernelWarp(bands=n)` (the view cut into n bands warped at once in numba's threads, `render_threads`) gives
+    exactly the pixels, depths and validity of the one warp, also where the crack filling reads across a cut."""
+    rgb_src, depth_src = render_from(g.pose_2d(0.0, 0.0, 0.0), plane_world())
+    depth_src[:, :30] = torch.inf
+    rgb = (rgb_src * 255).to(torch.uint8).numpy()
+    depth = depth_src.numpy()
+    min_depth = float(depth[np.isfinite(depth)].min())
+    partial = rendered[2:] != (W, H)
+    one = warp_module.KernelWarp(K, (H, W), K, rendered, roi, fill_holes=True, partial=partial)(
+        rgb, depth, min_depth, T_dst_src
+    )
+    cut = warp_module.KernelWarp(K, (H, W), K, rendered, roi, fill_holes=True, partial=partial, bands=bands)(
+        rgb, depth, min_depth, T_dst_src
+    )
+    assert 0.02 < 1.0 - one[2].mean() < 0.6  # empty pixels before filling: there were cracks and holes to fill
+    for whole, banded in zip(one, cut, strict=True):
+        np.testing.assert_array_equal(banded, whole)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_cuda_matches_cpu():
     rgb_src, depth_src = render_from(g.pose_2d(0.0, 0.0, 0.0), plane_world())

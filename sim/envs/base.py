@@ -119,8 +119,9 @@ class DrivingEnv(gymnasium.Env):
             c, world = self.config, self.worlds[world_index]
             roi = self.roi_px_of(world_index)
             self._renderers[world_index] = make_view_synthesizer(
-                world, roi, c.observation_width_px, c.observation_height_px, device=c.render_device
-            )
+                world, roi, c.observation_width_px, c.observation_height_px, device=c.render_device,
+                render_threads=c.render_threads,
+            )  # fmt: skip
         return self._renderers[world_index]
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:

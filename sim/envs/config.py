@@ -128,6 +128,9 @@ class EnvConfig(BaseModel):
     """torch device the views are rendered on: "cpu", or "cuda" (an NVIDIA GPU), where all the views of a world that
     one process steps are rendered in one batch of torch operations (sim/view.py, the batched path; holes filled by
     a pull-push fill instead of OpenCV's inpainting)."""
+    render_threads: int = Field(1, ge=1, le=16)
+    """On the CPU, threads each view's warp is split over (`ViewConfig.render_threads`; the same pixels): for one env
+    whose step latency matters. 1 (the default) wherever envs already keep every core busy, as in training."""
     augment: bool = True
     """Episode-level photometric augmentation in training (never in evaluation)."""
     gamma: tuple[float, float] = (0.8, 1.25)
