@@ -205,14 +205,17 @@ def merge_into_holes(
     return newly
 
 
-def inpaint_holes(rgb: np.ndarray, hole: np.ndarray) -> int:
+def inpaint_holes(rgb: np.ndarray, hole: np.ndarray, threads: int = 1) -> int:
     """Inpaint the pixels of `hole` (h, w) bool in the uint8 view `rgb` (h, w, 3) in place; returns how many there
-    were. The pull-push fill of `pull_push_fill` (the GPU path's) in one compiled call (`fill_kernel.py`): smooth
-    continuation of the colours around each hole, small or a whole side wedge. A view that is all hole stays as it
-    is (black)."""
+    were. The pull-push fill of `pull_push_fill` (the GPU path's) in one compiled call (`fill_kernel.py`), its rows
+    shared among `threads` threads (the same pixels): smooth continuation of the colours around each hole, small or a
+    whole side wedge. A view that is all hole stays as it is (black)."""
     count = int(np.count_nonzero(hole))
     if 0 < count < hole.size:
-        fill_kernel.pull_push_fill_(rgb, hole)
+        if threads > 1:
+            fill_kernel.pull_push_fill_bands_(rgb, hole, threads)
+        else:
+            fill_kernel.pull_push_fill_(rgb, hole)
     return count
 
 

@@ -12,18 +12,16 @@ align_corners=False, so both paths fill alike up to float rounding (tests/test_v
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 
 @njit(cache=True, nogil=True)
-def _pull(colour: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One pyramid level up: 2 x 2 means of colour (h, w, 3) and weight (h, w) over the pixels inside the image."""
+def _pull_rows(colour: np.ndarray, weight: np.ndarray, c_out: np.ndarray, w_out: np.ndarray, y0: int, y1: int) -> None:
+    """Rows y0..y1 of one pyramid level up: 2 x 2 means of colour (h, w, 3) and weight (h, w) over the pixels inside
+    the image, into c_out (hc, wc, 3) and w_out (hc, wc) (zeros)."""
     h, w = weight.shape
-    hc, wc = (h + 1) // 2, (w + 1) // 2
-    c_out = np.zeros((hc, wc, 3), dtype=np.float32)
-    w_out = np.zeros((hc, wc), dtype=np.float32)
-    for y in range(hc):
-        for x in range(wc):
+    for y in range(y0, y1):
+        for x in range(c_out.shape[1]):
             n = 0
             for yy in range(2 * y, min(2 * y + 2, h)):
                 for xx in range(2 * x, min(2 * x + 2, w)):
@@ -35,35 +33,28 @@ def _pull(colour: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarra
             w_out[y, x] *= inv
             for k in range(3):
                 c_out[y, x, k] *= inv
-    return c_out, w_out
 
 
 @njit(cache=True, nogil=True)
-def _pull_view(rgb: np.ndarray, hole: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`_pull` of the view itself (colour rgb where seen, 0 in the holes; weight 1 where seen), without making the
-    finest level's float arrays."""
+def _pull_view_rows(rgb: np.ndarray, hole: np.ndarray, c_out: np.ndarray, w_out: np.ndarray, y0: int, y1: int) -> None:
+    """`_pull_rows` of the view itself (colour rgb where seen, 0 in the holes; weight 1 where seen), without making
+    the finest level's float arrays; the sums in the same order (the two source rows, each left to right)."""
     h, w = hole.shape
-    hc, wc = (h + 1) // 2, (w + 1) // 2
-    c_out = np.zeros((hc, wc, 3), dtype=np.float32)
-    w_out = np.zeros((hc, wc), dtype=np.float32)
-    count = np.zeros((hc, wc), dtype=np.float32)
-    for yy in range(h):
-        y = yy // 2
-        for xx in range(w):
-            x = xx // 2
-            count[y, x] += 1.0
-            if not hole[yy, xx]:
-                w_out[y, x] += 1.0
-                c_out[y, x, 0] += np.float32(rgb[yy, xx, 0])
-                c_out[y, x, 1] += np.float32(rgb[yy, xx, 1])
-                c_out[y, x, 2] += np.float32(rgb[yy, xx, 2])
-    for y in range(hc):
-        for x in range(wc):
-            inv = np.float32(1.0) / count[y, x]
+    for y in range(y0, y1):
+        for yy in range(2 * y, min(2 * y + 2, h)):
+            for xx in range(w):
+                x = xx // 2
+                if not hole[yy, xx]:
+                    w_out[y, x] += 1.0
+                    c_out[y, x, 0] += np.float32(rgb[yy, xx, 0])
+                    c_out[y, x, 1] += np.float32(rgb[yy, xx, 1])
+                    c_out[y, x, 2] += np.float32(rgb[yy, xx, 2])
+        rows = np.float32(min(2 * y + 2, h) - 2 * y)
+        for x in range(c_out.shape[1]):
+            inv = np.float32(1.0) / (rows * np.float32(min(2 * x + 2, w) - 2 * x))
             w_out[y, x] *= inv
             for k in range(3):
                 c_out[y, x, k] *= inv
-    return c_out, w_out
 
 
 @njit(cache=True, nogil=True)
@@ -82,29 +73,31 @@ def _sources(size_in: int, size_out: int) -> tuple[np.ndarray, np.ndarray, np.nd
 
 
 @njit(cache=True, nogil=True)
-def _push(filled: np.ndarray, colour: np.ndarray, weight: np.ndarray, hole: np.ndarray, out: np.ndarray) -> None:
-    """One level down into out (h, w, 3): each pixel keeps its normalized colour `colour` / `weight` in proportion to
-    its coverage (at most 1) and takes the coarser level's `filled`, enlarged bilinearly, for the rest. With a
-    `hole` mask (the finest level, colour and weight unused), only the hole pixels are written, from `filled` alone
-    (coverage 0), rounded to uint8."""
+def _push_rows(
+    filled: np.ndarray, colour: np.ndarray, weight: np.ndarray, hole: np.ndarray, out: np.ndarray, y0: int, y1: int
+) -> None:
+    """Rows y0..y1 of one level down into out (h, w, 3): each pixel keeps its normalized colour `colour` / `weight`
+    in proportion to its coverage (at most 1) and takes the coarser level's `filled`, enlarged bilinearly, for the
+    rest. With a `hole` mask (the finest level, colour and weight unused), only the hole pixels are written, from
+    `filled` alone (coverage 0), rounded to uint8."""
     h, w = out.shape[0], out.shape[1]
     y0s, y1s, lys = _sources(filled.shape[0], h)
     x0s, x1s, lxs = _sources(filled.shape[1], w)
     one = np.float32(1.0)
     finest = hole.shape[0] > 0
-    for y in range(h):
-        y0, y1, ly = y0s[y], y1s[y], lys[y]
+    for y in range(y0, y1):
+        ya, yb, ly = y0s[y], y1s[y], lys[y]
         for x in range(w):
             if finest and not hole[y, x]:
                 continue
-            x0, x1, lx = x0s[x], x1s[x], lxs[x]
+            xa, xb, lx = x0s[x], x1s[x], lxs[x]
             alpha, inv_w = np.float32(0.0), np.float32(0.0)
             if not finest:
                 alpha = min(weight[y, x], one)
                 inv_w = np.float32(1.0) / max(weight[y, x], np.float32(1e-6))
             for k in range(3):
-                top = filled[y0, x0, k] * (one - lx) + filled[y0, x1, k] * lx
-                bottom = filled[y1, x0, k] * (one - lx) + filled[y1, x1, k] * lx
+                top = filled[ya, xa, k] * (one - lx) + filled[ya, xb, k] * lx
+                bottom = filled[yb, xa, k] * (one - lx) + filled[yb, xb, k] * lx
                 coarse = top * (one - ly) + bottom * ly
                 if not finest:
                     out[y, x, k] = colour[y, x, k] * inv_w * alpha + coarse * (one - alpha)
@@ -113,33 +106,82 @@ def _push(filled: np.ndarray, colour: np.ndarray, weight: np.ndarray, hole: np.n
 
 
 @njit(cache=True, nogil=True)
-def pull_push_fill_(rgb: np.ndarray, hole: np.ndarray) -> None:
-    """Fill the pixels of `hole` (h, w) bool in the uint8 view `rgb` (h, w, 3) in place from the others (pull-push);
-    a view with no hole or no seen pixel is left as it is. Only the hole pixels of the finest level are computed
-    (the others keep their colour, as the torch path's coverage 1 gives)."""
+def _has_hole_and_seen(hole: np.ndarray) -> bool:
+    """Whether a view has both hole pixels and seen pixels, and a pyramid to fill the one from the other."""
     h, w = hole.shape
     holes = 0
     for y in range(h):
         for x in range(w):
             holes += hole[y, x]
-    if holes == 0 or holes == h * w or min(h, w) <= 1:
-        return
-    c, wt = _pull_view(rgb, hole)
-    colours = [c]
-    weights = [wt]
-    while min(weights[-1].shape[0], weights[-1].shape[1]) > 1:
-        c, wt = _pull(colours[-1], weights[-1])
-        colours.append(c)
-        weights.append(wt)
-    top_w = weights[-1]
-    filled = colours[-1].copy()
-    for y in range(top_w.shape[0]):
-        for x in range(top_w.shape[1]):
-            inv_w = np.float32(1.0) / max(top_w[y, x], np.float32(1e-6))
+    return 0 < holes < h * w and min(h, w) > 1
+
+
+@njit(cache=True, nogil=True)
+def _top_filled(colour: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """The coarsest level's normalized colour (colour / weight)."""
+    filled = colour.copy()
+    for y in range(weight.shape[0]):
+        for x in range(weight.shape[1]):
+            inv_w = np.float32(1.0) / max(weight[y, x], np.float32(1e-6))
             for k in range(3):
                 filled[y, x, k] *= inv_w
+    return filled
+
+
+@njit(cache=True, nogil=True)
+def _pyramid(h: int, w: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Zeroed colour (hc, wc, 3) and weight (hc, wc) float32 arrays of the pyramid's levels above an (h, w) view:
+    halved (rounded up) until one side is 1."""
+    hc, wc = (h + 1) // 2, (w + 1) // 2
+    colours = [np.zeros((hc, wc, 3), dtype=np.float32)]
+    weights = [np.zeros((hc, wc), dtype=np.float32)]
+    while min(hc, wc) > 1:
+        hc, wc = (hc + 1) // 2, (wc + 1) // 2
+        colours.append(np.zeros((hc, wc, 3), dtype=np.float32))
+        weights.append(np.zeros((hc, wc), dtype=np.float32))
+    return colours, weights
+
+
+@njit(cache=True, nogil=True)
+def pull_push_fill_(rgb: np.ndarray, hole: np.ndarray) -> None:
+    """Fill the pixels of `hole` (h, w) bool in the uint8 view `rgb` (h, w, 3) in place from the others (pull-push);
+    a view with no hole or no seen pixel is left as it is. Only the hole pixels of the finest level are computed
+    (the others keep their colour, as the torch path's coverage 1 gives)."""
+    if not _has_hole_and_seen(hole):
+        return
+    colours, weights = _pyramid(hole.shape[0], hole.shape[1])
+    _pull_view_rows(rgb, hole, colours[0], weights[0], 0, weights[0].shape[0])
+    for level in range(1, len(weights)):
+        _pull_rows(colours[level - 1], weights[level - 1], colours[level], weights[level], 0, weights[level].shape[0])
+    filled = _top_filled(colours[-1], weights[-1])
+    no_hole = np.zeros((0, 0), dtype=np.bool_)
     for level in range(len(weights) - 2, -1, -1):
         out = np.empty_like(colours[level])
-        _push(filled, colours[level], weights[level], np.zeros((0, 0), dtype=np.bool_), out)
+        _push_rows(filled, colours[level], weights[level], no_hole, out, 0, out.shape[0])
         filled = out
-    _push(filled, filled, top_w, hole, rgb)
+    _push_rows(filled, filled, weights[0], hole, rgb, 0, rgb.shape[0])
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def pull_push_fill_bands_(rgb: np.ndarray, hole: np.ndarray, bands: int) -> None:
+    """`pull_push_fill_` with each level's rows cut into `bands` parts done at the same time in numba's threads (the
+    same arithmetic, row for row: the same pixels)."""
+    if not _has_hole_and_seen(hole):
+        return
+    colours, weights = _pyramid(hole.shape[0], hole.shape[1])
+    rows = weights[0].shape[0]
+    for b in prange(bands):
+        _pull_view_rows(rgb, hole, colours[0], weights[0], b * rows // bands, (b + 1) * rows // bands)
+    for level in range(1, len(weights)):
+        _pull_rows(colours[level - 1], weights[level - 1], colours[level], weights[level], 0, weights[level].shape[0])
+    filled = _top_filled(colours[-1], weights[-1])
+    no_hole = np.zeros((0, 0), dtype=np.bool_)
+    for level in range(len(weights) - 2, -1, -1):
+        out = np.empty_like(colours[level])
+        rows = out.shape[0]
+        for b in prange(bands):
+            _push_rows(filled, colours[level], weights[level], no_hole, out, b * rows // bands, (b + 1) * rows // bands)
+        filled = out
+    rows = rgb.shape[0]
+    for b in prange(bands):
+        _push_rows(filled, filled, weights[0], hole, rgb, b * rows // bands, (b + 1) * rows // bands)

@@ -125,10 +125,11 @@ class ViewConfig(pydantic.BaseModel):
     """Whether the camera is monochrome: inserted cars are then drawn and harmonized in gray (luminance). None:
     detected from the world's frames (every sampled frame has equal R, G and B, as KITTI's gray cameras give)."""
     render_threads: int = pydantic.Field(1, ge=1, le=16)
-    """CPU threads one view's warp is split over (1: none): the view is cut into that many horizontal bands, warped,
-    crack-filled and gathered at the same time in numba's threads, with the same pixels as one warp. For a single env
-    whose step latency matters, e.g. against VISTA, whose renderer (llvmpipe) uses every core; training already keeps
-    every core busy with envs, so the presets leave it at 1."""
+    """CPU threads one view's warp and inpainting are split over (1: none): the view is cut into that many horizontal
+    bands, warped, crack-filled and gathered at the same time in numba's threads, and the inpainting's rows are
+    shared out likewise, with the same pixels as one thread. For a single env whose step latency matters, e.g. against
+    VISTA, whose renderer (llvmpipe) uses every core; training already keeps every core busy with envs, so the presets
+    leave it at 1."""
     source_downsample: bool = True
     """Warp from recorded frames reduced by the integer factor closest to (not above) roi / out, colour area-averaged
     and depth min-pooled (the nearest surface wins): about that factor squared fewer points to warp, at the policy's
@@ -685,7 +686,7 @@ class ViewSynthesizer:
             rgb, depth, valid, self.config.fill_frames, neighbour_warp
         )
         if self.config.inpaint:
-            stats.inpainted_px = inpaint_holes(rgb, ~valid & ~filled)
+            stats.inpainted_px = inpaint_holes(rgb, ~valid & ~filled, self.config.render_threads)
         self.fill_stats.add(stats)
 
     def _contact_shadows(self, rgb: torch.Tensor, depth: torch.Tensor, shadows: list[tuple]) -> torch.Tensor:

@@ -293,6 +293,19 @@ def test_the_cpu_inpainting_is_the_gpu_paths_pull_push():
     assert inpaint_holes(black, everything) == 24 and not black.any()
 
 
+@pytest.mark.parametrize("threads", [2, 3])
+def test_inpainting_on_several_threads_gives_the_same_pixels(threads):
+    """`inpaint_holes` with its rows shared among threads (`render_threads`) fills every hole pixel as one thread
+    does, to the grey level: specks, a side wedge and scattered holes in a textured view of odd size."""
+    rng = np.random.default_rng(4)
+    view = rng.integers(0, 256, size=(61, 97, 3), dtype=np.uint8)
+    hole = rng.random((61, 97)) < 0.2
+    hole[:, :20] = True
+    one, several = view.copy(), view.copy()
+    assert inpaint_holes(one, hole) == inpaint_holes(several, hole, threads) == int(hole.sum())
+    assert np.array_equal(several, one) and not np.array_equal(one, view)
+
+
 def test_pull_push_fill_continues_the_border_colours_of_every_view():
     """The GPU path's hole filling: holes in smooth gradients of a batch of views take colours close to the
     gradient, seen pixels are kept exactly, and a view with nothing seen is left as it is."""
