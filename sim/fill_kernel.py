@@ -14,6 +14,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+_NO_HOLE = np.zeros((0, 0), dtype=np.bool_)
+"""`_push_rows`'s hole mask for the levels above the view: none (every pixel written)."""
+
 
 @njit(cache=True, nogil=True)
 def _pull_rows(colour: np.ndarray, weight: np.ndarray, c_out: np.ndarray, w_out: np.ndarray, y0: int, y1: int) -> None:
@@ -117,12 +120,16 @@ def _has_hole_and_seen(hole: np.ndarray) -> bool:
 
 
 @njit(cache=True, nogil=True)
-def _top_filled(colour: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """The coarsest level's normalized colour (colour / weight)."""
-    filled = colour.copy()
-    for y in range(weight.shape[0]):
-        for x in range(weight.shape[1]):
-            inv_w = np.float32(1.0) / max(weight[y, x], np.float32(1e-6))
+def _pull_coarser(colours: list[np.ndarray], weights: list[np.ndarray]) -> np.ndarray:
+    """Pull every level above the first (filled by the caller) and return the coarsest level's normalized colour
+    (colour / weight), where the push starts."""
+    for level in range(1, len(weights)):
+        _pull_rows(colours[level - 1], weights[level - 1], colours[level], weights[level], 0, weights[level].shape[0])
+    filled = colours[-1].copy()
+    top = weights[-1]
+    for y in range(top.shape[0]):
+        for x in range(top.shape[1]):
+            inv_w = np.float32(1.0) / max(top[y, x], np.float32(1e-6))
             for k in range(3):
                 filled[y, x, k] *= inv_w
     return filled
@@ -151,13 +158,10 @@ def pull_push_fill_(rgb: np.ndarray, hole: np.ndarray) -> None:
         return
     colours, weights = _pyramid(hole.shape[0], hole.shape[1])
     _pull_view_rows(rgb, hole, colours[0], weights[0], 0, weights[0].shape[0])
-    for level in range(1, len(weights)):
-        _pull_rows(colours[level - 1], weights[level - 1], colours[level], weights[level], 0, weights[level].shape[0])
-    filled = _top_filled(colours[-1], weights[-1])
-    no_hole = np.zeros((0, 0), dtype=np.bool_)
+    filled = _pull_coarser(colours, weights)
     for level in range(len(weights) - 2, -1, -1):
         out = np.empty_like(colours[level])
-        _push_rows(filled, colours[level], weights[level], no_hole, out, 0, out.shape[0])
+        _push_rows(filled, colours[level], weights[level], _NO_HOLE, out, 0, out.shape[0])
         filled = out
     _push_rows(filled, filled, weights[0], hole, rgb, 0, rgb.shape[0])
 
@@ -172,15 +176,14 @@ def pull_push_fill_bands_(rgb: np.ndarray, hole: np.ndarray, bands: int) -> None
     rows = weights[0].shape[0]
     for b in prange(bands):
         _pull_view_rows(rgb, hole, colours[0], weights[0], b * rows // bands, (b + 1) * rows // bands)
-    for level in range(1, len(weights)):
-        _pull_rows(colours[level - 1], weights[level - 1], colours[level], weights[level], 0, weights[level].shape[0])
-    filled = _top_filled(colours[-1], weights[-1])
-    no_hole = np.zeros((0, 0), dtype=np.bool_)
+    filled = _pull_coarser(colours, weights)  # the coarser levels are small: one thread
     for level in range(len(weights) - 2, -1, -1):
         out = np.empty_like(colours[level])
         rows = out.shape[0]
         for b in prange(bands):
-            _push_rows(filled, colours[level], weights[level], no_hole, out, b * rows // bands, (b + 1) * rows // bands)
+            _push_rows(
+                filled, colours[level], weights[level], _NO_HOLE, out, b * rows // bands, (b + 1) * rows // bands
+            )
         filled = out
     rows = rgb.shape[0]
     for b in prange(bands):
