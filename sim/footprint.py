@@ -1,7 +1,9 @@
 """Vehicle footprints on the ground plane: polygons, overlap and clearance (paper §III-B, §IV-A).
 
 A vehicle's footprint is the rectangle of its length x width centred on its pose (x, y) and turned by its yaw, in the
-world frame (local ENU, metres). shapely does the polygon work: the paper's collision reward is
+world frame (local ENU, metres). shapely does the polygon work, except in an env step, where a compiled kernel of
+two rectangles gives the same clearance and overlap without making Polygons (`footprint_kernel.py`): the paper's
+collision reward is
 `R_collision = -|Dilate(P_ego) ∩ P_other| / |P_ego|` with the ego dilated by 1 m in length and 0.4 m in width
 (0.5 m more at each end, 0.2 m more on each side); an intervention in evaluation is any overlap of the undilated
 polygons (> 0), and a collision in training an overlap above 5 % of the ego's area.
@@ -10,7 +12,7 @@ polygons (> 0), and a collision in training an overlap above 5 % of the ego's ar
 from __future__ import annotations
 
 import numpy as np
-from shapely import Polygon, distance, intersection_all, polygons
+from shapely import Polygon, distance, polygons
 
 from drivesim.sim import footprint_kernel
 
@@ -43,12 +45,6 @@ def footprint_corners(
 def footprints(x_m: np.ndarray, y_m: np.ndarray, yaw_rad: np.ndarray, length_m: float, width_m: float) -> np.ndarray:
     """`footprint` of n poses at once: an (n,) array of shapely Polygons (made in one call, not one object each)."""
     return polygons(footprint_corners(x_m, y_m, yaw_rad, length_m, width_m))
-
-
-def overlap_fraction(ego: Polygon, other: Polygon, ego_area_m2: float | None = None) -> float:
-    """|ego ∩ other| / |ego area| (0 when apart); `ego_area_m2` overrides the denominator (the undilated ego)."""
-    area = intersection_all([ego, other]).area
-    return float(area / (ego_area_m2 if ego_area_m2 is not None else ego.area))
 
 
 def clearance_m(a: Polygon, b: Polygon) -> float:

@@ -473,8 +473,8 @@ class ViewSynthesizer:
         rgb_np, depth_np = rgb.numpy(), depth.numpy()
         car_mask = np.zeros(depth_np.shape, dtype=bool)
         car_rgb, car_depth = drawn.rgb.numpy(), drawn.depth_m.numpy()
+        gray = bool(self.monochrome)  # a gray camera's world: the car in gray too, in the same pass
         for i, b in enumerate(viewers):
-            gray = bool(self.monochrome)  # a gray camera's world: the car in gray too, in the same pass
             raster_kernel.composite_uint8(rgb_np[b], depth_np[b], car_rgb[i], car_depth[i], car_mask[b], gray)
         timings["composite"] += 1e3 * (time.perf_counter() - start)
         if self.config.harmonization:
