@@ -32,8 +32,9 @@ class VideoConfig(StageConfig):
     """Frames per second given to SfM (the others get interpolated poses); None gives it every frame."""
     sfm_width_px: int = Field(640, ge=160, le=4096)
     """Width of the images SfM works on (px)."""
-    sfm_window: int = Field(10, ge=2, le=100)
-    """Each SfM frame is matched with this many following frames."""
+    sfm_window: int = Field(20, ge=2, le=100)
+    """Each SfM frame is matched with this many following frames (2 s at 10 Hz: tracks that span more of a turn
+    pin the estimated focal length better)."""
     sfm_loop_keyframes: int = Field(15, ge=0, le=200)
     """Evenly spaced keyframes matched with each other for loop closure (0: off)."""
     sfm_max_features: int = Field(4096, ge=256, le=32768)
