@@ -2,7 +2,8 @@
 video and either `--camera-height-m 1.65` or a GPX track made from the OXTS fixes; the SfM camera path checked
 against the OXTS camera path. Two more camera-height rows show how far the estimated focal length (and so the scale)
 depends on the input: the same frames as an image folder (lossless PNGs), and the KITTI odometry snippet (another
-drive, sequence 06) as an MP4. Writes benchmarks/results/video_sfm.md.
+drive, sequence 06) as an MP4. A last row gives the MP4 the OXTS fixes as GoPro GPMF telemetry inside it and no flag.
+Writes benchmarks/results/video_sfm.md.
 
     python benchmarks/bench_video_sfm.py
     python benchmarks/bench_video_sfm.py --only height     # just the camera-height run
@@ -32,6 +33,9 @@ from drivesim.sim.geometry import se3
 from drivesim.stages.ingest.kitti import IMU_HEIGHT_M, kitti_raw_extrinsics, parse_timestamps, read_oxts
 from drivesim.stages.ingest.scale import fit_similarity
 from drivesim.stages.preprocess.poses import enu_transformer
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from gopro_mp4 import add_gopro_gps, gpmf_payload  # noqa: E402  (the tests' GoPro MP4 writer)
 
 DRIVE = (
     Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "kitti_raw" / "2011_09_26"
@@ -101,6 +105,18 @@ def oxts_camera_track() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     T_enu_imu[:, :3, 3] = np.column_stack([e, n, u])
     T_imu_camera = se3(np.eye(3), np.array([0.0, 0.0, -IMU_HEIGHT_M])) @ T_vehicle_camera
     return times, oxts, (T_enu_imu @ T_imu_camera)[:, :3, 3]
+
+
+def gopro_payloads(times_ns: np.ndarray, oxts: np.ndarray) -> list[bytes]:
+    """The OXTS fixes as GoPro GPMF samples: one per second from the first fix, each starting at its first fix."""
+    second = (times_ns - times_ns[0]) // 1_000_000_000
+    payloads = []
+    for s in np.unique(second):
+        rows = np.flatnonzero(second == s)
+        utc = dt.datetime.fromtimestamp(times_ns[rows[0]] / 1e9, dt.UTC)
+        fixes = np.column_stack([oxts[rows, 0], oxts[rows, 1], oxts[rows, 2], np.zeros((len(rows), 2))])
+        payloads.append(gpmf_payload(utc, fixes))
+    return payloads
 
 
 def write_gpx(path: Path, times_ns: np.ndarray, oxts: np.ndarray) -> None:
@@ -212,6 +228,7 @@ ROW_KINDS = {
     "focal": "video + `--camera-height-m 1.65 --hfov-deg 81.4` (focal given)",
     "png": "the same frames as PNGs (image folder, `--fps 10`) + `--camera-height-m 1.65`",
     "odometry": "KITTI odometry 06, 51 frames (MP4; true HFOV 81.8) + `--camera-height-m 1.65`",
+    "gopro": "video with the OXTS fixes inside it as GoPro GPMF telemetry (no flags)",
 }
 
 
@@ -224,6 +241,9 @@ def _inputs(tmp: Path) -> dict[str, tuple[Path, list[str], int, np.ndarray]]:
     make_video(video)
     write_gpx(video.with_suffix(".gpx"), oxts_times, oxts)
     odometry_truth_m = make_odometry_video(tmp / "kitti_odometry_06.mp4")
+    gopro = tmp / "GX010001.MP4"
+    gopro.write_bytes(video.read_bytes())
+    add_gopro_gps(gopro, gopro_payloads(oxts_times, oxts))
     height = ["--camera-height-m", "1.65", "--gps", "none"]
     gpx = ["--video-start-utc", start_utc, "--gps", str(video.with_suffix(".gpx"))]
     return {
@@ -232,6 +252,7 @@ def _inputs(tmp: Path) -> dict[str, tuple[Path, list[str], int, np.ndarray]]:
         "focal": (video, [*height, "--hfov-deg", "81.4"], 0, truth_m),
         "png": (DRIVE / "image_00" / "data", [*height, "--fps", str(FPS)], 0, truth_m),
         "odometry": (tmp / "kitti_odometry_06.mp4", height, 0, odometry_truth_m),
+        "gopro": (gopro, [], int(oxts_times[0]), truth_m),
     }
 
 

@@ -31,7 +31,7 @@ GpsOption = Annotated[
     typer.Option(
         "--gps",
         help="Video: GPS track (.gpx, .nmea, .csv) for the metric scale; default: one named like the video beside "
-        "it; 'none' ignores it.",
+        "it, else the GPS a GoPro recorded inside the video; 'none' ignores both.",
         show_default=False,
     ),
 ]
@@ -39,7 +39,7 @@ VideoStartOption = Annotated[
     str | None,
     typer.Option(
         "--video-start-utc",
-        help="Video: UTC time of its first frame (ISO 8601), to match the GPS track.",
+        help="Video: UTC time of its first frame (ISO 8601), to match the GPS track (a GoPro's own GPS gives it).",
         show_default=False,
     ),
 ]

@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from gopro_mp4 import add_gopro_gps, gpmf_payload
 
 from drivesim.cli.main import main
 from drivesim.sim.geometry import R_VEHICLE_OPTICAL
@@ -212,6 +213,60 @@ def test_video_with_a_gpx_beside_it_scales_by_the_track(drive, tmp_path: Path, m
     est, truth = T_world_camera[:, :3, 3], centres[frame]
     # no intrinsics given: SfM estimates them; the world is local ENU about the first fix
     assert "intrinsics estimated by SfM" in out
+    assert _path_length(est) == pytest.approx(_path_length(truth), rel=0.03)
+    assert np.abs(est[:, :2] - (truth[:, :2] - centres[0, :2])).max() < 0.3
+    assert (ws / "trace" / "gps.npz").is_file()
+
+
+def _gopro_payloads(centres: np.ndarray, start: dt.datetime, rate_hz: float = 18.0) -> list[bytes]:
+    """One-second GPMF samples of the camera's positions at `rate_hz` (as a GoPro's GPS5), the first at `start`."""
+    seconds = int(np.ceil(len(centres) / FPS))
+    payloads = []
+    for s in range(seconds):
+        t_s = s + np.arange(int(rate_hz)) / rate_hz
+        xy = [np.interp(t_s * FPS, np.arange(len(centres)), centres[:, k]) for k in (0, 1)]
+        lat = 48.0 + xy[1] / 111_320.0
+        lon = 8.0 + xy[0] / (111_320.0 * np.cos(np.radians(48.0)))
+        fixes = np.column_stack([lat, lon, np.full_like(lat, 100.0), np.full_like(lat, 5.0), np.full_like(lat, 5.0)])
+        payloads.append(gpmf_payload(start + dt.timedelta(seconds=s), fixes))
+    return payloads
+
+
+def test_gopro_telemetry_is_read_as_a_gps_track(drive, tmp_path: Path) -> None:
+    """GPS5 fixes, spread from each sample's GPSU to the next; samples without a fix skipped; a plain MP4 has none."""
+    from drivesim.stages.ingest.gopro_gps import read_gopro_gps
+
+    video, centres = drive
+    assert read_gopro_gps(video) is None
+    gopro = tmp_path / "GX010001.MP4"
+    gopro.write_bytes(video.read_bytes())
+    payloads = _gopro_payloads(centres, START_UTC)
+    no_fix = gpmf_payload(START_UTC + dt.timedelta(seconds=3), np.zeros((18, 5)), fix_type=0)
+    add_gopro_gps(gopro, [*payloads, no_fix])
+    track = read_gopro_gps(gopro)
+    assert track is not None and track.kind == "gpmf"
+    assert len(track.t_ns) == 18 * len(payloads)  # the no-fix second dropped
+    t_s = (track.t_ns - START_UTC.timestamp() * 1e9) * 1e-9
+    np.testing.assert_allclose(t_s, np.arange(len(t_s)) / 18.0, atol=1e-3)
+    np.testing.assert_allclose(track.lat_deg[0], 48.0 + centres[0, 1] / 111_320.0, atol=2e-7)
+    np.testing.assert_allclose(track.alt_m, 100.0)
+
+
+def test_gopro_video_scales_by_its_own_gps(drive, tmp_path: Path, monkeypatch, capsys) -> None:
+    """A GoPro video alone: the GPS it recorded gives the scale and the start time; no sidecar, no flags."""
+    video, centres = drive
+    gopro = tmp_path / "GX010001.MP4"
+    gopro.write_bytes(video.read_bytes())
+    add_gopro_gps(gopro, _gopro_payloads(centres, START_UTC))
+    ws = tmp_path / "ws"
+    code, out, err = _run(monkeypatch, capsys, ws, "ingest", str(gopro), *FAST)
+    assert code == 0, out + err
+    assert "scale from the GoPro GPS recorded in GX010001.MP4" in out
+    with np.load(ws / "trace" / "poses.npz") as poses:
+        t_ns, T_world_camera = poses["t_ns"], poses["T_world_camera"]
+    frame = (t_ns - START_UTC.timestamp() * 1e9) * 1e-9 * FPS  # the first fix's time is the video's start
+    np.testing.assert_allclose(frame, np.round(frame), atol=0.01)
+    est, truth = T_world_camera[:, :3, 3], centres[np.round(frame).astype(int)]
     assert _path_length(est) == pytest.approx(_path_length(truth), rel=0.03)
     assert np.abs(est[:, :2] - (truth[:, :2] - centres[0, :2])).max() < 0.3
     assert (ws / "trace" / "gps.npz").is_file()

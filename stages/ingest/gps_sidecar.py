@@ -31,6 +31,7 @@ class GpsTrack:
     :param lat_deg, lon_deg: (M,) WGS84.
     :param alt_m: (M,) height (NaN when the file has none).
     :param path: the file read.
+    :param kind: what was read ("gpmf": a GoPro video's telemetry); "" for a sidecar (its suffix says).
     """
 
     t_ns: np.ndarray
@@ -38,6 +39,7 @@ class GpsTrack:
     lon_deg: np.ndarray
     alt_m: np.ndarray
     path: Path
+    kind: str = ""
 
     def enu_m(self) -> np.ndarray:
         """(M, 3) east/north/up metres about the first fix (heights 0 where absent)."""

@@ -20,10 +20,11 @@ class VideoConfig(StageConfig):
     fps: float | None = Field(None, gt=0.0, le=1000.0)
     """Frame rate of an image folder (Hz); videos carry their own times."""
     start_time_utc: dt.datetime | None = None
-    """UTC time of the video's first frame (ISO 8601); needed to match a GPS track's times."""
+    """UTC time of the video's first frame (ISO 8601); needed to match a GPS track's times (default for a GoPro video
+    with GPS: its first fix's time)."""
     gps_file: str | None = None
-    """GPS track (.gpx, .nmea, .csv) giving the metric scale; default: a file with the video's name beside it;
-    "none" ignores that file."""
+    """GPS track (.gpx, .nmea, .csv) giving the metric scale; default: a file with the video's name beside it, else
+    the GPS a GoPro recorded inside the video (GPMF telemetry); "none" ignores both."""
     calibration_file: str | None = None
     """Camera intrinsics (OpenCV YAML or ROS CameraInfo YAML); without it and `hfov_deg`, SfM estimates the focal."""
     hfov_deg: float | None = Field(None, gt=10.0, lt=170.0)

@@ -1,5 +1,6 @@
 """A plain video (or image folder + frame rate) into a trace: frames and times, intrinsics, camera poses by SfM,
-metric scale from a GPS track or the camera height above the fitted road plane.
+metric scale from a GPS track (a sidecar file, or the GPS a GoPro records inside its videos) or the camera height
+above the fitted road plane.
 
 The trace looks like a KITTI odometry trace to `preprocess`: `poses.npz` holds metric T_world_camera of the frames
 SfM registered (world z up along the road's normal), so the pose source "given" interpolates them for every frame.
@@ -25,6 +26,7 @@ from drivesim.pipeline.errors import InputError
 from drivesim.pipeline.progress import progress_bar
 from drivesim.stages.ingest.camera_file import camera_from_hfov, read_camera_file
 from drivesim.stages.ingest.config import IngestConfig
+from drivesim.stages.ingest.gopro_gps import read_gopro_gps
 from drivesim.stages.ingest.gps_sidecar import GpsTrack, check_overlap, find_sidecar, read_sidecar
 from drivesim.stages.ingest.images import CameraModel, FrameProcessor, working_size
 from drivesim.stages.ingest.output import FrameStore, empty_gps_series
@@ -44,7 +46,7 @@ from drivesim.stages.ingest.writer import Extrinsics, TraceWriter
 
 SCALE_HINT = (
     "a video needs a metric scale: give --camera-height-m (the camera's height above the road, e.g. 1.4) "
-    "or a GPS track (--gps drive.gpx, .nmea or .csv, with --video-start-utc)"
+    "or a GPS track (--gps drive.gpx, .nmea or .csv, with --video-start-utc; a GoPro's own GPS is read from its video)"
 )
 # Mean absolute difference (grey levels, on 32 px wide area-averaged thumbnails) below which the first and every
 # later SfM frame are taken as the same view: a parked camera. Measured: a still MP4 of a noise texture 0.4 (mp4v
@@ -88,12 +90,14 @@ def _camera(source: FrameSource, cfg: IngestConfig) -> CameraModel | None:
 
 
 def _gps(path: Path, source: FrameSource, cfg: IngestConfig) -> GpsTrack | None:
+    """The GPS track that scales the poses: --gps, else a sidecar with the video's name, else the GPS a GoPro
+    recorded inside the video; None with `--gps none` or when there is none."""
     given = cfg.video.gps_file
     if given is not None and given.lower() == "none":
         return None
     gps_path = Path(given) if given else (find_sidecar(path) if source.kind == "video" else None)
     if gps_path is None:
-        return None
+        return read_gopro_gps(path) if source.kind == "video" else None
     track = read_sidecar(gps_path)
     if cfg.video.start_time_utc is None:
         raise InputError(
@@ -104,10 +108,12 @@ def _gps(path: Path, source: FrameSource, cfg: IngestConfig) -> GpsTrack | None:
     return track
 
 
-def _start_ns(cfg: IngestConfig) -> int | None:
+def _start_ns(cfg: IngestConfig, gps: GpsTrack | None) -> int | None:
+    """UTC ns of the video's first frame: --video-start-utc, else a GoPro's first GPS fix (its telemetry starts with
+    the video), else None."""
     start = cfg.video.start_time_utc
     if start is None:
-        return None
+        return int(gps.t_ns[0]) if gps is not None and gps.kind == "gpmf" else None
     if start.tzinfo is None:
         start = start.replace(tzinfo=dt.UTC)
     return round(start.timestamp() * 1e9)
@@ -210,7 +216,8 @@ def _metric(result: SfmResult, times_ns: np.ndarray, gps: GpsTrack | None, cfg: 
         T_world_camera[:, :3, :3] /= scale  # the similarity's scale belongs to the positions only
         measured = height_sfm * scale if road is not None else None
         height_m = height_m or measured or 1.5
-        note = f"scale from the GPS track {gps.path.name} ({int(inside.sum())} frames matched)"
+        track = f"the GoPro GPS recorded in {gps.path.name}" if gps.kind == "gpmf" else f"the GPS track {gps.path.name}"
+        note = f"scale from {track} ({int(inside.sum())} frames matched)"
         if measured is not None:
             note += f"; camera {measured:.2f} m above the fitted road"
     else:
@@ -268,7 +275,7 @@ def _save_gps(trace: TraceWriter, gps: GpsTrack, t0_ns: int, t1_ns: int) -> None
             t_ns=t, lat_deg=lat, lon_deg=lon, alt_m=alt, status=0, covariance_m2=np.zeros((3, 3)), covariance_type=0
         )
     count = series.save(trace.out_dir / "gps.npz")
-    trace.add_sensor("gps", gps.path.name, gps.path.suffix.lstrip(".").lower(), count)
+    trace.add_sensor("gps", gps.path.name, gps.kind or gps.path.suffix.lstrip(".").lower(), count)
 
 
 def _probe(path: Path, cfg: IngestConfig) -> FrameSource:
@@ -291,7 +298,7 @@ def ingest_video(path: Path, cfg: IngestConfig, trace: TraceWriter) -> None:
     gps = _gps(path, source, cfg)
     if gps is None and cfg.extrinsics.camera_height_m is None:
         raise InputError(SCALE_HINT, path)
-    start_ns = _start_ns(cfg)
+    start_ns = _start_ns(cfg, gps)
     window = select_frames(source.times_ns, cfg.video.start_s, cfg.video.end_s)
     if gps is not None and start_ns is not None:
         times = start_ns + source.times_ns[window]
