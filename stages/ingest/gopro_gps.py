@@ -21,7 +21,8 @@ _GPSF = ("GPSF", "0x47505346")
 MIN_FIX_TYPE = 2  # GPSF: 0 no fix, 2 a 2D fix, 3 a 3D fix
 
 
-def _tag(group: dict, names: tuple[str, ...]):
+def _tag(group: dict, names: tuple[str, ...]) -> object:
+    """The value of the first of `names` in a telemetry group, or None."""
     return next((group[n] for n in names if n in group), None)
 
 
@@ -31,7 +32,7 @@ def _samples(video: Path) -> list[tuple[int, np.ndarray]]:
 
     try:
         telemetry = telemetry_parser.Parser(str(video)).telemetry()
-    except Exception:  # noqa: BLE001 - any file it cannot parse simply has no telemetry for us
+    except Exception:  # noqa: BLE001 - it raises for every format it does not know (a plain MP4): no telemetry
         return []
     samples = []
     for sample in telemetry or []:

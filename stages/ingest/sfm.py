@@ -207,8 +207,8 @@ def _refine_focal(model, opts: SfmOptions) -> None:
     Mapped with the wide prior held fixed, then refined once on all frames, it settles at the same value from every
     start. Even then the reprojection error is nearly flat in it (KITTI raw 0001, 8 degrees of yaw: 0.06 % between
     81 and 87 degrees), so a few outlying matches decided it under least squares: the same frames gave 81.2 degrees
-    decoded from an MP4 and 87.4 from their PNGs (true 81.4). Under the Cauchy loss, with the 20 frame window, both
-    give 83.5-83.8 degrees and KITTI odometry 06 (true 81.8) 83.8 (`benchmarks/results/video_sfm.md`).
+    decoded from an MP4 and 87.4 from their PNGs (true 81.4). Under the Cauchy loss, with the 20 frame window, the
+    MP4, the PNGs and KITTI odometry 06 (true 81.8) give 83.5-83.9 degrees (`benchmarks/results/video_sfm.md`).
     """
     import pycolmap
 
