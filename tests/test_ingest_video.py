@@ -457,7 +457,7 @@ def test_a_drive_left_mostly_unregistered_is_mapped_again(monkeypatch, tmp_path:
             return self.frames
 
     def fake_map(registered_by_seed: dict[int, int], calls: list[tuple[int, float]]):
-        def _map(database, image_dir, out_dir, opts, init_min_tri_angle_deg):
+        def _map(database, image_dir, out_dir, opts, init_min_tri_angle_deg, width_px):
             calls.append((opts.seed, init_min_tri_angle_deg))
             return [Piece(registered_by_seed[opts.seed])] if registered_by_seed[opts.seed] else []
 
@@ -472,6 +472,21 @@ def test_a_drive_left_mostly_unregistered_is_mapped_again(monkeypatch, tmp_path:
     for registered_by_seed, expected_calls, expected_frames in cases:
         calls: list[tuple[int, float]] = []
         monkeypatch.setattr(sfm, "_map", fake_map(registered_by_seed, calls))
-        models = sfm._map_until_whole(tmp_path / "db", tmp_path, tmp_path, 30, sfm.SfmOptions(seed=5))
+        models = sfm._map_until_whole(tmp_path / "db", tmp_path, tmp_path, 30, sfm.SfmOptions(seed=5), 640)
         assert calls == expected_calls
         assert models[0].num_reg_images() == expected_frames
+
+
+def test_mapping_thresholds_grow_with_the_image_width() -> None:
+    """COLMAP's pixel thresholds at up to 640 px wide (the default SfM width), twice them at 1280 px (at 1242 px with
+    COLMAP's own, the KITTI drive found no first image pair; with them grown, all 108 frames registered)."""
+    import pycolmap
+
+    from drivesim.stages.ingest.sfm import SfmOptions, pipeline_options
+
+    default = pycolmap.IncrementalPipelineOptions().mapper
+    keys = ("init_max_error", "abs_pose_max_error", "filter_max_reproj_error")
+    for width_px, factor in ((320, 1.0), (640, 1.0), (1280, 2.0)):
+        mapper = pipeline_options(SfmOptions(), 16.0, width_px).mapper
+        assert [getattr(mapper, k) for k in keys] == pytest.approx([factor * getattr(default, k) for k in keys])
+        assert mapper.init_min_tri_angle == 16.0

@@ -30,6 +30,7 @@ _MAPPINGS = ((0, 16.0), (1, 16.0), (2, 4.0), (3, 4.0))
 # Scale (px) of the Cauchy loss of the focal length's refinement (_refine_focal): at the default 640 px the inliers'
 # residuals have a median of 0.2 px and a heavy tail (99th percentile 2.4 px).
 FOCAL_LOSS_SCALE_PX = 0.5
+REFERENCE_WIDTH_PX = 640  # the width COLMAP's pixel thresholds suit here (the default SfM width): see pipeline_options
 
 
 @dataclass(frozen=True)
@@ -126,13 +127,15 @@ def _match(database: Path, names: list[str], opts: SfmOptions, work_dir: Path) -
     pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
 
 
-def _map_until_whole(database: Path, image_dir: Path, out_dir: Path, n_images: int, opts: SfmOptions) -> list:
+def _map_until_whole(
+    database: Path, image_dir: Path, out_dir: Path, n_images: int, opts: SfmOptions, width_px: int
+) -> list:
     """The pieces (largest first) of the mapping that registered the most images, mapping again (`_MAPPINGS`) while
     the largest piece holds less than half of the `n_images`."""
     best: list = []
     for attempt, (seed_offset, init_angle_deg) in enumerate(_MAPPINGS):
         seeded = replace(opts, seed=opts.seed + seed_offset)
-        models = _map(database, image_dir, out_dir / f"mapping{attempt}", seeded, init_angle_deg)
+        models = _map(database, image_dir, out_dir / f"mapping{attempt}", seeded, init_angle_deg, width_px)
         if _largest(models) > _largest(best):
             best = models
         if 2 * _largest(best) >= n_images:
@@ -144,7 +147,25 @@ def _largest(models: list) -> int:
     return models[0].num_reg_images() if models else 0
 
 
-def _map(database: Path, image_dir: Path, out_dir: Path, opts: SfmOptions, init_min_tri_angle_deg: float) -> list:
+def _map(
+    database: Path, image_dir: Path, out_dir: Path, opts: SfmOptions, init_min_tri_angle_deg: float, width_px: int
+) -> list:
+    import pycolmap
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    options = pipeline_options(opts, init_min_tri_angle_deg, width_px)
+    models = pycolmap.incremental_mapping(database, image_dir, out_dir, options=options)
+    return sorted(models.values(), key=lambda m: m.num_reg_images(), reverse=True)
+
+
+def pipeline_options(opts: SfmOptions, init_min_tri_angle_deg: float, width_px: int):  # noqa: ANN201 (pycolmap type)
+    """COLMAP's incremental mapping options for images `width_px` wide.
+
+    The mapper's reprojection thresholds are in pixels (the first pair 4 px, a registered image 12 px, a kept point 4
+    px); with the focal length still the 90 degree guess, errors grow with the image's size, and at 1242 px the KITTI
+    drive found no first pair in any of the four mappings (1724 verified pairs, ~600 inliers each). So they grow with
+    the width above REFERENCE_WIDTH_PX (at 1242 px: all 108 frames registered); below it they stay COLMAP's.
+    """
     import pycolmap
 
     options = pycolmap.IncrementalPipelineOptions()
@@ -154,11 +175,13 @@ def _map(database: Path, image_dir: Path, out_dir: Path, opts: SfmOptions, init_
     options.multiple_models = True
     options.min_model_size = 3
     options.mapper.init_min_tri_angle = init_min_tri_angle_deg
+    scale = max(1.0, width_px / REFERENCE_WIDTH_PX)
+    options.mapper.init_max_error *= scale
+    options.mapper.abs_pose_max_error *= scale
+    options.mapper.filter_max_reproj_error *= scale
     options.num_threads = opts.threads
     options.random_seed = opts.seed
-    out_dir.mkdir(parents=True, exist_ok=True)
-    models = pycolmap.incremental_mapping(database, image_dir, out_dir, options=options)
-    return sorted(models.values(), key=lambda m: m.num_reg_images(), reverse=True)
+    return options
 
 
 def reconstruct(
@@ -185,7 +208,7 @@ def reconstruct(
         _match(database, names, opts, work_dir)
         seconds["matching_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        models = _map_until_whole(database, image_dir, work_dir / "sparse", len(names), opts)
+        models = _map_until_whole(database, image_dir, work_dir / "sparse", len(names), opts, size[0])
         if models and K is None:
             _refine_focal(models[0], opts)
         seconds["mapping_s"] = time.perf_counter() - t0
