@@ -13,11 +13,15 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from drivesim.pipeline.errors import InputError
 from drivesim.sim.geometry import invert
+
+if TYPE_CHECKING:
+    import pycolmap
 
 MIN_SFM_FRAMES = 10
 # The mapper varies from run to run (its threads), and its first pair must see its points under 16 degrees: driving
@@ -158,7 +162,9 @@ def _map(
     return sorted(models.values(), key=lambda m: m.num_reg_images(), reverse=True)
 
 
-def pipeline_options(opts: SfmOptions, init_min_tri_angle_deg: float, width_px: int):  # noqa: ANN201 (pycolmap type)
+def pipeline_options(
+    opts: SfmOptions, init_min_tri_angle_deg: float, width_px: int
+) -> pycolmap.IncrementalPipelineOptions:
     """COLMAP's incremental mapping options for images `width_px` wide.
 
     The mapper's reprojection thresholds are in pixels (the first pair 4 px, a registered image 12 px, a kept point 4
@@ -232,6 +238,8 @@ def _refine_focal(model, opts: SfmOptions) -> None:
     81 and 87 degrees), so a few outlying matches decided it under least squares: the same frames gave 81.2 degrees
     decoded from an MP4 and 87.4 from their PNGs (true 81.4). Under the Cauchy loss, with the 20 frame window, the
     MP4, the PNGs and KITTI odometry 06 (true 81.8) give 83.5-83.9 degrees (`benchmarks/results/video_sfm.md`).
+    Mapping again with the refined value held fixed did not move it nearer (2026-11-25, least squares: 85.3 degrees
+    after a second mapping) and costs a second mapping, so it is not done.
     """
     import pycolmap
 
