@@ -25,11 +25,12 @@ if TYPE_CHECKING:
 
 MIN_SFM_FRAMES = 10
 # The mapper varies from run to run (its threads), and its first pair must see its points under 16 degrees: driving
-# forward, few pairs in a 10-frame window do. On a rendered 30-frame drive, 4 of seeds 0-7 found no pair or one no
-# third frame could join (a 2-frame model whose focal length then ran off to a 165 degree view; CI failed on it). At
-# 4 degrees 22 of 24 seeds mapped all 30 frames, but on the KITTI drive a 4 degree pair bent the path (-55 % long, focal
-# 130 degrees). So a drive left mostly unregistered is mapped again: once more at 16 degrees with the next seed, then
-# at 4 degrees (at most these (seed offset, init angle) mappings); the mapping that registered the most is kept.
+# forward, few pairs in a 10-frame window (the default until 2026-11-27) do. On a rendered 30-frame drive, 4 of seeds
+# 0-7 found no pair or one no third frame could join (a 2-frame model whose focal length then ran off to a 165 degree
+# view; CI failed on it). At 4 degrees 22 of 24 seeds mapped all 30 frames, but on the KITTI drive a 4 degree pair
+# bent the path (-55 % long, focal 130 degrees). So a drive left mostly unregistered is mapped again: once more at 16
+# degrees with the next seed, then at 4 degrees (at most these (seed offset, init angle) mappings); the mapping that
+# registered the most is kept.
 _MAPPINGS = ((0, 16.0), (1, 16.0), (2, 4.0), (3, 4.0))
 # Scale (px) of the Cauchy loss of the focal length's refinement (_refine_focal): at the default 640 px the inliers'
 # residuals have a median of 0.2 px and a heavy tail (99th percentile 2.4 px).
