@@ -233,42 +233,47 @@ def _gopro_payloads(centres: np.ndarray, start: dt.datetime, rate_hz: float = 18
 
 
 def test_gopro_telemetry_is_read_as_a_gps_track(drive, tmp_path: Path) -> None:
-    """GPS5 fixes, spread from each sample's GPSU to the next; samples without a fix skipped; a plain MP4 has none."""
+    """GPS5 fixes spread over each sample's second; samples without a fix (here the first, before the GPS's lock)
+    skipped, and the video's start still the first sample's; a plain MP4 has no track."""
     from drivesim.stages.ingest.gopro_gps import read_gopro_gps
 
     video, centres = drive
     assert read_gopro_gps(video) is None
     gopro = tmp_path / "GX010001.MP4"
     gopro.write_bytes(video.read_bytes())
-    payloads = _gopro_payloads(centres, START_UTC)
-    no_fix = gpmf_payload(START_UTC + dt.timedelta(seconds=3), np.zeros((18, 5)), fix_type=0)
-    add_gopro_gps(gopro, [*payloads, no_fix])
+    no_fix = gpmf_payload(START_UTC, np.zeros((18, 5)), fix_type=0)
+    payloads = _gopro_payloads(centres, START_UTC + dt.timedelta(seconds=1))
+    add_gopro_gps(gopro, [no_fix, *payloads])
     track = read_gopro_gps(gopro)
     assert track is not None and track.kind == "gpmf"
     assert len(track.t_ns) == 18 * len(payloads)  # the no-fix second dropped
+    assert track.video_start_ns == round(START_UTC.timestamp() * 1e9)
     t_s = (track.t_ns - START_UTC.timestamp() * 1e9) * 1e-9
-    np.testing.assert_allclose(t_s, np.arange(len(t_s)) / 18.0, atol=1e-3)
+    np.testing.assert_allclose(t_s, 1.0 + np.arange(len(t_s)) / 18.0, atol=1e-3)
     np.testing.assert_allclose(track.lat_deg[0], 48.0 + centres[0, 1] / 111_320.0, atol=2e-7)
     np.testing.assert_allclose(track.alt_m, 100.0)
 
 
-def test_gopro_video_scales_by_its_own_gps(drive, tmp_path: Path, monkeypatch, capsys) -> None:
-    """A GoPro video alone: the GPS it recorded gives the scale and the start time; no sidecar, no flags."""
-    video, centres = drive
-    gopro = tmp_path / "GX010001.MP4"
-    gopro.write_bytes(video.read_bytes())
-    add_gopro_gps(gopro, _gopro_payloads(centres, START_UTC))
+def test_gopro_video_scales_by_its_own_gps(tmp_path: Path, monkeypatch, capsys) -> None:
+    """A GoPro video alone: the GPS it recorded gives the scale and the start time (its first second has no fix yet:
+    the start is still the telemetry's first sample, so the frames meet the fixes of their own time); no flags. The
+    drive is 4 s long, so that the 3 s with a fix cover the 10 m a GPS scale needs."""
+    frames, centres = render_drive(n=40)
+    gopro = write_video(tmp_path / "GX010001.MP4", frames)
+    no_fix = gpmf_payload(START_UTC, np.zeros((18, 5)), fix_type=0)
+    add_gopro_gps(gopro, [no_fix, *_gopro_payloads(centres, START_UTC)[1:]])
     ws = tmp_path / "ws"
     code, out, err = _run(monkeypatch, capsys, ws, "ingest", str(gopro), *FAST)
     assert code == 0, out + err
     assert "scale from the GoPro GPS recorded in GX010001.MP4" in out
     with np.load(ws / "trace" / "poses.npz") as poses:
         t_ns, T_world_camera = poses["t_ns"], poses["T_world_camera"]
-    frame = (t_ns - START_UTC.timestamp() * 1e9) * 1e-9 * FPS  # the first fix's time is the video's start
+    frame = (t_ns - START_UTC.timestamp() * 1e9) * 1e-9 * FPS
     np.testing.assert_allclose(frame, np.round(frame), atol=0.01)
     est, truth = T_world_camera[:, :3, 3], centres[np.round(frame).astype(int)]
     assert _path_length(est) == pytest.approx(_path_length(truth), rel=0.03)
-    assert np.abs(est[:, :2] - (truth[:, :2] - centres[0, :2])).max() < 0.3
+    first_fix = centres[int(FPS)]  # the world is local ENU about the first fix, one second in
+    assert np.abs(est[:, :2] - (truth[:, :2] - first_fix[:2])).max() < 0.3
     assert (ws / "trace" / "gps.npz").is_file()
 
 

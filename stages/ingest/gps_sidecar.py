@@ -32,6 +32,7 @@ class GpsTrack:
     :param alt_m: (M,) height (NaN when the file has none).
     :param path: the file read.
     :param kind: what was read ("gpmf": a GoPro video's telemetry); "" for a sidecar (its suffix says).
+    :param video_start_ns: UTC ns of the video's first frame when the track says it (a GoPro's), else None.
     """
 
     t_ns: np.ndarray
@@ -40,6 +41,7 @@ class GpsTrack:
     alt_m: np.ndarray
     path: Path
     kind: str = ""
+    video_start_ns: int | None = None
 
     def enu_m(self) -> np.ndarray:
         """(M, 3) east/north/up metres about the first fix (heights 0 where absent)."""

@@ -109,11 +109,10 @@ def _gps(path: Path, source: FrameSource, cfg: IngestConfig) -> GpsTrack | None:
 
 
 def _start_ns(cfg: IngestConfig, gps: GpsTrack | None) -> int | None:
-    """UTC ns of the video's first frame: --video-start-utc, else a GoPro's first GPS fix (its telemetry starts with
-    the video), else None."""
+    """UTC ns of the video's first frame: --video-start-utc, else what a GoPro's GPS says of it, else None."""
     start = cfg.video.start_time_utc
     if start is None:
-        return int(gps.t_ns[0]) if gps is not None and gps.kind == "gpmf" else None
+        return gps.video_start_ns if gps is not None else None
     if start.tzinfo is None:
         start = start.replace(tzinfo=dt.UTC)
     return round(start.timestamp() * 1e9)
