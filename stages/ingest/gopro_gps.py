@@ -66,7 +66,8 @@ def read_gopro_gps(video: Path) -> GpsTrack | None:
         for (_, _, rows), start_ms in zip(samples, starts_ms, strict=True)
     ]
     t_ns = np.round(np.concatenate(times) * 1e6).astype(np.int64)
-    a = np.concatenate([rows for _, _, rows in samples])
+    order = np.argsort(t_ns, kind="stable")  # a GPSU a little early would put its fixes before the last sample's
+    t_ns, a = t_ns[order], np.concatenate([rows for _, _, rows in samples])[order]
     keep = np.concatenate([[True], np.diff(t_ns) > 0])
     if keep.sum() < 2:
         count = int(keep.sum())
