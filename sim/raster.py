@@ -406,22 +406,62 @@ class Rasterizer:
         """
         T = _as_poses(T_camera_world)
         B = T.shape[0]
-        per_camera = isinstance(meshes, list) and len(meshes) > 0 and not isinstance(meshes[0], Mesh)
-        if per_camera and all(m is meshes[0] for m in meshes):  # the same scene for every camera: one packing
-            meshes, per_camera = meshes[0], False
-        if per_camera:
-            if len(meshes) != B:
-                raise ValueError(f"got {len(meshes)} per-camera mesh lists for {B} cameras")
-            scenes = [self.pack(m) for m in meshes]
-            cam_vertices = [self._to_camera(s, T[b : b + 1]) for b, s in enumerate(scenes)]
-            scene, owner = _concat_scenes(scenes)
-            v_cam = torch.cat(cam_vertices, dim=2)
-        else:
-            scene, owner = self.pack(meshes), None
-            v_cam = self._to_camera(scene, T)
+        scene, owner, v_cam = self._candidates(meshes, T)
         K_t = torch.as_tensor(np.asarray(K, dtype=np.float64), device=self.device)
         R_cam_world = torch.as_tensor(T[:, :3, :3], dtype=torch.float32, device=self.device)
         return self._rasterize(scene, v_cam, owner, B, K_t, R_cam_world, lighting, background_rgb)
+
+    def draw_into(
+        self,
+        scenes: list[PackedScene],
+        T_camera_scene: np.ndarray,
+        K: np.ndarray,
+        lighting: np.ndarray,
+        rgb: np.ndarray,
+        depth_m: np.ndarray,
+        front: np.ndarray,
+        view_of_camera: np.ndarray,
+        gray: bool,
+    ) -> None:
+        """`render` of untextured `scenes` (one per camera, at poses T_camera_scene (B, 4, 4)) composited straight into
+        uint8 views on the compiled CPU path: camera b draws over view rgb[view_of_camera[b]] (V, h, w, 3) where it is
+        nearer than depth_m (V, h, w), and marks there front (V, h, w) bool; with `gray`, in its luma. The pixels
+        `render` then `raster_kernel.composite_uint8` give, without the full-size images in between."""
+        from drivesim.sim import raster_kernel  # numba compiles (or loads its cache) on first import
+
+        if not self.use_kernel or any(scene.textured for scene in scenes):
+            raise ValueError("draw_into needs the compiled CPU path and untextured scenes: use render")
+        T = _as_poses(T_camera_scene)
+        scene, owner, v_cam = self._candidates(list(scenes), T)
+        N = v_cam.shape[2]
+        K_np = np.asarray(K, dtype=np.float64)
+        raster_kernel.draw_untextured_into(
+            np.ascontiguousarray(v_cam.reshape(9, N).numpy()),
+            np.array([K_np[0, 0], K_np[1, 1], K_np[0, 2], K_np[1, 2]]), self.near_m, self.cull_back_faces,
+            _NO_OWNER if owner is None else owner.numpy(), max(scene.triangle_count, 1),
+            scene.attribute_table.numpy(), scene.material.numpy(), np.ascontiguousarray(T[:, :3, :3], np.float32),
+            np.linalg.inv(K_np).astype(np.float32), _lighting_table(lighting, T.shape[0]),
+            np.asarray(view_of_camera, dtype=np.int64), rgb, depth_m, front, gray,
+        )  # fmt: skip
+
+    def _candidates(
+        self, meshes: list[Mesh] | list[list[Mesh]] | PackedScene | list[PackedScene], T: np.ndarray
+    ) -> tuple[PackedScene, torch.Tensor | None, torch.Tensor]:
+        """The packed scene `render` rasterizes for `meshes` seen from poses T (B, 4, 4), the camera of each of its
+        candidate triangles (None: one scene seen by every camera) and their camera-frame vertices (`_to_camera`)."""
+        B = T.shape[0]
+        per_camera = isinstance(meshes, list) and len(meshes) > 0 and not isinstance(meshes[0], Mesh)
+        if per_camera and all(m is meshes[0] for m in meshes):  # the same scene for every camera: one packing
+            meshes, per_camera = meshes[0], False
+        if not per_camera:
+            scene = self.pack(meshes)
+            return scene, None, self._to_camera(scene, T)
+        if len(meshes) != B:
+            raise ValueError(f"got {len(meshes)} per-camera mesh lists for {B} cameras")
+        scenes = [self.pack(m) for m in meshes]
+        cam_vertices = [self._to_camera(s, T[b : b + 1]) for b, s in enumerate(scenes)]
+        scene, owner = _concat_scenes(scenes)
+        return scene, owner, torch.cat(cam_vertices, dim=2)
 
     def render_instances(
         self,

@@ -32,15 +32,38 @@ def depth_test(
     table (13, n) float32: bbox width, then (a, b, c) of the three edge functions at the bbox corner, |det|, the
     corner x, y; bbox (n, 4) int64 inclusive x0, y0, x1, y1; camera (n,) int64 the camera of each candidate.
     """
+    cameras = 0
+    for i in range(camera.shape[0]):
+        cameras = max(cameras, camera[i] + 1)
+    layout = np.zeros((cameras, 4), np.int64)  # each camera's whole image: offset b * H * W, corner (0, 0), row W
+    for b in range(cameras):
+        layout[b, 0], layout[b, 3] = b * height_px * width_px, width_px
+    depth_test_regions(table, bbox, camera, layout, near_m, depth, winner)
+
+
+@njit(cache=True, nogil=True)
+def depth_test_regions(
+    table: np.ndarray,
+    bbox: np.ndarray,
+    camera: np.ndarray,
+    layout: np.ndarray,
+    near_m: float,
+    depth: np.ndarray,
+    winner: np.ndarray,
+) -> None:
+    """`depth_test` into z-buffers that hold only a region of each camera's image: camera b's pixel (x, y) is entry
+    layout[b, 0] + (y - layout[b, 2]) * layout[b, 3] + (x - layout[b, 1]) (offset, region corner x, y, row width);
+    every candidate's bbox must lie inside its camera's region."""
     near = np.float32(near_m)
-    plane = height_px * width_px
     for t in range(table.shape[1]):
         a0, b0, c0 = table[1, t], table[2, t], table[3, t]
         a1, b1, c1 = table[4, t], table[5, t], table[6, t]
         a2, b2, c2 = table[7, t], table[8, t], table[9, t]
         abs_det = table[10, t]
         x0, y0, x1, y1 = bbox[t, 0], bbox[t, 1], bbox[t, 2], bbox[t, 3]
-        base = camera[t] * plane
+        cam = camera[t]
+        row_px = layout[cam, 3]
+        base = layout[cam, 0] - layout[cam, 2] * row_px - layout[cam, 1]
         for y in range(y0, y1 + 1):
             yo = np.float32(y - y0)
             for x in range(x0, x1 + 1):
@@ -54,7 +77,7 @@ def depth_test(
                 if not (ssum > 0 and ssum * near <= abs_det):
                     continue
                 z = abs_det / ssum
-                p = base + y * width_px + x
+                p = base + y * row_px + x
                 if z < depth[p] or (z == depth[p] and t < winner[p]):
                     depth[p] = z
                     winner[p] = t
@@ -215,34 +238,31 @@ def shade(
                 p = cam * plane + y * width_px + x
                 t = winner[p]
                 if t >= 0:
-                    _shade_pixel(
-                        p, x, y, cam, t, depth, table, source, attributes, material, object_ids, R_cam_world, K_inv,
-                        lights, rgb_out, depth_out, id_out, normal_out,
-                    )  # fmt: skip
+                    r, g, b, n0, n1, n2 = _shade_pixel(
+                        x, y, cam, t, table, source, attributes, material, R_cam_world, K_inv, lights
+                    )
+                    rgb_out[p, 0], rgb_out[p, 1], rgb_out[p, 2] = r, g, b
+                    normal_out[p, 0], normal_out[p, 1], normal_out[p, 2] = n0, n1, n2
+                    depth_out[p] = depth[p]
+                    id_out[p] = object_ids[source[t]]
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _shade_pixel(
-    p: int,
     x: int,
     y: int,
     cam: int,
     t: int,
-    depth: np.ndarray,
     table: np.ndarray,
     source: np.ndarray,
     attributes: np.ndarray,
     material: np.ndarray,
-    object_ids: np.ndarray,
     R_cam_world: np.ndarray,
     K_inv: np.ndarray,
     lights: np.ndarray,
-    rgb_out: np.ndarray,
-    depth_out: np.ndarray,
-    id_out: np.ndarray,
-    normal_out: np.ndarray,
-) -> None:
-    """`shade` of one covered pixel p (x, y of camera cam) whose z-buffer winner is candidate t."""
+) -> tuple[float, float, float, float, float, float]:
+    """`shade` of one covered pixel (x, y of camera cam) whose z-buffer winner is candidate t: its colour in [0, 1]
+    and its camera-frame unit normal (r, g, b, nx, ny, nz)."""
     f32 = np.float32
     xo = f32(x) - table[11, t]
     yo = f32(y) - table[12, t]
@@ -277,15 +297,38 @@ def _shade_pixel(
     exponent = f32(1.0) + material[3, s] * (f32(1.0) - roughness) ** 2
     highlight = n_dot_h**exponent if n_dot_l > 0 else f32(0.0)
     diffuse_weight = f32(1.0) - metalness
-    for c in range(3):
-        base = attributes[3 + c, s] * b0 + attributes[11 + c, s] * b1 + attributes[19 + c, s] * b2
-        f0 = diffuse_weight * material[c, s] + metalness * base
-        light = f0 * highlight + diffuse_weight * base * n_dot_l
-        lit = lights[cam, c] * base + lights[cam, 6 + c] * light
-        rgb_out[p, c] = min(max(lit + unlit * (base - lit), f32(0.0)), f32(1.0))
-    normal_out[p, 0], normal_out[p, 1], normal_out[p, 2] = n0, n1, n2
-    depth_out[p] = depth[p]
-    id_out[p] = object_ids[s]
+    w, m = diffuse_weight, metalness
+    r = _lit_channel(0, s, cam, b0, b1, b2, attributes, material, lights, w, m, unlit, highlight, n_dot_l)
+    g = _lit_channel(1, s, cam, b0, b1, b2, attributes, material, lights, w, m, unlit, highlight, n_dot_l)
+    b = _lit_channel(2, s, cam, b0, b1, b2, attributes, material, lights, w, m, unlit, highlight, n_dot_l)
+    return r, g, b, n0, n1, n2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lit_channel(
+    c: int,
+    s: int,
+    cam: int,
+    b0: float,
+    b1: float,
+    b2: float,
+    attributes: np.ndarray,
+    material: np.ndarray,
+    lights: np.ndarray,
+    diffuse_weight: float,
+    metalness: float,
+    unlit: float,
+    highlight: float,
+    n_dot_l: float,
+) -> float:
+    """Colour channel c in [0, 1] of a pixel of scene triangle s at barycentrics (b0, b1, b2) (`shading.py`'s
+    formula)."""
+    f32 = np.float32
+    base = attributes[3 + c, s] * b0 + attributes[11 + c, s] * b1 + attributes[19 + c, s] * b2
+    f0 = diffuse_weight * material[c, s] + metalness * base
+    light = f0 * highlight + diffuse_weight * base * n_dot_l
+    lit = lights[cam, c] * base + lights[cam, 6 + c] * light
+    return min(max(lit + unlit * (base - lit), f32(0.0)), f32(1.0))
 
 
 @njit(cache=True, nogil=True)
@@ -318,6 +361,34 @@ def render_untextured(
     triangle: owner[n] and n when owner has N entries (per-camera scenes), else n // triangles_per_camera and
     n % triangles_per_camera (one scene seen by every camera). The rest as `shade`.
     """
+    kept, bbox, camera, source = _kept_candidates(
+        vc, intrinsics, width_px, height_px, near_m, cull_back_faces, owner, triangles_per_camera
+    )
+    size = depth_out.shape[0]
+    depth = np.full(size, np.inf, np.float32)
+    winner = np.full(size, -1, np.int64)
+    depth_test(kept, bbox, camera, width_px, height_px, near_m, depth, winner)
+    regions = _regions(bbox, camera, R_cam_world.shape[0], width_px, height_px)
+    shade(
+        depth, winner, kept, source, attributes, material, object_ids, R_cam_world, K_inv, lights, background_rgb,
+        width_px, height_px, rgb_out, depth_out, id_out, normal_out, regions,
+    )  # fmt: skip
+    return kept.shape[1]
+
+
+@njit(cache=True, nogil=True)
+def _kept_candidates(
+    vc: np.ndarray,
+    intrinsics: np.ndarray,
+    width_px: int,
+    height_px: int,
+    near_m: float,
+    cull_back_faces: bool,
+    owner: np.ndarray,
+    triangles_per_camera: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`setup` of the candidates vc (9, N), and the kept ones' column table (13, n), bboxes (n, 4), cameras (n,) and
+    scene triangles (n,) (owner and triangles_per_camera as `render_untextured`)."""
     N = vc.shape[1]
     table = np.empty((13, N), np.float32)
     bbox = np.empty((N, 4), np.int64)
@@ -339,22 +410,75 @@ def render_untextured(
         else:
             camera[i] = t // triangles_per_camera
             source[i] = t - camera[i] * triangles_per_camera
-    size = depth_out.shape[0]
-    depth = np.full(size, np.inf, np.float32)
-    winner = np.full(size, -1, np.int64)
-    depth_test(kept, bbox[:n], camera, width_px, height_px, near_m, depth, winner)
-    # Per camera, the kept triangles' union bounding box (empty: x1 < x0): only there can a pixel be drawn.
-    regions = np.empty((R_cam_world.shape[0], 4), np.int64)
+    return kept, bbox[:n], camera, source
+
+
+@njit(cache=True, nogil=True)
+def _regions(bbox: np.ndarray, camera: np.ndarray, cameras: int, width_px: int, height_px: int) -> np.ndarray:
+    """Per camera, the union of its candidates' bounding boxes (cameras, 4) inclusive x0, y0, x1, y1 (empty: x1 < x0):
+    only there can a pixel be drawn."""
+    regions = np.empty((cameras, 4), np.int64)
     regions[:, 0], regions[:, 1], regions[:, 2], regions[:, 3] = width_px, height_px, -1, -1
-    for i in range(n):
+    for i in range(bbox.shape[0]):
         b = camera[i]
         regions[b, 0], regions[b, 1] = min(regions[b, 0], bbox[i, 0]), min(regions[b, 1], bbox[i, 1])
         regions[b, 2], regions[b, 3] = max(regions[b, 2], bbox[i, 2]), max(regions[b, 3], bbox[i, 3])
-    shade(
-        depth, winner, kept, source, attributes, material, object_ids, R_cam_world, K_inv, lights, background_rgb,
-        width_px, height_px, rgb_out, depth_out, id_out, normal_out, regions,
-    )  # fmt: skip
-    return n
+    return regions
+
+
+@njit(cache=True, nogil=True)
+def draw_untextured_into(
+    vc: np.ndarray,
+    intrinsics: np.ndarray,
+    near_m: float,
+    cull_back_faces: bool,
+    owner: np.ndarray,
+    triangles_per_camera: int,
+    attributes: np.ndarray,
+    material: np.ndarray,
+    R_cam_world: np.ndarray,
+    K_inv: np.ndarray,
+    lights: np.ndarray,
+    view_of_camera: np.ndarray,
+    rgb: np.ndarray,
+    depth: np.ndarray,
+    front: np.ndarray,
+    gray: bool,
+) -> int:
+    """`render_untextured` then `composite_uint8` in one call, with the same pixels, for views that need only the
+    composite: camera b draws into uint8 view rgb[view_of_camera[b]] (B, h, w, 3) over its depth (B, h, w), and
+    front (B, h, w) bool (False initially) receives where its scene is nearer. The z-buffer covers only each camera's
+    region (`_regions`) and only its nearer pixels are shaded: no full-image float image, depth, id or normal is
+    written (a car covers a few percent of a view; those writes were most of a car's raster). Returns the number of
+    triangles kept by the set-up."""
+    height_px, width_px = depth.shape[1], depth.shape[2]
+    kept, bbox, camera, source = _kept_candidates(
+        vc, intrinsics, width_px, height_px, near_m, cull_back_faces, owner, triangles_per_camera
+    )
+    cameras = R_cam_world.shape[0]
+    regions = _regions(bbox, camera, cameras, width_px, height_px)
+    layout = np.zeros((cameras, 4), np.int64)  # offset, corner x, y, row width of each camera's z-buffer region
+    size = 0
+    for b in range(cameras):
+        layout[b, 0], layout[b, 1], layout[b, 2] = size, regions[b, 0], regions[b, 1]
+        layout[b, 3] = max(regions[b, 2] - regions[b, 0] + 1, 0)
+        size += layout[b, 3] * max(regions[b, 3] - regions[b, 1] + 1, 0)
+    z = np.full(size, np.inf, np.float32)
+    winner = np.full(size, -1, np.int64)
+    depth_test_regions(kept, bbox, camera, layout, near_m, z, winner)
+    for cam in range(cameras):
+        v = view_of_camera[cam]
+        for y in range(regions[cam, 1], regions[cam, 3] + 1):
+            for x in range(regions[cam, 0], regions[cam, 2] + 1):
+                p = layout[cam, 0] + (y - layout[cam, 2]) * layout[cam, 3] + (x - layout[cam, 1])
+                t = winner[p]
+                if t < 0 or not z[p] < depth[v, y, x]:
+                    continue
+                r, g, b, _, _, _ = _shade_pixel(x, y, cam, t, kept, source, attributes, material, R_cam_world, K_inv,
+                                                lights)  # fmt: skip
+                _composite_pixel(rgb[v, y, x], r, g, b, gray)
+                front[v, y, x] = True
+    return kept.shape[1]
 
 
 @njit(cache=True, nogil=True)
@@ -373,12 +497,19 @@ def composite_uint8(
             front[y, x] = nearer
             if not nearer:
                 continue
-            r = np.uint8(car_rgb[y, x, 0] * np.float32(255.0) + np.float32(0.5))
-            g = np.uint8(car_rgb[y, x, 1] * np.float32(255.0) + np.float32(0.5))
-            b = np.uint8(car_rgb[y, x, 2] * np.float32(255.0) + np.float32(0.5))
-            if gray:
-                r = g = b = luma_uint8(r, g, b)
-            rgb[y, x, 0], rgb[y, x, 1], rgb[y, x, 2] = r, g, b
+            _composite_pixel(rgb[y, x], car_rgb[y, x, 0], car_rgb[y, x, 1], car_rgb[y, x, 2], gray)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _composite_pixel(pixel: np.ndarray, r: float, g: float, b: float, gray: bool) -> None:
+    """Write the car's colour (r, g, b in [0, 1]) to the uint8 pixel (3,), rounded; its luma in all three channels
+    with `gray`."""
+    r8 = np.uint8(r * np.float32(255.0) + np.float32(0.5))
+    g8 = np.uint8(g * np.float32(255.0) + np.float32(0.5))
+    b8 = np.uint8(b * np.float32(255.0) + np.float32(0.5))
+    if gray:
+        r8 = g8 = b8 = luma_uint8(r8, g8, b8)
+    pixel[0], pixel[1], pixel[2] = r8, g8, b8
 
 
 @njit(cache=True, nogil=True, inline="always")

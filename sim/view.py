@@ -454,14 +454,39 @@ class ViewSynthesizer:
             car_mask = np.zeros((B, cfg.out_height_px, cfg.out_width_px), dtype=bool)
             return ViewBatch(rgb=rgb_out.cpu().numpy(), car_mask=car_mask, timings_ms=timings)
         start = time.perf_counter()
+        placed_viewers = [placed_per_view[b] for b in viewers]
         if self.batched and not self.rasterizer.use_kernel:
-            drawn = self._raster_instances([placed_per_view[b] for b in viewers], lights)
+            drawn = self._raster_instances(placed_viewers, lights)
         else:
-            drawn = self._raster_scenes([placed_per_view[b] for b in viewers], lights)
+            scenes, poses = self._scenes_and_poses(placed_viewers)
+            if not self.batched and self.rasterizer.use_kernel and not any(scene.textured for scene in scenes):
+                rgb, car_mask = self._draw_cpu(rgb_out, depth_out, scenes, poses, lights, viewers)
+                timings["raster"] = 1e3 * (time.perf_counter() - start)  # the composite included
+                self._harmonize_cpu(rgb, car_mask, viewers, timings)
+                return ViewBatch(rgb=rgb, car_mask=car_mask, timings_ms=timings)
+            drawn = self.rasterizer.render(scenes, poses, self.K_view, lighting=lights)
         timings["raster"] = 1e3 * (time.perf_counter() - start)
         insert = self._insert_torch if self.batched or self.device.type != "cpu" else self._insert_cpu
         rgb, car_mask = insert(rgb_out, depth_out, drawn, viewers, timings)
         return ViewBatch(rgb=rgb, car_mask=car_mask, timings_ms=timings)
+
+    def _draw_cpu(
+        self,
+        rgb: torch.Tensor,
+        depth: torch.Tensor,
+        scenes: list[PackedScene],
+        poses: np.ndarray,
+        lights: np.ndarray,
+        viewers: list[int],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The views' cars rasterized and composited straight into the warped views in one compiled call
+        (`Rasterizer.draw_into`: the pixels of `_raster_scenes` then `_insert_cpu`'s composite, without the full-size
+        float images between them): the views (B, h, w, 3) uint8 and where a car is in front (B, h, w) bool."""
+        rgb_np, depth_np = rgb.numpy(), depth.numpy()
+        car_mask = np.zeros(depth_np.shape, dtype=bool)
+        gray = bool(self.monochrome)  # a gray camera's world: the car in gray too, in the same pass
+        self.rasterizer.draw_into(scenes, poses, self.K_view, lights, rgb_np, depth_np, car_mask, viewers, gray)
+        return rgb_np, car_mask
 
     def _insert_cpu(
         self, rgb: torch.Tensor, depth: torch.Tensor, drawn: RenderResult, viewers: list[int], timings: dict
@@ -477,20 +502,25 @@ class ViewSynthesizer:
         for i, b in enumerate(viewers):
             raster_kernel.composite_uint8(rgb_np[b], depth_np[b], car_rgb[i], car_depth[i], car_mask[b], gray)
         timings["composite"] += 1e3 * (time.perf_counter() - start)
-        if self.config.harmonization:
-            start = time.perf_counter()
-            in_place = getattr(self.harmonizer, "harmonize_view_uint8_", None)
-            if in_place is not None:
-                for b in viewers:
-                    in_place(rgb_np[b], car_mask[b])
-            else:
-                index = torch.as_tensor(viewers)
-                mask = torch.from_numpy(car_mask).index_select(0, index)
-                views = rgb.index_select(0, index)
-                harmonized = self.harmonizer(views.to(torch.float32) / 255.0, mask)
-                rgb_np[viewers] = _harmonized_uint8(views, harmonized, mask).numpy()
-            timings["harmonize"] = 1e3 * (time.perf_counter() - start)
+        self._harmonize_cpu(rgb_np, car_mask, viewers, timings)
         return rgb_np, car_mask
+
+    def _harmonize_cpu(self, rgb: np.ndarray, car_mask: np.ndarray, viewers: list[int], timings: dict) -> None:
+        """Harmonize the cars composited into the uint8 views rgb (B, h, w, 3) (where car_mask), in place."""
+        if not self.config.harmonization:
+            return
+        start = time.perf_counter()
+        in_place = getattr(self.harmonizer, "harmonize_view_uint8_", None)
+        if in_place is not None:
+            for b in viewers:
+                in_place(rgb[b], car_mask[b])
+        else:
+            index = torch.as_tensor(viewers)
+            mask = torch.from_numpy(car_mask).index_select(0, index)
+            views = torch.from_numpy(rgb).index_select(0, index)
+            harmonized = self.harmonizer(views.to(torch.float32) / 255.0, mask)
+            rgb[viewers] = _harmonized_uint8(views, harmonized, mask).numpy()
+        timings["harmonize"] = 1e3 * (time.perf_counter() - start)
 
     def _insert_torch(
         self, rgb: torch.Tensor, depth: torch.Tensor, drawn: RenderResult, viewers: list[int], timings: dict
@@ -541,9 +571,15 @@ class ViewSynthesizer:
         return placed
 
     def _raster_scenes(self, placed_per_view: list[list[tuple]], lights: np.ndarray) -> RenderResult:
-        """The cars of views that show any, each view's (model, T_camera_car, full detail) list, one raster call: a
-        view of one car renders its packed model from the car's own frame, several cars are moved into the camera's
-        frame and merged."""
+        """The cars of views that show any, each view's (model, T_camera_car, full detail) list, in one raster call
+        (`_scenes_and_poses`)."""
+        scenes, poses = self._scenes_and_poses(placed_per_view)
+        return self.rasterizer.render(scenes, poses, self.K_view, lighting=lights)
+
+    def _scenes_and_poses(self, placed_per_view: list[list[tuple]]) -> tuple[list[PackedScene], np.ndarray]:
+        """Each view's cars (its (model, T_camera_car, full detail) list) as one packed scene and its pose in the
+        camera: a view of one car renders its packed model from the car's own frame, several cars are moved into the
+        camera's frame and merged."""
         scenes, poses = [], []
         for placed in placed_per_view:
             packed = [self._model_scenes(model)[0 if full else 1] for model, _, full in placed]
@@ -554,7 +590,7 @@ class ViewSynthesizer:
                 moved = [scene.transformed(T) for scene, (_, T, _) in zip(packed, placed, strict=True)]
                 scenes.append(merge_scenes(moved))
                 poses.append(np.eye(4))
-        return self.rasterizer.render(scenes, np.stack(poses), self.K_view, lighting=lights)
+        return scenes, np.stack(poses)
 
     def _raster_instances(self, placed_per_view: list[list[tuple]], lights: np.ndarray) -> RenderResult:
         """`_raster_scenes` for the batched torch path: views of one car in one `render_instances` call over the

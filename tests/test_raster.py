@@ -219,6 +219,37 @@ def test_cpu_kernel_matches_the_torch_path_for_placed_cars():
     assert not torch.equal(kernel.rgb[0][both[0]].mean(0), kernel.rgb[1][both[1]].mean(0)), "lighting differs"
 
 
+@pytest.mark.parametrize("gray", [False, True])
+def test_drawing_into_views_equals_render_then_composite(gray):
+    """`draw_into` (the CPU view path: the car rasterized and composited into the warped view in one call) writes the
+    pixels and the car mask that `render` then `composite_uint8` write: three cameras drawing into views 2, 0 and 3
+    of four (view 1 without a car), a wall nearer than part of a car, the second camera beside
+    the car (triangles across the near plane), each camera with its own lighting."""
+    car = pack_meshes(car_meshes())
+    scenes = [car.transformed(g.pose_2d(9.0, 1.0, 0.3)), car.transformed(g.pose_2d(4.5, 2.2, 0.0)), car]
+    T = np.stack([camera_at(), camera_at(4.0, 0.0, 0.1), camera_at(-7.0, -0.5, 0.2)])
+    lights = np.array([[1, 1, 1, 0, 0.5, 0.8, 0.4, 0.4, 0.4], [0.6, 0.5, 0.4, 0, 0.6, 0.8, 0.3, 0.3, 0.2],
+                       [0.9, 0.9, 1.0, 0.2, 0.5, 0.8, 0.5, 0.5, 0.5]], dtype=np.float32)  # fmt: skip
+    rng = np.random.default_rng(3)
+    views = rng.integers(0, 256, size=(4, H, W, 3), dtype=np.uint8)
+    depth = np.full((4, H, W), np.inf, np.float32)
+    depth[:, :, 120:200] = 7.5  # a wall across the middle, in front of the far part of the first car
+    view_of_camera = np.array([2, 0, 3])
+    rasterizer = Rasterizer(W, H, cull_back_faces=True)
+    drawn = rasterizer.render(scenes, T, K, lighting=lights)
+    expected, expected_front = views.copy(), np.zeros((4, H, W), dtype=bool)
+    for cam, v in enumerate(view_of_camera):
+        car_rgb, car_depth = drawn.rgb[cam].numpy(), drawn.depth_m[cam].numpy()
+        raster_kernel.composite_uint8(expected[v], depth[v], car_rgb, car_depth, expected_front[v], gray)
+    out, front = views.copy(), np.zeros((4, H, W), dtype=bool)
+    rasterizer.draw_into(scenes, T, K, lights, out, depth, front, view_of_camera, gray)
+    assert expected_front[0].sum() > 4000 and expected_front[2].sum() > 1000 and not expected_front[1].any()
+    hidden = np.isfinite(drawn.depth_m.numpy()) & ~expected_front[view_of_camera]
+    assert hidden.sum() > 500  # the wall hides part of a car
+    np.testing.assert_array_equal(front, expected_front)
+    np.testing.assert_array_equal(out, expected)
+
+
 def test_per_camera_scenes_and_lighting():
     """One call renders B different scenes (one per agent) with their own lighting."""
     cars_a = [m.transformed(g.pose_2d(8.0, 0.0, 0.0)) for m in car_meshes(object_id=1)]
