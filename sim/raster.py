@@ -422,11 +422,13 @@ class Rasterizer:
         front: np.ndarray,
         view_of_camera: np.ndarray,
         gray: bool,
+        threads: int = 1,
     ) -> None:
         """`render` of untextured `scenes` (one per camera, at poses T_camera_scene (B, 4, 4)) composited straight into
         uint8 views on the compiled CPU path: camera b draws over view rgb[view_of_camera[b]] (V, h, w, 3) where it is
         nearer than depth_m (V, h, w), and marks there front (V, h, w) bool; with `gray`, in its luma. The pixels
-        `render` then `raster_kernel.composite_uint8` give, without the full-size images in between."""
+        `render` then `raster_kernel.composite_uint8` give, without the full-size images in between; with `threads`
+        > 1 the shading's rows are shared out among that many threads (the same pixels)."""
         from drivesim.sim import raster_kernel  # numba compiles (or loads its cache) on first import
 
         if not self.use_kernel or any(scene.textured for scene in scenes):
@@ -441,7 +443,7 @@ class Rasterizer:
             _NO_OWNER if owner is None else owner.numpy(), max(scene.triangle_count, 1),
             scene.attribute_table.numpy(), scene.material.numpy(), np.ascontiguousarray(T[:, :3, :3], np.float32),
             np.linalg.inv(K_np).astype(np.float32), _lighting_table(lighting, T.shape[0]),
-            np.asarray(view_of_camera, dtype=np.int64), rgb, depth_m, front, gray,
+            np.asarray(view_of_camera, dtype=np.int64), rgb, depth_m, front, gray, int(threads),
         )  # fmt: skip
 
     def _candidates(

@@ -12,7 +12,7 @@ as the torch path's packed key does, and shade with `shading.py`'s formula.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 
 @njit(cache=True, nogil=True)
@@ -444,13 +444,15 @@ def draw_untextured_into(
     depth: np.ndarray,
     front: np.ndarray,
     gray: bool,
+    bands: int,
 ) -> int:
     """`render_untextured` then `composite_uint8` in one call, with the same pixels, for views that need only the
     composite: camera b draws into uint8 view rgb[view_of_camera[b]] (B, h, w, 3) over its depth (B, h, w), and
     front (B, h, w) bool (False initially) receives where its scene is nearer. The z-buffer covers only each camera's
     region (`_regions`) and only its nearer pixels are shaded: no full-image float image, depth, id or normal is
-    written (a car covers a few percent of a view; those writes were most of a car's raster). Returns the number of
-    triangles kept by the set-up."""
+    written (a car covers a few percent of a view; those writes were most of a car's raster). With `bands` > 1 each
+    region's rows are cut into that many bands shaded at the same time in numba's threads (the same pixels: each
+    pixel is shaded on its own). Returns the number of triangles kept by the set-up."""
     height_px, width_px = depth.shape[1], depth.shape[2]
     kept, bbox, camera, source = _kept_candidates(
         vc, intrinsics, width_px, height_px, near_m, cull_back_faces, owner, triangles_per_camera
@@ -466,19 +468,80 @@ def draw_untextured_into(
     z = np.full(size, np.inf, np.float32)
     winner = np.full(size, -1, np.int64)
     depth_test_regions(kept, bbox, camera, layout, near_m, z, winner)
-    for cam in range(cameras):
-        v = view_of_camera[cam]
-        for y in range(regions[cam, 1], regions[cam, 3] + 1):
-            for x in range(regions[cam, 0], regions[cam, 2] + 1):
-                p = layout[cam, 0] + (y - layout[cam, 2]) * layout[cam, 3] + (x - layout[cam, 1])
-                t = winner[p]
-                if t < 0 or not z[p] < depth[v, y, x]:
-                    continue
-                r, g, b, _, _, _ = _shade_pixel(x, y, cam, t, kept, source, attributes, material, R_cam_world, K_inv,
-                                                lights)  # fmt: skip
-                _composite_pixel(rgb[v, y, x], r, g, b, gray)
-                front[v, y, x] = True
+    rows = _row_bands(regions, max(bands, 1))
+    scene = (kept, source, attributes, material, R_cam_world, K_inv, lights)
+    if rows.shape[0] > cameras:
+        _shade_row_bands(rows, regions, layout, z, winner, view_of_camera, scene, rgb, depth, front, gray)
+    else:
+        for i in range(rows.shape[0]):
+            _shade_rows(rows[i], regions, layout, z, winner, view_of_camera, scene, rgb, depth, front, gray)
     return kept.shape[1]
+
+
+@njit(cache=True, nogil=True)
+def _row_bands(regions: np.ndarray, bands: int) -> np.ndarray:
+    """(n, 3) camera, first row, last row + 1 of each camera's region cut into up to `bands` bands of rows."""
+    rows = np.empty((regions.shape[0] * bands, 3), np.int64)
+    n = 0
+    for cam in range(regions.shape[0]):
+        y0, y1 = regions[cam, 1], regions[cam, 3] + 1
+        count = min(bands, max(y1 - y0, 0))
+        for k in range(count):
+            rows[n, 0], rows[n, 1], rows[n, 2] = cam, y0 + (y1 - y0) * k // count, y0 + (y1 - y0) * (k + 1) // count
+            n += 1
+    return rows[:n]
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _shade_row_bands(
+    rows: np.ndarray,
+    regions: np.ndarray,
+    layout: np.ndarray,
+    z: np.ndarray,
+    winner: np.ndarray,
+    view_of_camera: np.ndarray,
+    scene: tuple,
+    rgb: np.ndarray,
+    depth: np.ndarray,
+    front: np.ndarray,
+    gray: bool,
+) -> None:
+    """`_shade_rows` of every band of `rows` at the same time, one per thread."""
+    for i in prange(rows.shape[0]):
+        _shade_rows(rows[i], regions, layout, z, winner, view_of_camera, scene, rgb, depth, front, gray)
+
+
+@njit(cache=True, nogil=True)
+def _shade_rows(
+    band: np.ndarray,
+    regions: np.ndarray,
+    layout: np.ndarray,
+    z: np.ndarray,
+    winner: np.ndarray,
+    view_of_camera: np.ndarray,
+    scene: tuple,
+    rgb: np.ndarray,
+    depth: np.ndarray,
+    front: np.ndarray,
+    gray: bool,
+) -> None:
+    """Shade and composite the pixels of band (camera, first row, last row + 1) whose z-buffer entry (layout as
+    `depth_test_regions`) is nearer than the view's depth; `scene` holds `_shade_pixel`'s tables (kept, source,
+    attributes, material, R_cam_world, K_inv, lights)."""
+    kept, source, attributes, material, R_cam_world, K_inv, lights = scene
+    cam = band[0]
+    v = view_of_camera[cam]
+    for y in range(band[1], band[2]):
+        for x in range(regions[cam, 0], regions[cam, 2] + 1):
+            p = layout[cam, 0] + (y - layout[cam, 2]) * layout[cam, 3] + (x - layout[cam, 1])
+            t = winner[p]
+            if t < 0 or not z[p] < depth[v, y, x]:
+                continue
+            r, g, b, _, _, _ = _shade_pixel(
+                x, y, cam, t, kept, source, attributes, material, R_cam_world, K_inv, lights
+            )
+            _composite_pixel(rgb[v, y, x], r, g, b, gray)
+            front[v, y, x] = True
 
 
 @njit(cache=True, nogil=True)

@@ -125,11 +125,11 @@ class ViewConfig(pydantic.BaseModel):
     """Whether the camera is monochrome: inserted cars are then drawn and harmonized in gray (luminance). None:
     detected from the world's frames (every sampled frame has equal R, G and B, as KITTI's gray cameras give)."""
     render_threads: int = pydantic.Field(1, ge=1, le=16)
-    """CPU threads one view's warp and inpainting are split over (1: none): the view is cut into that many horizontal
-    bands, warped, crack-filled and gathered at the same time in numba's threads, and the inpainting's rows are
-    shared out likewise, with the same pixels as one thread. For a single env whose step latency matters, e.g. against
-    VISTA, whose renderer (llvmpipe) uses every core; training already keeps every core busy with envs, so the presets
-    leave it at 1."""
+    """CPU threads one view's warp, inpainting and car shading are split over (1: none): the view is cut into that
+    many horizontal bands, warped, crack-filled and gathered at the same time in numba's threads, and the inpainting's
+    and the car's rows are shared out likewise, with the same pixels as one thread. For a single env whose step
+    latency matters, e.g. against VISTA, whose renderer (llvmpipe) uses every core; training already keeps every core
+    busy with envs, so the presets leave it at 1."""
     source_downsample: bool = True
     """Warp from recorded frames reduced by the integer factor closest to (not above) roi / out, colour area-averaged
     and depth min-pooled (the nearest surface wins): about that factor squared fewer points to warp, at the policy's
@@ -485,7 +485,10 @@ class ViewSynthesizer:
         rgb_np, depth_np = rgb.numpy(), depth.numpy()
         car_mask = np.zeros(depth_np.shape, dtype=bool)
         gray = bool(self.monochrome)  # a gray camera's world: the car in gray too, in the same pass
-        self.rasterizer.draw_into(scenes, poses, self.K_view, lights, rgb_np, depth_np, car_mask, viewers, gray)
+        threads = self.config.render_threads
+        self.rasterizer.draw_into(
+            scenes, poses, self.K_view, lights, rgb_np, depth_np, car_mask, viewers, gray, threads
+        )
         return rgb_np, car_mask
 
     def _insert_cpu(

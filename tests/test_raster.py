@@ -219,12 +219,12 @@ def test_cpu_kernel_matches_the_torch_path_for_placed_cars():
     assert not torch.equal(kernel.rgb[0][both[0]].mean(0), kernel.rgb[1][both[1]].mean(0)), "lighting differs"
 
 
-@pytest.mark.parametrize("gray", [False, True])
-def test_drawing_into_views_equals_render_then_composite(gray):
+@pytest.mark.parametrize(("gray", "threads"), [(False, 1), (True, 1), (False, 3)])
+def test_drawing_into_views_equals_render_then_composite(gray, threads):
     """`draw_into` (the CPU view path: the car rasterized and composited into the warped view in one call) writes the
     pixels and the car mask that `render` then `composite_uint8` write: three cameras drawing into views 2, 0 and 3
-    of four (view 1 without a car), a wall nearer than part of a car, the second camera beside
-    the car (triangles across the near plane), each camera with its own lighting."""
+    of four (view 1 without a car), a wall nearer than part of a car, the second camera beside the car (triangles
+    across the near plane), each camera with its own lighting; on one thread and with the rows shared among three."""
     car = pack_meshes(car_meshes())
     scenes = [car.transformed(g.pose_2d(9.0, 1.0, 0.3)), car.transformed(g.pose_2d(4.5, 2.2, 0.0)), car]
     T = np.stack([camera_at(), camera_at(4.0, 0.0, 0.1), camera_at(-7.0, -0.5, 0.2)])
@@ -242,7 +242,7 @@ def test_drawing_into_views_equals_render_then_composite(gray):
         car_rgb, car_depth = drawn.rgb[cam].numpy(), drawn.depth_m[cam].numpy()
         raster_kernel.composite_uint8(expected[v], depth[v], car_rgb, car_depth, expected_front[v], gray)
     out, front = views.copy(), np.zeros((4, H, W), dtype=bool)
-    rasterizer.draw_into(scenes, T, K, lights, out, depth, front, view_of_camera, gray)
+    rasterizer.draw_into(scenes, T, K, lights, out, depth, front, view_of_camera, gray, threads)
     assert expected_front[0].sum() > 4000 and expected_front[2].sum() > 1000 and not expected_front[1].any()
     hidden = np.isfinite(drawn.depth_m.numpy()) & ~expected_front[view_of_camera]
     assert hidden.sum() > 500  # the wall hides part of a car
