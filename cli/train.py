@@ -42,6 +42,24 @@ ResumeOption = Annotated[
     Path | None,
     typer.Option("--resume", help="Continue an unfinished run folder (runs/<task>-<time>, or just its name)."),
 ]
+EnsembleOption = Annotated[
+    int | None,
+    typer.Option(
+        "--ensemble",
+        help="Train this many policies (seeds seed, seed+1, ...; each a run of its own) and make them one ensemble "
+        "run whose steering is the mean of theirs: far steadier on a drive none of them saw than any one seed.",
+        show_default=False,
+    ),
+]
+EnsembleOfOption = Annotated[
+    list[Path] | None,
+    typer.Option(
+        "--ensemble-of",
+        help="Train nothing: make an ensemble run of these finished runs (repeatable; one task, view and network), "
+        "e.g. the members of an interrupted --ensemble once each is finished with --resume.",
+        show_default=False,
+    ),
+]
 WarmStartOption = Annotated[
     str | None,
     typer.Option("--warm-start", help="'expert': behaviour cloning from the privileged expert (DAgger) first."),
@@ -57,12 +75,15 @@ def train_command(
     address: AddressOption = None,
     resume: ResumeOption = None,
     warm_start: WarmStartOption = None,
+    ensemble: EnsembleOption = None,
+    ensemble_of: EnsembleOfOption = None,
     config: ConfigOption = None,
     set_: set_option("ppo.learning_rate=1e-4") = None,
 ) -> None:
     """Train a driving policy with PPO (CNN + LSTM); the run goes to runs/<task>-<time>/ in the workspace.
 
     Ctrl-C keeps everything up to the last update; `--resume RUN` continues it. Presets: configs/train/<task>.yaml.
+    With --ensemble N, N runs are trained one after another and an ensemble run of them is made last.
     """
     # Imported here so `drivesim --help` stays fast (training pulls in torch and stable-baselines3).
     from drivesim.stages.train.config import TrainConfig
@@ -70,7 +91,12 @@ def train_command(
     from drivesim.stages.train.stage import run_training
 
     ws = workspace()
+    if ensemble_of:
+        _print_result(_assemble(ws, ensemble_of, config, list(set_ or [])))
+        return
     overrides = list(set_ or [])
+    if ensemble is not None:
+        overrides.append(f"ensemble={ensemble}")
     if total_steps is not None:
         overrides.append(f"total_steps={total_steps}")
     if envs is not None:
@@ -115,6 +141,17 @@ def train_command(
     _print_result(result)
 
 
+def _assemble(ws: Any, runs: list[Path], config: Path | None, overrides: list[str]) -> Any:
+    """The ensemble run of finished runs (their task from the first one's policy.json)."""
+    from drivesim.stages.policy.run_folder import load_policy
+    from drivesim.stages.train.config import TrainConfig
+    from drivesim.stages.train.stage import assemble_ensemble
+
+    task = load_policy(runs[0]).task
+    cfg = load_config(TrainConfig, preset=f"train/{task}", config_file=config, overrides=[f"task={task}", *overrides])
+    return assemble_ensemble(ws, cfg, runs)
+
+
 def _print_result(result: Any) -> None:
     """The run's notes and its one-line summary."""
     for note in result.notes:
@@ -125,10 +162,11 @@ def _print_result(result: Any) -> None:
         if s.eval_success_rate is None
         else (f"; evaluation on held-back seeds: success {s.eval_success_rate:.0%}, return {s.eval_return_mean:.1f}")
     )
+    curves = " (curves.png)" if (Path(result.path) / "curves.png").is_file() else " (an ensemble: no curves of its own)"
     console.print(
         f"[green]train[/] {s.task}: {s.steps} env steps in {s.wall_s / 60:.1f} min ({s.steps_per_s:.0f} env steps/s; "
         f"simulator {s.time_simulator_s:.0f} s, rollout {s.time_rollout_s:.0f} s, optimization "
-        f"{s.time_optimization_s:.0f} s){eval_text} -> {result.path} (curves.png)",
+        f"{s.time_optimization_s:.0f} s){eval_text} -> {result.path}{curves}",
         highlight=False,
         soft_wrap=True,
     )

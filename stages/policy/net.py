@@ -185,6 +185,71 @@ class DrivingNet(nn.Module):
         latent = latent[0]
         return self.action_head(latent), self.value_head(latent), state
 
+    def act(self, image_u8: torch.Tensor, h: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """One deterministic step from state (h, c) (already reset where an episode starts): (action (N, 1) in
+        [-1, 1], h, c), as one traceable graph (the ONNX export's)."""
+        features = self.encoder(image_u8).unsqueeze(0)
+        latent, (h_new, c_new) = self.lstm(features, (h, c))
+        return torch.clamp(self.action_head(latent[0]), -1.0, 1.0), h_new, c_new
+
+
+class EnsembleNet(nn.Module):
+    """Several `DrivingNet`s of one architecture (policies trained with different seeds) acting as one policy: the
+    steering is the mean of the members' steering, each clipped to [-1, 1]; the value the mean of their values. The
+    LSTM state is the members' states side by side along the hidden axis (layers, N, members x hidden), so that code
+    written for one net (the rollout, the ONNX export) carries an ensemble's state unchanged.
+
+    Why: on a real drive none of them trained on, policies of one recipe that differ only in their seed pass from
+    0 % to 100 % of the episodes, each leaving the lane on the side of its own steering bias; the mean of four
+    cancels much of it (benchmarks/results/transfer.md, the ensemble rows). Weight names: `members.<k>.<DrivingNet
+    name>`.
+    """
+
+    def __init__(self, members: Sequence[DrivingNet]) -> None:
+        super().__init__()
+        if len(members) < 2:
+            raise ValueError(f"an ensemble needs at least 2 members, got {len(members)}")
+        self.members = nn.ModuleList(members)
+        self.member_hidden_size = int(members[0].hidden_size)
+        self.hidden_size = self.member_hidden_size * len(members)
+        self.lstm_layers = int(members[0].lstm_layers)
+
+    @property
+    def log_std(self) -> torch.Tensor:
+        """The members' mean log standard deviation (for stochastic actions)."""
+        return torch.stack([m.log_std for m in self.members]).mean(0)
+
+    def initial_state(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Zero LSTM state for n sequences: (h, c), each (layers, n, members x hidden)."""
+        zeros = torch.zeros(self.lstm_layers, n, self.hidden_size)
+        return zeros, zeros.clone()
+
+    def _split(self, state: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        return torch.split(state, self.member_hidden_size, dim=2)
+
+    def step(
+        self, image_u8: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor], episode_start: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """One time step for N sequences: (mean of the members' clipped steering (N, 1), mean value (N, 1), state)."""
+        actions, values, hs, cs = [], [], [], []
+        for member, h, c in zip(self.members, self._split(state[0]), self._split(state[1]), strict=True):
+            mean, value, (h, c) = member.step(image_u8, (h.contiguous(), c.contiguous()), episode_start)
+            actions.append(torch.clamp(mean, -1.0, 1.0))
+            values.append(value)
+            hs.append(h)
+            cs.append(c)
+        state_out = (torch.cat(hs, dim=2), torch.cat(cs, dim=2))
+        return torch.stack(actions).mean(0), torch.stack(values).mean(0), state_out
+
+    def act(self, image_u8: torch.Tensor, h: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """`DrivingNet.act` of every member on its part of the state, the actions averaged."""
+        outputs = [
+            member.act(image_u8, h_k.contiguous(), c_k.contiguous())
+            for member, h_k, c_k in zip(self.members, self._split(h), self._split(c), strict=True)
+        ]
+        action = torch.stack([a for a, _, _ in outputs]).mean(0)
+        return action, torch.cat([h for _, h, _ in outputs], dim=2), torch.cat([c for _, _, c in outputs], dim=2)
+
 
 class ExportModule(nn.Module):
     """The deterministic policy for deployment (INTERFACES §4): one step with explicit LSTM state.
@@ -193,7 +258,7 @@ class ExportModule(nn.Module):
         -> (action (N,1) f32 in [-1, 1], h, c); the state is reset where episode_start == 1 before the step.
     """
 
-    def __init__(self, net: DrivingNet) -> None:
+    def __init__(self, net: DrivingNet | EnsembleNet) -> None:
         super().__init__()
         self.net = net
         self.lstm_layers = net.lstm_layers
@@ -204,7 +269,4 @@ class ExportModule(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One deterministic step; see the class docstring."""
         keep = (1.0 - episode_start.float()).view(1, -1, 1)
-        features = self.net.encoder(image_u8).unsqueeze(0)
-        latent, (h_new, c_new) = self.net.lstm(features, (h * keep, c * keep))
-        action = torch.clamp(self.net.action_head(latent[0]), -1.0, 1.0)
-        return action, h_new, c_new
+        return self.net.act(image_u8, h * keep, c * keep)

@@ -7,6 +7,10 @@ Run folder `runs/<task>-<YYYYmmdd-HHMMSS>/` (written by `drivesim train`):
                         features_dim, input_pool, lstm_hidden_size, lstm_layers, log_std_init},
                         "action": {"low": -1, "high": 1, "max_curvature_1pm": float | null}, "normalization": {...}}
     policy.pt          DrivingNet weights (a dict of tensors; read with torch.load(weights_only=True))
+
+An ensemble run (`drivesim train --ensemble N`, `stages/policy/ensemble.py`) holds config.json, policy.json (with
+"ensemble": {"members": N, "runs": [member run names]}), policy.pt (the `EnsembleNet`'s weights), normalization.json
+and manifest.json; its members are run folders of their own beside it.
     normalization.json how observations are normalized before the network (per-image standardization, no stats
                         to fit; recorded so a deployment can check it)
     checkpoints/       last.pt (after every update) and step-<N>.pt; progress.csv; tb/ (TensorBoard); curves.png
@@ -138,8 +142,25 @@ def _check_weights(run_dir: Path, manifest: dict[str, Any]) -> None:
         )
 
 
+MAX_ENSEMBLE_MEMBERS = 16
+"""The most members policy.json may name (a damaged one could otherwise ask for any number of networks)."""
+
+
 def build_net(info: dict[str, Any]) -> Any:
-    """A `DrivingNet` with the architecture recorded in policy.json (random weights)."""
+    """A `DrivingNet` with the architecture recorded in policy.json (random weights), or an `EnsembleNet` of
+    `info["ensemble"]["members"]` of them when policy.json describes an ensemble."""
+    from drivesim.stages.policy.net import EnsembleNet
+
+    if "ensemble" not in info:
+        return _driving_net(info)
+    members = info["ensemble"]["members"]
+    if not isinstance(members, int) or not 2 <= members <= MAX_ENSEMBLE_MEMBERS:
+        raise ValueError(f"an ensemble of {members!r} members (2 to {MAX_ENSEMBLE_MEMBERS})")
+    return EnsembleNet([_driving_net(info) for _ in range(members)])
+
+
+def _driving_net(info: dict[str, Any]) -> Any:
+    """One `DrivingNet` of the architecture in policy.json, its size checked first."""
     from drivesim.stages.net_size import check_network_size
     from drivesim.stages.policy.net import DrivingNet
 

@@ -58,6 +58,9 @@ def _build(ctx: BuildContext) -> TrainSummary:
     if run_dir is None:
         # run_stage(ws, SPEC, cfg) alone would move the finished run over the whole runs/ folder.
         raise DrivesimError("the train stage runs through stages.train.stage.run_training (one folder per run)")
+    members = [ctx.external[k] for k in sorted(ctx.external) if k.startswith(_MEMBER_PREFIX)]
+    if members:
+        return _build_ensemble(ctx, cfg, run_dir, members)
     cost_free = cfg.envs.source == "cost_free"
     source = EnvSource(
         task=cfg.task,
@@ -101,6 +104,45 @@ def _build(ctx: BuildContext) -> TrainSummary:
         policy_eval_success_rate=outcome.policy_eval.get("success_rate"),
         warm_start=cfg.warm_start.method != "none",
         worlds=[str(w) for w in source.worlds],
+    )
+
+
+_MEMBER_PREFIX = "member_"
+"""External inputs of an ensemble run: its member runs, `member_00`, `member_01`, ..."""
+
+
+def _build_ensemble(ctx: BuildContext, cfg: TrainConfig, run_dir: Path, members: list[Path]) -> TrainSummary:
+    """The ensemble run of the finished runs `members` (`stages/policy/ensemble.py`) in the stage's folder; its
+    summary adds up the members' training."""
+    import json
+
+    from drivesim.stages.policy.ensemble import load_members, write_ensemble_files
+
+    loaded = load_members(members)
+    write_ensemble_files(ctx.dir, loaded, cfg.model_dump(mode="json"))
+    summaries = [json.loads((m / MANIFEST_NAME).read_text()).get("summary", {}) for m in members]
+
+    def total(key: str) -> float:
+        return float(sum(s.get(key) or 0 for s in summaries))
+
+    worlds: list[str] = []
+    for summary in summaries:
+        worlds += [w for w in summary.get("worlds", []) if w not in worlds]
+    ctx.notes.append(f"ensemble of {len(members)} runs: {', '.join(str(m) for m in members)}")
+    return TrainSummary(
+        task=cfg.task,
+        run=run_dir.name,
+        steps=int(total("steps")),
+        updates=int(total("updates")),
+        episodes=int(total("episodes")),
+        wall_s=round(total("wall_s"), 1),
+        steps_per_s=round(total("steps") / max(total("wall_s"), 1e-9), 1),
+        time_rollout_s=round(total("time_rollout_s"), 1),
+        time_simulator_s=round(total("time_simulator_s"), 1),
+        time_optimization_s=round(total("time_optimization_s"), 1),
+        policy_steps=int(total("policy_steps")),
+        warm_start=any(s.get("warm_start") for s in summaries),
+        worlds=worlds,
     )
 
 
@@ -158,6 +200,8 @@ def run_training(
     """
     from drivesim.stages.train.run import new_run_dir
 
+    if cfg.ensemble > 1 and resume is None:
+        return _train_ensemble(ws, cfg, worlds, on_start)
     towns: list[Path] = []
     if cfg.towns and cfg.envs.source != "cost_free":
         from drivesim.stages.towns import ensure_towns
@@ -180,3 +224,27 @@ def run_training(
             external=external,
             artifact=f"runs/{run_dir.name}",
         )
+
+
+def _train_ensemble(
+    ws: Workspace, cfg: TrainConfig, worlds: list[Path] | None, on_start: Callable[[Path], None] | None
+) -> StageResult[TrainSummary]:
+    """`cfg.ensemble` runs with seeds cfg.seed, cfg.seed + 1, ..., one after another, then their ensemble run."""
+    members = []
+    for k in range(cfg.ensemble):
+        member_cfg = cfg.model_copy(update={"ensemble": 1, "seed": cfg.seed + k})
+        members.append(run_training(ws, member_cfg, worlds, on_start=on_start).path)
+    return assemble_ensemble(ws, cfg, members)
+
+
+def assemble_ensemble(ws: Workspace, cfg: TrainConfig, members: list[Path]) -> StageResult[TrainSummary]:
+    """An ensemble run of the finished runs `members` (checked to act alike) in a new run folder of `ws`, under the
+    stage contract (the members are its inputs; its manifest is written last)."""
+    from drivesim.stages.train.run import new_run_dir
+
+    cfg = cfg.model_copy(update={"ensemble": len(members)})
+    run_dir = new_run_dir(ws.root, cfg.task)
+    external = {f"{_MEMBER_PREFIX}{k:02d}": Path(m).absolute() for k, m in enumerate(members)}
+    with active_run(run_dir):
+        return run_stage(ws, replace(SPEC, requires=()), cfg, force=True, external=external,
+                         artifact=f"runs/{run_dir.name}")  # fmt: skip
