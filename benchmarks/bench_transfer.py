@@ -3,6 +3,7 @@
 For one training run (`drivesim train ...`, its folder given with --run) this evaluates, with `drivesim eval` on the
 same seeds (0 .. N-1 in every world, eval mode: any overlap is a collision):
   random      uniform random steering
+  straight    no steering at all (how much of a lane task the drive's own geometry passes)
   expert      the privileged expert (sees the other car's state; the warm start's teacher)
   warm start  the run's policy before any PPO update (checkpoints/warm_start.pt), when the run had one
   final       the run's last update's weights (what the run reports)
@@ -37,7 +38,7 @@ from pathlib import Path
 
 RESULTS = Path(__file__).parent / "results"
 DRIVESIM = Path(sys.executable).parent / "drivesim"
-POLICIES = ("random", "expert", "warm start", "final", "best")
+POLICIES = ("random", "straight", "expert", "warm start", "final", "best")
 GROUPS = ("train", "unseen", "real")
 
 
@@ -57,7 +58,7 @@ def machine() -> str:
 def policy_argument(run: Path, policy: str) -> str | None:
     """What `drivesim eval --policy` takes for a row, or None when the run lacks it (no warm start)."""
     paths = {"warm start": run / "checkpoints" / "warm_start.pt", "best": run / "checkpoints" / "best.pt"}
-    if policy in ("random", "expert"):
+    if policy in ("random", "straight", "expert"):
         return policy
     if policy == "final":
         return str(run)
@@ -92,7 +93,10 @@ def pooled(per_world: list[dict]) -> dict:
 
 
 def progress_curve(run: Path) -> list[tuple[float, int, float]]:
-    """(training minutes, env steps, held-back success) of every periodic evaluation of the run."""
+    """(training minutes, env steps, held-back success) of every periodic evaluation of the run ([] for an ensemble
+    run, whose members hold the curves)."""
+    if not (run / "progress.csv").is_file():
+        return []
     rows = list(csv.DictReader((run / "progress.csv").open()))
     return [
         (float(r["wall_s"]) / 60.0, int(float(r["steps"])), float(r["eval_success_rate"]))
@@ -171,7 +175,8 @@ def plot(result: dict, path: Path) -> None:
         if points:
             label = f"checkpoints on {'unseen towns' if group == 'unseen' else 'the unseen real drive'}"
             ax.plot([p["minutes"] for p in points], [p[group]["success"] for p in points], style, label=label)
-    colours = {"random": "grey", "expert": "black", "warm start": "tab:orange", "final": "tab:green"}
+    colours = {"random": "grey", "straight": "tab:brown", "expert": "black", "warm start": "tab:orange",
+               "final": "tab:green"}  # fmt: skip
     for policy, colour in colours.items():
         row = result["rows"].get(policy)
         if row and row.get("unseen"):
@@ -251,6 +256,36 @@ def _seed_table(results: list[dict]) -> list[str]:
     return [*lines, "", *_baseline_lines(results, {(tasks[arm], real_worlds[arm]) for arm in arms}), ""]
 
 
+def _ensemble_table(results: list[dict]) -> list[str]:
+    """Every ensemble run's success beside its members' (each member's own final-policy row, where one exists):
+    on the unseen towns and on each unseen real drive."""
+    by_run = {r["run"]: r for r in results}
+    ensembles = [r for r in results if r.get("ensemble_of") and (r["rows"].get("final") or {}).get("unseen")]
+    if not ensembles:
+        return []
+    lines = [
+        "## Ensembles (`drivesim train --ensemble N`: the mean of N seeds' steering) beside their members",
+        "",
+        "| ensemble | members | unseen synthetic towns: ensemble (members) | unseen real drives: ensemble (members) |",
+        "|---|---|---|---|",
+    ]
+    for r in ensembles:
+        members = [by_run.get(run) for run in r["ensemble_of"]]
+        names = [arm_and_seed(m["name"])[1] if m else "?" for m in members]
+        cells = []
+        for group in ("unseen", "real"):
+            per_world = r["rows"]["final"].get(f"{group}_per_world") or {}
+            parts = []
+            for world, metrics in per_world.items():
+                theirs = [((m or {}).get("rows", {}).get("final") or {}).get(f"{group}_per_world", {}).get(world)
+                          for m in members]  # fmt: skip
+                member_text = " / ".join("—" if t is None else f"{t['success']:.1%}" for t in theirs)
+                parts.append(f"{Path(world).parent.name}: **{metrics['success']:.1%}** ({member_text})")
+            cells.append("; ".join(parts) or "—")
+        lines.append(f"| {r['name']} | {len(members)} (seeds {', '.join(map(str, names))}) | {' | '.join(cells)} |")
+    return [*lines, ""]
+
+
 def _baseline_lines(results: list[dict], real_sets: set[tuple[str, str]]) -> list[str]:
     """Random and expert success on the same unseen worlds and seeds, from the first result that evaluated them
     for each (task, set of real worlds) in `real_sets` (the arms above share their worlds, so one evaluation serves
@@ -261,7 +296,7 @@ def _baseline_lines(results: list[dict], real_sets: set[tuple[str, str]]) -> lis
         task, real = key
         if key not in real_sets or key in done:
             continue
-        for policy in ("random", "expert"):
+        for policy in ("random", "straight", "expert"):
             row = r["rows"].get(policy) or {}
             if row.get("unseen") is None:
                 continue
@@ -288,6 +323,7 @@ def write_markdown() -> None:
     ]
     paths = sorted(RESULTS.glob("transfer_*.json"))
     lines += _seed_table([json.loads(path.read_text()) for path in paths])
+    lines += _ensemble_table([json.loads(path.read_text()) for path in paths])
     for path in paths:
         r = json.loads(path.read_text())
         lines += [
@@ -397,6 +433,7 @@ def main() -> None:
         trained_min=float(summary.get("wall_s", math.nan)) / 60.0,
         steps=int(summary.get("steps", 0)),
         curve=progress_curve(run),
+        ensemble_of=config.get("ensemble_of"),
         machine=machine(),
         measured_utc=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         eval_minutes=(time.time() - start) / 60.0,

@@ -21,7 +21,7 @@ PolicyOption = Annotated[
     typer.Option(
         "--policy",
         help="A run folder of `drivesim train` (or one of its checkpoints, RUN/checkpoints/NAME.pt), an exported "
-        ".onnx file, 'expert' or 'random'. "
+        ".onnx file, 'expert', 'random' or 'straight' (never steers). "
         "Default: the workspace's newest finished run of the task, else the expert.",
         show_default=False,
     ),

@@ -344,3 +344,13 @@ def test_random_policy_is_a_baseline_that_repeats_its_episodes(tmp_path):
     assert np.all(np.abs(first) <= 1) and np.ptp(first) > 0.5
     assert not np.array_equal(first[: len(second)], second[: len(first)])
     assert PolicySpec.parse("random").label == "random"
+
+
+def test_straight_policy_never_steers(tmp_path):
+    """`--policy straight` (the baseline of a policy that never steers) acts 0 at every step and names itself."""
+    factory = _factory(fake_world(tmp_path / "world"))
+    run_episodes(factory, PolicySpec.parse("straight"), "overtake", [0, 1], tmp_path / "out", workers=1)
+    for text in _files(tmp_path / "out").values():
+        actions = np.array(json.loads(text)["trajectory"]["action"][1:])
+        assert len(actions) >= 3 and np.all(actions == 0.0)
+    assert PolicySpec.parse("straight").label == "straight"

@@ -105,11 +105,26 @@ class RandomPolicy:
         return self.rng.uniform(-1.0, 1.0, (1, 1)).astype(np.float32), None
 
 
+class StraightPolicy:
+    """No steering at all (action 0 at every step): the baseline that shows how much of a lane task a drive's own
+    geometry already passes."""
+
+    def initial_state(self, n: int) -> None:
+        """No state."""
+        return None
+
+    def predict(
+        self, obs: np.ndarray, state: Any, episode_start: np.ndarray, deterministic: bool = True
+    ) -> tuple[np.ndarray, Any]:
+        """Zero steering, shaped (1, 1)."""
+        return np.zeros((1, 1), dtype=np.float32), None
+
+
 @dataclass(frozen=True)
 class PolicySpec:
     """Which policy to evaluate (picklable): "expert", a run folder ("run") or an ONNX file ("onnx").
 
-    :param kind: "expert", "run" or "onnx".
+    :param kind: "expert", "random", "straight", "run" or "onnx".
     :param path: the run folder or the .onnx file (None for the expert).
     """
 
@@ -119,7 +134,7 @@ class PolicySpec:
     @classmethod
     def parse(cls, text: str) -> PolicySpec:
         """`expert`, a path ending in `.onnx`, or a run folder."""
-        if text in ("expert", "random"):
+        if text in ("expert", "random", "straight"):
             return cls(text)
         if text.lower().endswith(".onnx"):
             return cls("onnx", str(Path(text).absolute()))
@@ -136,6 +151,8 @@ class PolicySpec:
             return ExpertPolicy(env)
         if self.kind == "random":
             return RandomPolicy(env)
+        if self.kind == "straight":
+            return StraightPolicy()
         if self.kind == "run":
             from drivesim.stages.policy.run_folder import load_policy
 

@@ -43,8 +43,9 @@ class _Plan:
     policy_path: Path | None
 
 
-BUILT_IN_POLICIES = ("expert", "random")
-"""Policies named by a word: the env's privileged expert, uniform random steering (a baseline)."""
+BUILT_IN_POLICIES = ("expert", "random", "straight")
+"""Policies named by a word: the env's privileged expert, uniform random steering and no steering at all (baselines:
+on a gentle drive a policy that never steers stays in its lane in many episodes)."""
 
 
 def _policy_label(policy: str) -> str:
