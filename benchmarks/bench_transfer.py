@@ -287,28 +287,30 @@ def _ensemble_table(results: list[dict]) -> list[str]:
 
 
 def _baseline_lines(results: list[dict], real_sets: set[tuple[str, str]]) -> list[str]:
-    """Random and expert success on the same unseen worlds and seeds, from the first result that evaluated them
-    for each (task, set of real worlds) in `real_sets` (the arms above share their worlds, so one evaluation serves
-    all arms of a task)."""
+    """Random, straight and expert success on the same unseen worlds and seeds, each from the first result that
+    evaluated it for each (task, set of real worlds) in `real_sets` (the arms above share their worlds, so one
+    evaluation serves all arms of a task)."""
     lines, done = [], set()
-    for r in results:
-        key = (r.get("task", "overtake"), ", ".join(Path(w).parent.name for w in r["real_worlds"]) or "—")
-        task, real = key
-        if key not in real_sets or key in done:
-            continue
-        for policy in ("random", "straight", "expert"):
+    for policy in ("random", "straight", "expert"):
+        for r in results:
+            key = (r.get("task", "overtake"), ", ".join(Path(w).parent.name for w in r["real_worlds"]) or "—")
+            task, real = key
             row = r["rows"].get(policy) or {}
-            if row.get("unseen") is None:
+            if key not in real_sets or (key, policy) in done or row.get("unseen") is None:
                 continue
             real_success = (row.get("real") or {}).get("success")
             real_text = "—" if real_success is None else f"{real_success:.1%}"
+            per_world = row.get("real_per_world") or {}
+            if len(per_world) > 1:
+                real_text += (
+                    " (" + ", ".join(f"{Path(w).parent.name} {m['success']:.1%}" for w, m in per_world.items()) + ")"
+                )
             lines.append(
                 f"- {task}, {policy} (from {r['name']}, {r['episodes']} episodes per world): unseen synthetic towns "
-                f"{row['unseen']['success']:.1%}, "
-                f"unseen real drives ({real}) {real_text}"
+                f"{row['unseen']['success']:.1%}, unseen real drives ({real}) {real_text}"
             )
-            done.add(key)
-    return ["Baselines on the same worlds and seeds:", "", *lines] if lines else []
+            done.add((key, policy))
+    return ["Baselines on the same worlds and seeds:", "", *sorted(lines)] if lines else []
 
 
 def write_markdown() -> None:
