@@ -470,11 +470,12 @@ def draw_untextured_into(
     depth_test_regions(kept, bbox, camera, layout, near_m, z, winner)
     rows = _row_bands(regions, max(bands, 1))
     scene = (kept, source, attributes, material, R_cam_world, K_inv, lights)
+    target = (regions, layout, z, winner, view_of_camera, rgb, depth, front, gray)
     if rows.shape[0] > cameras:
-        _shade_row_bands(rows, regions, layout, z, winner, view_of_camera, scene, rgb, depth, front, gray)
+        _shade_row_bands(rows, target, scene)
     else:
         for i in range(rows.shape[0]):
-            _shade_rows(rows[i], regions, layout, z, winner, view_of_camera, scene, rgb, depth, front, gray)
+            _shade_rows(rows[i], target, scene)
     return kept.shape[1]
 
 
@@ -493,41 +494,19 @@ def _row_bands(regions: np.ndarray, bands: int) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _shade_row_bands(
-    rows: np.ndarray,
-    regions: np.ndarray,
-    layout: np.ndarray,
-    z: np.ndarray,
-    winner: np.ndarray,
-    view_of_camera: np.ndarray,
-    scene: tuple,
-    rgb: np.ndarray,
-    depth: np.ndarray,
-    front: np.ndarray,
-    gray: bool,
-) -> None:
+def _shade_row_bands(rows: np.ndarray, target: tuple, scene: tuple) -> None:
     """`_shade_rows` of every band of `rows` at the same time, one per thread."""
     for i in prange(rows.shape[0]):
-        _shade_rows(rows[i], regions, layout, z, winner, view_of_camera, scene, rgb, depth, front, gray)
+        _shade_rows(rows[i], target, scene)
 
 
 @njit(cache=True, nogil=True)
-def _shade_rows(
-    band: np.ndarray,
-    regions: np.ndarray,
-    layout: np.ndarray,
-    z: np.ndarray,
-    winner: np.ndarray,
-    view_of_camera: np.ndarray,
-    scene: tuple,
-    rgb: np.ndarray,
-    depth: np.ndarray,
-    front: np.ndarray,
-    gray: bool,
-) -> None:
-    """Shade and composite the pixels of band (camera, first row, last row + 1) whose z-buffer entry (layout as
-    `depth_test_regions`) is nearer than the view's depth; `scene` holds `_shade_pixel`'s tables (kept, source,
+def _shade_rows(band: np.ndarray, target: tuple, scene: tuple) -> None:
+    """Shade and composite the pixels of band (camera, first row, last row + 1) whose z-buffer entry is nearer than
+    the view's depth. `target`: (regions, layout, z, winner, view_of_camera, rgb, depth, front, gray) as in
+    `draw_untextured_into` (layout as `depth_test_regions`); `scene`: `_shade_pixel`'s tables (kept, source,
     attributes, material, R_cam_world, K_inv, lights)."""
+    regions, layout, z, winner, view_of_camera, rgb, depth, front, gray = target
     kept, source, attributes, material, R_cam_world, K_inv, lights = scene
     cam = band[0]
     v = view_of_camera[cam]
