@@ -437,14 +437,18 @@ class Rasterizer:
         scene, owner, v_cam = self._candidates(list(scenes), T)
         N = v_cam.shape[2]
         K_np = np.asarray(K, dtype=np.float64)
-        raster_kernel.draw_untextured_into(
+        inputs = (
             np.ascontiguousarray(v_cam.reshape(9, N).numpy()),
             np.array([K_np[0, 0], K_np[1, 1], K_np[0, 2], K_np[1, 2]]), self.near_m, self.cull_back_faces,
             _NO_OWNER if owner is None else owner.numpy(), max(scene.triangle_count, 1),
             scene.attribute_table.numpy(), scene.material.numpy(), np.ascontiguousarray(T[:, :3, :3], np.float32),
             np.linalg.inv(K_np).astype(np.float32), _lighting_table(lighting, T.shape[0]),
-            np.asarray(view_of_camera, dtype=np.int64), rgb, depth_m, front, gray, int(threads),
+            np.asarray(view_of_camera, dtype=np.int64), rgb, depth_m, front, gray,
         )  # fmt: skip
+        if threads > 1:
+            raster_kernel.draw_untextured_into_bands(int(threads), *inputs)
+        else:
+            raster_kernel.draw_untextured_into(*inputs)
 
     def _candidates(
         self, meshes: list[Mesh] | list[list[Mesh]] | PackedScene | list[PackedScene], T: np.ndarray

@@ -427,7 +427,36 @@ def _regions(bbox: np.ndarray, camera: np.ndarray, cameras: int, width_px: int, 
 
 
 @njit(cache=True, nogil=True)
-def draw_untextured_into(
+def draw_untextured_into(*inputs: np.ndarray) -> int:
+    """`render_untextured` then `composite_uint8` in one call, with the same pixels, for views that need only the
+    composite. The inputs, in order (as `_prepare_draw`'s after `bands`): vc, intrinsics, near_m, cull_back_faces,
+    owner, triangles_per_camera (as `render_untextured`), attributes, material, R_cam_world, K_inv, lights (as
+    `shade`), view_of_camera (B,), rgb (V, h, w, 3) uint8, depth (V, h, w), front (V, h, w) bool and gray: camera b
+    draws into view rgb[view_of_camera[b]] over its depth, and front (False initially) receives where its scene is
+    nearer. The z-buffer covers only each camera's region (`_regions`) and only its nearer pixels are shaded: no
+    full-image float image, depth, id or normal is written (a car covers a few percent of a view; those writes were
+    most of a car's raster). Returns the number of triangles kept by the set-up."""
+    rows, target, scene, kept_count = _prepare_draw(1, *inputs)
+    for i in range(rows.shape[0]):
+        _shade_rows(rows[i], target, scene)
+    return kept_count
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def draw_untextured_into_bands(bands: int, *inputs: np.ndarray) -> int:
+    """`draw_untextured_into` with each region's rows cut into `bands` bands shaded at the same time in numba's
+    threads (the same pixels: each pixel is shaded on its own). A separate entry point, called only with more than
+    one thread: compiling a parallel loop starts numba's threading layer, whose OpenMP pool shares the process with
+    torch's and changed a training run's floats (not a pixel) where the view path ran on one thread."""
+    rows, target, scene, kept_count = _prepare_draw(bands, *inputs)
+    for i in prange(rows.shape[0]):
+        _shade_rows(rows[i], target, scene)
+    return kept_count
+
+
+@njit(cache=True, nogil=True)
+def _prepare_draw(
+    bands: int,
     vc: np.ndarray,
     intrinsics: np.ndarray,
     near_m: float,
@@ -444,15 +473,9 @@ def draw_untextured_into(
     depth: np.ndarray,
     front: np.ndarray,
     gray: bool,
-    bands: int,
-) -> int:
-    """`render_untextured` then `composite_uint8` in one call, with the same pixels, for views that need only the
-    composite: camera b draws into uint8 view rgb[view_of_camera[b]] (B, h, w, 3) over its depth (B, h, w), and
-    front (B, h, w) bool (False initially) receives where its scene is nearer. The z-buffer covers only each camera's
-    region (`_regions`) and only its nearer pixels are shaded: no full-image float image, depth, id or normal is
-    written (a car covers a few percent of a view; those writes were most of a car's raster). With `bands` > 1 each
-    region's rows are cut into that many bands shaded at the same time in numba's threads (the same pixels: each
-    pixel is shaded on its own). Returns the number of triangles kept by the set-up."""
+) -> tuple:
+    """The set-up and the region-sized depth test of `draw_untextured_into`: the row bands to shade (`_row_bands`),
+    `_shade_rows`' target and scene tuples, and the number of triangles kept."""
     height_px, width_px = depth.shape[1], depth.shape[2]
     kept, bbox, camera, source = _kept_candidates(
         vc, intrinsics, width_px, height_px, near_m, cull_back_faces, owner, triangles_per_camera
@@ -471,12 +494,7 @@ def draw_untextured_into(
     rows = _row_bands(regions, max(bands, 1))
     scene = (kept, source, attributes, material, R_cam_world, K_inv, lights)
     target = (regions, layout, z, winner, view_of_camera, rgb, depth, front, gray)
-    if rows.shape[0] > cameras:
-        _shade_row_bands(rows, target, scene)
-    else:
-        for i in range(rows.shape[0]):
-            _shade_rows(rows[i], target, scene)
-    return kept.shape[1]
+    return rows, target, scene, kept.shape[1]
 
 
 @njit(cache=True, nogil=True)
@@ -491,13 +509,6 @@ def _row_bands(regions: np.ndarray, bands: int) -> np.ndarray:
             rows[n, 0], rows[n, 1], rows[n, 2] = cam, y0 + (y1 - y0) * k // count, y0 + (y1 - y0) * (k + 1) // count
             n += 1
     return rows[:n]
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _shade_row_bands(rows: np.ndarray, target: tuple, scene: tuple) -> None:
-    """`_shade_rows` of every band of `rows` at the same time, one per thread."""
-    for i in prange(rows.shape[0]):
-        _shade_rows(rows[i], target, scene)
 
 
 @njit(cache=True, nogil=True)

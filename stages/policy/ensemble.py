@@ -70,19 +70,21 @@ def _view_config(env_config: dict[str, Any]) -> dict[str, Any]:
 
 def write_ensemble_files(folder: Path, members: list[LoadedPolicy], train_config: dict[str, Any]) -> None:
     """policy.pt, policy.json, config.json and normalization.json of the ensemble of `members` into `folder`."""
-    from drivesim.stages.policy.net import EnsembleNet
-    from drivesim.stages.train.run_files import torch_save_atomic, write_json
+    import torch
 
+    from drivesim.stages.policy.net import EnsembleNet
+
+    # Plain writes: `folder` is the stage's build folder, moved into place whole once the manifest is written.
     net = EnsembleNet([m.net for m in members])
-    torch_save_atomic(folder / POLICY_WEIGHTS, {k: v.contiguous() for k, v in net.state_dict().items()})
+    torch.save({k: v.contiguous() for k, v in net.state_dict().items()}, folder / POLICY_WEIGHTS)
     runs = [str(m.run_dir) for m in members]
     info = {**members[0].info, "ensemble": {"members": len(members), "runs": [Path(r).name for r in runs]}}
-    write_json(folder / POLICY_JSON, info)
+    _write_json(folder / POLICY_JSON, info)
     configs = [json.loads((m.run_dir / CONFIG_JSON).read_text()) for m in members]
     worlds: list[str] = []
     for config in configs:
         worlds += [w for w in config.get("worlds", []) if w not in worlds]
-    write_json(
+    _write_json(
         folder / CONFIG_JSON,
         {
             "train": train_config,
@@ -94,3 +96,7 @@ def write_ensemble_files(folder: Path, members: list[LoadedPolicy], train_config
         },
     )
     shutil.copyfile(members[0].run_dir / NORMALIZATION_JSON, folder / NORMALIZATION_JSON)
+
+
+def _write_json(path: Path, value: Any) -> None:
+    path.write_text(json.dumps(value, indent=2, default=str) + "\n")
