@@ -47,7 +47,8 @@ EnsembleOption = Annotated[
     typer.Option(
         "--ensemble",
         help="Train this many policies (seeds seed, seed+1, ...; each a run of its own) and make them one ensemble "
-        "run whose steering is the mean of theirs: far steadier on a drive none of them saw than any one seed.",
+        "run whose steering is the mean of theirs: where the seeds' biases differ, far steadier on a drive none of "
+        "them saw than any one seed (benchmarks/results/transfer.md).",
         show_default=False,
     ),
 ]
