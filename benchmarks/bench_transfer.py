@@ -160,12 +160,16 @@ def time_to_target(curve: list[dict], target: float) -> float | None:
 
 
 def plot(result: dict, path: Path) -> None:
-    """Held-back success over training time, with the baselines' unseen-world success as lines."""
+    """Held-back success over training time, with the baselines' unseen-world success as lines (an ensemble, which
+    has no training curve of its own: `plot_ensemble`)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    if result.get("ensemble_of"):
+        plot_ensemble(result, path)
+        return
     fig, ax = plt.subplots(figsize=(9, 3.6))
     curve = result["curve"]
     if curve:
@@ -189,6 +193,50 @@ def plot(result: dict, path: Path) -> None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes: it hides no point
     ax.set_title(f"{result['name']}: {result.get('task', 'overtake')}, held-back success and baselines")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_ensemble(result: dict, path: Path) -> None:
+    """Success per unseen world: each member's final policy (from its own transfer_*.json, where one exists), the
+    ensemble's, and the baselines evaluated with it, as bars."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    by_run = {r["run"]: r for r in (json.loads(p.read_text()) for p in RESULTS.glob("transfer_*.json"))}
+    members = [by_run.get(run) for run in result["ensemble_of"]]
+    worlds = [
+        (group, w) for group in ("unseen", "real") for w in (result["rows"]["final"].get(f"{group}_per_world") or {})
+    ]
+    bars = [(f"seed {arm_and_seed(m['name'])[1]}" if m else "member", "tab:blue", m) for m in members]
+    bars.append(("ensemble", "tab:green", result))
+    bars += [(p, "tab:brown" if p == "straight" else "grey", result) for p in ("random", "straight", "expert")
+             if result["rows"].get(p)]  # fmt: skip
+    fig, ax = plt.subplots(figsize=(9, 3.6))
+    width = 0.8 / len(bars)
+    for k, (label, colour, source) in enumerate(bars):
+        policy = label if label in ("random", "straight", "expert") else "final"
+        values = []
+        for group, world in worlds:
+            cell = (((source or {}).get("rows", {}).get(policy) or {}).get(f"{group}_per_world") or {}).get(world)
+            values.append(np.nan if cell is None else cell["success"])
+        alpha = 0.45 if label.startswith(("seed", "member")) else 1.0
+        offset = (k - (len(bars) - 1) / 2) * width
+        member = label.startswith(("seed", "member"))
+        ax.bar(np.arange(len(worlds)) + offset, values, width, color=colour, alpha=alpha, edgecolor="white",
+               label=label if not member or k == 0 else None)  # fmt: skip
+    ax.set_xticks(np.arange(len(worlds)), [f"{Path(w).parent.name} ({g})" for g, w in worlds])
+    ax.set_ylabel("success")
+    ax.set_ylim(0, 1.02)
+    ax.grid(axis="y", alpha=0.3)
+    handles, labels = ax.get_legend_handles_labels()
+    labels = ["members (one bar each)" if lab.startswith(("seed", "member")) else lab for lab in labels]
+    ax.legend(handles, labels, fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ax.set_title(
+        f"{result['name']}:\nthe ensemble beside its {len(members)} members, {result['episodes']} episodes per world",
+        fontsize=9,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

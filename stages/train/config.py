@@ -171,10 +171,11 @@ class TrainConfig(StageConfig):
     ensemble: int = Field(1, ge=1, le=16)
     """Policies to train, one after another with seeds seed, seed + 1, ... (each a run of its own), made into one
     ensemble run whose steering is the mean of theirs (`stages/policy/ensemble.py`); 1: one policy. On a real drive
-    none of them trained on, the seed alone moves a lane policy from 0 % to 100 % of the episodes; four of the recipe
-    with the encoder's auxiliary lane target and one real street in training, 3.5-97.5 % each, passed 100 % as an
-    ensemble, where four trained with random erasing as well (0-90 % each) passed 1 %: the mean cancels biases that
-    differ between seeds, not one they share (benchmarks/results/transfer.md, the ensemble table)."""
+    none of them trained on, the seed alone moves a lane policy from 0 % to 100 % of the episodes; three batches of
+    four of the recipe with the encoder's auxiliary lane target and one real street in training, 0-97.5 % each,
+    passed 100 % as ensembles, where four trained with random erasing as well (0-90 % each) passed 1 %: the mean
+    cancels biases that differ between seeds, not one they share (benchmarks/results/transfer.md, the ensemble
+    table)."""
     learner_threads: int = Field(2, ge=1, le=4096)
     """torch threads of the learner (this process)."""
     rollout_threads: int | None = Field(None, ge=1, le=4096)
