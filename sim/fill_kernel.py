@@ -14,20 +14,26 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-_NO_HOLE = np.zeros((0, 0), dtype=np.bool_)
-"""`_push_rows`'s hole mask for the levels above the view: none (every pixel written)."""
-
 
 @njit(cache=True, nogil=True)
 def _pull_rows(colour: np.ndarray, weight: np.ndarray, c_out: np.ndarray, w_out: np.ndarray, y0: int, y1: int) -> None:
     """Rows y0..y1 of one pyramid level up: 2 x 2 means of colour (h, w, 3) and weight (h, w) over the pixels inside
-    the image, into c_out (hc, wc, 3) and w_out (hc, wc) (zeros)."""
+    the image, into c_out (hc, wc, 3) and w_out (hc, wc) (zeros); the sums row by row, each left to right."""
     h, w = weight.shape
+    quarter = np.float32(0.25)
     for y in range(y0, y1):
+        ya, yb = 2 * y, 2 * y + 1
         for x in range(c_out.shape[1]):
+            xa, xb = 2 * x, 2 * x + 1
+            if yb < h and xb < w:  # a whole block: the general loop's sums, unrolled
+                w_out[y, x] = (weight[ya, xa] + weight[ya, xb] + weight[yb, xa] + weight[yb, xb]) * quarter
+                for k in range(3):
+                    total = colour[ya, xa, k] + colour[ya, xb, k] + colour[yb, xa, k] + colour[yb, xb, k]
+                    c_out[y, x, k] = total * quarter
+                continue
             n = 0
-            for yy in range(2 * y, min(2 * y + 2, h)):
-                for xx in range(2 * x, min(2 * x + 2, w)):
+            for yy in range(ya, min(ya + 2, h)):
+                for xx in range(xa, min(xa + 2, w)):
                     n += 1
                     w_out[y, x] += weight[yy, xx]
                     for k in range(3):
@@ -39,25 +45,75 @@ def _pull_rows(colour: np.ndarray, weight: np.ndarray, c_out: np.ndarray, w_out:
 
 
 @njit(cache=True, nogil=True)
-def _pull_view_rows(rgb: np.ndarray, hole: np.ndarray, c_out: np.ndarray, w_out: np.ndarray, y0: int, y1: int) -> None:
-    """`_pull_rows` of the view itself (colour rgb where seen, 0 in the holes; weight 1 where seen), without making
-    the finest level's float arrays; the sums in the same order (the two source rows, each left to right)."""
+def _pull_view_block(
+    rgb: np.ndarray,
+    hole: np.ndarray,
+    c_out: np.ndarray,
+    w_out: np.ndarray,
+    sources: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    need: np.ndarray,
+    y: int,
+    x: int,
+) -> None:
+    """`_pull_view_rows` for the first level's pixel (y, x) whose block has a hole or lies on the view's edge."""
     h, w = hole.shape
+    y0s, y1s, x0s, x1s = sources
+    rows, cols = min(2 * y + 2, h) - 2 * y, min(2 * x + 2, w) - 2 * x
+    seen, r, g, b = 0, 0, 0, 0
+    for yy in range(2 * y, 2 * y + rows):
+        for xx in range(2 * x, 2 * x + cols):
+            if hole[yy, xx]:
+                need[y0s[yy], x0s[xx]] = need[y0s[yy], x1s[xx]] = True
+                need[y1s[yy], x0s[xx]] = need[y1s[yy], x1s[xx]] = True
+            else:
+                seen += 1
+                r += np.int32(rgb[yy, xx, 0])
+                g += np.int32(rgb[yy, xx, 1])
+                b += np.int32(rgb[yy, xx, 2])
+    inv = np.float32(1.0) / np.float32(rows * cols)
+    w_out[y, x] = np.float32(seen) * inv
+    c_out[y, x, 0] = np.float32(r) * inv
+    c_out[y, x, 1] = np.float32(g) * inv
+    c_out[y, x, 2] = np.float32(b) * inv
+
+
+@njit(cache=True, nogil=True)
+def _pull_view_rows(
+    rgb: np.ndarray,
+    hole: np.ndarray,
+    c_out: np.ndarray,
+    w_out: np.ndarray,
+    sources: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    need: np.ndarray,
+    holed: np.ndarray,
+    y0: int,
+    y1: int,
+) -> int:
+    """`_pull_rows` of the view itself (colour rgb where seen, 0 in the holes; weight 1 where seen) for rows y0..y1
+    of the first level, without making the finest level's float arrays. Also marks in `need` the first level's
+    pixels that the last push reads for the hole pixels among them (`sources`: that push's (y0s, y1s, x0s, x1s)), and
+    lists the first level's pixels whose block has a hole (index y * wc + x) in `holed` from y0 * wc on; returns how
+    many. The sums are of whole numbers, in integers: exactly the float sums of any order."""
+    h, w = hole.shape
+    wc = c_out.shape[1]
+    quarter = np.float32(0.25)
+    count = 0
     for y in range(y0, y1):
-        for yy in range(2 * y, min(2 * y + 2, h)):
-            for xx in range(w):
-                x = xx // 2
-                if not hole[yy, xx]:
-                    w_out[y, x] += 1.0
-                    c_out[y, x, 0] += np.float32(rgb[yy, xx, 0])
-                    c_out[y, x, 1] += np.float32(rgb[yy, xx, 1])
-                    c_out[y, x, 2] += np.float32(rgb[yy, xx, 2])
-        rows = np.float32(min(2 * y + 2, h) - 2 * y)
-        for x in range(c_out.shape[1]):
-            inv = np.float32(1.0) / (rows * np.float32(min(2 * x + 2, w) - 2 * x))
-            w_out[y, x] *= inv
-            for k in range(3):
-                c_out[y, x, k] *= inv
+        ya, yb = 2 * y, 2 * y + 1
+        for x in range(wc):
+            xa, xb = 2 * x, 2 * x + 1
+            if yb < h and xb < w and not (hole[ya, xa] or hole[ya, xb] or hole[yb, xa] or hole[yb, xb]):
+                w_out[y, x] = np.float32(1.0)  # the common case: a whole block, all seen
+                for k in range(3):
+                    total = np.int32(rgb[ya, xa, k]) + np.int32(rgb[ya, xb, k])
+                    total += np.int32(rgb[yb, xa, k]) + np.int32(rgb[yb, xb, k])
+                    c_out[y, x, k] = np.float32(total) * quarter
+                continue
+            _pull_view_block(rgb, hole, c_out, w_out, sources, need, y, x)
+            if w_out[y, x] < np.float32(1.0):
+                holed[y0 * wc + count] = y * wc + x
+                count += 1
+    return count
 
 
 @njit(cache=True, nogil=True)
@@ -76,36 +132,71 @@ def _sources(size_in: int, size_out: int) -> tuple[np.ndarray, np.ndarray, np.nd
 
 
 @njit(cache=True, nogil=True)
-def _push_rows(
-    filled: np.ndarray, colour: np.ndarray, weight: np.ndarray, hole: np.ndarray, out: np.ndarray, y0: int, y1: int
-) -> None:
-    """Rows y0..y1 of one level down into out (h, w, 3): each pixel keeps its normalized colour `colour` / `weight`
-    in proportion to its coverage (at most 1) and takes the coarser level's `filled`, enlarged bilinearly, for the
-    rest. With a `hole` mask (the finest level, colour and weight unused), only the hole pixels are written, from
-    `filled` alone (coverage 0), rounded to uint8."""
-    h, w = out.shape[0], out.shape[1]
+def _bilinear(filled: np.ndarray, ya: int, yb: int, ly: np.float32, xa: int, xb: int, lx: np.float32, k: int) -> float:
+    """Channel k of the coarser level `filled` (hc, wc, 3) enlarged bilinearly at one pixel (its sources and weights
+    from `_sources`)."""
+    one = np.float32(1.0)
+    top = filled[ya, xa, k] * (one - lx) + filled[ya, xb, k] * lx
+    bottom = filled[yb, xa, k] * (one - lx) + filled[yb, xb, k] * lx
+    return top * (one - ly) + bottom * ly
+
+
+@njit(cache=True, nogil=True)
+def _mark_coarser(weight: np.ndarray, need: np.ndarray, need_coarser: np.ndarray) -> None:
+    """Mark in `need_coarser` the coarser level's pixels that the push of this level's `need` pixels reads: the
+    bilinear sources of those not fully covered (coverage below 1; a covered pixel keeps its own colour)."""
+    h, w = need.shape
+    y0s, y1s, _ = _sources(need_coarser.shape[0], h)
+    x0s, x1s, _ = _sources(need_coarser.shape[1], w)
+    for y in range(h):
+        for x in range(w):
+            if need[y, x] and weight[y, x] < np.float32(1.0):
+                need_coarser[y0s[y], x0s[x]] = need_coarser[y0s[y], x1s[x]] = True
+                need_coarser[y1s[y], x0s[x]] = need_coarser[y1s[y], x1s[x]] = True
+
+
+@njit(cache=True, nogil=True)
+def _push_needed(filled: np.ndarray, colour: np.ndarray, weight: np.ndarray, need: np.ndarray) -> np.ndarray:
+    """One level down, at the pixels of `need` only (the others are never read): each keeps its normalized colour
+    `colour` / `weight` in proportion to its coverage (at most 1) and takes the coarser level's `filled`, enlarged
+    bilinearly, for the rest (not read where the coverage is 1: its share is 0). Returns the level (h, w, 3)."""
+    h, w = need.shape
+    out = np.empty((h, w, 3), dtype=np.float32)
     y0s, y1s, lys = _sources(filled.shape[0], h)
     x0s, x1s, lxs = _sources(filled.shape[1], w)
     one = np.float32(1.0)
-    finest = hole.shape[0] > 0
-    for y in range(y0, y1):
-        ya, yb, ly = y0s[y], y1s[y], lys[y]
+    for y in range(h):
         for x in range(w):
-            if finest and not hole[y, x]:
+            if not need[y, x]:
                 continue
-            xa, xb, lx = x0s[x], x1s[x], lxs[x]
-            alpha, inv_w = np.float32(0.0), np.float32(0.0)
-            if not finest:
-                alpha = min(weight[y, x], one)
-                inv_w = np.float32(1.0) / max(weight[y, x], np.float32(1e-6))
+            alpha = min(weight[y, x], one)
+            inv_w = one / max(weight[y, x], np.float32(1e-6))
             for k in range(3):
-                top = filled[ya, xa, k] * (one - lx) + filled[ya, xb, k] * lx
-                bottom = filled[yb, xa, k] * (one - lx) + filled[yb, xb, k] * lx
-                coarse = top * (one - ly) + bottom * ly
-                if not finest:
-                    out[y, x, k] = colour[y, x, k] * inv_w * alpha + coarse * (one - alpha)
-                else:
-                    out[y, x, k] = min(max(coarse + np.float32(0.5), np.float32(0.0)), np.float32(255.0))
+                coarse = np.float32(0.0)
+                if alpha < one:
+                    coarse = _bilinear(filled, y0s[y], y1s[y], lys[y], x0s[x], x1s[x], lxs[x], k)
+                out[y, x, k] = colour[y, x, k] * inv_w * alpha + coarse * (one - alpha)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _push_holes(
+    filled: np.ndarray, hole: np.ndarray, rgb: np.ndarray, holed: np.ndarray, start: int, count: int
+) -> None:
+    """The last push, for the blocks holed[start:start + count] (first-level indices y * wc + x) of the view: each
+    hole pixel takes the first level's `filled` enlarged bilinearly, rounded to uint8 (seen pixels keep theirs)."""
+    h, w = hole.shape
+    wc = filled.shape[1]
+    y0s, y1s, lys = _sources(filled.shape[0], h)
+    x0s, x1s, lxs = _sources(wc, w)
+    for i in range(start, start + count):
+        by, bx = holed[i] // wc, holed[i] % wc
+        for y in range(2 * by, min(2 * by + 2, h)):
+            for x in range(2 * bx, min(2 * bx + 2, w)):
+                if hole[y, x]:
+                    for k in range(3):
+                        coarse = _bilinear(filled, y0s[y], y1s[y], lys[y], x0s[x], x1s[x], lxs[x], k)
+                        rgb[y, x, k] = min(max(coarse + np.float32(0.5), np.float32(0.0)), np.float32(255.0))
 
 
 @njit(cache=True, nogil=True)
@@ -136,55 +227,72 @@ def _pull_coarser(colours: list[np.ndarray], weights: list[np.ndarray]) -> np.nd
 
 
 @njit(cache=True, nogil=True)
-def _pyramid(h: int, w: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Zeroed colour (hc, wc, 3) and weight (hc, wc) float32 arrays of the pyramid's levels above an (h, w) view:
-    halved (rounded up) until one side is 1."""
+def _pyramid(h: int, w: int) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """Zeroed colour (hc, wc, 3) and weight (hc, wc) float32 arrays and False `need` (hc, wc) bool masks of the
+    pyramid's levels above an (h, w) view: halved (rounded up) until one side is 1."""
     hc, wc = (h + 1) // 2, (w + 1) // 2
     colours = [np.zeros((hc, wc, 3), dtype=np.float32)]
     weights = [np.zeros((hc, wc), dtype=np.float32)]
+    needs = [np.zeros((hc, wc), dtype=np.bool_)]
     while min(hc, wc) > 1:
         hc, wc = (hc + 1) // 2, (wc + 1) // 2
         colours.append(np.zeros((hc, wc, 3), dtype=np.float32))
         weights.append(np.zeros((hc, wc), dtype=np.float32))
-    return colours, weights
+        needs.append(np.zeros((hc, wc), dtype=np.bool_))
+    return colours, weights, needs
+
+
+@njit(cache=True, nogil=True)
+def _view_sources(level: np.ndarray, hole: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The first level's pixels (y0s, y1s, x0s, x1s) that the last push reads for each row and column of the view."""
+    y0s, y1s, _ = _sources(level.shape[0], hole.shape[0])
+    x0s, x1s, _ = _sources(level.shape[1], hole.shape[1])
+    return y0s, y1s, x0s, x1s
+
+
+@njit(cache=True, nogil=True)
+def _push_down(colours: list[np.ndarray], weights: list[np.ndarray], needs: list[np.ndarray]) -> np.ndarray:
+    """After the pull (the first level's `needs[0]` marked): mark what each level's push reads from the next, then
+    push from the coarsest level down to the first, computing only the needed pixels. Returns the first level."""
+    for level in range(len(weights) - 1):
+        _mark_coarser(weights[level], needs[level], needs[level + 1])
+    filled = _pull_coarser(colours, weights)
+    for level in range(len(weights) - 2, -1, -1):
+        filled = _push_needed(filled, colours[level], weights[level], needs[level])
+    return filled
 
 
 @njit(cache=True, nogil=True)
 def pull_push_fill_(rgb: np.ndarray, hole: np.ndarray) -> None:
     """Fill the pixels of `hole` (h, w) bool in the uint8 view `rgb` (h, w, 3) in place from the others (pull-push);
-    a view with no hole or no seen pixel is left as it is. Only the hole pixels of the finest level are computed
-    (the others keep their colour, as the torch path's coverage 1 gives)."""
+    a view with no hole or no seen pixel is left as it is. Each level's push computes only the pixels the next finer
+    one reads (the hole pixels' sources, and theirs where a pixel is not fully covered), and the last only the blocks
+    with a hole: the same pixels as pushing whole levels, in a fraction of the time when holes are few."""
     if not _has_hole_and_seen(hole):
         return
-    colours, weights = _pyramid(hole.shape[0], hole.shape[1])
-    _pull_view_rows(rgb, hole, colours[0], weights[0], 0, weights[0].shape[0])
-    filled = _pull_coarser(colours, weights)
-    for level in range(len(weights) - 2, -1, -1):
-        out = np.empty_like(colours[level])
-        _push_rows(filled, colours[level], weights[level], _NO_HOLE, out, 0, out.shape[0])
-        filled = out
-    _push_rows(filled, filled, weights[0], hole, rgb, 0, rgb.shape[0])
+    colours, weights, needs = _pyramid(hole.shape[0], hole.shape[1])
+    holed = np.empty(weights[0].size, dtype=np.int64)
+    sources = _view_sources(weights[0], hole)
+    count = _pull_view_rows(rgb, hole, colours[0], weights[0], sources, needs[0], holed, 0, weights[0].shape[0])
+    filled = _push_down(colours, weights, needs)
+    _push_holes(filled, hole, rgb, holed, 0, count)
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def pull_push_fill_bands_(rgb: np.ndarray, hole: np.ndarray, bands: int) -> None:
-    """`pull_push_fill_` with each level's rows cut into `bands` parts done at the same time in numba's threads (the
-    same arithmetic, row for row: the same pixels)."""
+    """`pull_push_fill_` with the pull of the view and the last push cut into `bands` parts of rows done at the same
+    time in numba's threads (the same arithmetic: the same pixels); the coarser levels are small, one thread."""
     if not _has_hole_and_seen(hole):
         return
-    colours, weights = _pyramid(hole.shape[0], hole.shape[1])
-    rows = weights[0].shape[0]
+    colours, weights, needs = _pyramid(hole.shape[0], hole.shape[1])
+    holed = np.empty(weights[0].size, dtype=np.int64)
+    counts = np.zeros(bands, dtype=np.int64)
+    sources = _view_sources(weights[0], hole)
+    rows, wc = weights[0].shape
     for b in prange(bands):
-        _pull_view_rows(rgb, hole, colours[0], weights[0], b * rows // bands, (b + 1) * rows // bands)
-    filled = _pull_coarser(colours, weights)  # the coarser levels are small: one thread
-    for level in range(len(weights) - 2, -1, -1):
-        out = np.empty_like(colours[level])
-        rows = out.shape[0]
-        for b in prange(bands):
-            _push_rows(
-                filled, colours[level], weights[level], _NO_HOLE, out, b * rows // bands, (b + 1) * rows // bands
-            )
-        filled = out
-    rows = rgb.shape[0]
+        # Bands may mark the same pixel of needs[0] (rows at their border): each writes True, nothing else.
+        y0, y1 = b * rows // bands, (b + 1) * rows // bands
+        counts[b] = _pull_view_rows(rgb, hole, colours[0], weights[0], sources, needs[0], holed, y0, y1)
+    filled = _push_down(colours, weights, needs)
     for b in prange(bands):
-        _push_rows(filled, filled, weights[0], hole, rgb, b * rows // bands, (b + 1) * rows // bands)
+        _push_holes(filled, hole, rgb, holed, b * rows // bands * wc, counts[b])
