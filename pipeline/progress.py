@@ -47,7 +47,9 @@ def progress_line(progress: Progress, task: TaskID, began_s: float) -> str:
     if t.total:
         line += f"/{t.total:.0f} ({100 * t.completed / t.total:.0f} %)"
     line += f", {elapsed_s:.0f} s elapsed"
-    if t.total and 0 < t.completed < t.total:
+    if t.fields.get("left_s") is not None:  # the caller's own estimate (e.g. training's, which has a time limit)
+        line += f", about {t.fields['left_s']:.0f} s left"
+    elif t.total and 0 < t.completed < t.total:
         line += f", about {elapsed_s * (t.total - t.completed) / t.completed:.0f} s left"
     return line
 

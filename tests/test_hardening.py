@@ -408,6 +408,19 @@ def test_progress_prints_lines_off_a_terminal(monkeypatch, capsys) -> None:
     assert len(lines) >= 3 and lines[-1].startswith("work: 4/4 (100 %)"), lines
 
 
+def test_progress_lines_take_the_callers_time_left(monkeypatch, capsys) -> None:
+    """A bar whose caller knows better (training stops at its time limit) says the caller's time left, not the one
+    the steps so far would give."""
+    from drivesim.pipeline.progress import progress_bar
+
+    monkeypatch.setenv("DRIVESIM_PROGRESS_S", "0.05")
+    with progress_bar("train", total=1000) as (progress, task):
+        progress.update(task, completed=10, left_s=42.0)
+        time.sleep(0.12)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("train: 10/1000")]
+    assert lines and all(line.endswith("about 42 s left") for line in lines), lines
+
+
 def test_config_loader_refuses_duplicate_keys_in_presets_and_files(tmp_path) -> None:
     path = tmp_path / "train.yaml"
     path.write_text("ppo:\n  epochs: 3\n  epochs: 4\n")

@@ -284,7 +284,7 @@ def test_killed_run_resumes_with_nothing_lost(tmp_path: Path) -> None:
         timeout=120,
     )
     assert result.returncode == 0, result.stderr
-    assert f"resuming {run_dir.name} at {done} env steps" in result.stdout
+    assert f"resuming {run_dir.name} at {done} env steps" in result.stderr
     steps = [int(line.split(",")[0]) for line in (run_dir / "progress.csv").read_text().splitlines()[1:]]
     assert steps == sorted(steps) and steps[0] == 256 and steps[-1] >= done + 512
     assert len(set(steps)) == len(steps)  # nothing logged twice, nothing lost

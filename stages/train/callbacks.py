@@ -179,7 +179,12 @@ class TrainingCallback(BaseCallback):
             self._last_bar = now
             rate = (self.model.num_timesteps - self._steps0) / max(now - self._t0, 1e-9)
             progress, task = self.progress
-            progress.update(task, completed=self.model.num_timesteps, description=f"train {rate:5.0f} env steps/s")
+            # Time left at this rate (not counting the warm start before it), or to the time limit if sooner.
+            left_s = (self.total_steps - self.model.num_timesteps) / max(rate, 1e-9)
+            if self.time_limit_s is not None:
+                left_s = min(left_s, max(self.time_limit_s - self.wall_s(), 0.0))
+            description = f"train {rate:5.0f} env steps/s"
+            progress.update(task, completed=self.model.num_timesteps, description=description, left_s=left_s)
         return True
 
     def after_update(self) -> None:

@@ -48,7 +48,7 @@ def _meshes_of(ws: Workspace) -> Path | None:
 
 
 def _build(ctx: BuildContext) -> TrainSummary:
-    from drivesim.pipeline.progress import progress_bar
+    from drivesim.pipeline.progress import console, progress_bar
     from drivesim.stages.train.envs import EnvSource
     from drivesim.stages.train.run import TrainingInterruptedError, train_in_folder
 
@@ -72,8 +72,13 @@ def _build(ctx: BuildContext) -> TrainSummary:
         processes=cfg.envs.processes,
     )
     try:
+        # The run's lines (each warm-start round, resumes, the chosen weights) as they happen, above the bar: the
+        # warm start alone takes minutes, with the bar still at 0 steps.
+        def report(line: str) -> None:
+            console.print(line, highlight=False, soft_wrap=True)
+
         with progress_bar("train", total=cfg.total_steps) as bar:
-            outcome = train_in_folder(run_dir, cfg, source, report=ctx.notes.append, progress=bar)
+            outcome = train_in_folder(run_dir, cfg, source, report=report, progress=bar)
     except Interrupted:
         raise
     except KeyboardInterrupt as e:  # outside the PPO updates (setup, warm start, final files): say how to go on
