@@ -116,21 +116,19 @@ def fill_cracks(keys: np.ndarray, radius: int) -> np.ndarray:
     h, w = keys.shape
     # Whether each pixel is warped, with a border of `radius` unwarped pixels so that no look-up needs a bounds test.
     seen = np.zeros((h + 2 * radius, w + 2 * radius), dtype=np.bool_)
-    for y in range(h):
-        for x in range(w):
-            seen[y + radius, x + radius] = keys[y, x] != EMPTY_KEY
-    # The empty pixels, once; each pass visits only those still empty and applies its fills after deciding all of them
-    # (a fill never feeds another fill of the same pass, as in the torch path). The pass's own test is the cheapest
-    # filter: a pixel inside a large hole fails it at its first look-ups (a distance-to-warped mask computed to skip
-    # those cost more than the tests it saved).
+    # The empty pixels, listed in the same pass (written always, counted when empty: no branch); each pass visits
+    # only those still empty and applies its fills after deciding all of them (a fill never feeds another fill of the
+    # same pass, as in the torch path). The pass's own test is the cheapest filter: a pixel inside a large hole fails
+    # it at its first look-ups (a distance-to-warped mask computed to skip those cost more than the tests it saved).
     ys = np.empty(h * w, dtype=np.int64)
     xs = np.empty(h * w, dtype=np.int64)
     count = 0
     for y in range(h):
         for x in range(w):
-            if not seen[y + radius, x + radius]:
-                ys[count], xs[count] = y, x
-                count += 1
+            warped = keys[y, x] != EMPTY_KEY
+            seen[y + radius, x + radius] = warped
+            ys[count], xs[count] = y, x
+            count += not warped
     fill_k = np.empty(count, dtype=np.int64)
     filled = np.zeros(count, dtype=np.bool_)
     for r in range(1, radius + 1):
@@ -162,11 +160,11 @@ def _enclosed(seen: np.ndarray, y: int, x: int, r: int) -> bool:
     """Whether padded pixel (y, x) of `seen` has seen pixels within r px on both sides along its row, its column or
     a diagonal."""
     if r == 1:  # the first pass, over every candidate: the four pairs of opposite neighbours, unrolled
-        return (
-            (seen[y, x - 1] and seen[y, x + 1])
-            or (seen[y - 1, x] and seen[y + 1, x])
-            or (seen[y - 1, x - 1] and seen[y + 1, x + 1])
-            or (seen[y - 1, x + 1] and seen[y + 1, x - 1])
+        return (  # bitwise, not short-circuit: eight loads and no branch to mispredict
+            (seen[y, x - 1] & seen[y, x + 1])
+            | (seen[y - 1, x] & seen[y + 1, x])
+            | (seen[y - 1, x - 1] & seen[y + 1, x + 1])
+            | (seen[y - 1, x + 1] & seen[y + 1, x - 1])
         )
     for k in range(4):
         dy = 0 if k == 0 else 1
