@@ -64,12 +64,12 @@ class StatisticalHarmonizer:
 
         The CPU path of the simulator: OpenCV's masked dilation and mean / standard deviation over the car's box do
         in tens of microseconds what the batched torch path does in about half a millisecond of per-call costs."""
-        ys, xs = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
-        if ys.size == 0:
+        left, top, width, height = cv2.boundingRect(mask.view(np.uint8))  # the car's box: one pass, no copies
+        if width == 0:
             return
         r = self.ring_px
-        y0, y1 = max(int(ys[0]) - r, 0), int(ys[-1]) + r + 1
-        x0, x1 = max(int(xs[0]) - r, 0), int(xs[-1]) + r + 1
+        y0, y1 = max(top - r, 0), top + height + r
+        x0, x1 = max(left - r, 0), left + width + r
         box = rgb[y0:y1, x0:x1]
         car = mask[y0:y1, x0:x1].view(np.uint8)
         ring = cv2.dilate(car, np.ones((2 * r + 1, 2 * r + 1), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)

@@ -363,6 +363,7 @@ class Rasterizer:
         self._pack_cache: list[tuple[list[Mesh], PackedScene]] = []
         # (scene ids, scenes, concatenated scene, first triangles, counts, paint flags) of the last library
         self._library_cache: tuple | None = None
+        self._intrinsics_cache: tuple[bytes, np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ packing
     def pack(self, meshes: list[Mesh | PackedScene] | PackedScene) -> PackedScene:
@@ -436,19 +437,27 @@ class Rasterizer:
         T = _as_poses(T_camera_scene)
         scene, owner, v_cam = self._candidates(list(scenes), T)
         N = v_cam.shape[2]
-        K_np = np.asarray(K, dtype=np.float64)
+        intrinsics, K_inv = self._intrinsics_of(K)
         inputs = (
-            np.ascontiguousarray(v_cam.reshape(9, N).numpy()),
-            np.array([K_np[0, 0], K_np[1, 1], K_np[0, 2], K_np[1, 2]]), self.near_m, self.cull_back_faces,
+            np.ascontiguousarray(v_cam.reshape(9, N).numpy()), intrinsics, self.near_m, self.cull_back_faces,
             _NO_OWNER if owner is None else owner.numpy(), max(scene.triangle_count, 1),
             scene.attribute_table.numpy(), scene.material.numpy(), np.ascontiguousarray(T[:, :3, :3], np.float32),
-            np.linalg.inv(K_np).astype(np.float32), _lighting_table(lighting, T.shape[0]),
-            np.asarray(view_of_camera, dtype=np.int64), rgb, depth_m, front, gray,
+            K_inv, _lighting_table(lighting, T.shape[0]), np.asarray(view_of_camera, dtype=np.int64), rgb, depth_m,
+            front, gray,
         )  # fmt: skip
         if threads > 1:
             raster_kernel.draw_untextured_into_bands(int(threads), *inputs)
         else:
             raster_kernel.draw_untextured_into(*inputs)
+
+    def _intrinsics_of(self, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(fx, fy, cx, cy) float64 and K^-1 float32 of intrinsics K, kept for the last K (a view draws with one)."""
+        K_np = np.asarray(K, dtype=np.float64)
+        key = K_np.tobytes()
+        if self._intrinsics_cache is None or self._intrinsics_cache[0] != key:
+            intrinsics = np.array([K_np[0, 0], K_np[1, 1], K_np[0, 2], K_np[1, 2]])
+            self._intrinsics_cache = (key, intrinsics, np.linalg.inv(K_np).astype(np.float32))
+        return self._intrinsics_cache[1], self._intrinsics_cache[2]
 
     def _candidates(
         self, meshes: list[Mesh] | list[list[Mesh]] | PackedScene | list[PackedScene], T: np.ndarray

@@ -254,6 +254,7 @@ class ViewSynthesizer:
         self._narrow: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
         self._packed: dict[int, tuple[Any, PackedScene, PackedScene]] = {}
         self._frustum_normals = self._frustum_planes()
+        self._light_direction: tuple[float | None, np.ndarray] = (None, np.zeros(3))  # (elevation deg, unit vector)
         self.monochrome = config.monochrome if config.monochrome is not None else frames_are_monochrome(world.frames)
         self.fill_stats = FillStats()
         """Where the pixels of every view rendered so far came from (own frame, neighbours, inpainting)."""
@@ -662,11 +663,15 @@ class ViewSynthesizer:
             mean_rgb = self._frame_stack()[2][frame_index]
         else:
             mean_rgb = np.array([self._frame(int(f))[2] for f in frame_index], dtype=np.float64).reshape(-1, 3)
-        elevation_rad = np.deg2rad(self.config.light_elevation_deg)
-        direction = np.array([0.0, np.sin(elevation_rad), np.cos(elevation_rad)])
-        return np.concatenate(
-            [mean_rgb, np.tile(direction, (n, 1)), self.config.directional_gain * mean_rgb], axis=1
-        ).astype(np.float32)
+        elevation_deg = self.config.light_elevation_deg
+        if self._light_direction[0] != elevation_deg:  # made once per elevation: a few microseconds a step
+            elevation_rad = np.deg2rad(elevation_deg)
+            self._light_direction = (elevation_deg, np.array([0.0, np.sin(elevation_rad), np.cos(elevation_rad)]))
+        table = np.empty((n, 9), dtype=np.float32)
+        table[:, :3] = mean_rgb
+        table[:, 3:6] = self._light_direction[1]
+        table[:, 6:] = self.config.directional_gain * mean_rgb
+        return table
 
     def _warp_batched(self, frame_index: np.ndarray, T_camera_world: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """All B views' warps (B, h, w, 3) uint8 and depths (B, h, w) in one call from the device's frame stack, holes
