@@ -213,9 +213,9 @@ def inpaint_holes(rgb: np.ndarray, hole: np.ndarray, threads: int = 1) -> int:
     count = int(np.count_nonzero(hole))
     if 0 < count < hole.size:
         if threads > 1:
-            fill_kernel.pull_push_fill_bands_(rgb, hole, threads)
+            fill_kernel.pull_push_fill_bands_(rgb, hole, count, threads)
         else:
-            fill_kernel.pull_push_fill_(rgb, hole)
+            fill_kernel.pull_push_fill_(rgb, hole, count)
     return count
 
 

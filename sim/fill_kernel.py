@@ -18,7 +18,8 @@ from numba import njit, prange
 @njit(cache=True, nogil=True)
 def _pull_rows(colour: np.ndarray, weight: np.ndarray, c_out: np.ndarray, w_out: np.ndarray, y0: int, y1: int) -> None:
     """Rows y0..y1 of one pyramid level up: 2 x 2 means of colour (h, w, 3) and weight (h, w) over the pixels inside
-    the image, into c_out (hc, wc, 3) and w_out (hc, wc) (zeros); the sums row by row, each left to right."""
+    the image, into c_out (hc, wc, 3) and w_out (hc, wc) (every entry written); the sums row by row, each left to
+    right."""
     h, w = weight.shape
     quarter = np.float32(0.25)
     for y in range(y0, y1):
@@ -31,17 +32,18 @@ def _pull_rows(colour: np.ndarray, weight: np.ndarray, c_out: np.ndarray, w_out:
                     total = colour[ya, xa, k] + colour[ya, xb, k] + colour[yb, xa, k] + colour[yb, xb, k]
                     c_out[y, x, k] = total * quarter
                 continue
-            n = 0
+            n, w_sum = 0, np.float32(0.0)
+            r_sum, g_sum, b_sum = np.float32(0.0), np.float32(0.0), np.float32(0.0)
             for yy in range(ya, min(ya + 2, h)):
                 for xx in range(xa, min(xa + 2, w)):
                     n += 1
-                    w_out[y, x] += weight[yy, xx]
-                    for k in range(3):
-                        c_out[y, x, k] += colour[yy, xx, k]
+                    w_sum += weight[yy, xx]
+                    r_sum += colour[yy, xx, 0]
+                    g_sum += colour[yy, xx, 1]
+                    b_sum += colour[yy, xx, 2]
             inv = np.float32(1.0) / np.float32(n)
-            w_out[y, x] *= inv
-            for k in range(3):
-                c_out[y, x, k] *= inv
+            w_out[y, x] = w_sum * inv
+            c_out[y, x, 0], c_out[y, x, 1], c_out[y, x, 2] = r_sum * inv, g_sum * inv, b_sum * inv
 
 
 @njit(cache=True, nogil=True)
@@ -200,14 +202,11 @@ def _push_holes(
 
 
 @njit(cache=True, nogil=True)
-def _has_hole_and_seen(hole: np.ndarray) -> bool:
-    """Whether a view has both hole pixels and seen pixels, and a pyramid to fill the one from the other."""
+def _has_hole_and_seen(hole: np.ndarray, hole_count: int) -> bool:
+    """Whether a view with `hole_count` hole pixels has both hole and seen pixels, and a pyramid to fill the one from
+    the other."""
     h, w = hole.shape
-    holes = 0
-    for y in range(h):
-        for x in range(w):
-            holes += hole[y, x]
-    return 0 < holes < h * w and min(h, w) > 1
+    return 0 < hole_count < h * w and min(h, w) > 1
 
 
 @njit(cache=True, nogil=True)
@@ -228,16 +227,16 @@ def _pull_coarser(colours: list[np.ndarray], weights: list[np.ndarray]) -> np.nd
 
 @njit(cache=True, nogil=True)
 def _pyramid(h: int, w: int) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
-    """Zeroed colour (hc, wc, 3) and weight (hc, wc) float32 arrays and False `need` (hc, wc) bool masks of the
-    pyramid's levels above an (h, w) view: halved (rounded up) until one side is 1."""
+    """Colour (hc, wc, 3) and weight (hc, wc) float32 arrays (not initialized) and False `need` (hc, wc) bool masks
+    of the pyramid's levels above an (h, w) view: halved (rounded up) until one side is 1."""
     hc, wc = (h + 1) // 2, (w + 1) // 2
-    colours = [np.zeros((hc, wc, 3), dtype=np.float32)]
-    weights = [np.zeros((hc, wc), dtype=np.float32)]
+    colours = [np.empty((hc, wc, 3), dtype=np.float32)]  # every entry written by the pull
+    weights = [np.empty((hc, wc), dtype=np.float32)]
     needs = [np.zeros((hc, wc), dtype=np.bool_)]
     while min(hc, wc) > 1:
         hc, wc = (hc + 1) // 2, (wc + 1) // 2
-        colours.append(np.zeros((hc, wc, 3), dtype=np.float32))
-        weights.append(np.zeros((hc, wc), dtype=np.float32))
+        colours.append(np.empty((hc, wc, 3), dtype=np.float32))
+        weights.append(np.empty((hc, wc), dtype=np.float32))
         needs.append(np.zeros((hc, wc), dtype=np.bool_))
     return colours, weights, needs
 
@@ -252,23 +251,25 @@ def _view_sources(level: np.ndarray, hole: np.ndarray) -> tuple[np.ndarray, np.n
 
 @njit(cache=True, nogil=True)
 def _push_down(colours: list[np.ndarray], weights: list[np.ndarray], needs: list[np.ndarray]) -> np.ndarray:
-    """After the pull (the first level's `needs[0]` marked): mark what each level's push reads from the next, then
-    push from the coarsest level down to the first, computing only the needed pixels. Returns the first level."""
+    """After the view's pull (the first level's `needs[0]` marked): pull the coarser levels, mark what each level's
+    push reads from the next, then push from the coarsest level down to the first, computing only the needed pixels.
+    Returns the first level."""
+    filled = _pull_coarser(colours, weights)  # first: the marks read each level's coverage
     for level in range(len(weights) - 1):
         _mark_coarser(weights[level], needs[level], needs[level + 1])
-    filled = _pull_coarser(colours, weights)
     for level in range(len(weights) - 2, -1, -1):
         filled = _push_needed(filled, colours[level], weights[level], needs[level])
     return filled
 
 
 @njit(cache=True, nogil=True)
-def pull_push_fill_(rgb: np.ndarray, hole: np.ndarray) -> None:
-    """Fill the pixels of `hole` (h, w) bool in the uint8 view `rgb` (h, w, 3) in place from the others (pull-push);
-    a view with no hole or no seen pixel is left as it is. Each level's push computes only the pixels the next finer
+def pull_push_fill_(rgb: np.ndarray, hole: np.ndarray, hole_count: int) -> None:
+    """Fill the pixels of `hole` (h, w) bool, `hole_count` of them (the caller's count: a pass over the mask less),
+    in the uint8 view `rgb` (h, w, 3) in place from the others (pull-push); a view with no hole or no seen pixel is
+    left as it is. Each level's push computes only the pixels the next finer
     one reads (the hole pixels' sources, and theirs where a pixel is not fully covered), and the last only the blocks
     with a hole: the same pixels as pushing whole levels, in a fraction of the time when holes are few."""
-    if not _has_hole_and_seen(hole):
+    if not _has_hole_and_seen(hole, hole_count):
         return
     colours, weights, needs = _pyramid(hole.shape[0], hole.shape[1])
     holed = np.empty(weights[0].size, dtype=np.int64)
@@ -279,10 +280,10 @@ def pull_push_fill_(rgb: np.ndarray, hole: np.ndarray) -> None:
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def pull_push_fill_bands_(rgb: np.ndarray, hole: np.ndarray, bands: int) -> None:
+def pull_push_fill_bands_(rgb: np.ndarray, hole: np.ndarray, hole_count: int, bands: int) -> None:
     """`pull_push_fill_` with the pull of the view and the last push cut into `bands` parts of rows done at the same
     time in numba's threads (the same arithmetic: the same pixels); the coarser levels are small, one thread."""
-    if not _has_hole_and_seen(hole):
+    if not _has_hole_and_seen(hole, hole_count):
         return
     colours, weights, needs = _pyramid(hole.shape[0], hole.shape[1])
     holed = np.empty(weights[0].size, dtype=np.int64)
