@@ -50,21 +50,28 @@ def depth_test_regions(
     near_m: float,
     depth: np.ndarray,
     winner: np.ndarray,
+    only_camera: int = -1,
+    first_row: int = 0,
+    end_row: int = 1 << 62,
 ) -> None:
     """`depth_test` into z-buffers that hold only a region of each camera's image: camera b's pixel (x, y) is entry
     layout[b, 0] + (y - layout[b, 2]) * layout[b, 3] + (x - layout[b, 1]) (offset, region corner x, y, row width);
-    every candidate's bbox must lie inside its camera's region."""
+    every candidate's bbox must lie inside its camera's region. With `only_camera` >= 0, only that camera's
+    candidates, and only rows first_row .. end_row - 1: bands of rows tested apart fill the z-buffer exactly as one
+    pass does (the nearer depth wins, of equal ones the lower candidate: the order does not matter)."""
     near = np.float32(near_m)
     for t in range(table.shape[1]):
+        cam = camera[t]
+        if only_camera >= 0 and cam != only_camera:
+            continue
         a0, b0, c0 = table[1, t], table[2, t], table[3, t]
         a1, b1, c1 = table[4, t], table[5, t], table[6, t]
         a2, b2, c2 = table[7, t], table[8, t], table[9, t]
         abs_det = table[10, t]
         x0, y0, x1, y1 = bbox[t, 0], bbox[t, 1], bbox[t, 2], bbox[t, 3]
-        cam = camera[t]
         row_px = layout[cam, 3]
         base = layout[cam, 0] - layout[cam, 2] * row_px - layout[cam, 1]
-        for y in range(y0, y1 + 1):
+        for y in range(max(y0, first_row), min(y1 + 1, end_row)):
             yo = np.float32(y - y0)
             for x in range(x0, x1 + 1):
                 xo = np.float32(x - x0)
@@ -438,19 +445,20 @@ def draw_untextured_into(*inputs: np.ndarray) -> int:
     most of a car's raster). Returns the number of triangles kept by the set-up."""
     rows, target, scene, kept_count = _prepare_draw(1, *inputs)
     for i in range(rows.shape[0]):
-        _shade_rows(rows[i], target, scene)
+        _draw_rows(rows[i], target, scene, inputs[2])
     return kept_count
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def draw_untextured_into_bands(bands: int, *inputs: np.ndarray) -> int:
-    """`draw_untextured_into` with each region's rows cut into `bands` bands shaded at the same time in numba's
-    threads (the same pixels: each pixel is shaded on its own). A separate entry point, called only with more than
-    one thread: compiling a parallel loop starts numba's threading layer, whose OpenMP pool shares the process with
-    torch's and changed a training run's floats (not a pixel) where the view path ran on one thread."""
+    """`draw_untextured_into` with each region's rows cut into `bands` bands depth-tested and shaded at the same time
+    in numba's threads (the same pixels: each band owns its rows of the z-buffer, each pixel is shaded on its own).
+    A separate entry point, called only with more than one thread: compiling a parallel loop starts numba's threading
+    layer, whose OpenMP pool shares the process with torch's and changed a training run's floats (not a pixel) where
+    the view path ran on one thread."""
     rows, target, scene, kept_count = _prepare_draw(bands, *inputs)
     for i in prange(rows.shape[0]):
-        _shade_rows(rows[i], target, scene)
+        _draw_rows(rows[i], target, scene, inputs[2])
     return kept_count
 
 
@@ -474,8 +482,8 @@ def _prepare_draw(
     front: np.ndarray,
     gray: bool,
 ) -> tuple:
-    """The set-up and the region-sized depth test of `draw_untextured_into`: the row bands to shade (`_row_bands`),
-    `_shade_rows`' target and scene tuples, and the number of triangles kept."""
+    """The set-up of `draw_untextured_into`: the row bands to depth-test and shade (`_row_bands`), `_draw_rows`'
+    target and scene tuples (the region-sized z-buffer, still empty) and the number of triangles kept."""
     height_px, width_px = depth.shape[1], depth.shape[2]
     kept, bbox, camera, source = _kept_candidates(
         vc, intrinsics, width_px, height_px, near_m, cull_back_faces, owner, triangles_per_camera
@@ -490,11 +498,20 @@ def _prepare_draw(
         size += layout[b, 3] * max(regions[b, 3] - regions[b, 1] + 1, 0)
     z = np.full(size, np.inf, np.float32)
     winner = np.full(size, -1, np.int64)
-    depth_test_regions(kept, bbox, camera, layout, near_m, z, winner)
     rows = _row_bands(regions, max(bands, 1))
-    scene = (kept, source, attributes, material, R_cam_world, K_inv, lights)
+    scene = (kept, source, attributes, material, R_cam_world, K_inv, lights, bbox, camera)
     target = (regions, layout, z, winner, view_of_camera, rgb, depth, front, gray)
     return rows, target, scene, kept.shape[1]
+
+
+@njit(cache=True, nogil=True)
+def _draw_rows(band: np.ndarray, target: tuple, scene: tuple, near_m: float) -> None:
+    """The depth test of band (camera, first row, last row + 1) of a camera's region (its own rows of the z-buffer:
+    bands drawn at the same time write apart), then its shading and composite (`_shade_rows`)."""
+    layout, z, winner = target[1], target[2], target[3]
+    kept, bbox, camera = scene[0], scene[7], scene[8]
+    depth_test_regions(kept, bbox, camera, layout, near_m, z, winner, band[0], band[1], band[2])
+    _shade_rows(band, target, scene)
 
 
 @njit(cache=True, nogil=True)
@@ -518,7 +535,7 @@ def _shade_rows(band: np.ndarray, target: tuple, scene: tuple) -> None:
     `draw_untextured_into` (layout as `depth_test_regions`); `scene`: `_shade_pixel`'s tables (kept, source,
     attributes, material, R_cam_world, K_inv, lights)."""
     regions, layout, z, winner, view_of_camera, rgb, depth, front, gray = target
-    kept, source, attributes, material, R_cam_world, K_inv, lights = scene
+    kept, source, attributes, material, R_cam_world, K_inv, lights = scene[:7]
     cam = band[0]
     v = view_of_camera[cam]
     for y in range(band[1], band[2]):
