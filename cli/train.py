@@ -22,7 +22,8 @@ WorldOption = Annotated[
     list[Path] | None,
     typer.Option(
         "--world",
-        help="A world folder to train in (repeatable: episodes come from all of them); default: the workspace's world.",
+        help="A world folder to train in (repeatable: episodes come from all of them, each equally often; a world "
+        "given twice gets twice the share); default: the workspace's world.",
     ),
 ]
 TotalStepsOption = Annotated[

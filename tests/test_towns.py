@@ -99,6 +99,9 @@ def test_training_worlds_are_the_workspace_world_then_the_towns(tmp_path: Path) 
     # --world replaces the workspace's world; a town given twice (a resumed run's worlds) counts once.
     spec, external = train_stage.training_inputs(ws, cfg, [town, ws.root / "world"], [town])
     assert list(external.values()) == [town, ws.root / "world"]
+    # A world the user gives twice stays twice (twice the episodes), not folded into one.
+    spec, external = train_stage.training_inputs(ws, cfg, [ws.root / "world", ws.root / "world"], [town])
+    assert list(external.values()) == [ws.root / "world", ws.root / "world", town]
     # No towns, no --world: the workspace's world as the artifact input, as before.
     spec, external = train_stage.training_inputs(ws, TrainConfig(task="overtake"), None, [])
     assert spec.requires == ("world",) and external == {}

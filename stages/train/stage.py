@@ -170,16 +170,17 @@ def training_inputs(
 ) -> tuple[StageSpec[TrainSummary], dict[str, Path]]:
     """The stage spec and external inputs of a run: the workspace's world as its one artifact input; with world
     folders or towns, every world as an external input `world_00`, `world_01`, ... in order (the given worlds or
-    else the workspace's, then the towns not among them); none with the cost-free env."""
+    else the workspace's, then the towns not among them); none with the cost-free env. A world given twice stays
+    twice: episodes draw their world uniformly from the list, so it gets twice the share."""
     if cfg.envs.source == "cost_free":
         return replace(SPEC, requires=()), {}
     if not worlds and not towns:
         return SPEC, {}
     base = list(worlds) if worlds else [ws.require("world", SPEC.upstream_hints["world"])]
-    every: list[Path] = []
-    for world in [*base, *(towns or [])]:  # a resumed run's worlds hold its towns already
-        if Path(world).absolute() not in every:
-            every.append(Path(world).absolute())
+    every = [Path(world).absolute() for world in base]
+    for town in towns or []:  # a resumed run's worlds hold its towns already
+        if Path(town).absolute() not in every:
+            every.append(Path(town).absolute())
     for world in every:
         if not (world / MANIFEST_NAME).is_file():
             raise DrivesimError("not a world folder (no manifest.json); make one with `drivesim build-world`", world)
