@@ -1,5 +1,6 @@
 """An ensemble policy's files, made from finished runs of one recipe (`drivesim train --ensemble N` trains them,
-`--ensemble-of RUN ...` takes runs already trained): one policy whose steering is the mean of theirs (`EnsembleNet`).
+`--ensemble-of RUN`, once per run, takes runs already trained): one policy whose steering is the mean of theirs
+(`EnsembleNet`).
 
 The members must see the same observations: the same task, image shape, network architecture and env config (the
 view, its region of interest); they differ in their seeds (or anything else of their training). Each member stays a
