@@ -223,6 +223,18 @@ def test_bad_worlds_and_meshes_are_one_line(world_dir: Path, tmp_path: Path) -> 
         _make(tmp_path / "nothing", "lane")
 
 
+def test_a_front_car_past_the_sure_road_is_refused(world_dir: Path) -> None:
+    # 150 m ahead on a drive with 60 m sure: every episode would end at its first step with end_of_data
+    for task in ("overtake", "follow"):
+        with pytest.raises(ValueError, match=r"front_distance_m up to 150 m .* past the 60 m of road"):
+            _make(world_dir, task, front_distance_m=(140.0, 150.0))
+    env = _make(world_dir, "overtake", front_distance_m=(50.0, 60.0))  # within it: episodes run
+    env.reset(seed=0)
+    _, _, terminated, _, info = env.step(np.zeros(1, np.float32))
+    assert not info["termination"]["end_of_data"]
+    _make(world_dir, "lane", front_distance_m=(140.0, 150.0))  # no front car: the key is not read
+
+
 def test_render_episode_writes_the_video_strip_and_plot(world_dir: Path, tmp_path: Path) -> None:
     """`drivesim sim render`'s work: an MP4 with every step, a strip of 80x50 frames and the bird's-eye PNG."""
     import cv2

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from eval_fakes import FAKE, fake_world, lane_departure_record, pass_record
 
-from drivesim.pipeline.errors import ConfigError
+from drivesim.pipeline.errors import ConfigError, InputError
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.evaluate.config import EvalConfig
 from drivesim.stages.evaluate.metrics import evaluate_episode
@@ -23,7 +23,9 @@ from drivesim.stages.evaluate.worlds import world_labels, world_tables
 TESTS_DIR = Path(__file__).parent
 
 
-def _make_run(folder: Path, trained_on: list[Path]) -> Path:
+def _make_run(
+    folder: Path, trained_on: list[Path], env_config: dict | None = None, observation_shape: tuple = (3, 64, 160)
+) -> Path:
     """A finished overtake run folder (small network, random weights) whose config.json names its training worlds."""
     import torch
 
@@ -33,11 +35,12 @@ def _make_run(folder: Path, trained_on: list[Path]) -> Path:
 
     arch = {"conv_layers": [[4, 5, 4], [8, 3, 2]], "features_dim": 16, "lstm_hidden_size": 8, "lstm_layers": 1}
     torch.manual_seed(0)
-    net = build_net({"observation_shape": [3, 64, 160], "architecture": arch})
+    net = build_net({"observation_shape": list(observation_shape), "architecture": arch})
     folder.mkdir(parents=True)
-    write_policy_files(folder, "overtake", (3, 64, 160), arch, net.state_dict(), 0.15)
+    write_policy_files(folder, "overtake", observation_shape, arch, net.state_dict(), 0.15)
     worlds = [str(w) for w in trained_on]
-    write_json(folder / "config.json", {"train": {"task": "overtake"}, "env_config": {}, "worlds": worlds})
+    config = {"train": {"task": "overtake"}, "env_config": env_config or {}, "worlds": worlds}
+    write_json(folder / "config.json", config)
     write_json(folder / "manifest.json", {"outputs": {"policy.pt": {"sha256": sha256_file(folder / "policy.pt")}}})
     return folder
 
@@ -131,3 +134,19 @@ def test_cli_prints_a_row_per_world_and_the_pooled_row(tmp_path: Path) -> None:
     table = [line for line in out.splitlines() if line.strip().startswith(("│ a ", "│ b ", "│ all worlds"))]
     assert len(table) == 3, out
     assert "trained on" not in out  # the expert: no training worlds to label
+
+
+def test_a_short_drive_the_run_trained_on_is_evaluated_with_the_runs_own_config(tmp_path: Path) -> None:
+    # 50 m of drive: too short for the default 60 + 8 m an episode needs, but the run trained with 40 m; its own env
+    # config is read before the world is opened, so the world is admitted (it was refused before any episode)
+    from sim_worlds import SMALL_VIEW, write_test_world
+
+    short = write_test_world(tmp_path / "short" / "world", length_m=50.0)
+    env_config = {**SMALL_VIEW, "min_path_length_m": 40.0, "front_distance_m": [6.0, 15.0]}
+    run = _make_run(tmp_path / "ws" / "runs" / "overtake-short", [short], env_config, observation_shape=(3, 16, 40))
+    cfg = EvalConfig(world=[str(short)], episodes=2, workers=1, policy=str(run), record="none")
+    result = run_eval(Workspace(tmp_path / "ws"), cfg)
+    assert result.summary.episodes == 2
+    plain = _make_run(tmp_path / "ws" / "runs" / "overtake-plain", [short], dict(SMALL_VIEW), (3, 16, 40))
+    with pytest.raises(InputError, match="path of 50 m is too short"):  # without it: one line, as before
+        run_eval(Workspace(tmp_path / "ws"), EvalConfig(world=[str(short)], episodes=2, workers=1, policy=str(plain)))

@@ -86,6 +86,7 @@ class DrivingEnv(gymnasium.Env):
         self.render_mode = render_mode
         c = self.config
         self.worlds = load_worlds(world, c.min_path_length_m + c.end_margin_m)
+        self._check_front_car_fits()
         self._rois = [roi_for(w, c) for w in self.worlds]  # a camera too small for the view is refused here
         self.vehicles = load_vehicles(meshes) if self.has_other else None
         self.collision_threshold = c.collision_overlap_train if mode == "train" else c.collision_overlap_eval
@@ -108,6 +109,18 @@ class DrivingEnv(gymnasium.Env):
         for key in self._timings:
             self._timings[key] = 0.0
         self.step_count = 0
+
+    def _check_front_car_fits(self) -> None:
+        """Refuse a front car placed past the road an episode is sure to have: such an episode ends at its first step
+        with end_of_data (every agent must stay end_margin_m from the end of the recording), which no figure shows."""
+        c = self.config
+        places_front_car = type(self)._place_other is DrivingEnv._place_other  # cut-in draws its own placement
+        if self.has_other and places_front_car and c.front_distance_m[1] > c.min_path_length_m:
+            raise ValueError(
+                f"front_distance_m up to {c.front_distance_m[1]:g} m puts the front car past the "
+                f"{c.min_path_length_m:g} m of road an episode is sure to have ahead (min_path_length_m): such "
+                "episodes end at their first step; give front_distance_m within min_path_length_m"
+            )
 
     # --- episode start -------------------------------------------------------------------------------------------
     def roi_px_of(self, world_index: int = 0) -> tuple[int, int, int, int]:

@@ -117,47 +117,53 @@ def _worlds_of(ctx: BuildContext) -> list[Path]:
 def _open_and_check(cfg: EvalConfig, factory: Any, policy_spec: Any, world: Path) -> dict[str, Any]:
     """Build the env and the policy once here, so bad input is one line before any episode runs.
 
-    Returns the env kwargs to use (a run's training env config merged in).
+    Returns the env kwargs to use: a run's (or ONNX file's) training env config, then the user's overrides. The
+    policy is read before the env is built, so that a world only the policy's own config admits (a short drive
+    trained with a lower min_path_length_m) is evaluated with it.
     """
-    import numpy as np
-
     from drivesim.stages.evaluate.report import Track
 
     try:
         Track.load(world)
     except (OSError, KeyError, ValueError) as e:
         raise InputError(f"not a world folder (path.npz unreadable: {e}); run `{WORLD_HINT}`", world) from e
-    env = _make_env(factory, world)
-    try:
-        policy = _load_policy(policy_spec, env)
+    policy = None
+    if policy_spec.kind in ("run", "onnx"):  # they need no env to load
+        policy = _load_policy(policy_spec, None)
         run_task = getattr(policy, "task", None)
-        if policy_spec.kind != "expert" and run_task and run_task != cfg.task:
+        if run_task and run_task != cfg.task:
             raise InputError(
                 f"this policy was trained on {run_task}, not {cfg.task}; use --task {run_task}", policy_spec.path
             )
         env_config = dict(getattr(policy, "env_config", {}) or {})
         if env_config:  # the policy's own env settings (its view), then the user's overrides
-            env.close()
             factory = replace(factory, kwargs={**factory.kwargs, "config": {**env_config, **cfg.env_overrides()}})
-            env = _make_env(factory, world)
-            policy = _load_policy(policy_spec, env)
-        obs, _ = env.reset(seed=cfg.seed)
-        try:
-            action, _ = policy.predict(obs[None], policy.initial_state(1), np.ones(1, dtype=bool))
-            action = np.asarray(action, dtype=np.float32)
-        except DrivesimError:
-            raise
-        except Exception as e:  # a wrong input name, shape or dtype from torch or onnxruntime
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            raise InputError(
-                f"the policy does not take this env's observations {tuple(obs.shape)} uint8: {first[:200]}",
-                policy_spec.path,
-            ) from e
-        if action.size != 1 or not np.all(np.isfinite(action)):
-            raise InputError(f"the policy gave {action.shape} actions; one finite steering value is needed")
+    env = _make_env(factory, world)
+    try:
+        _check_first_action(env, policy or _load_policy(policy_spec, env), policy_spec, cfg.seed)
     finally:
         env.close()
     return dict(factory.kwargs)
+
+
+def _check_first_action(env: Any, policy: Any, policy_spec: Any, seed: int) -> None:
+    """One step of the policy on the env's first observation: a wrong input or output is one line."""
+    import numpy as np
+
+    obs, _ = env.reset(seed=seed)
+    try:
+        action, _ = policy.predict(obs[None], policy.initial_state(1), np.ones(1, dtype=bool))
+        action = np.asarray(action, dtype=np.float32)
+    except DrivesimError:
+        raise
+    except Exception as e:  # a wrong input name, shape or dtype from torch or onnxruntime
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise InputError(
+            f"the policy does not take this env's observations {tuple(obs.shape)} uint8: {first[:200]}",
+            policy_spec.path,
+        ) from e
+    if action.size != 1 or not np.all(np.isfinite(action)):
+        raise InputError(f"the policy gave {action.shape} actions; one finite steering value is needed")
 
 
 def _load_policy(policy_spec: Any, env: Any) -> Any:
