@@ -230,7 +230,7 @@ def test_a_front_car_past_the_sure_road_is_refused(world_dir: Path) -> None:
             _make(world_dir, task, front_distance_m=(140.0, 150.0))
     env = _make(world_dir, "overtake", front_distance_m=(50.0, 60.0))  # within it: episodes run
     env.reset(seed=0)
-    _, _, terminated, _, info = env.step(np.zeros(1, np.float32))
+    _, _, _, _, info = env.step(np.zeros(1, np.float32))
     assert not info["termination"]["end_of_data"]
     _make(world_dir, "lane", front_distance_m=(140.0, 150.0))  # no front car: the key is not read
 
