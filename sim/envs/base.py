@@ -421,6 +421,18 @@ class DrivingEnv(gymnasium.Env):
         """The ego's last view (h, w, 3) uint8, without augmentation."""
         return self._last_rgb
 
+    def place_ego(self, arc_m: float, lateral_m: float, heading_rad: float = 0.0) -> np.ndarray:
+        """Move the ego, within the current episode, to `lateral_m` left of the path at arc length `arc_m` with its
+        heading `heading_rad` off the road's (counter-clockwise +), and return its observation there; the state
+        (`lane_position`, `info["state"]`) follows. For diagnostics and probes; the episode's clock is unchanged."""
+        ref, ego = self.sim.reference, self.sim.agents[0]
+        x, y, yaw = ref.pose(arc_m, lateral_m)
+        ego.state = BicycleState(x, y, yaw + heading_rad, 0.0, ego.state.speed_mps)
+        ego.frame_index = int(np.argmin(np.abs(ref.arc_m - arc_m)))
+        self._assoc = self._associate()
+        self._measure()
+        return self.observation_from(self._render_one())
+
     def lane_position(self) -> np.ndarray:
         """The ego's lateral offset from the lane centre (m, + = left) and its heading relative to the lane (rad) now,
         as the policy's picture shows them (mirrored with a mirrored episode): (2,) float32."""

@@ -1,0 +1,140 @@
+"""Issue 19: can the policy's image encoder, trained on some worlds, read where the ego is in the lane on others?
+
+A supervised probe of perception alone, in minutes instead of a 15-min training run and its evaluation. Views are
+rendered through the lane env's own observation path (its region, size and, on the training worlds, the training
+mode's augmentations) at random places of each world, the ego put up to --offset-m to either side of the recorded path
+and up to --yaw-rad off its heading, and labelled with that offset and heading error (as the picture shows them:
+mirrored views flip both). The policy's encoder (the train config's convolutions, feature size and input pooling) with
+a linear head is fitted to the training worlds' views; per test world it reports:
+  MAE            mean |predicted - true| lateral offset, m (a constant guess of 0 scores offset_m / 2)
+  slope, corr    least-squares slope and correlation of the predicted against the true offset (1 / 1: read right;
+                 0: not seen at all; negative: read the wrong way)
+  side           the share of views more than 1 m aside whose side is read right (0.5: chance)
+  binned         the mean prediction in each of 10 bins of the true offset, from -offset_m to +offset_m
+  yaw MAE, corr  the same for the heading error, degrees
+A policy cannot return to its lane on a world where this probe reads the offset flat, whatever its reward says.
+
+    python benchmarks/bench_lateral_probe.py --train-world T1 --train-world T2 --test-world U1 --test-world U2 \
+        --set gamma=[0.35,1.25] --name NAME --notes "..."
+
+writes benchmarks/results/lateral_probe_<NAME>.json and (from every lateral_probe_*.json) lateral_probe.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+RESULTS = Path(__file__).parent / "results"
+TEST_VIEWS = 1500
+# Keys of the env config that shape the picture of a test world too (not augmentations, which are training-only).
+VIEW_KEYS = ("roi_px", "roi_fov_deg", "roi_horizon_fraction", "observation_width_px", "observation_height_px")
+
+
+def label(path: str) -> str:
+    """A short name for a world path: the folder above `world`."""
+    p = Path(path)
+    return p.parent.name if p.name == "world" else p.name
+
+
+def write_markdown() -> None:
+    """benchmarks/results/lateral_probe.md from every lateral_probe_*.json."""
+    lines = [
+        "# Lateral probe: what the policy's encoder reads of its place in the lane",
+        "",
+        "`benchmarks/bench_lateral_probe.py`: a supervised probe of perception alone (issue 19).",
+        "",
+        "The encoder with a linear head, fitted on the training worlds' views, read on each test world's. MAE: mean",
+        "error of the offset, m; slope / corr: of the read against the true offset (1 = read right, 0 = not seen,",
+        "negative = read the wrong way); side: views more than 1 m aside whose side is read right; binned: the mean",
+        "read offset per tenth of the true offsets, from the right to the left; yaw: heading error, degrees.",
+        "",
+    ]
+    for path in sorted(RESULTS.glob("lateral_probe_*.json")):
+        data = json.loads(path.read_text())
+        trained = ", ".join(label(w) for w in data["train_worlds"])
+        settings = ", ".join(f"{k}={v}" for k, v in data["env_set"].items()) or "the env defaults"
+        lines += [f"## {data['name']}", "", f"{data['machine']}, {data['date']}, {data['seconds']:.0f} s. Trained on"]
+        lines[-1] += f" {trained} ({data['views_per_world']} views each, {data['epochs']} epochs), {settings};"
+        lines[-1] += f" offsets up to ±{data['offset_m']:g} m, headings ±{data['yaw_rad']:g} rad."
+        lines += ["", "| test world | MAE (m) | slope | corr | side | binned (m) | yaw MAE (°) | yaw corr |"]
+        lines.append("|---|---|---|---|---|---|---|---|")
+        for world, r in data["rows"].items():
+            binned = " ".join("-" if v is None else f"{v:+.1f}" for v in r["binned_m"])
+            lines.append(
+                f"| {label(world)} | {r['offset_mae_m']:.2f} | {r['offset_slope']:.2f} | {r['offset_corr']:.2f} | "
+                f"{r['side_right']:.0%} | {binned} | {r['yaw_mae_deg']:.1f} | {r['yaw_corr']:.2f} |"
+            )
+        lines += ["", data.get("notes", ""), ""]
+    (RESULTS / "lateral_probe.md").write_text("\n".join(lines))
+
+
+def parse_sets(texts: list[str]) -> dict[str, Any]:
+    """`KEY=VALUE` env config settings (values parsed as YAML) -> dict."""
+    from drivesim.pipeline.config import parse_override
+
+    settings = {}
+    for text in texts:
+        keys, value = parse_override(text)
+        settings[".".join(keys)] = value
+    return settings
+
+
+def main() -> None:
+    """Parse the arguments, render, fit, score every test world, write the JSON and the markdown."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--train-world", action="append", required=True, help="a world to fit on (repeatable)")
+    parser.add_argument("--test-world", action="append", required=True, help="a world to read (repeatable)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env config (repeatable)")
+    parser.add_argument("--views-per-world", type=int, default=6000, help="training views rendered per world")
+    parser.add_argument("--epochs", type=int, default=12, help="passes over the training views")
+    parser.add_argument("--offset-m", type=float, default=2.5, help="largest offset to either side, m")
+    parser.add_argument("--yaw-rad", type=float, default=0.2, help="largest heading error to either side, rad")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the views and of the fit")
+    parser.add_argument("--name", required=True, help="name of the result (lateral_probe_<name>.json)")
+    parser.add_argument("--notes", default="", help="a paragraph printed under the table")
+    args = parser.parse_args()
+    import torch
+
+    from drivesim.diagnostics.lateral_probe import fit_probe, render_views, score_probe
+    from drivesim.diagnostics.machine import machine_line
+
+    torch.set_num_threads(1)
+    start = time.perf_counter()
+    env_set = parse_sets(args.set)
+    views = {k: v for k, v in env_set.items() if k in VIEW_KEYS}
+    shape = (args.offset_m, args.yaw_rad)
+    train = [
+        render_views(w, env_set, "train", args.views_per_world, args.seed + 1 + i, *shape)
+        for i, w in enumerate(args.train_world)
+    ]
+    images, labels = np.concatenate([t[0] for t in train]), np.concatenate([t[1] for t in train])
+    net = fit_probe(images, labels, args.epochs, args.seed)
+    rows = {}
+    for world in args.test_world:
+        rows[world] = score_probe(net, *render_views(world, views, "eval", TEST_VIEWS, 777, *shape), args.offset_m)
+        r = rows[world]
+        print(f"{label(world)}: offset MAE {r['offset_mae_m']:.2f} m, slope {r['offset_slope']:.2f}, ", end="")
+        print(f"side {r['side_right']:.0%}, yaw corr {r['yaw_corr']:.2f}", flush=True)
+    result = {
+        "name": args.name,
+        "machine": machine_line(),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "seconds": time.perf_counter() - start,
+        "train_worlds": args.train_world,
+        "env_set": env_set,
+        **{k: getattr(args, k) for k in ("views_per_world", "epochs", "offset_m", "yaw_rad", "seed", "notes")},
+        "rows": rows,
+    }
+    (RESULTS / f"lateral_probe_{args.name}.json").write_text(json.dumps(result, indent=1))
+    write_markdown()
+    print(f"wrote {RESULTS / f'lateral_probe_{args.name}.json'} and {RESULTS / 'lateral_probe.md'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,95 @@
+"""A supervised probe of perception alone: can the policy's image encoder, fitted on some worlds' views, read the
+ego's lateral offset and heading error in others'? (issue 19; `benchmarks/bench_lateral_probe.py` is its report.)
+
+Views are rendered through the lane env's own observation path at random places, offsets and headings, and labelled
+with that offset and heading as the picture shows them; the encoder is the policy's (the train config's defaults) with
+a linear head. A policy cannot return to its lane on a world where this probe reads the offset flat.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+BINS = 10
+YAW_LABEL_SCALE = 10.0  # the heading error (~0.1 rad) scaled to the offset's size (~1 m) in the loss
+BATCH = 256
+VIEWS_PER_EPISODE = 8
+
+
+def render_views(
+    world: str, env_config: dict[str, Any], mode: str, count: int, seed: int, offset_m: float, yaw_rad: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """`count` observations (N, 3, H, W) uint8 of `world` at random places, offsets and headings, and their labels
+    (N, 2): lateral offset m (+ = left) and heading error rad, as the picture shows them. A new episode (its
+    augmentations) every VIEWS_PER_EPISODE views."""
+    import gymnasium
+
+    import drivesim.sim.envs  # noqa: F401  (registers the envs)
+
+    config = {"min_path_length_m": 30.0, **env_config}
+    env = gymnasium.make("drivesim/Lane-v0", world=world, meshes=None, mode=mode, config=config).unwrapped
+    rng = np.random.default_rng(seed)
+    images, labels = [], []
+    for episode in range(-(-count // VIEWS_PER_EPISODE)):
+        env.reset_state(seed * 1_000_003 + episode)  # the episode's augmentations; no view rendered
+        ref = env.sim.reference
+        for _ in range(VIEWS_PER_EPISODE):
+            arc_m = rng.uniform(ref.start_m + 3.0, ref.end_m - 3.0)
+            images.append(env.place_ego(arc_m, rng.uniform(-offset_m, offset_m), rng.uniform(-yaw_rad, yaw_rad)))
+            labels.append(env.lane_position())
+    return np.stack(images[:count]), np.asarray(labels[:count], dtype=np.float32)
+
+
+def fit_probe(images: np.ndarray, labels: np.ndarray, epochs: int, seed: int, policy: Any = None) -> Any:
+    """The policy's encoder (`policy`, a PolicyConfig; default the train config's) with a linear head, fitted to
+    (offset, heading) by Adam."""
+    import torch
+    from torch import nn
+
+    from drivesim.stages.policy.net import ImageEncoder
+    from drivesim.stages.train.config import TrainConfig
+
+    torch.manual_seed(seed)
+    policy = TrainConfig().policy if policy is None else policy
+    encoder = ImageEncoder(images.shape[1:], policy.conv_layers, policy.features_dim, policy.input_pool)
+    net = nn.Sequential(encoder, nn.Linear(policy.features_dim, 2))
+    x, y = torch.from_numpy(images), torch.from_numpy(labels) * torch.tensor([1.0, YAW_LABEL_SCALE])
+    optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
+    for _ in range(epochs):
+        order = torch.randperm(len(x))
+        for start in range(0, len(x), BATCH):
+            batch = order[start : start + BATCH]
+            loss = nn.functional.smooth_l1_loss(net(x[batch]), y[batch])
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+    return net
+
+
+def score_probe(net: Any, images: np.ndarray, labels: np.ndarray, offset_m: float) -> dict[str, Any]:
+    """The probe's reading of one world's views against their labels (module docstring)."""
+    import torch
+
+    with torch.no_grad():
+        predicted = net(torch.from_numpy(images)).numpy() / np.array([1.0, YAW_LABEL_SCALE])
+    true_q, read_q = labels[:, 0], predicted[:, 0]
+    aside = np.abs(true_q) > 1.0
+    bins = np.clip(((true_q + offset_m) / (2 * offset_m) * BINS).astype(int), 0, BINS - 1)
+    return {
+        "offset_mae_m": float(np.mean(np.abs(read_q - true_q))),
+        "offset_slope": float(np.polyfit(true_q, read_q, 1)[0]),
+        "offset_corr": correlation(true_q, read_q),
+        "side_right": float(np.mean(np.sign(read_q[aside]) == np.sign(true_q[aside]))),
+        "binned_m": [float(np.mean(read_q[bins == b])) if np.any(bins == b) else None for b in range(BINS)],
+        "yaw_mae_deg": float(np.degrees(np.mean(np.abs(predicted[:, 1] - labels[:, 1])))),
+        "yaw_corr": correlation(labels[:, 1], predicted[:, 1]),
+    }
+
+
+def correlation(true: np.ndarray, read: np.ndarray) -> float:
+    """Pearson's correlation; 0 where the reading does not vary (a constant reads nothing)."""
+    if np.std(read) == 0.0 or np.std(true) == 0.0:
+        return 0.0
+    return float(np.corrcoef(true, read)[0, 1])
