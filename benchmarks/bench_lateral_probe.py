@@ -59,8 +59,14 @@ def write_markdown() -> None:
         data = json.loads(path.read_text())
         trained = ", ".join(label(w) for w in data["train_worlds"])
         settings = ", ".join(f"{k}={v}" for k, v in data["env_set"].items()) or "the env defaults"
-        lines += [f"## {data['name']}", "", f"{data['machine']}, {data['date']}, {data['seconds']:.0f} s. Trained on"]
-        lines[-1] += f" {trained} ({data['views_per_world']} views each, {data['epochs']} epochs), {settings};"
+        lines += [f"## {data['name']}", "", f"{data['machine']}, {data['date']}, {data['seconds']:.0f} s. "]
+        if data.get("encoder"):
+            lines[-1] += f"The encoder of the trained policy {data['encoder']} (frozen), a linear readout fitted on"
+            lines[-1] += f" {trained} ({data['views_per_world']} views each), {settings};"
+        else:
+            lines[-1] += (
+                f"Fitted on {trained} ({data['views_per_world']} views each, {data['epochs']} epochs), {settings};"
+            )
         lines[-1] += f" offsets up to ±{data['offset_m']:g} m, headings ±{data['yaw_rad']:g} rad."
         lines += ["", "| test world | MAE (m) | slope | corr | side | binned (m) | yaw MAE (°) | yaw corr |"]
         lines.append("|---|---|---|---|---|---|---|---|")
@@ -72,6 +78,15 @@ def write_markdown() -> None:
             )
         lines += ["", data.get("notes", ""), ""]
     (RESULTS / "lateral_probe.md").write_text("\n".join(lines))
+
+
+def load_encoder(run: str) -> tuple[Any, dict[str, Any]]:
+    """A run's policy encoder (an ensemble's first member's) and the env config it trained with."""
+    from drivesim.stages.policy.run_folder import load_policy
+
+    loaded = load_policy(Path(run))
+    net = loaded.net.members[0] if hasattr(loaded.net, "members") else loaded.net
+    return net.encoder, dict(loaded.env_config)
 
 
 def parse_sets(texts: list[str]) -> dict[str, Any]:
@@ -90,6 +105,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--train-world", action="append", required=True, help="a world to fit on (repeatable)")
     parser.add_argument("--test-world", action="append", required=True, help="a world to read (repeatable)")
+    parser.add_argument(
+        "--encoder",
+        default=None,
+        metavar="RUN",
+        help="read a trained policy's own encoder (frozen; a linear readout fitted) in its run's view, instead of "
+        "fitting a fresh one",
+    )
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env config (repeatable)")
     parser.add_argument("--views-per-world", type=int, default=6000, help="training views rendered per world")
     parser.add_argument("--epochs", type=int, default=12, help="passes over the training views")
@@ -101,12 +123,15 @@ def main() -> None:
     args = parser.parse_args()
     import torch
 
-    from drivesim.diagnostics.lateral_probe import fit_probe, render_views, score_probe
+    from drivesim.diagnostics.lateral_probe import fit_probe, fit_readout, render_views, score_probe
     from drivesim.diagnostics.machine import machine_line
 
     torch.set_num_threads(1)
     start = time.perf_counter()
-    env_set = parse_sets(args.set)
+    env_set, encoder = parse_sets(args.set), None
+    if args.encoder:
+        encoder, run_env = load_encoder(args.encoder)
+        env_set = {**{k: v for k, v in run_env.items() if k in VIEW_KEYS}, **env_set}
     views = {k: v for k, v in env_set.items() if k in VIEW_KEYS}
     shape = (args.offset_m, args.yaw_rad)
     train = [
@@ -114,7 +139,7 @@ def main() -> None:
         for i, w in enumerate(args.train_world)
     ]
     images, labels = np.concatenate([t[0] for t in train]), np.concatenate([t[1] for t in train])
-    net = fit_probe(images, labels, args.epochs, args.seed)
+    net = fit_probe(images, labels, args.epochs, args.seed) if encoder is None else fit_readout(encoder, images, labels)
     rows = {}
     for world in args.test_world:
         rows[world] = score_probe(net, *render_views(world, views, "eval", TEST_VIEWS, 777, *shape), args.offset_m)
@@ -127,6 +152,7 @@ def main() -> None:
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "seconds": time.perf_counter() - start,
         "train_worlds": args.train_world,
+        "encoder": args.encoder,
         "env_set": env_set,
         **{k: getattr(args, k) for k in ("views_per_world", "epochs", "offset_m", "yaw_rad", "seed", "notes")},
         "rows": rows,

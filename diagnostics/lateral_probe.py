@@ -68,6 +68,26 @@ def fit_probe(images: np.ndarray, labels: np.ndarray, epochs: int, seed: int, po
     return net
 
 
+def fit_readout(encoder: Any, images: np.ndarray, labels: np.ndarray, ridge: float = 1e-3) -> Any:
+    """A linear readout of a trained, frozen encoder (a policy's): ridge regression of (offset, heading) on its
+    features; returns the encoder with that head, as `fit_probe` does."""
+    import torch
+    from torch import nn
+
+    encoder = encoder.eval().requires_grad_(False)
+    with torch.no_grad():
+        features = torch.cat([encoder(torch.from_numpy(images[i : i + BATCH])) for i in range(0, len(images), BATCH)])
+    design = torch.cat([features, torch.ones(len(features), 1)], dim=1).double()
+    target = torch.from_numpy(labels).double() * torch.tensor([1.0, YAW_LABEL_SCALE], dtype=torch.float64)
+    gram = design.T @ design + ridge * len(design) * torch.eye(design.shape[1], dtype=torch.float64)
+    weights = torch.linalg.solve(gram, design.T @ target)
+    head = nn.Linear(features.shape[1], 2)
+    with torch.no_grad():
+        head.weight.copy_(weights[:-1].T.float())
+        head.bias.copy_(weights[-1].float())
+    return nn.Sequential(encoder, head)
+
+
 def score_probe(net: Any, images: np.ndarray, labels: np.ndarray, offset_m: float) -> dict[str, Any]:
     """The probe's reading of one world's views against their labels (module docstring)."""
     import torch

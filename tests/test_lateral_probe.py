@@ -12,7 +12,7 @@ import torch
 from sim_worlds import SMALL_VIEW, write_test_world
 
 import drivesim.sim.envs  # noqa: F401  (registers the envs)
-from drivesim.diagnostics.lateral_probe import fit_probe, render_views, score_probe
+from drivesim.diagnostics.lateral_probe import fit_probe, fit_readout, render_views, score_probe
 from drivesim.stages.train.config import PolicyConfig
 
 # Photometric augmentation off, so that a mirrored view can be compared with the plain one pixel for pixel.
@@ -76,3 +76,10 @@ def test_the_probe_learns_the_offset_on_its_own_world(world: str) -> None:
     scores = score_probe(net, test_images, test_labels, 2.5)
     assert scores["offset_mae_m"] < 0.6 < 1.25  # a constant guess scores 1.25 m
     assert scores["offset_slope"] > 0.7 and scores["side_right"] > 0.9
+    # a trained encoder, frozen, read by a fitted linear readout (how a policy's own encoder is probed)
+    encoder = net[0]
+    weights = [p.clone() for p in encoder.parameters()]
+    readout = fit_readout(encoder, images, labels)
+    assert all(torch.equal(a, b) for a, b in zip(weights, encoder.parameters(), strict=True))
+    read = score_probe(readout, test_images, test_labels, 2.5)
+    assert read["offset_mae_m"] < 0.6 and read["offset_slope"] > 0.7
