@@ -54,6 +54,10 @@ def write_markdown() -> None:
         "negative = read the wrong way); side: views more than 1 m aside whose side is read right; binned: the mean",
         "read offset per tenth of the true offsets, from the right to the left; yaw: heading error, degrees.",
         "",
+        "Worlds are named by the folder above `world`: seedN = procedural town N (101 never in any training); kraw =",
+        "the real KITTI raw drive 2011_09_26_0001 (107 m beside tram tracks); kodo = the real KITTI odometry street",
+        "(sequence 06, 60 m); krawA / krawB = KITTI raw's first 54 m / next 53 m (worlds sliced from kraw's).",
+        "",
     ]
     for path in sorted(RESULTS.glob("lateral_probe_*.json")):
         data = json.loads(path.read_text())
