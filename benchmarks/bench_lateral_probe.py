@@ -29,17 +29,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from bench_recovery import label  # a short name for a world path: the folder above `world`
 
 RESULTS = Path(__file__).parent / "results"
 TEST_VIEWS = 1500
 # Keys of the env config that shape the picture of a test world too (not augmentations, which are training-only).
 VIEW_KEYS = ("roi_px", "roi_fov_deg", "roi_horizon_fraction", "observation_width_px", "observation_height_px")
-
-
-def label(path: str) -> str:
-    """A short name for a world path: the folder above `world`."""
-    p = Path(path)
-    return p.parent.name if p.name == "world" else p.name
 
 
 def write_markdown() -> None:

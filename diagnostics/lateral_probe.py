@@ -89,7 +89,10 @@ def fit_readout(encoder: Any, images: np.ndarray, labels: np.ndarray, ridge: flo
 
 
 def score_probe(net: Any, images: np.ndarray, labels: np.ndarray, offset_m: float) -> dict[str, Any]:
-    """The probe's reading of one world's views against their labels (module docstring)."""
+    """The probe's reading of one world's views against their labels: the offset's mean error (m), the slope and
+    correlation of the read against the true offset, the share of views more than 1 m aside whose side is read right,
+    the mean read offset in each of BINS bins of the true one (-offset_m to +offset_m), and the heading's mean error
+    (degrees) and correlation."""
     import torch
 
     with torch.no_grad():
