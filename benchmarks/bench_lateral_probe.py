@@ -75,8 +75,35 @@ def write_markdown() -> None:
                 f"| {label(world)} | {r['offset_mae_m']:.2f} | {r['offset_slope']:.2f} | {r['offset_corr']:.2f} | "
                 f"{r['side_right']:.0%} | {binned} | {r['yaw_mae_deg']:.1f} | {r['yaw_corr']:.2f} |"
             )
-        lines += ["", data.get("notes", ""), ""]
+        picture = path.with_suffix(".png")
+        plot_readings(data, picture)
+        lines += ["", data.get("notes", ""), "", f"![read against true offset]({picture.name})", ""]
     (RESULTS / "lateral_probe.md").write_text("\n".join(lines))
+
+
+def plot_readings(data: dict[str, Any], out: Path) -> None:
+    """A picture of one result: the mean read offset against the true one per test world, beside the identity."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    offset_m = data["offset_m"]
+    centres = np.linspace(-offset_m, offset_m, len(next(iter(data["rows"].values()))["binned_m"]) + 1)
+    centres = 0.5 * (centres[1:] + centres[:-1])
+    fig, ax = plt.subplots(figsize=(4.5, 4.0))
+    ax.plot([-offset_m, offset_m], [-offset_m, offset_m], color="0.7", linestyle="--", label="read right")
+    for world, r in data["rows"].items():
+        read = [np.nan if v is None else v for v in r["binned_m"]]
+        ax.plot(centres, read, marker="o", label=f"{label(world)} (slope {r['offset_slope']:.2f})")
+    ax.set_xlabel("true offset, m (+ = left)")
+    ax.set_ylabel("read offset, m")
+    ax.set_title(data["name"], fontsize=9)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
 
 
 def load_encoder(run: str) -> tuple[Any, dict[str, Any]]:
