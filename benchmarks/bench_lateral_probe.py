@@ -11,6 +11,8 @@ a linear head is fitted to the training worlds' views; per test world it reports
                  0: not seen at all; negative: read the wrong way)
   side           the share of views more than 1 m aside whose side is read right (0.5: chance)
   binned         the mean prediction in each of 10 bins of the true offset, from -offset_m to +offset_m
+  m/rad          how much the read offset follows the heading instead: the heading's coefficient in a least-squares
+                 fit of the read offset on the true offset and heading (0: the offset is not confused with the heading)
   yaw MAE, corr  the same for the heading error, degrees
 A policy cannot return to its lane on a world where this probe reads the offset flat, whatever its reward says.
 
@@ -47,7 +49,8 @@ def write_markdown() -> None:
         "The encoder with a linear head, fitted on the training worlds' views, read on each test world's. MAE: mean",
         "error of the offset, m; slope / corr: of the read against the true offset (1 = read right, 0 = not seen,",
         "negative = read the wrong way); side: views more than 1 m aside whose side is read right; binned: the mean",
-        "read offset per tenth of the true offsets, from the right to the left; yaw: heading error, degrees.",
+        "read offset per tenth of the true offsets, from the right to the left; m/rad: how much the read offset",
+        "follows the heading instead (0: not confused); yaw: heading error, degrees.",
         "",
         "Worlds are named by the folder above `world`: seedN = procedural town N (101 never in any training); kraw =",
         "the real KITTI raw drive 2011_09_26_0001 (107 m beside tram tracks); kodo = the real KITTI odometry street",
@@ -67,13 +70,14 @@ def write_markdown() -> None:
                 f"Fitted on {trained} ({data['views_per_world']} views each, {data['epochs']} epochs), {settings};"
             )
         lines[-1] += f" offsets up to ±{data['offset_m']:g} m, headings ±{data['yaw_rad']:g} rad."
-        lines += ["", "| test world | MAE (m) | slope | corr | side | binned (m) | yaw MAE (°) | yaw corr |"]
-        lines.append("|---|---|---|---|---|---|---|---|")
+        lines += ["", "| test world | MAE (m) | slope | corr | side | binned (m) | m/rad | yaw MAE (°) | yaw corr |"]
+        lines.append("|---|---|---|---|---|---|---|---|---|")
         for world, r in data["rows"].items():
             binned = " ".join("-" if v is None else f"{v:+.1f}" for v in r["binned_m"])
+            confusion = f"{r['offset_per_heading_m_per_rad']:+.1f}" if "offset_per_heading_m_per_rad" in r else "-"
             lines.append(
                 f"| {label(world)} | {r['offset_mae_m']:.2f} | {r['offset_slope']:.2f} | {r['offset_corr']:.2f} | "
-                f"{r['side_right']:.0%} | {binned} | {r['yaw_mae_deg']:.1f} | {r['yaw_corr']:.2f} |"
+                f"{r['side_right']:.0%} | {binned} | {confusion} | {r['yaw_mae_deg']:.1f} | {r['yaw_corr']:.2f} |"
             )
         picture = path.with_suffix(".png")
         plot_readings(data, picture)

@@ -91,14 +91,16 @@ def fit_readout(encoder: Any, images: np.ndarray, labels: np.ndarray, ridge: flo
 def score_probe(net: Any, images: np.ndarray, labels: np.ndarray, offset_m: float) -> dict[str, Any]:
     """The probe's reading of one world's views against their labels: the offset's mean error (m), the slope and
     correlation of the read against the true offset, the share of views more than 1 m aside whose side is read right,
-    the mean read offset in each of BINS bins of the true one (-offset_m to +offset_m), and the heading's mean error
-    (degrees) and correlation."""
+    the mean read offset in each of BINS bins of the true one (-offset_m to +offset_m), how much of the read offset
+    follows the heading instead (the heading's coefficient, m per rad, in a least-squares fit of the read offset on
+    the true offset and heading), and the heading's mean error (degrees) and correlation."""
     import torch
 
     with torch.no_grad():
         predicted = net(torch.from_numpy(images)).numpy() / np.array([1.0, YAW_LABEL_SCALE])
     true_q, read_q = labels[:, 0], predicted[:, 0]
     aside = np.abs(true_q) > 1.0
+    both = np.stack([true_q, labels[:, 1], np.ones(len(true_q))], axis=1)
     bins = np.clip(((true_q + offset_m) / (2 * offset_m) * BINS).astype(int), 0, BINS - 1)
     return {
         "offset_mae_m": float(np.mean(np.abs(read_q - true_q))),
@@ -106,6 +108,7 @@ def score_probe(net: Any, images: np.ndarray, labels: np.ndarray, offset_m: floa
         "offset_corr": correlation(true_q, read_q),
         "side_right": float(np.mean(np.sign(read_q[aside]) == np.sign(true_q[aside]))),
         "binned_m": [float(np.mean(read_q[bins == b])) if np.any(bins == b) else None for b in range(BINS)],
+        "offset_per_heading_m_per_rad": float(np.linalg.lstsq(both, read_q, rcond=None)[0][1]),
         "yaw_mae_deg": float(np.degrees(np.mean(np.abs(predicted[:, 1] - labels[:, 1])))),
         "yaw_corr": correlation(labels[:, 1], predicted[:, 1]),
     }

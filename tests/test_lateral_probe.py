@@ -59,7 +59,17 @@ def test_the_scores_tell_a_read_offset_from_a_flat_one() -> None:
     read = score_probe(lambda x: torch.from_numpy(labels * np.array([1.0, 10.0], np.float32)), images, labels, 2.5)
     flat = score_probe(lambda x: torch.full((len(x), 2), 0.4), images, labels, 2.5)
     assert read["offset_mae_m"] < 1e-6 and read["offset_slope"] == pytest.approx(1.0) and read["side_right"] == 1.0
-    assert read["yaw_corr"] == pytest.approx(1.0)
+    assert read["yaw_corr"] == pytest.approx(1.0) and read["offset_per_heading_m_per_rad"] == pytest.approx(
+        0.0, abs=1e-6
+    )
+    # an offset read as the heading: 3 m of read offset per radian of heading, and none of the true offset
+    confused = score_probe(
+        lambda x: torch.from_numpy(labels[:, ::-1] * np.array([3.0, 0.0], np.float32)), images, labels, 2.5
+    )
+    assert (
+        confused["offset_per_heading_m_per_rad"] == pytest.approx(3.0, rel=1e-4)
+        and abs(confused["offset_slope"]) < 0.05
+    )
     assert abs(flat["offset_slope"]) < 1e-6 and flat["offset_corr"] == 0.0 and flat["offset_mae_m"] > 1.0
     assert flat["binned_m"] == pytest.approx([0.4] * 10)
     assert 0.3 < flat["side_right"] < 0.7  # one side right, the other wrong
