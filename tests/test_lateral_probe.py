@@ -84,7 +84,7 @@ def test_the_probe_learns_the_offset_on_its_own_world(world: str) -> None:
     )
     test_images, test_labels = render_views(world, config, "eval", 300, seed=9, offset_m=2.5, yaw_rad=0.2)
     scores = score_probe(net, test_images, test_labels, 2.5)
-    assert scores["offset_mae_m"] < 0.6 < 1.25  # a constant guess scores 1.25 m
+    assert scores["offset_mae_m"] < 0.6  # a constant guess scores 1.25 m
     assert scores["offset_slope"] > 0.7 and scores["side_right"] > 0.9
     # a trained encoder, frozen, read by a fitted linear readout (how a policy's own encoder is probed)
     encoder = net[0]
