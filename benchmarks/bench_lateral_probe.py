@@ -60,7 +60,8 @@ def write_markdown() -> None:
     for path in sorted(RESULTS.glob("lateral_probe_*.json")):
         data = json.loads(path.read_text())
         trained = ", ".join(label(w) for w in data["train_worlds"])
-        settings = ", ".join(f"{k}={v}" for k, v in data["env_set"].items()) or "the env defaults"
+        chosen = {**data["env_set"], **{f"policy.{k}": v for k, v in data.get("policy_set", {}).items()}}
+        settings = ", ".join(f"{k}={v}" for k, v in chosen.items()) or "the env defaults"
         lines += [f"## {data['name']}", "", f"{data['machine']}, {data['date']}, {data['seconds']:.0f} s. "]
         if data.get("encoder"):
             lines[-1] += f"The encoder of the trained policy {data['encoder']} (frozen), a linear readout fitted on"
@@ -143,6 +144,13 @@ def main() -> None:
         "fitting a fresh one",
     )
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env config (repeatable)")
+    parser.add_argument(
+        "--policy-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="the fitted encoder's architecture, as train's policy.KEY (e.g. input_pool=1; repeatable)",
+    )
     parser.add_argument("--views-per-world", type=int, default=6000, help="training views rendered per world")
     parser.add_argument("--epochs", type=int, default=12, help="passes over the training views")
     parser.add_argument("--offset-m", type=float, default=2.5, help="largest offset to either side, m")
@@ -155,6 +163,7 @@ def main() -> None:
 
     from drivesim.diagnostics.lateral_probe import fit_probe, fit_readout, render_views, score_probe
     from drivesim.diagnostics.machine import machine_line
+    from drivesim.stages.train.config import PolicyConfig
 
     torch.set_num_threads(1)
     start = time.perf_counter()
@@ -169,7 +178,11 @@ def main() -> None:
         for i, w in enumerate(args.train_world)
     ]
     images, labels = np.concatenate([t[0] for t in train]), np.concatenate([t[1] for t in train])
-    net = fit_probe(images, labels, args.epochs, args.seed) if encoder is None else fit_readout(encoder, images, labels)
+    policy = PolicyConfig(**parse_sets(args.policy_set))
+    if encoder is None:
+        net = fit_probe(images, labels, args.epochs, args.seed, policy)
+    else:
+        net = fit_readout(encoder, images, labels)
     rows = {}
     for world in args.test_world:
         rows[world] = score_probe(net, *render_views(world, views, "eval", TEST_VIEWS, 777, *shape), args.offset_m)
@@ -184,6 +197,7 @@ def main() -> None:
         "train_worlds": args.train_world,
         "encoder": args.encoder,
         "env_set": env_set,
+        "policy_set": parse_sets(args.policy_set),
         **{k: getattr(args, k) for k in ("views_per_world", "epochs", "offset_m", "yaw_rad", "seed", "notes")},
         "rows": rows,
     }
