@@ -77,6 +77,7 @@ def fit_readout(encoder: Any, images: np.ndarray, labels: np.ndarray, ridge: flo
     encoder = encoder.eval().requires_grad_(False)
     with torch.no_grad():
         features = torch.cat([encoder(torch.from_numpy(images[i : i + BATCH])) for i in range(0, len(images), BATCH)])
+    # Ridge regression in closed form (scikit-learn's Ridge does the same, but is not a dependency for five lines).
     design = torch.cat([features, torch.ones(len(features), 1)], dim=1).double()
     target = torch.from_numpy(labels).double() * torch.tensor([1.0, YAW_LABEL_SCALE], dtype=torch.float64)
     gram = design.T @ design + ridge * len(design) * torch.eye(design.shape[1], dtype=torch.float64)
