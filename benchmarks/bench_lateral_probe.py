@@ -54,7 +54,8 @@ def write_markdown() -> None:
         "",
         "Worlds are named by the folder above `world`: seedN = procedural town N (101 never in any training); kraw =",
         "the real KITTI raw drive 2011_09_26_0001 (107 m beside tram tracks); kodo = the real KITTI odometry street",
-        "(sequence 06, 60 m); krawA / krawB = KITTI raw's first 54 m / next 53 m (worlds sliced from kraw's).",
+        "(sequence 06, 60 m); krawA / krawB = KITTI raw's first 54 m / next 53 m (worlds sliced from kraw's);",
+        "seed1A / seed1B = town 1's first 54 m / next 50 m (sliced the same way).",
         "",
     ]
     for path in sorted(RESULTS.glob("lateral_probe_*.json")):
