@@ -33,6 +33,8 @@ from typing import Any
 import numpy as np
 from bench_recovery import label  # a short name for a world path: the folder above `world`
 
+from drivesim.diagnostics.lateral_probe import VIEW_PARTS
+
 RESULTS = Path(__file__).parent / "results"
 TEST_VIEWS = 1500
 # Keys of the env config that shape the picture of a test world too (not augmentations, which are training-only).
@@ -72,6 +74,8 @@ def write_markdown() -> None:
                 f"Fitted on {trained} ({data['views_per_world']} views each, {data['epochs']} epochs), {settings};"
             )
         lines[-1] += f" offsets up to ±{data['offset_m']:g} m, headings ±{data['yaw_rad']:g} rad."
+        if data.get("blank"):
+            lines[-1] += f" The {data['blank']} half of every view blanked, training and test."
         lines += ["", "| test world | MAE (m) | slope | corr | side | binned (m) | m/rad | yaw MAE (°) | yaw corr |"]
         lines.append("|---|---|---|---|---|---|---|---|---|")
         for world, r in data["rows"].items():
@@ -152,6 +156,13 @@ def main() -> None:
         metavar="KEY=VALUE",
         help="the fitted encoder's architecture, as train's policy.KEY (e.g. input_pool=1; repeatable)",
     )
+    parser.add_argument(
+        "--blank",
+        choices=VIEW_PARTS,
+        default=None,
+        help="blank that half of every view, training and test (top: the probe sees the near road only; bottom: the "
+        "upper half only, the far road and what stands beside it and above)",
+    )
     parser.add_argument("--views-per-world", type=int, default=6000, help="training views rendered per world")
     parser.add_argument("--epochs", type=int, default=12, help="passes over the training views")
     parser.add_argument("--offset-m", type=float, default=2.5, help="largest offset to either side, m")
@@ -162,7 +173,7 @@ def main() -> None:
     args = parser.parse_args()
     import torch
 
-    from drivesim.diagnostics.lateral_probe import fit_probe, fit_readout, render_views, score_probe
+    from drivesim.diagnostics.lateral_probe import blank_view_part, fit_probe, fit_readout, render_views, score_probe
     from drivesim.diagnostics.machine import machine_line
     from drivesim.stages.train.config import PolicyConfig
 
@@ -178,7 +189,8 @@ def main() -> None:
         render_views(w, env_set, "train", args.views_per_world, args.seed + 1 + i, *shape)
         for i, w in enumerate(args.train_world)
     ]
-    images, labels = np.concatenate([t[0] for t in train]), np.concatenate([t[1] for t in train])
+    images = blank_view_part(np.concatenate([t[0] for t in train]), args.blank)
+    labels = np.concatenate([t[1] for t in train])
     policy = PolicyConfig(**parse_sets(args.policy_set))
     if encoder is None:
         net = fit_probe(images, labels, args.epochs, args.seed, policy)
@@ -186,7 +198,8 @@ def main() -> None:
         net = fit_readout(encoder, images, labels)
     rows = {}
     for world in args.test_world:
-        rows[world] = score_probe(net, *render_views(world, views, "eval", TEST_VIEWS, 777, *shape), args.offset_m)
+        test_images, test_labels = render_views(world, views, "eval", TEST_VIEWS, 777, *shape)
+        rows[world] = score_probe(net, blank_view_part(test_images, args.blank), test_labels, args.offset_m)
         r = rows[world]
         print(f"{label(world)}: offset MAE {r['offset_mae_m']:.2f} m, slope {r['offset_slope']:.2f}, ", end="")
         print(f"side {r['side_right']:.0%}, yaw corr {r['yaw_corr']:.2f}", flush=True)
@@ -199,7 +212,7 @@ def main() -> None:
         "encoder": args.encoder,
         "env_set": env_set,
         "policy_set": parse_sets(args.policy_set),
-        **{k: getattr(args, k) for k in ("views_per_world", "epochs", "offset_m", "yaw_rad", "seed", "notes")},
+        **{k: getattr(args, k) for k in ("views_per_world", "epochs", "offset_m", "yaw_rad", "seed", "blank", "notes")},
         "rows": rows,
     }
     (RESULTS / f"lateral_probe_{args.name}.json").write_text(json.dumps(result, indent=1))

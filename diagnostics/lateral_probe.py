@@ -42,6 +42,25 @@ def render_views(
     return np.stack(images[:count]), np.asarray(labels[:count], dtype=np.float32)
 
 
+VIEW_PARTS = ("top", "bottom")
+
+
+def blank_view_part(images: np.ndarray, part: str | None) -> np.ndarray:
+    """`images` (N, C, H, W) uint8 with their `part` set to black: "top" blanks the upper half of every view (the probe
+    then sees the road only), "bottom" the lower half (what lies beyond the road's near part: the far road, roadside,
+    trees, buildings, sky); None returns them as they are."""
+    if part is None:
+        return images
+    if part not in VIEW_PARTS:
+        raise ValueError(f"view part {part!r}: give one of {', '.join(VIEW_PARTS)}")
+    out, half = images.copy(), images.shape[2] // 2
+    if part == "top":
+        out[:, :, :half] = 0
+    else:
+        out[:, :, half:] = 0
+    return out
+
+
 def fit_probe(images: np.ndarray, labels: np.ndarray, epochs: int, seed: int, policy: Any = None) -> Any:
     """The policy's encoder (`policy`, a PolicyConfig; default the train config's) with a linear head, fitted to
     (offset, heading) by Adam."""

@@ -12,7 +12,7 @@ import torch
 from sim_worlds import SMALL_VIEW, write_test_world
 
 import drivesim.sim.envs  # noqa: F401  (registers the envs)
-from drivesim.diagnostics.lateral_probe import fit_probe, fit_readout, render_views, score_probe
+from drivesim.diagnostics.lateral_probe import blank_view_part, fit_probe, fit_readout, render_views, score_probe
 from drivesim.stages.train.config import PolicyConfig
 
 # Photometric augmentation off, so that a mirrored view can be compared with the plain one pixel for pixel.
@@ -93,3 +93,18 @@ def test_the_probe_learns_the_offset_on_its_own_world(world: str) -> None:
     assert all(torch.equal(a, b) for a, b in zip(weights, encoder.parameters(), strict=True))
     read = score_probe(readout, test_images, test_labels, 2.5)
     assert read["offset_mae_m"] < 0.6 and read["offset_slope"] > 0.7
+
+
+def test_a_blanked_half_is_black_and_the_other_half_untouched(world: str) -> None:
+    env = _lane_env(world, "eval")
+    env.reset_state(3)
+    views = np.stack([env.place_ego(60.0, offset_m, 0.0) for offset_m in (-1.0, 1.0)])
+    half = views.shape[2] // 2
+    road_only, beyond_only = blank_view_part(views, "top"), blank_view_part(views, "bottom")
+    assert not road_only[:, :, :half].any() and not beyond_only[:, :, half:].any()
+    np.testing.assert_array_equal(road_only[:, :, half:], views[:, :, half:])
+    np.testing.assert_array_equal(beyond_only[:, :, :half], views[:, :, :half])
+    assert views[:, :, :half].any() and views[:, :, half:].any()  # both halves had something to blank
+    assert blank_view_part(views, None) is views
+    with pytest.raises(ValueError, match="top, bottom"):
+        blank_view_part(views, "left")
