@@ -46,9 +46,9 @@ VIEW_PARTS = ("top", "bottom")
 
 
 def blank_view_part(images: np.ndarray, part: str | None) -> np.ndarray:
-    """`images` (N, C, H, W) uint8 with their `part` set to black: "top" blanks the upper half of every view (the probe
-    then sees the road only), "bottom" the lower half (what lies beyond the road's near part: the far road, roadside,
-    trees, buildings, sky); None returns them as they are."""
+    """`images` (N, C, H, W) uint8 with their `part` set to black, as a copy: "top" blanks the upper half of every view
+    (a probe then sees the near road only), "bottom" the lower half (it sees the far road and what stands beside it and
+    above: roadside, trees, buildings, sky); None returns `images` themselves."""
     if part is None:
         return images
     if part not in VIEW_PARTS:
