@@ -1,13 +1,17 @@
-# `make demo`: the main job, `drivesim run` on the embedded demo drive (about 10 min on 2 cores, venv set-up included); `make test`: the test suite. Both set up on first use.
+# `make install`: set up only (system libraries, the venv, drivesim and its test tools; then .venv/bin/drivesim works).
+# `make demo`: `drivesim run` on the embedded demo drive (6.9 min, venv set-up included, on a quiet 2-core VM:
+# benchmarks/results/demo.md). `make test`: the test suite. Both set up first when needed.
 VENV ?= .venv
 STAMP := $(VENV)/.drivesim-installed
 WORKSPACE ?= drivesim-work
 
-.PHONY: demo test lint bench clean
+.PHONY: install demo test lint bench clean
 
 $(STAMP): pyproject.toml scripts/setup.sh
 	VENV=$(VENV) bash scripts/setup.sh
 	touch $@
+
+install: $(STAMP)
 
 demo: $(STAMP)
 	$(VENV)/bin/drivesim --workspace $(WORKSPACE) run --preset demo
