@@ -39,6 +39,16 @@ def topic_overrides(topic: list[str] | None) -> list[str]:
     return overrides
 
 
+TopicOption = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--topic",
+        help=f"Pick a topic by role ({', '.join(TOPIC_ROLES)}), e.g. --topic camera=/cam/image_raw; "
+        "for KITTI folders camera=image_02.",
+    ),
+]
+
+
 def ingest_command(
     path: Annotated[
         Path,
@@ -48,14 +58,7 @@ def ingest_command(
             "or a GPS track."
         ),
     ],
-    topic: Annotated[
-        list[str] | None,
-        typer.Option(
-            "--topic",
-            help=f"Pick a topic by role ({', '.join(TOPIC_ROLES)}), e.g. --topic camera=/cam/image_raw; "
-            "for KITTI folders camera=image_02.",
-        ),
-    ] = None,
+    topic: TopicOption = None,
     camera_height_m: CameraHeightOption = None,
     hfov_deg: HfovOption = None,
     calibration: CalibrationOption = None,

@@ -8,16 +8,27 @@ from typing import Annotated
 import typer
 
 from drivesim.cli.common import console, workspace
-from drivesim.cli.video_options import CameraHeightOption, GpsOption, HfovOption, VideoStartOption, video_overrides
+from drivesim.cli.ingest import TopicOption, topic_overrides
+from drivesim.cli.video_options import (
+    CalibrationOption,
+    CameraHeightOption,
+    EndOption,
+    FpsOption,
+    GpsOption,
+    HfovOption,
+    StartOption,
+    VideoStartOption,
+    video_overrides,
+)
 
 
 def run_command(
     recording: Annotated[
         Path | None,
         typer.Argument(
-            help="Your recording (ROS1 .bag, rosbag2 folder, .mcap, KITTI raw drive, or a video with "
-            "--camera-height-m or a GPS track). Default: the embedded demo "
-            "drive, synthesized first into <workspace>/recordings/demo.mcap.",
+            help="Your recording (ROS1 .bag, rosbag2 folder, .mcap, KITTI raw drive or odometry folder, a video "
+            "with --camera-height-m or a GPS track, or a folder of images with --fps): the flags of `drivesim "
+            "ingest` apply. Default: the embedded demo drive, synthesized first into <workspace>/recordings/demo.mcap.",
             show_default=False,
         ),
     ] = None,
@@ -41,10 +52,15 @@ def run_command(
         ),
     ] = None,
     force: Annotated[bool, typer.Option("--force", help="Redo every stage even when its artifact is fresh.")] = False,
+    topic: TopicOption = None,
     camera_height_m: CameraHeightOption = None,
     hfov_deg: HfovOption = None,
+    calibration: CalibrationOption = None,
     gps: GpsOption = None,
     video_start_utc: VideoStartOption = None,
+    start_s: StartOption = None,
+    end_s: EndOption = None,
+    fps: FpsOption = None,
 ) -> None:
     """Run every stage in order: (synth,) ingest, preprocess, build-world, meshes, train, eval, export.
 
@@ -52,10 +68,13 @@ def run_command(
     Ctrl-C continues where it stopped. Ends with the path of the evaluation's HTML report and of the ONNX policy.
     """
     # Imported here so `drivesim --help` stays fast.
-    from drivesim.stages.run_chain import StageRun, load_run_preset, run_chain
+    from drivesim.chain.run import StageRun, load_run_preset, run_chain
 
-    video = video_overrides(camera_height_m, hfov_deg, None, gps, video_start_utc, prefix="ingest.")
-    overrides = load_run_preset(preset, config, [*(set_ or []), *video])
+    video = video_overrides(
+        camera_height_m, hfov_deg, calibration, gps, video_start_utc, start_s, end_s, fps, prefix="ingest."
+    )
+    topics = [f"ingest.{o}" for o in topic_overrides(topic)]
+    overrides = load_run_preset(preset, config, [*(set_ or []), *topics, *video])
 
     def on_stage(done: StageRun) -> None:
         state = "[dim]fresh, skipped[/]" if done.skipped else f"[green]done[/] in {done.wall_s:.1f} s"

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivesim.diagnostics.recordings import (
+from recordings import (
     DEFAULT_K,
     FORMATS,
     START_NS,
@@ -263,7 +263,10 @@ def test_garbage_and_missing_paths(tmp_path: Path) -> None:
     with pytest.raises(InputError, match=r"no such file or folder"):
         ingest_recording(tmp_path / "absent.mcap", IngestConfig(), tmp_path)
     (tmp_path / "empty").mkdir()
-    with pytest.raises(InputError, match=r"not a rosbag2 recording"):
+    accepted = (
+        r"folder is not a recording drivesim can read; .*rosbag2 folder.*folder of PNG/JPEG images only \(with --fps\)"
+    )
+    with pytest.raises(InputError, match=accepted):
         ingest_recording(tmp_path / "empty", IngestConfig(), tmp_path)
 
 
@@ -309,7 +312,7 @@ def test_camera_size_change_midway_is_refused(tmp_path: Path) -> None:
 
 
 def test_pointcloud_scans_are_stored_in_the_vehicle_frame(tmp_path: Path) -> None:
-    from drivesim.diagnostics.recordings import pointcloud_values
+    from recordings import pointcloud_values
 
     T_link_lidar = np.eye(4)
     T_link_lidar[:3, 3] = [0.5, 0.0, 1.8]  # lidar on the roof, axes as the vehicle's

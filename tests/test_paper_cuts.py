@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -43,3 +44,52 @@ def test_make_install_sets_up_and_runs_nothing_else(tmp_path: Path) -> None:
     # demo and test still set up first, then do their work.
     assert make_dry_run("demo", venv)[:2] == setup and "run --preset demo" in make_dry_run("demo", venv)[2]
     assert make_dry_run("test", venv) == [*setup, f"{venv}/bin/python -m pytest -q"]
+
+
+# ---------------------------------------------------------------- 2. `drivesim run` takes ingest's flags
+
+
+def _image_folder(folder: Path, count: int) -> Path:
+    import cv2
+    import numpy as np
+
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(count):
+        cv2.imwrite(str(folder / f"{i:04d}.png"), rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
+    return folder
+
+
+def test_run_reads_an_image_folder_with_fps_and_the_trimming_flags(tmp_path: Path) -> None:
+    """12 images at --fps 10 cut at --end-s 0.5 are 6 frames: too few for SfM, refused in one line that shows both
+    flags reached the ingest (without --fps the folder would be refused for lacking a frame rate)."""
+    images = _image_folder(tmp_path / "images", 12)
+    done = drivesim(tmp_path / "ws", "run", str(images), "--fps", "10", "--end-s", "0.5")
+    assert done.returncode == 2, done.stderr
+    assert "too short: 6 frame(s)" in done.stderr and "--fps" not in done.stderr, done.stderr
+    assert not (tmp_path / "ws" / "trace").exists()
+
+
+def test_run_help_lists_every_ingest_flag(tmp_path: Path) -> None:
+    run_help = drivesim(tmp_path / "ws", "run", "--help", env={"COLUMNS": "200"}).stdout
+    ingest_help = drivesim(tmp_path / "ws", "ingest", "--help", env={"COLUMNS": "200"}).stdout
+    ingest_flags = set(re.findall(r"(--[a-z][a-z0-9-]+)", ingest_help)) - {"--help", "--set", "--config", "--force"}
+    assert ingest_flags and ingest_flags <= set(re.findall(r"(--[a-z][a-z0-9-]+)", run_help))
+
+
+def test_a_folder_that_is_no_recording_lists_every_kind_drivesim_reads(tmp_path: Path) -> None:
+    (tmp_path / "empty").mkdir()
+    done = drivesim(tmp_path / "ws", "ingest", str(tmp_path / "empty"))
+    assert done.returncode == 2
+    line = done.stderr.strip()
+    assert "\n" not in line
+    for kind in (
+        "ROS1 .bag",
+        ".mcap",
+        "rosbag2 folder",
+        "KITTI raw",
+        "KITTI odometry",
+        ".mp4",
+        "images only (with --fps)",
+    ):
+        assert kind in line, (kind, line)

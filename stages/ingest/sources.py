@@ -75,6 +75,14 @@ def is_rosbag2_folder(path: Path) -> bool:
     return path.is_dir() and (path / "metadata.yaml").is_file()
 
 
+_ACCEPTED = (
+    "give a ROS1 .bag, an .mcap file, a rosbag2 folder (with metadata.yaml), a KITTI raw drive folder (image_0X/ + "
+    "oxts/), a KITTI odometry sequence (image_l/ + poses.txt + calib.txt), a video file (.mp4, .mov, .mkv, .avi, "
+    ".m4v, .webm, .mpg, .mpeg, .ts) or a folder of PNG/JPEG images only (with --fps)"
+)
+"""Every kind of recording `drivesim ingest` reads (stages/ingest/run.py FORMATS), for the refusal of any other."""
+
+
 def unrecognised(path: Path) -> InputError:
     """The one-line refusal for a path no format matched, saying what it looks like and what to pass instead."""
     if not path.exists():
@@ -87,11 +95,7 @@ def unrecognised(path: Path) -> InputError:
             return InputError(f"cannot read the file: {e.strerror}", path)
         if path.suffix == ".db3" or (path.suffix == ".mcap" and (path.parent / "metadata.yaml").is_file()):
             return InputError("this is one file of a rosbag2 recording; pass its folder instead", path)
-        return InputError(
-            "not a recording drivesim can read (expected a ROS1 .bag, an .mcap file, a rosbag2 folder, "
-            "a KITTI raw/odometry folder or a video: .mp4, .mov, .mkv, .avi)",
-            path,
-        )
+        return InputError(f"not a recording drivesim can read; {_ACCEPTED}", path)
     names = {p.name for p in path.iterdir()}
     if "calib_cam_to_cam.txt" in names:
         drives = sorted(n for n in names if n.endswith("_sync"))
@@ -99,11 +103,11 @@ def unrecognised(path: Path) -> InputError:
         return InputError(f"this is a KITTI date folder; pass one drive folder inside it{hint}", path)
     if any(n.endswith((".db3", ".mcap")) for n in names):
         return InputError("rosbag2 folder without metadata.yaml (incomplete recording?)", path)
-    return InputError(
-        "folder is not a rosbag2 recording (no metadata.yaml) nor a KITTI raw drive (image_0X/ + oxts/) "
-        "nor a KITTI odometry sequence (image_l/ + poses.txt + calib.txt)",
-        path,
-    )
+    from drivesim.stages.ingest.video import IMAGE_SUFFIXES
+
+    images = sum(1 for n in names if Path(n).suffix.lower() in IMAGE_SUFFIXES)
+    mixed = f" ({images} PNG/JPEG file(s) beside other files: an image folder holds images only)" if images else ""
+    return InputError(f"folder is not a recording drivesim can read{mixed}; {_ACCEPTED}", path)
 
 
 def _reader_errors() -> tuple[type[BaseException], ...]:
