@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from drivesim.pipeline.errors import InputError
+from drivesim.pipeline.npy_files import open_reserved_memmap
 from drivesim.pipeline.progress import console, progress_bar
 from drivesim.pipeline.stage import BuildContext
 from drivesim.sim.geometry import invert
@@ -125,7 +126,7 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
     T_world_camera = T_world_vehicle @ T_vehicle_camera
     n, h, w = frames.shape[:3]
 
-    depth_out = np.lib.format.open_memmap(ctx.dir / "depth.npy", mode="w+", dtype=np.float32, shape=(n, h, w))
+    depth_out = open_reserved_memmap(ctx.dir / "depth.npy", np.float32, (n, h, w))
     right = trace.info.right_frames() if method == "stereo" else None
     with progress_bar(f"depth ({method})", total=n) as (progress, task):
         depth_summary = depth_mod.estimate_depth(

@@ -1,7 +1,8 @@
 """The `drivesim build-world` stage: the simulatable world from the trace and the preprocessed artifact.
 
 The world's schema is in `sim/world.py` (the simulator's loader). Frames and depth are resized to the simulation
-resolution chunk by chunk into .npy memmaps inside the artifact's temporary folder, so memory stays bounded.
+resolution chunk by chunk into .npy memmaps inside the artifact's temporary folder, so memory stays bounded; their
+disk space is reserved first, so a full disk is the one-line disk-full error, not a SIGBUS.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import cv2
 import numpy as np
 
 from drivesim.pipeline.errors import InputError
+from drivesim.pipeline.npy_files import open_reserved_memmap
 from drivesim.pipeline.progress import progress_bar
 from drivesim.pipeline.stage import BuildContext
 from drivesim.sim.geometry import scale_intrinsics
@@ -82,8 +84,8 @@ def build_world(ctx: BuildContext) -> WorldSummary:
     K_sim = scale_intrinsics(trace.K, w / src_w, h / src_h)
     far_depth_m = float(pre.origin.get("max_depth_m") or np.inf)
 
-    frames_out = np.lib.format.open_memmap(ctx.dir / "frames.npy", mode="w+", dtype=np.uint8, shape=(n, h, w, 3))
-    depth_out = np.lib.format.open_memmap(ctx.dir / "depth_m.npy", mode="w+", dtype=np.float32, shape=(n, h, w))
+    frames_out = open_reserved_memmap(ctx.dir / "frames.npy", np.uint8, (n, h, w, 3))
+    depth_out = open_reserved_memmap(ctx.dir / "depth_m.npy", np.float32, (n, h, w))
     with progress_bar(f"world frames at {w}x{h}", total=n) as (progress, task):
         for start in range(0, n, _CHUNK_FRAMES):
             stop = min(n, start + _CHUNK_FRAMES)
