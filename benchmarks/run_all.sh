@@ -16,5 +16,5 @@ $PY benchmarks/bench_train_speed.py --world "${DEMO_WORLD:-/tmp/ws-demo/world}"
 $PY benchmarks/bench_eval.py --episodes 1000 --world "${DEMO_WORLD:-/tmp/ws-demo/world}"
 $PY benchmarks/bench_record.py --world small --world "${DEMO_WORLD:-/tmp/ws-demo/world}" --repeats 3
 # Learning under wall-clock budgets (~2 h): lane 15 min, overtake 60 min, lane on KITTI 15 min, cutin 30 min.
-if [ -n "${LEARNING:-}" ]; then $PY benchmarks/bench_learning.py ${KITTI_WORLD:+--kitti-world "$KITTI_WORLD"}; fi
+if [ -n "${LEARNING:-}" ]; then $PY experiments/learning/bench_learning.py ${KITTI_WORLD:+--kitti-world "$KITTI_WORLD"}; fi
 $PY benchmarks/collect_results.py

@@ -1,6 +1,6 @@
 """Training mechanics on the cost-free env (seconds): the fused recurrent pass is exact, save -> load gives identical
 actions, damaged runs are refused with one line, a killed run resumes, the warm start clones the expert.
-Learning itself is shown by benchmarks/bench_learning.py, not here."""
+Learning itself is shown by experiments/learning/bench_learning.py, not here."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.workspace import Workspace
 from drivesim.sim.envs.registry import TASK_NAMES
-from drivesim.stages.policy.run_folder import RunError, latest_run, load_policy
+from drivesim.policy.run_folder import RunError, latest_run, load_policy
 from drivesim.stages.train.best import BestPolicy
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
@@ -230,8 +230,8 @@ def test_damaged_runs_are_refused_with_one_line(finished_run: Path, tmp_path: Pa
 
 def test_pickled_code_is_never_executed(tmp_path: Path) -> None:
     """A weights file holding a pickle that would run code is refused by weights_only loading."""
-    from drivesim.stages.policy.net import DrivingNet
-    from drivesim.stages.policy.run_folder import load_weights
+    from drivesim.policy.net import DrivingNet
+    from drivesim.policy.run_folder import load_weights
 
     marker = tmp_path / "pwned"
 

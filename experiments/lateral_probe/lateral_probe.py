@@ -1,5 +1,6 @@
 """A supervised probe of perception alone: can the policy's image encoder, fitted on some worlds' views, read the
-ego's lateral offset and heading error in others'? (issue 19; `benchmarks/bench_lateral_probe.py` is its report.)
+ego's lateral offset and heading error in others'? (`bench_lateral_probe.py`
+beside it is its report.)
 
 Views are rendered through the lane env's own observation path at random places, offsets and headings, and labelled
 with that offset and heading as the picture shows them; the encoder is the policy's (the train config's defaults) with
@@ -67,7 +68,7 @@ def fit_probe(images: np.ndarray, labels: np.ndarray, epochs: int, seed: int, po
     import torch
     from torch import nn
 
-    from drivesim.stages.policy.net import ImageEncoder
+    from drivesim.policy.net import ImageEncoder
     from drivesim.stages.train.config import TrainConfig
 
     torch.manual_seed(seed)

@@ -13,7 +13,7 @@ The test looks at the hardest swerve to either side, optimistic for the driver w
   car without having touched it and with its centre inside the lane limit `max_lateral_m`.
 Both cars keep their speeds (the ego only steers); the road's own curve is ignored (both cars follow it). A swerve at
 full lock is the quickest way sideways, but not provably the only way out, so the label is checked against the
-expert (benchmarks/bench_winnable.py).
+expert (experiments/winnable/bench_winnable.py).
 """
 
 from __future__ import annotations

@@ -16,24 +16,26 @@ a linear head is fitted to the training worlds' views; per test world it reports
   yaw MAE, corr  the same for the heading error, degrees
 A policy cannot return to its lane on a world where this probe reads the offset flat, whatever its reward says.
 
-    python benchmarks/bench_lateral_probe.py --train-world T1 --train-world T2 --test-world U1 --test-world U2 \
-        --set gamma=[0.35,1.25] --name NAME --notes "..."
+    python experiments/lateral_probe/bench_lateral_probe.py --train-world T1 --train-world T2 \
+        --test-world U1 --test-world U2 --set gamma=[0.35,1.25] --name NAME --notes "..."
 
-writes benchmarks/results/lateral_probe_<NAME>.json and (from every lateral_probe_*.json) lateral_probe.md.
+writes results/lateral_probe_<NAME>.json beside this script and (from every lateral_probe_*.json) lateral_probe.md.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_recovery import label  # a short name for a world path: the folder above `world`
 
-from drivesim.diagnostics.lateral_probe import VIEW_PARTS
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recovery"))  # the recovery study's world labels
+from bench_recovery import label  # noqa: E402  (a short name for a world path: the folder above `world`)
+from lateral_probe import VIEW_PARTS  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 TEST_VIEWS = 1500
@@ -42,11 +44,11 @@ VIEW_KEYS = ("roi_px", "roi_fov_deg", "roi_horizon_fraction", "observation_width
 
 
 def write_markdown() -> None:
-    """benchmarks/results/lateral_probe.md from every lateral_probe_*.json."""
+    """experiments/lateral_probe/results/lateral_probe.md from every lateral_probe_*.json."""
     lines = [
         "# Lateral probe: what the policy's encoder reads of its place in the lane",
         "",
-        "`benchmarks/bench_lateral_probe.py`: a supervised probe of perception alone (issue 19).",
+        "`experiments/lateral_probe/bench_lateral_probe.py`: a supervised probe of perception alone (issue 19).",
         "",
         "The encoder with a linear head, fitted on the training worlds' views, read on each test world's. MAE: mean",
         "error of the offset, m; slope / corr: of the read against the true offset (1 = read right, 0 = not seen,",
@@ -118,7 +120,7 @@ def plot_readings(data: dict[str, Any], out: Path) -> None:
 
 def load_encoder(run: str) -> tuple[Any, dict[str, Any]]:
     """A run's policy encoder (an ensemble's first member's) and the env config it trained with."""
-    from drivesim.stages.policy.run_folder import load_policy
+    from drivesim.policy.run_folder import load_policy
 
     loaded = load_policy(Path(run))
     net = loaded.net.members[0] if hasattr(loaded.net, "members") else loaded.net
@@ -172,9 +174,9 @@ def main() -> None:
     parser.add_argument("--notes", default="", help="a paragraph printed under the table")
     args = parser.parse_args()
     import torch
+    from lateral_probe import blank_view_part, fit_probe, fit_readout, render_views, score_probe
 
-    from drivesim.diagnostics.lateral_probe import blank_view_part, fit_probe, fit_readout, render_views, score_probe
-    from drivesim.diagnostics.machine import machine_line
+    from drivesim.bench.machine import machine_line
     from drivesim.stages.train.config import PolicyConfig
 
     torch.set_num_threads(1)

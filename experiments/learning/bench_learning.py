@@ -7,10 +7,10 @@ of the deterministic policy in eval mode, where any overlap is a collision; a ra
     lane-kitti      lane on a world built from the real KITTI drive, 15 min          target: >= 80 %
     cutin-demo      cutin on the demo world, 30 min with the warm start, from the expert  target: >= 80 %
 
-    .venv/bin/python benchmarks/bench_learning.py --only lane-demo --minutes 3    # a short check
-    .venv/bin/python benchmarks/bench_learning.py --kitti-world WS/world          # everything (~1.5 h)
+    .venv/bin/python experiments/learning/bench_learning.py --only lane-demo --minutes 3    # a short check
+    .venv/bin/python experiments/learning/bench_learning.py --kitti-world WS/world          # everything (~1.5 h)
 
-Writes benchmarks/results/learning.md and the curves as benchmarks/results/learning_<scenario>.png.
+Writes experiments/learning/results/learning.md and the curves as experiments/learning/results/learning_<scenario>.png.
 """
 
 from __future__ import annotations
@@ -28,10 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
-from drivesim.diagnostics.machine import machine_line
+from drivesim.bench.machine import machine_line
+from drivesim.chain.towns import training_towns
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.workspace import Workspace
-from drivesim.stages.policy.run_folder import load_policy
+from drivesim.policy.run_folder import load_policy
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.envs import EnvSource
 from drivesim.stages.train.stage import run_training
@@ -39,7 +40,7 @@ from drivesim.stages.train.stage import run_training
 RESULTS = Path(__file__).parent / "results"
 HELD_BACK_SEED = 2_000_000
 KITTI_DRIVE = (
-    Path(__file__).resolve().parents[2]
+    Path(__file__).resolve().parents[3]
     / "shared"
     / "data"
     / "real"
@@ -127,7 +128,7 @@ def run_scenario(
         overrides.append("warm_start.method=expert")
     cfg = load_config(TrainConfig, preset=f"train/{scenario.task}", overrides=overrides)
     start = time.perf_counter()
-    result = run_training(ws, cfg, worlds=[world])
+    result = run_training(ws, cfg, worlds=[world], towns=training_towns(ws, cfg, [world]))
     train_s = time.perf_counter() - start
     policy = load_policy(result.path)
     trained = evaluate(scenario.task, world, episodes, policy, policy.env_config)
@@ -182,7 +183,7 @@ def _policy_steps(r: dict) -> str:
 
 
 def write_results() -> None:
-    """benchmarks/results/learning.md from every scenario's JSON in benchmarks/results."""
+    """experiments/learning/results/learning.md from every scenario JSON beside it."""
     rows = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("learning_*.json"))]
     rows.sort(key=lambda r: list(SCENARIOS).index(r["scenario"]) if r["scenario"] in SCENARIOS else 99)
     lines = [
@@ -190,8 +191,8 @@ def write_results() -> None:
         "",
         f"Evaluation episodes per policy: seeds {HELD_BACK_SEED}+, eval mode (any overlap is a collision); success = "
         "lane/follow/cutin: the time limit without intervention, overtake: passed and back in the lane without "
-        "intervention. 95 % Wilson intervals in brackets. `python benchmarks/bench_learning.py --only NAME` redoes "
-        "one scenario.",
+        "intervention. 95 % Wilson intervals in brackets. "
+        "`python experiments/learning/bench_learning.py --only NAME` redoes one scenario.",
         "",
         "| scenario | measured | world | trained | env steps | env steps/s | policy of step | success (trained) | "
         "success, `drivesim eval` | success (random) | target | how the trained policy's episodes ended (besides the "
@@ -284,7 +285,7 @@ def main() -> None:
         nargs=2,
         metavar=("RESULT_JSON", "METRICS_JSON"),
         help="attach a `drivesim eval` metrics.json of a run's policy to its result row "
-        "(benchmarks/results/learning_*.json), rewrite learning.md and stop",
+        "(experiments/learning/results/learning_*.json), rewrite learning.md and stop",
     )
     args = parser.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)

@@ -7,10 +7,11 @@ worlds, `--steps` env steps, a held-back evaluation every `--eval-every` steps (
 run's own held-back seeds). "Before" is a folder holding the earlier `drivesim` package (e.g. `git archive REV` of
 the earlier commit into DIR/drivesim), put first on PYTHONPATH; "after" is this checkout.
 
-    python benchmarks/bench_speed_curve.py --before /tmp/before --world T1 --world T2 --world T3 --unseen T101
+    python experiments/speed_curve/bench_speed_curve.py --before /tmp/before --world T1 --world T2 --world T3 \
+        --unseen T101
 
-Writes benchmarks/results/learning_speed_ab.md and learning_speed_ab.png (with --report-only, from the run folders
-of an earlier call's --workdir).
+Writes results/learning_speed_ab.md and learning_speed_ab.png beside this script (with --report-only, from the run
+folders of an earlier call's --workdir).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
-from drivesim.diagnostics.machine import machine_line
+from drivesim.bench.machine import machine_line
 
 RESULTS = Path(__file__).parent / "results"
 DRIVESIM = Path(sys.executable).parent / "drivesim"
@@ -186,7 +187,7 @@ def main() -> None:
     for baseline in BASELINES:  # the same seeds, for scale
         data[baseline] = {"final": evaluate(baseline, args.unseen, args.final_episodes, args.workdir, baseline)}
     plot(data, args.out.with_suffix(".png"))
-    command = "python benchmarks/bench_speed_curve.py " + " ".join(sys.argv[1:])
+    command = "python experiments/speed_curve/bench_speed_curve.py " + " ".join(sys.argv[1:])
     args.out.write_text(markdown(data, args, command))
     print(f"wrote {args.out}")
 

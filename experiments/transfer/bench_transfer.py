@@ -12,10 +12,10 @@ in each world of two groups: the run's training worlds (from its config.json) an
 --unseen (never in the run's training set: checked). Rows pool each group (episodes per world are equal), with the
 per-world figures in the JSON. The run's held-back success over training time is drawn from its progress.csv.
 
-    python benchmarks/bench_transfer.py --run RUN --unseen W1 --unseen W2 --real W3 --episodes 500 --name NAME
+    python experiments/transfer/bench_transfer.py --run RUN --unseen W1 --unseen W2 --real W3 --episodes 500 --name NAME
 
-writes benchmarks/results/transfer_<NAME>.json, transfer_<NAME>.png and (from every transfer_*.json)
-benchmarks/results/transfer.md. With --curve it also evaluates the run's warm start, its numbered checkpoints
+writes experiments/transfer/results/transfer_<NAME>.json, transfer_<NAME>.png and (from every transfer_*.json)
+experiments/transfer/results/transfer.md. With --curve it also evaluates the run's warm start, its numbered checkpoints
 (`checkpoints/step-*.pt`, every `checkpoint_every_steps`) and its final weights on the unseen and real worlds
 (--curve-episodes each): success over training minutes, warm start included, and the first minute at or above
 --target (issue 19's time to a good policy).
@@ -362,13 +362,14 @@ def _baseline_lines(results: list[dict], real_sets: set[tuple[str, str]]) -> lis
 
 
 def write_markdown() -> None:
-    """benchmarks/results/transfer.md from every transfer_*.json."""
+    """experiments/transfer/results/transfer.md from every transfer_*.json."""
     lines = [
         "# Learning that transfers: baselines on training worlds and on worlds never seen (issue 19)",
         "",
         "Each cell: success / intervention / minimum clearance over all episodes, pooled over the group's worlds,",
         "the same seeds (0 .. N-1) in every world, `drivesim eval` (eval mode: any overlap is a collision).",
-        "Reproduce: `python benchmarks/bench_transfer.py --run RUN --unseen W ... --real W --episodes N --name NAME`.",
+        "Reproduce: `python experiments/transfer/bench_transfer.py --run RUN --unseen W ... --real W --episodes N "
+        "--name NAME`.",
         "",
     ]
     paths = sorted(RESULTS.glob("transfer_*.json"))

@@ -1,11 +1,11 @@
 """Overtake starts that can be won (issue 19 item 7): how many of the default starts the env labels unwinnable
 (sim/envs/winnable.py), and how the privileged expert does on them and on the others, on the same seeds.
 
-    .venv/bin/python benchmarks/bench_winnable.py --world WS/world [--episodes 500]
+    .venv/bin/python experiments/winnable/bench_winnable.py --world WS/world [--episodes 500]
 
 The label: the hardest swerve within the ego's steering limits does not get it clear of the front car; the expert
 checks it: it should fail most of the labelled starts and rarely the others. Writes
-benchmarks/results/winnable.md.
+experiments/winnable/results/winnable.md.
 """
 
 from __future__ import annotations
@@ -17,8 +17,10 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
-from drivesim.diagnostics.machine import machine_line
-from drivesim.diagnostics.report import write_markdown
+from drivesim.bench.machine import machine_line
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))  # benchmarks/_lib: the report writer
+from _lib.report import write_markdown  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "winnable.md"
 

@@ -11,10 +11,10 @@ A policy that passes a lane task from small starts can still have a slope near 1
 does not see its lateral position there, and an overtake (which moves the ego 1.5-2.5 m aside) cannot come back.
 The 'straight' baseline (no steering) shows what the road's own curvature does to an offset.
 
-    python benchmarks/bench_recovery.py --policy RUN --policy straight --world W1 --world W2 --episodes 50 \
+    python experiments/recovery/bench_recovery.py --policy RUN --policy straight --world W1 --world W2 --episodes 50 \
         --name NAME --notes "..."
 
-writes benchmarks/results/recovery_<NAME>.json and (from every recovery_*.json) benchmarks/results/recovery.md.
+writes results/recovery_<NAME>.json beside this script and (from every recovery_*.json) results/recovery.md.
 """
 
 from __future__ import annotations
@@ -51,8 +51,8 @@ def make_env(task: str, world: str, env_config: dict[str, Any], offset_m: float)
 
 def load(policy: str) -> tuple[Any, str, dict[str, Any]]:
     """(policy, task, env config): a run folder, or 'straight' (no steering; lane's default env)."""
+    from drivesim.policy.run_folder import load_policy
     from drivesim.stages.evaluate.rollout import StraightPolicy
-    from drivesim.stages.policy.run_folder import load_policy
 
     if policy == "straight":
         return StraightPolicy(), "lane", {}
@@ -108,9 +108,9 @@ def label(path: str) -> str:
 
 
 def write_markdown() -> None:
-    """benchmarks/results/recovery.md from every recovery_*.json."""
+    """experiments/recovery/results/recovery.md from every recovery_*.json."""
     lines = [
-        "# Lateral recovery: policies started displaced, no car in view (`benchmarks/bench_recovery.py`)",
+        "# Lateral recovery: policies started displaced, no car in view (`experiments/recovery/bench_recovery.py`)",
         "",
         "Intervention: left the lane, over-rotated or collided within the steps. start / end: mean |offset| of the",
         "episodes without intervention. slope: offset after the steps against the start offset (0 = back on the",
@@ -148,7 +148,7 @@ def main() -> None:
     warnings.filterwarnings("ignore", module="gymnasium")  # stepping on after the env's success is intended here
     import torch
 
-    from drivesim.diagnostics.machine import machine_line
+    from drivesim.bench.machine import machine_line
 
     torch.set_num_threads(1)
     rows = []

@@ -8,10 +8,10 @@ side by at least 0.25. A low share on one world says the policy does not read th
 the start; a high share does not promise success there (the policy must still hold the lane afterwards), so read it
 beside the world's `drivesim eval` figures.
 
-    python benchmarks/bench_first_action.py --policy RUN --policy RUN/checkpoints/warm_start.pt \
+    python experiments/first_action/bench_first_action.py --policy RUN --policy RUN/checkpoints/warm_start.pt \
         --world town=W1 --world real=W2 --episodes 200 --name NAME
 
-writes benchmarks/results/first_action_<NAME>.json and (from every first_action_*.json) first_action.md.
+writes experiments/first_action/results/first_action_<NAME>.json and (from every first_action_*.json) first_action.md.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "transfer"))
 from bench_transfer import machine  # noqa: E402  (the same machine line as the transfer tables)
 
 RESULTS = Path(__file__).parent / "results"
@@ -37,8 +37,8 @@ def first_actions(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(expert, policy) first actions over seeds 0 .. episodes-1 of the policy's task in `world`, with the policy's
     env config and `overrides` over it (as `drivesim eval --set env.KEY=VALUE`)."""
+    from drivesim.policy.run_folder import load_policy
     from drivesim.sim.envs.registry import task_spec
-    from drivesim.stages.policy.run_folder import load_policy
 
     policy = load_policy(policy_path)
     env = task_spec(policy.task).env_class()(world, None, mode="eval", config={**policy.env_config, **overrides})
@@ -64,14 +64,14 @@ def agreement(expert: np.ndarray, learned: np.ndarray) -> dict:
 
 
 def write_markdown() -> None:
-    """benchmarks/results/first_action.md from every first_action_*.json."""
+    """experiments/first_action/results/first_action.md from every first_action_*.json."""
     lines = [
         "# First-step reaction to the other car (issue 19 diagnosis)",
         "",
         f"Each cell: share of the starts where the expert swerves (|a| >= {CLEAR_STEER}) at which the policy steers to "
         f"the same side (by >= {SAME_SIDE}); in brackets the correlation of the two first actions over all starts.",
-        "Reproduce: `python benchmarks/bench_first_action.py --policy P ... --world LABEL=W ... --episodes N "
-        "--name NAME`.",
+        "Reproduce: `python experiments/first_action/bench_first_action.py --policy P ... --world LABEL=W ... "
+        "--episodes N --name NAME`.",
         "",
     ]
     for path in sorted(RESULTS.glob("first_action_*.json")):

@@ -12,9 +12,10 @@ A policy whose responses are <= 0 on a world drives away from the path there, wh
 With --blank REGION (top-left, top-right: quarters of the policy's image; top, bottom: halves) that part of every view
 is set to the view's mean colour before the policy sees it: which part of a world's picture makes the response.
 
-    .venv/bin/python benchmarks/bench_steer_bias.py --run LABEL=RUN ... --world NAME=WORLD ... [--starts 12] [--blank R]
+    .venv/bin/python experiments/steer_bias/bench_steer_bias.py --run LABEL=RUN ... --world NAME=WORLD ... \
+        [--starts 12] [--blank R]
 
-Writes benchmarks/results/steer_bias.md (--output to change).
+Writes experiments/steer_bias/results/steer_bias.md (--output to change).
 """
 
 from __future__ import annotations
@@ -27,8 +28,10 @@ from typing import Any
 
 import numpy as np
 
-from drivesim.diagnostics.machine import machine_line
-from drivesim.diagnostics.report import write_markdown
+from drivesim.bench.machine import machine_line
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))  # benchmarks/_lib: the report writer
+from _lib.report import write_markdown  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "steer_bias.md"
 SETTLE_STEPS = 8
@@ -123,7 +126,7 @@ def main() -> None:
     args = parser.parse_args()
     import torch
 
-    from drivesim.stages.policy.run_folder import load_policy
+    from drivesim.policy.run_folder import load_policy
 
     torch.set_num_threads(1)
     runs, worlds = _pairs(args.run, "run"), _pairs(args.world, "world")
@@ -133,7 +136,7 @@ def main() -> None:
         "",
         f"- machine: {machine_line()}",
         f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
-        f"- command: `python benchmarks/bench_steer_bias.py {' '.join(f'--run {r}' for r in args.run)} "
+        f"- command: `python experiments/steer_bias/bench_steer_bias.py {' '.join(f'--run {r}' for r in args.run)} "
         f"{' '.join(f'--world {w}' for w in args.world)} --starts {args.starts}"
         f"{f' --blank {args.blank}' if args.blank else ''}`",
         f"- per world: bias (the steering action, -1 .. 1, + = left, on the recorded path: mean ± standard deviation "
