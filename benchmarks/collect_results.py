@@ -1,54 +1,363 @@
-"""Merge the per-area result files `benchmarks/results/*.md` into `benchmarks/RESULTS.md`.
+"""Write `benchmarks/RESULTS.md` from the result files the benchmark scripts write into `benchmarks/results/`.
 
-Each benchmark script writes its own section (with the machine, date and command that produced it); this script only
-orders and concatenates them so the figures live in one file.
+    python benchmarks/collect_results.py            # rewrite benchmarks/RESULTS.md
+    python benchmarks/collect_results.py --check    # exit 1 when RESULTS.md is not what the results make
+
+RESULTS.md is a summary table (one row per section: what it measures, when, on what machine, at what load, by which
+script), then one section per benchmark in the order of `SECTIONS`. Every file under `benchmarks/results/` must be
+named by a section (or in `NOT_SECTIONS`), and every named file must exist: anything else is an error, so a new
+benchmark's results cannot land unordered. A section measured before `RESTATED_SINCE` (older than the code it
+describes) keeps its file but RESULTS.md states none of its figures, only the command that measures it again.
+Prose lines are wrapped at `WRAP_COLUMNS`; a line that cannot be wrapped (a table row) over `MAX_LINE_CHARS` is an
+error.
 """
 
 from __future__ import annotations
 
+import argparse
+import re
+import sys
+import textwrap
+from dataclasses import dataclass
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-ORDER = [
-    "targets",
-    "demo",
-    "sim",
-    "sim_previous_code",
-    "sim_second_machine",
-    "vista",
-    "car_fidelity",
-    "meshes",
-    "train_speed",
-    "learning",
-    "eval",
-    "ray",
-    "record",
-    "ingest",
-    "video_sfm",
-    "render",
-    "synth",
-    "poses",
-    "depth",
-    "stereo",
-    "preprocess_world",
-    "fidelity",
-]
+RESULTS_DIR = HERE / "results"
+OUTPUT = HERE / "RESULTS.md"
+MAX_LINE_CHARS = 300
+WRAP_COLUMNS = 120
+# The oldest measurement date whose figures RESULTS.md restates (ISO date, UTC): the day the code was last changed in
+# a way that can move a figure. Raise it when such a change lands.
+RESTATED_SINCE = "2026-11-27"
 
 
-def main() -> None:
-    """Write benchmarks/RESULTS.md from benchmarks/results/*.md."""
-    sections = sorted((HERE / "results").glob("*.md"), key=lambda p: ORDER.index(p.stem) if p.stem in ORDER else 99)
-    parts = [
-        "# Benchmark results\n",
-        "Measured by the scripts in `benchmarks/` (each section says how to reproduce it). "
-        "Regenerate this file with `python benchmarks/collect_results.py` after running them.\n",
-        "VISTA 2.0.6, the predecessor, runs on this machine at 41–60 ms per step on the KITTI drive at 200x320 "
-        "(`../shared/bench/vista/`).\n",
+@dataclass(frozen=True)
+class Section:
+    """One benchmark's section: `key` is its anchor, `files` its result files (the first, a markdown file, dated)."""
+
+    key: str
+    title: str
+    measures: str
+    command: str
+    files: tuple[str, ...]
+
+
+SECTIONS: tuple[Section, ...] = (
+    Section(
+        "sim",
+        "Simulator speed",
+        "env steps/s per task, car-drawn steps counted apart",
+        "drivesim bench sim --world W",
+        ("sim.md",),
+    ),
+    Section(
+        "vista",
+        "Against VISTA 2.0.6",
+        "ms per step beside VISTA on one KITTI drive",
+        "python benchmarks/bench_vista_ratio.py",
+        ("vista.md", "vista.json"),
+    ),
+    Section(
+        "car_step",
+        "A car-drawn step, before and after",
+        "ms per overtake step with the car drawn, two code versions",
+        "python benchmarks/bench_car_step.py --before DIR",
+        ("car_step.md",),
+    ),
+    Section("demo", "The demo run", "`make demo` wall time per stage", "python benchmarks/bench_demo.py", ("demo.md",)),
+    Section(
+        "train_speed",
+        "Training speed",
+        "env steps/s of `learn()`",
+        "python benchmarks/bench_train_speed.py --world W",
+        ("train_speed.md",),
+    ),
+    Section(
+        "gpu",
+        "On a GPU",
+        "views/s of the batched GPU path, `learn()` on a GPU",
+        "python benchmarks/bench_gpu.py --world W",
+        ("gpu.md", "gpu.json", "gpu_h100.md", "gpu_h100.json"),
+    ),
+    Section(
+        "eval",
+        "Evaluation (Table I)",
+        "episodes/min of `drivesim eval`, the paper's metrics",
+        "python benchmarks/bench_eval.py --world W",
+        ("eval.md",),
+    ),
+    Section(
+        "ray",
+        "Evaluation on Ray",
+        "Ray's overhead against local workers",
+        "python benchmarks/bench_ray.py --world W",
+        ("ray.md",),
+    ),
+    Section(
+        "record",
+        "Foxglove recordings",
+        "time `--record failures` adds to an evaluation",
+        "python benchmarks/bench_record.py",
+        ("record.md",),
+    ),
+    Section(
+        "export",
+        "ONNX export",
+        "torch vs onnxruntime, ms per policy step",
+        "python benchmarks/bench_export.py --workspace WS",
+        ("export.md",),
+    ),
+    Section(
+        "ingest",
+        "Ingest",
+        "frames/s and peak memory of `drivesim ingest`",
+        "python benchmarks/bench_ingest.py",
+        ("ingest.md",),
+    ),
+    Section(
+        "video_sfm",
+        "Plain video: SfM poses and scale",
+        "camera path and scale from a video against GPS",
+        "python benchmarks/bench_video_sfm.py",
+        ("video_sfm.md",),
+    ),
+    Section(
+        "video_lane",
+        "Plain video to a lane policy",
+        "the whole chain from an MP4",
+        "python benchmarks/bench_video_lane.py",
+        ("video_lane.md",),
+    ),
+    Section(
+        "synth",
+        "Synthetic drives",
+        "seconds per rendered frame of `drivesim synth`",
+        "python benchmarks/bench_synth.py",
+        ("synth.md",),
+    ),
+    Section(
+        "meshes",
+        "Vehicle library",
+        "build time and raster time per vehicle",
+        "python benchmarks/bench_meshes.py",
+        ("meshes.md",),
+    ),
+    Section(
+        "render",
+        "Rendering",
+        "rasterizer and warp ms per frame beside OpenGL",
+        "python benchmarks/bench_render.py",
+        ("render.md",),
+    ),
+    Section(
+        "poses", "Poses", "GPS + IMU + speed fusion error and speed", "python benchmarks/bench_poses.py", ("poses.md",)
+    ),
+    Section(
+        "depth", "Depth", "per-frame depth speed, memory, accuracy", "python benchmarks/bench_depth.py", ("depth.md",)
+    ),
+    Section(
+        "preprocess_world",
+        "preprocess and build-world",
+        "seconds per 1000 frames, peak memory",
+        "python benchmarks/bench_preprocess_world.py",
+        ("preprocess_world.md",),
+    ),
+    Section(
+        "fidelity",
+        "Depth and view fidelity",
+        "depth and novel views against ground truth",
+        "drivesim bench fidelity --frames 32",
+        ("fidelity.md", "fidelity.png"),
+    ),
+    Section(
+        "stereo",
+        "Real lateral views",
+        "views warped into a real stereo pair's right camera",
+        "python benchmarks/bench_stereo.py",
+        ("stereo.md", "stereo_worst.png", "stereo_filled.md", "stereo_filled_worst.png"),
+    ),
+    Section(
+        "view_fill",
+        "No black in the view",
+        "recorded share of the view off the path, cost of filling",
+        "python benchmarks/bench_view_fill.py",
+        ("view_fill.md", "view_fill_speed.md"),
+    ),
+    Section(
+        "car_fidelity",
+        "Inserted-car fidelity",
+        "an inserted car against ground truth",
+        "drivesim bench car-fidelity",
+        ("car_fidelity.md", "car_fidelity.png"),
+    ),
+    Section(
+        "car_gray",
+        "Cars on a gray camera",
+        "an inserted car on a monochrome camera",
+        "python benchmarks/bench_car_gray.py",
+        ("car_gray.md",),
+    ),
+)
+# Files under results/ that are no benchmark's section, and why.
+NOT_SECTIONS: dict[str, str] = {"targets.md": "the issue targets table, linked from the summary"}
+
+DATE = re.compile(r"(20\d\d-\d\d-\d\d)(?:[ T,]+(\d\d:\d\d)(?:[-:0-9]*)? ?UTC)?")
+MACHINE = re.compile(r"(\d+-core CPU(?: \((?:[^()]|\([^)]*\))*\))?|NVIDIA [A-Z0-9]+(?: [0-9A-Za-z]+GB)?|\d+ cores)")
+LOAD = re.compile(r"load average(?: after| before)?:? ([0-9]+(?:\.[0-9]+)?)")
+
+
+class ResultsError(Exception):
+    """The results folder and SECTIONS disagree, or a line is too long."""
+
+
+@dataclass(frozen=True)
+class Measured:
+    """When, where and at what load a result file says it was measured ("?" where it does not say)."""
+
+    date: str
+    time_utc: str
+    machine: str
+    load: str
+
+
+def measured(text: str) -> Measured:
+    """The first date, machine and load average named in a result file's first lines."""
+    head = "\n".join(text.splitlines()[:8])
+    date = DATE.search(head)
+    machine = MACHINE.search(head)
+    load = LOAD.search(head)
+    return Measured(
+        date=date.group(1) if date else "?",
+        time_utc=(date.group(2) or "") if date else "",
+        machine=machine.group(1).replace("(R)", "") if machine else "?",
+        load=load.group(1) if load else "?",
+    )
+
+
+def check_files(results_dir: Path) -> None:
+    """Raise ResultsError when a file under results_dir is in no section, or a section's file is missing."""
+    listed = {name for s in SECTIONS for name in s.files} | set(NOT_SECTIONS)
+    present = {p.relative_to(results_dir).as_posix() for p in results_dir.rglob("*") if p.is_file()}
+    unlisted = sorted(present - listed)
+    missing = sorted(listed - present)
+    if unlisted:
+        raise ResultsError(f"results files in no section of collect_results.SECTIONS: {', '.join(unlisted)}")
+    if missing:
+        raise ResultsError(
+            f"files named in collect_results.SECTIONS but absent from {results_dir}: {', '.join(missing)}"
+        )
+
+
+def wrap(text: str) -> list[str]:
+    """The lines of a markdown text, prose and list items over WRAP_COLUMNS wrapped; tables and code kept."""
+    out: list[str] = []
+    in_code = False
+    for line in text.splitlines():
+        if line.startswith("```"):
+            in_code = not in_code
+        if in_code or len(line) <= WRAP_COLUMNS or line.lstrip().startswith(("|", "#", "![")):
+            out.append(line)
+            continue
+        item = re.match(r"(\s*(?:[-*]|\d+\.)\s+)", line)
+        indent = " " * len(item.group(1)) if item else re.match(r"\s*", line).group(0)
+        out += textwrap.wrap(
+            line, WRAP_COLUMNS, subsequent_indent=indent, break_long_words=False, break_on_hyphens=False
+        )
+    return out
+
+
+def demote(lines: list[str]) -> list[str]:
+    """Headings two levels below the section's (`#` -> `###`), the file's own title dropped."""
+    if lines and lines[0].startswith("#"):
+        lines = lines[1:]
+    while lines and not lines[0].strip():
+        lines = lines[1:]
+    return [("##" + line) if line.startswith("#") else line for line in lines]
+
+
+def section_text(section: Section, results_dir: Path) -> tuple[list[str], Measured]:
+    """A section's markdown lines and its first file's measurement."""
+    first = (results_dir / section.files[0]).read_text()
+    when = measured(first)
+    links = ", ".join(f"[`{name}`](results/{name})" for name in section.files)
+    lines = [
+        f'<a id="{section.key}"></a>',
+        f"## {section.title}",
+        "",
+        f"Files: {links}. Measure again: `{section.command}`.",
+        "",
     ]
-    parts += [p.read_text().strip() + "\n" for p in sections]
-    (HERE / "RESULTS.md").write_text("\n".join(parts))
-    print(f"wrote {HERE / 'RESULTS.md'} from {len(sections)} sections")
+    if when.date == "?" or when.date < RESTATED_SINCE:
+        lines.append(
+            f"Measured {when.date} on older code: its figures are not restated here. Run the command above to measure "
+            "them on today's code."
+        )
+        return lines, when
+    for name in section.files:
+        if name.endswith(".md"):
+            lines += demote(wrap((results_dir / name).read_text().strip())) + [""]
+        elif name.endswith(".png"):
+            lines += [f"![{name}](results/{name})", ""]
+    return lines, when
+
+
+def summary_row(section: Section, when: Measured) -> str:
+    """The summary table's row of one section."""
+    stated = "restated" if when.date != "?" and when.date >= RESTATED_SINCE else "not restated (older code)"
+    measured_at = f"{when.date} {when.time_utc}".strip()
+    return (
+        f"| [{section.title}](#{section.key}) | {section.measures} | {measured_at} | {when.machine} | {when.load} | "
+        f"{stated} |"
+    )
+
+
+def collect(results_dir: Path = RESULTS_DIR) -> str:
+    """The text of RESULTS.md from results_dir; raises ResultsError on an unlisted or missing file or a long line."""
+    check_files(results_dir)
+    bodies: list[str] = []
+    rows: list[str] = []
+    for section in SECTIONS:
+        lines, when = section_text(section, results_dir)
+        bodies += lines + [""]
+        rows.append(summary_row(section, when))
+    head = [
+        "# Benchmark results",
+        "",
+        "Written by `python benchmarks/collect_results.py` from `benchmarks/results/` (do not edit by hand).",
+        f"Each section names its script; figures measured before {RESTATED_SINCE} are on older code and are not",
+        "restated. Issue targets: [`results/targets.md`](results/targets.md).",
+        "",
+        "| section | measures | measured (UTC) | machine | load average | figures |",
+        "|---|---|---|---|---|---|",
+        *rows,
+        "",
+    ]
+    lines = head + bodies
+    too_long = [(n + 1, len(line)) for n, line in enumerate(lines) if len(line) > MAX_LINE_CHARS]
+    if too_long:
+        where = ", ".join(f"line {n} ({length} chars)" for n, length in too_long[:5])
+        raise ResultsError(f"RESULTS.md would have lines over {MAX_LINE_CHARS} characters: {where}")
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def main() -> int:
+    """Write (or with --check, compare) benchmarks/RESULTS.md; exit 2 with one line on a results error."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--check", action="store_true", help="exit 1 when RESULTS.md differs from what it would be")
+    args = parser.parse_args()
+    try:
+        text = collect()
+    except ResultsError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    if args.check:
+        same = OUTPUT.exists() and OUTPUT.read_text() == text
+        print(f"{OUTPUT} is {'up to date' if same else 'stale: run python benchmarks/collect_results.py'}")
+        return 0 if same else 1
+    OUTPUT.write_text(text)
+    print(f"wrote {OUTPUT} ({len(SECTIONS)} sections)")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

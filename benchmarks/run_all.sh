@@ -11,7 +11,7 @@ $PY benchmarks/bench_poses.py
 $PY benchmarks/bench_depth.py
 $PY benchmarks/bench_preprocess_world.py
 .venv/bin/drivesim --workspace "$(mktemp -d)" bench fidelity --seed 0 --frames 32 --view-frames 6 --markdown benchmarks/results/fidelity.md \
-  --figure benchmarks/fidelity.png
+  --figure benchmarks/results/fidelity.png
 $PY benchmarks/bench_train_speed.py --world "${DEMO_WORLD:-/tmp/ws-demo/world}"
 $PY benchmarks/bench_eval.py --episodes 1000 --world "${DEMO_WORLD:-/tmp/ws-demo/world}"
 $PY benchmarks/bench_record.py --world small --world "${DEMO_WORLD:-/tmp/ws-demo/world}" --repeats 3

@@ -1,0 +1,87 @@
+"""benchmarks/collect_results.py on this repository: RESULTS.md in the fixed order, every results file in a section,
+no line over 300 characters, the committed RESULTS.md up to date, and an unlisted or missing file refused."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import shutil
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@pytest.fixture(scope="module")
+def collector() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("collect_results", BENCHMARKS / "collect_results.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["collect_results"] = module  # dataclasses look their module up by name
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_sections_come_in_the_fixed_order(collector: ModuleType) -> None:
+    text = collector.collect()
+    anchors = re.findall(r'^<a id="([a-z_0-9]+)"></a>$', text, flags=re.M)
+    assert anchors == [s.key for s in collector.SECTIONS]
+    summary_links = re.findall(r"^\| \[[^]]+\]\(#([a-z_0-9]+)\)", text, flags=re.M)
+    assert summary_links == anchors
+    assert text.index("| section |") < text.index('<a id="')  # the summary table comes first
+
+
+def test_every_results_file_is_in_a_section(collector: ModuleType) -> None:
+    listed = {name for s in collector.SECTIONS for name in s.files} | set(collector.NOT_SECTIONS)
+    present = {p.relative_to(collector.RESULTS_DIR).as_posix() for p in collector.RESULTS_DIR.rglob("*") if p.is_file()}
+    assert present == listed
+    assert len({s.key for s in collector.SECTIONS}) == len(collector.SECTIONS)
+
+
+def test_no_line_is_over_300_characters(collector: ModuleType) -> None:
+    lines = collector.collect().splitlines()
+    assert max(len(line) for line in lines) <= 300
+    committed = (BENCHMARKS / "RESULTS.md").read_text().splitlines()
+    assert max(len(line) for line in committed) <= 300
+
+
+def test_committed_results_md_is_what_the_results_make(collector: ModuleType) -> None:
+    assert (BENCHMARKS / "RESULTS.md").read_text() == collector.collect(), "run python benchmarks/collect_results.py"
+
+
+def test_an_unlisted_or_missing_results_file_is_refused(collector: ModuleType, tmp_path: Path) -> None:
+    results = tmp_path / "results"
+    shutil.copytree(collector.RESULTS_DIR, results)
+    (results / "new_bench.md").write_text("# New\n\n- date: 2026-11-27 12:00 UTC\n")
+    with pytest.raises(collector.ResultsError, match="new_bench.md"):
+        collector.collect(results)
+    (results / "new_bench.md").unlink()
+    (results / "sim.md").unlink()
+    with pytest.raises(collector.ResultsError, match="sim.md"):
+        collector.collect(results)
+
+
+def test_a_table_row_over_300_characters_is_refused(collector: ModuleType, tmp_path: Path) -> None:
+    results = tmp_path / "results"
+    shutil.copytree(collector.RESULTS_DIR, results)
+    text = (results / "sim.md").read_text()
+    (results / "sim.md").write_text(
+        text.replace("- date: ", "- date: 2999-01-01 00:00 UTC; ", 1) + "| " + "x" * 320 + " |\n"
+    )
+    with pytest.raises(collector.ResultsError, match="over 300 characters"):
+        collector.collect(results)
+
+
+def test_an_old_measurement_states_no_figure(collector: ModuleType) -> None:
+    text = collector.collect()
+    old = [
+        s
+        for s in collector.SECTIONS
+        if collector.measured((collector.RESULTS_DIR / s.files[0]).read_text()).date < collector.RESTATED_SINCE
+    ]
+    for section in old:
+        body = text.split(f'<a id="{section.key}"></a>')[1].split("<a id=")[0]
+        assert "not restated here" in body
+        assert "|---" not in body  # none of its tables
