@@ -25,17 +25,18 @@ from eval_fakes import FAKE, fake_world, register_fake_envs
 from test_eval_stage import _make_run
 from test_train import small_config
 
+from drivesim.chain.registry import CHAIN
+from drivesim.chain.run import RUNNERS
+from drivesim.chain.walk import Walk
 from drivesim.cli.main import main
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ArtifactConflictError, DrivesimError, MissingArtifactError
 from drivesim.pipeline.status import status_report
 from drivesim.pipeline.workspace import Workspace
-from drivesim.stages.chain import CHAIN
+from drivesim.policy.run_folder import RunError, load_policy
 from drivesim.stages.evaluate.config import EvalConfig
 from drivesim.stages.evaluate.stage import SPEC as EVAL_SPEC
 from drivesim.stages.evaluate.stage import run_eval
-from drivesim.stages.policy.run_folder import RunError, load_policy
-from drivesim.stages.run_chain import RUNNERS, _Walk
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.resume import plan_resume, reopen
 from drivesim.stages.train.stage import run_training
@@ -50,7 +51,10 @@ SLOW = {"env_id": "drivesim-test/SlowOvertake-v0", "env_entry_point": "hardening
 def _eval_command(ws: Path, world: Path, *extra: str) -> list[str]:
     sets = [a for key, value in SLOW.items() for a in ("--set", f"{key}={value}")]
     return [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), "eval", "--world", str(world)] + [
+        "--policy",
+        "expert",
         *sets,
+        "--trust-entry-point",
         *extra,
     ]
 
@@ -270,7 +274,8 @@ def test_full_disk_names_the_folder_and_keeps_nothing(tmp_path, monkeypatch, cap
             monkeypatch.setattr(rollout, "write_episode", full)
         ws = small / "ws"
         sets = [a for key, value in FAKE.items() for a in ("--set", f"{key}={value}")]
-        args = ["eval", "--world", str(world), *sets, "--episodes", "60", "--workers", "1"]
+        args = ["eval", "--world", str(world), *sets, "--trust-entry-point", "--episodes", "60", "--workers", "1"]
+        args += ["--policy", "expert"]
         code, err = _cli(ws, *args, monkeypatch=monkeypatch, capsys=capsys)
         lines = [line for line in err.strip().splitlines() if not line.startswith("eval")]
         assert code == 1 and len(lines) == 1, err
@@ -339,7 +344,7 @@ def test_rerun_never_replaces_an_evaluation_made_with_other_settings(tmp_path) -
     before = (users.path / "metrics.json").read_bytes()
 
     chain_cfg = EvalConfig(episodes=3, world=str(world), workers=1, **FAKE)
-    walk = _Walk(ws=ws, recording=tmp_path, hints={}, run_dir=run)
+    walk = Walk(ws=ws, recording=tmp_path, hints={}, run_dir=run)
     chained = RUNNERS["eval"](walk, EVAL_SPEC, chain_cfg)
     assert chained.path != users.path and chained.path.name.startswith(users.path.name + "-")
     assert chained.summary.episodes == 3
