@@ -30,7 +30,7 @@ def _make_run(
     import torch
 
     from drivesim.pipeline.hashing import sha256_file
-    from drivesim.stages.policy.run_folder import build_net
+    from drivesim.policy.run_folder import build_net
     from drivesim.stages.train.run_files import write_json, write_policy_files
 
     arch = {"conv_layers": [[4, 5, 4], [8, 3, 2]], "features_dim": 16, "lstm_hidden_size": 8, "lstm_layers": 1}
@@ -121,6 +121,7 @@ def test_cli_prints_a_row_per_world_and_the_pooled_row(tmp_path: Path) -> None:
     env = {**os.environ, "PYTHONPATH": str(TESTS_DIR), "OMP_NUM_THREADS": "1", "COLUMNS": "200"}
     args = ["--world", str(a), "--world", str(b), "--episodes", "2", "--workers", "1", "--policy", "expert"]
     args += ["--set", f"env_id={FAKE['env_id']}", "--set", f"env_entry_point={FAKE['env_entry_point']}"]
+    args.append("--trust-entry-point")
     done = subprocess.run(
         [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(tmp_path / "ws"), "eval", *args],
         capture_output=True,
