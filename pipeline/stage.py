@@ -3,8 +3,9 @@
 A stage is a build function `build(ctx) -> summary` plus its identity (name, artifact folder, config model, preset,
 upstream artifacts, the command that makes it). `run_stage` does what every stage needs, in one place:
 
-    require the upstream artifacts -> freshness (config + input hashes + code version)
-    -> build in a temporary sibling folder -> write manifest.json -> move into place (os.replace)
+    require the upstream artifacts (present, unchanged, not stale) -> lock the artifact -> freshness (config +
+    input hashes + code version + its files unchanged) -> build in a temporary sibling folder -> write manifest.json
+    -> move into place (os.replace)
 
 so a crash or Ctrl-C never leaves a half-written artifact that looks fresh, and a second run with the same config
 and inputs prints "fresh, nothing to do". The summary is a typed pydantic model (`StageSummary`), recorded in the
@@ -46,6 +47,8 @@ class BuildContext:
     :param inputs: upstream artifact name -> its folder in the workspace.
     :param external: external input name -> path (a recording outside the workspace).
     :param notes: lines for the user that the CLI prints after the stage (e.g. which camera topic was chosen).
+    :param work_dir: where a resumable stage keeps its work while it builds, outside the temporary folder so that a
+        crash keeps it (a training run's folder, checkpoints and all); None for a stage that builds in `dir` alone.
     """
 
     workspace: Workspace
@@ -54,6 +57,7 @@ class BuildContext:
     inputs: dict[str, Path]
     external: dict[str, Path]
     notes: list[str] = field(default_factory=list)
+    work_dir: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -116,6 +120,7 @@ def run_stage(
     make_hints: Mapping[str, str] | None = None,
     protect: bool = False,
     protect_hint: str = "--force replaces it",
+    work_dir: Path | None = None,
 ) -> StageResult[SummaryT]:
     """Run one stage under the contract: require -> fresh? -> build in a temp folder -> manifest -> move into place.
 
@@ -130,31 +135,41 @@ def run_stage(
     :param protect: refuse (one line) to replace an existing artifact that was made with other settings (a result the
         user asked for, like a 1000-episode evaluation), unless `force`.
     :param protect_hint: what the refusal suggests.
+    :param work_dir: the folder a resumable stage keeps its work in while it builds (`BuildContext.work_dir`).
     """
     name = artifact or spec.artifact
     hints = {**spec.upstream_hints, **(make_hints or {})}
     input_dirs = {up: ws.require(up, hints.get(up, f"drivesim {up}")) for up in spec.requires}
     refs: dict[str, InputRef] = {up: ws.artifact_input(up) for up in spec.requires}
     external_paths = {k: Path(v) for k, v in (external or {}).items()}
+    for path in external_paths.values():  # a world, run or mesh library given by path: its files as written
+        ws.check_input(path)
     refs.update({k: ws.external_input(p) for k, p in external_paths.items()})
     config_json: dict[str, Any] = cfg.model_dump(mode="json")
-    if protect and not force:
-        differences = ws.other_settings(name, config_json)
-        if differences:
-            raise ArtifactConflictError(
-                f"holds a result made with other settings ({differences}); not replaced: {protect_hint}",
-                ws.artifact_dir(name),
+    with ws.lock(name):  # one writer per artifact: a second command writing it now stops with one line
+        if protect and not force:
+            differences = ws.other_settings(name, config_json)
+            if differences:
+                raise ArtifactConflictError(
+                    f"holds a result made with other settings ({differences}); not replaced: {protect_hint}",
+                    ws.artifact_dir(name),
+                )
+        manifest = None if force else ws.fresh_manifest(name, spec.name, config_json, refs)
+        if manifest is not None:
+            summary = spec.summary_model.model_validate(manifest.get("summary", {}))
+            return StageResult(stage=spec.name, path=ws.artifact_dir(name), skipped=True, summary=summary)
+        with ws.write_artifact(name, spec.name, config_json, refs, command=spec.command) as build:
+            ctx = BuildContext(
+                workspace=ws,
+                dir=build.dir,
+                config=cfg,
+                inputs=input_dirs,
+                external=external_paths,
+                notes=[],
+                work_dir=work_dir,
             )
-    manifest = None if force else ws.fresh_manifest(name, spec.name, config_json, refs)
-    if manifest is not None:
-        summary = spec.summary_model.model_validate(manifest.get("summary", {}))
-        return StageResult(stage=spec.name, path=ws.artifact_dir(name), skipped=True, summary=summary)
-    with ws.write_artifact(name, spec.name, config_json, refs) as build:
-        ctx = BuildContext(
-            workspace=ws, dir=build.dir, config=cfg, inputs=input_dirs, external=external_paths, notes=[]
-        )
-        summary = spec.build(ctx)
-        build.summary = summary.model_dump(mode="json")
+            summary = spec.build(ctx)
+            build.summary = summary.model_dump(mode="json")
     return StageResult(
         stage=spec.name, path=ws.artifact_dir(name), skipped=False, summary=summary, notes=tuple(ctx.notes)
     )
