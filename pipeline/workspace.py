@@ -279,9 +279,7 @@ class Workspace:
         except (OSError, ValueError):
             manifest = None
         if not manifest_is_valid(manifest):
-            if only is not None:
-                return  # a file beside a damaged manifest: the file's own reader judges it
-            raise MissingArtifactError(f"its {MANIFEST_NAME} is unreadable (damaged); rebuild it", folder)
+            return  # no outputs recorded to check against: the folder's own reader (the world loader) judges it
         if only is not None:
             if only not in manifest["outputs"]:
                 return
@@ -291,8 +289,8 @@ class Workspace:
             command = manifest.get("command") or f"drivesim {manifest.get('stage') or 'run'}"
             more = f" (and {len(changed) - 1} more files)" if len(changed) > 1 else ""
             raise StaleArtifactError(
-                f"file {changed[0]}{more} changed since the {manifest.get('stage') or ''} artifact was written "
-                f"(size, time and sha256 differ from its {MANIFEST_NAME}); rebuild it with `{command}`",
+                f"file {changed[0]}{more} changed since the {manifest.get('artifact') or 'this'} artifact was written "
+                f"(its size or sha256 differs from {MANIFEST_NAME}); rebuild it with `{command}`",
                 folder,
             )
 
