@@ -19,7 +19,7 @@ from sb3_contrib.common.recurrent.type_aliases import RNNStates
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
-from drivesim.stages.policy.net import DrivingNet, ImageEncoder, run_lstm
+from drivesim.policy.net import DrivingNet, ImageEncoder, run_lstm
 
 
 class EncoderExtractor(BaseFeaturesExtractor):
@@ -34,6 +34,16 @@ class EncoderExtractor(BaseFeaturesExtractor):
     def forward(self, observations: torch.Tensor) -> torch.Tensor:
         """(N, C, H, W) 0..255 -> (N, features_dim)."""
         return self.encoder(observations)
+
+
+def _conv_layers(conv_layers: list | None) -> list[list[int]]:
+    """The convolutions exactly as given (the architecture recorded is the one built); at least one is needed."""
+    layers = [list(map(int, layer)) for layer in conv_layers or []]
+    if not layers or any(len(layer) != 3 or min(layer) < 1 for layer in layers):
+        raise ValueError(
+            f"conv_layers {conv_layers!r}: give at least one (out_channels, kernel_px, stride_px), each >= 1"
+        )
+    return layers
 
 
 class DrivingLstmPolicy(RecurrentActorCriticPolicy):
@@ -64,7 +74,7 @@ class DrivingLstmPolicy(RecurrentActorCriticPolicy):
         **kwargs: Any,
     ) -> None:
         self.arch = {
-            "conv_layers": [list(map(int, layer)) for layer in (conv_layers or [(16, 5, 2), (32, 3, 2)])],
+            "conv_layers": _conv_layers(conv_layers),
             "features_dim": int(features_dim),
             "input_pool": int(input_pool),
             "lstm_hidden_size": int(lstm_hidden_size),
