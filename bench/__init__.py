@@ -1,6 +1,6 @@
-"""The installed diagnostics behind `drivesim bench`: measurements of the simulator (fidelity against ground truth,
-speed, real lateral views), and fixture recordings shared with the tests. Not the benchmark scripts: those are in
-`benchmarks/` (not installed) and write `benchmarks/RESULTS.md`.
+"""The measurements behind `drivesim bench`: the simulator against ground truth (`fidelity.py`, `car_fidelity.py`),
+its speed (`sim_speed.py`, `sim_steps.py`), real stereo pairs (`stereo.py`), and the machine line of every report
+(`machine.py`). The benchmark scripts (`benchmarks/`, not installed) reuse them.
 
-Like the CLI, a diagnostic may import `stages`, `sim` and `pipeline`; no stage imports one.
+Like the CLI, a measurement may import `chain`, `stages`, `policy`, `sim` and `pipeline`; none of those imports it.
 """

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drivesim.diagnostics.fidelity import image_metrics, render_drive
+from drivesim.bench.fidelity import image_metrics, render_drive
 from drivesim.sim.geometry import invert, pose_2d, yaw_of
 from drivesim.sim.vehicle_library import VehicleLibrary
 from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer

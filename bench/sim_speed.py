@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drivesim.diagnostics.machine import machine_line, usable_cores
-from drivesim.diagnostics.sim_steps import make_env, recording_car_drawn, time_env_steps
+from drivesim.bench.machine import machine_line, usable_cores
+from drivesim.bench.sim_steps import make_env, recording_car_drawn, time_env_steps
 from drivesim.sim.envs.registry import TASK_NAMES
 
 # "overtake:eval": evaluation episodes, which end at the pass, so the other car is in view at nearly every step; a

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import torch
 
-from drivesim.diagnostics.fidelity import colour_depth, image_metrics
+from drivesim.bench.fidelity import colour_depth, image_metrics
 from drivesim.pipeline.errors import InputError
 from drivesim.sim.fill import WideFrame, fill_wedges_from_neighbours, inpaint_holes, widen_frame
 from drivesim.sim.geometry import camera_mount, invert, scale_intrinsics

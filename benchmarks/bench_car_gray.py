@@ -22,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivesim.diagnostics.machine import machine_line
+from drivesim.bench.machine import machine_line
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "car_gray.md"
@@ -40,8 +40,8 @@ def run(frames: int, seed: int) -> list[dict]:
     """Rows per offset and camera assumption: means over `frames` frames."""
     import torch
 
-    from drivesim.diagnostics.car_fidelity import _CAR_ID, CAR_AHEAD_M, true_view, world_from_drive
-    from drivesim.diagnostics.fidelity import image_metrics, render_drive
+    from drivesim.bench.car_fidelity import _CAR_ID, CAR_AHEAD_M, true_view, world_from_drive
+    from drivesim.bench.fidelity import image_metrics, render_drive
     from drivesim.sim.geometry import pose_2d, yaw_of
     from drivesim.sim.vehicle_library import VehicleLibrary
     from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer

@@ -4,7 +4,7 @@ Each round runs one subprocess per code version, alternating (so both see the sa
 folder holding a `drivesim` package tree (e.g. a copy of the repository's code folders made before the change,
 `--before /tmp/before`, with /tmp/before/drivesim/{sim,diagnostics,...}) put first on PYTHONPATH, or this checkout.
 Each subprocess times overtake evaluation episodes (expert actions, one thread) until `--steps` steps drew the other car
-in the ego's view (`diagnostics/sim_steps.py`) and reports the median ms of those steps and their mean ms per part.
+in the ego's view (`bench/sim_steps.py`) and reports the median ms of those steps and their mean ms per part.
 
     .venv/bin/python benchmarks/bench_car_step.py --world /tmp/ws-demo/world --before /tmp/before
 
@@ -23,11 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from drivesim.diagnostics.machine import machine_line
+from drivesim.bench.machine import machine_line
 
 _CHILD = """
 import json, sys
-from drivesim.diagnostics.sim_steps import make_env, time_env_steps
+from drivesim.bench.sim_steps import make_env, time_env_steps
 import drivesim.sim.raster as raster
 world, steps, config = sys.argv[1], int(sys.argv[2]), json.loads(sys.argv[3])
 env = make_env("overtake", world, None, "eval", config or None)

@@ -17,8 +17,9 @@ import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
 
-from drivesim.diagnostics.machine import machine_line
-from drivesim.diagnostics.report import write_markdown
+from _lib.report import write_markdown
+
+from drivesim.bench.machine import machine_line
 
 RESULTS = Path(__file__).resolve().parent / "results" / "demo.md"
 STAGE_LINE = re.compile(r"^(?P<stage>[a-z-]+): (?:done in (?P<s>[0-9.]+) s|(?P<skipped>fresh, skipped))")

@@ -25,14 +25,14 @@ from pathlib import Path
 
 import numpy as np
 
-from drivesim.diagnostics.machine import machine_line
+from drivesim.bench.machine import machine_line
 
 RESULTS = Path(__file__).resolve().parent / "results" / "depth.md"
 WIDTH_PX, HEIGHT_PX = 960, 600
 
 
 def _render(folder: Path, n_frames: int, seed: int) -> None:
-    from drivesim.diagnostics.fidelity import render_drive
+    from drivesim.bench.fidelity import render_drive
 
     drive = render_drive(seed, n_frames, WIDTH_PX, HEIGHT_PX)
     np.save(folder / "frames.npy", drive.rgb)
@@ -88,8 +88,8 @@ def _real_workspace(recording: Path, root: Path) -> Path:
 
 def _real_section(methods: tuple[str, ...], overrides: list[str]) -> list[str]:
     """Every real drive x method: forward views (frame i warped to frame i + k), the stereo snippet's lateral view."""
-    from drivesim.diagnostics.fidelity import forward_view_rows, load_real_drive, real_depths
-    from drivesim.diagnostics.stereo import REFERENCE, run_stereo_bench
+    from drivesim.bench.fidelity import forward_view_rows, load_real_drive, real_depths
+    from drivesim.bench.stereo import REFERENCE, run_stereo_bench
     from drivesim.pipeline.config import load_config
     from drivesim.stages.preprocess.config import DepthConfig
 
@@ -159,7 +159,7 @@ def main() -> None:
         _write_real(args.output, tuple(args.methods.split(",")), args.overrides)
         return
 
-    from drivesim.diagnostics.fidelity import depth_metrics
+    from drivesim.bench.fidelity import depth_metrics
 
     n_frames = 8 if args.quick else args.frames
     load_1min = os.getloadavg()[0]

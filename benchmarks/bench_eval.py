@@ -21,8 +21,9 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
-from drivesim.diagnostics.machine import machine_line
-from drivesim.diagnostics.report import write_markdown
+from _lib.report import write_markdown
+
+from drivesim.bench.machine import machine_line
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.evaluate.config import EvalConfig
 from drivesim.stages.evaluate.report import PAPER_TABLE_I, TABLE_ROWS

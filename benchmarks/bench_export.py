@@ -14,12 +14,13 @@ import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
 
-from drivesim.diagnostics.machine import machine_line
-from drivesim.diagnostics.report import write_markdown
+from _lib.report import write_markdown
+
+from drivesim.bench.machine import machine_line
 from drivesim.pipeline.workspace import Workspace
+from drivesim.policy.run_folder import latest_run
 from drivesim.stages.export.config import ExportConfig
 from drivesim.stages.export.stage import run_export
-from drivesim.stages.policy.run_folder import latest_run
 
 RESULTS = Path(__file__).resolve().parent / "results" / "export.md"
 BUDGET_MS = 1000 / 30

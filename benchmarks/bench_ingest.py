@@ -29,9 +29,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from _lib.paths import use_folder
 
-from drivesim.diagnostics.machine import machine_line
-from drivesim.diagnostics.recordings import (  # the recording writers shared with the tests
+from drivesim.bench.machine import machine_line
+
+use_folder("tests")
+from recordings import (  # noqa: E402  (the recording writers shared with the tests)
     START_NS,
     T_FOOTPRINT_LINK,
     T_LINK_CAMERA,

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivesim.diagnostics.machine import machine_line
+from drivesim.bench.machine import machine_line
 from drivesim.stages.preprocess.poses import PoseConfig, enu_transformer, fuse_gps_imu
 from drivesim.stages.preprocess.series import GpsSeries, ImuSeries, SensorSeries, SpeedSeries
 

@@ -21,10 +21,11 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
+from _lib.report import write_markdown
 from bench_eval import build_demo_world
 
-from drivesim.diagnostics.machine import machine_line, usable_cores
-from drivesim.diagnostics.report import write_markdown
+from drivesim.bench.machine import machine_line, usable_cores
+from drivesim.pipeline.ray_cluster import RaySession
 from drivesim.sim.envs.registry import task_spec
 from drivesim.stages.evaluate.metrics import evaluate_episode
 from drivesim.stages.evaluate.ray_backend import run_episodes_ray
@@ -35,7 +36,6 @@ from drivesim.stages.evaluate.rollout import (
     run_episodes,
     write_episode,
 )
-from drivesim.stages.ray_cluster import RaySession
 
 RESULTS = Path(__file__).resolve().parent / "results" / "ray.md"
 NODE_COUNTS = (1, 2, 4, 8, 16)

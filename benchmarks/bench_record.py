@@ -29,8 +29,9 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
-from drivesim.diagnostics.machine import machine_line
-from drivesim.diagnostics.report import write_markdown
+from _lib.report import write_markdown
+
+from drivesim.bench.machine import machine_line
 from drivesim.pipeline.workspace import Workspace
 from drivesim.sim.envs.config import EnvConfig
 from drivesim.stages.evaluate.config import EvalConfig
@@ -46,7 +47,7 @@ def random_policy(folder: Path, observation: tuple[int, int, int]) -> Path:
     import torch
 
     from drivesim.pipeline.hashing import sha256_file
-    from drivesim.stages.policy.run_folder import build_net
+    from drivesim.policy.run_folder import build_net
     from drivesim.stages.train.run_files import write_json, write_policy_files
 
     arch = {"conv_layers": [[4, 5, 4], [8, 3, 2]], "features_dim": 16, "lstm_hidden_size": 8, "lstm_layers": 1}
@@ -89,12 +90,13 @@ def evaluate(world: Path, policy: str, env: dict, episodes: int, workers: int, r
     (keeping the steps, writing the MCAPs, copying them; one worker only), failures and recordings."""
     from drivesim.sim.episode_mcap import EpisodeCapture
     from drivesim.stages.evaluate import record as record_module
+    from drivesim.stages.evaluate import replay as replay_module
 
     clock = _Clock()
     for owner, name in (
         (EpisodeCapture, "add"),
         (record_module.EpisodeRecorder, "end"),
-        (record_module, "finish_recordings"),
+        (replay_module, "finish_recordings"),
     ):
         clock.wrap(owner, name)
     with tempfile.TemporaryDirectory(prefix="bench-record-") as tmp:

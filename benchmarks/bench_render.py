@@ -22,14 +22,17 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _lib.paths import use_folder
 
-from drivesim.diagnostics.gl_reference import GLRenderer, car_meshes, create_context
-from drivesim.diagnostics.machine import machine_line
+from drivesim.bench.machine import machine_line
 from drivesim.sim import geometry as g
 from drivesim.sim import warp as warp_module
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.raster import Rasterizer, pack_meshes
 from drivesim.sim.warp import forward_warp
+
+use_folder("tests")
+from gl_reference import GLRenderer, car_meshes, create_context  # noqa: E402  (the moderngl reference of the tests)
 
 HERE = Path(__file__).resolve().parent
 

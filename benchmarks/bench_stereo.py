@@ -3,7 +3,7 @@
     python benchmarks/bench_stereo.py                      # writes benchmarks/results/stereo.md and stereo_worst.png
     python benchmarks/bench_stereo.py --methods plane,mvs  # a subset of the methods
 
-See `drivesim.diagnostics.stereo` for what is measured; `drivesim bench stereo FOLDER` runs the same on any stereo
+See `drivesim.bench.stereo` for what is measured; `drivesim bench stereo FOLDER` runs the same on any stereo
 folder.
 """
 
@@ -15,7 +15,7 @@ import subprocess
 from datetime import UTC, datetime
 from pathlib import Path
 
-from drivesim.diagnostics.machine import machine_line
+from drivesim.bench.machine import machine_line
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "stereo.md"
@@ -38,7 +38,7 @@ def main() -> None:
     )  # fmt: skip
     args = parser.parse_args()
 
-    from drivesim.diagnostics.stereo import REFERENCE, run_stereo_bench, stereo_markdown
+    from drivesim.bench.stereo import REFERENCE, run_stereo_bench, stereo_markdown
     from drivesim.stages.preprocess.depth import DEPTH_METHODS
 
     methods = tuple(m for m in args.methods.split(",") if m in DEPTH_METHODS)

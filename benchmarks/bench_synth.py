@@ -17,9 +17,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
+from _lib.report import write_markdown
 
-from drivesim.diagnostics.machine import machine_line
-from drivesim.diagnostics.report import write_markdown
+from drivesim.bench.machine import machine_line
 from drivesim.stages.synth.config import SynthConfig
 from drivesim.stages.synth.drive import Trajectory
 from drivesim.stages.synth.synthesize import resolve_config, single_torch_thread, synthesize

@@ -29,7 +29,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
-from drivesim.stages.policy.net import encoder_macs
+from drivesim.policy.net import encoder_macs
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
 from drivesim.stages.train.recurrent import ChunkedRecurrentPPO, TimedVecEnv

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from bench_video_sfm import make_video
 
-from drivesim.diagnostics.machine import machine_line
+from drivesim.bench.machine import machine_line
 
 RESULTS = Path(__file__).resolve().parent / "results" / "video_lane.md"
 COMMAND = ["run", "--camera-height-m", "1.65", "--preset", "lane"]

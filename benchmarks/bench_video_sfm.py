@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from drivesim.diagnostics.machine import machine_line
+from drivesim.bench.machine import machine_line
 from drivesim.sim.geometry import se3
 from drivesim.stages.ingest.kitti import IMU_HEIGHT_M, kitti_raw_extrinsics, parse_timestamps, read_oxts
 from drivesim.stages.ingest.scale import fit_similarity

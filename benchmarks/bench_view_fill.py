@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivesim.diagnostics.machine import machine_line
+from drivesim.bench.machine import machine_line
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "view_fill.md"

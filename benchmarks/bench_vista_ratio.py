@@ -7,7 +7,7 @@ step of `lane` (no other car) and of `overtake` evaluation episodes (one other c
 whole 320 x 200 camera image, on one thread and with `render_threads=2` (each view's warp cut into two bands warped
 at the same time, the same pixels: VISTA's llvmpipe renders with both cores), then at the default observation on one
 thread. The one-car row counts only the steps in which our car
-was drawn (at least one pixel of it in the ego's view, from the view's car mask: `diagnostics/sim_steps.py`): the run
+was drawn (at least one pixel of it in the ego's view, from the view's car mask: `bench/sim_steps.py`): the run
 goes on until that many car-drawn steps were timed, and the share of car-drawn steps among all timed ones is reported.
 
     .venv/bin/python benchmarks/bench_vista_ratio.py --vista-dir /tmp/vista-bench --world /tmp/ws-kitti/world
@@ -26,8 +26,8 @@ import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
 
-from drivesim.diagnostics.machine import machine_line
-from drivesim.diagnostics.sim_steps import make_env, time_env_steps
+from drivesim.bench.machine import machine_line
+from drivesim.bench.sim_steps import make_env, time_env_steps
 
 KITTI = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "kitti_raw"
 CAMERA_W_PX, CAMERA_H_PX = 320, 200

@@ -2,15 +2,15 @@
 `<workspace>/towns/seed<N>/world`, for training on more places than the user's own recording.
 
 A town is a small workspace of its own, `<workspace>/towns/seed<N>/`, made by the chain's stages through the chain
-walker (`stages.run_chain.run_chain`): synth (`drivesim synth --seed N`, `duration_s` of drive) -> ingest ->
+walker (`chain.walk.walk_chain`): synth (`drivesim synth --seed N`, `duration_s` of drive) -> ingest ->
 preprocess -> build-world, each with its own preset and this config's per-stage overrides. Every stage is skipped
 when its artifact is fresh, so building a town again costs nothing and a changed setting redoes only what it changes;
 every artifact is written in a temporary folder and moved into place when whole, so Ctrl-C leaves no half-written
 town (the stages done are kept, the next build continues).
 
-`drivesim towns build 1 2 3` builds (or refreshes) towns; `drivesim train` trains on the towns its config's `towns`
-key names, building the missing ones first with this config's preset (`configs/towns.yaml`) and using a town that
-exists as it is.
+`drivesim towns build 1 2 3` builds (or refreshes) towns; before the train stage, `drivesim train` and `drivesim run`
+build the missing towns its config's `towns` key names (`training_towns`, with this config's preset
+`configs/towns.yaml`; a town that exists is used as it is) and hand their worlds to the stage.
 """
 
 from __future__ import annotations
@@ -18,12 +18,16 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pydantic import Field, field_validator
 
+from drivesim.chain.walk import deep_merge
 from drivesim.pipeline.config import StageConfig, load_config
 from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
+
+if TYPE_CHECKING:
+    from drivesim.stages.train.config import TrainConfig
 
 TOWNS_DIR = "towns"
 PRESET = "towns"
@@ -109,32 +113,26 @@ def town_overrides(cfg: TownsConfig, seed: int) -> dict[str, Any]:
     """The per-stage overrides of town `seed`'s chain: the seed and drive length, then the config's stages, then
     the config's overrides for this town."""
     base: dict[str, Any] = {"synth": {"seed": seed, "drive": {"duration_s": cfg.duration_s}}}
-    return _merged(_merged(base, cfg.stages), cfg.per_town.get(seed, {}))
-
-
-def _merged(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for key, value in update.items():
-        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
-    return out
+    return deep_merge(deep_merge(base, cfg.stages), cfg.per_town.get(seed, {}))
 
 
 def build_town(
     ws: Workspace, seed: int, cfg: TownsConfig, force: bool = False, on_stage: Callable[[TownStage], None] | None = None
 ) -> Path:
     """Build (or refresh) town `seed` through the chain walker; returns its world folder."""
-    from drivesim.stages.chain import stage_by_name
-    from drivesim.stages.run_chain import run_chain
+    from drivesim.chain.registry import stage_by_name
+    from drivesim.chain.walk import StageRun, run_ingest, walk_chain
 
     chain = tuple(stage_by_name(name) for name in TOWN_STAGES)
     assert all(spec is not None for spec in chain), "a town stage is missing from the chain registry"
 
-    def forward(done: Any) -> None:
+    def forward(done: StageRun) -> None:
         if on_stage is not None:
             on_stage(TownStage(seed, done.stage, done.skipped, done.wall_s, Path(done.path)))
 
     town_ws = Workspace(town_dir(ws, seed))
-    run_chain(town_ws, None, town_overrides(cfg, seed), force=force, on_stage=forward, chain=chain)  # type: ignore[arg-type]
+    overrides = town_overrides(cfg, seed)
+    walk_chain(town_ws, None, overrides, chain, {"ingest": run_ingest}, force=force, on_stage=forward)  # type: ignore[arg-type]
     return town_world(ws, seed)
 
 
@@ -165,6 +163,20 @@ def ensure_towns(
     if missing:
         build_towns(ws, missing, on_stage=on_stage or _print_stage)
     return [town_world(ws, s) for s in seeds]
+
+
+def training_towns(ws: Workspace, cfg: TrainConfig, worlds: list[Path] | None = None) -> list[Path]:
+    """The world folders of the towns a train config names, each built first when missing (upstream work of the
+    train stage, through the world-making stages); none with the cost-free env or no `towns`.
+
+    :param worlds: the run's `--world` folders; without them the workspace's world is required first, so that a
+        missing world is one line before any town is built.
+    """
+    if not cfg.towns or cfg.envs.source == "cost_free":
+        return []
+    if not worlds:
+        ws.require("world", "drivesim build-world")
+    return ensure_towns(ws, cfg.towns)
 
 
 def _print_stage(done: TownStage) -> None:

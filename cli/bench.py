@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
+from drivesim.bench.machine import machine_line
 from drivesim.cli.common import ConfigOption, console, set_option, workspace
-from drivesim.diagnostics.machine import machine_line
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError
 from drivesim.pipeline.progress import progress_bar
@@ -21,12 +21,12 @@ from drivesim.stages.preprocess.config import DepthConfig
 bench_app = typer.Typer(no_args_is_help=True)
 
 if TYPE_CHECKING:  # the fidelity module imports torch: only when the command runs
-    from drivesim.diagnostics.fidelity import FidelityResult
+    from drivesim.bench.fidelity import FidelityResult
 
 
 def fidelity_table(result: FidelityResult) -> tuple[Table, Table]:
     """Rich tables of the depth metrics and of the novel-view metrics."""
-    from drivesim.diagnostics.fidelity import DEPTH_SOURCES
+    from drivesim.bench.fidelity import DEPTH_SOURCES
 
     depth = Table(title=f"depth vs ground truth ({len(result.evaluated_frames)} frames)")
     for column in ("method", "AbsRel", "δ<1.25", "seconds"):
@@ -53,7 +53,7 @@ def fidelity_table(result: FidelityResult) -> tuple[Table, Table]:
 
 def fidelity_markdown(result: FidelityResult, command: str) -> str:
     """The results as a markdown report (machine, date, command, tables)."""
-    from drivesim.diagnostics.fidelity import DEPTH_SOURCES
+    from drivesim.bench.fidelity import DEPTH_SOURCES
 
     lines = [
         "# Depth and view-synthesis fidelity against ground truth",
@@ -108,7 +108,7 @@ def fidelity_command(
     cfg = load_config(DepthConfig, preset=None, config_file=config, overrides=set_)
     if cfg.method != "mvs" and set_ and any(s.startswith("method=") for s in set_):
         raise ConfigError("bench fidelity always compares plane and mvs; leave depth.method alone")
-    from drivesim.diagnostics.fidelity import run_fidelity
+    from drivesim.bench.fidelity import run_fidelity
 
     figure_path = figure if figure is not None else workspace().root / "bench" / "fidelity.png"
     with progress_bar("fidelity bench", total=None) as (progress, task):
@@ -157,7 +157,7 @@ def sim_command(
     """Simulator speed: env steps/s per task (one process, one env per core, batched envs) at the default
     observation, ms per step split into dynamics, association, warp, car raster, harmonization and rewards, and
     the view synthesizer alone."""
-    from drivesim.diagnostics.sim_speed import TASKS, run_sim_speed, sim_speed_markdown
+    from drivesim.bench.sim_speed import TASKS, run_sim_speed, sim_speed_markdown
 
     world_path = world if world is not None else workspace().root / "world"
     if not (world_path / "world.json").is_file():
@@ -217,7 +217,7 @@ def car_fidelity_command(
         if not sep or not (Path(folder) / "world.json").is_file():
             raise ConfigError(f"--real-world {item!r}: expected METHOD=WORLD_DIR with a built world there")
         worlds[method] = Path(folder)
-    from drivesim.diagnostics.car_fidelity import car_fidelity_markdown, run_car_fidelity
+    from drivesim.bench.car_fidelity import car_fidelity_markdown, run_car_fidelity
 
     figure_path = figure if figure is not None else workspace().root / "bench" / "car_fidelity.png"
     with progress_bar("car fidelity", total=None):
@@ -261,7 +261,7 @@ def stereo_command(
     SGBM depth from the true pair (a reference that sees the answer). PSNR and SSIM over filled pixels, the filled
     fraction, and whole-image PSNR with holes counted. `--set` and `--config` take depth config keys.
     """
-    from drivesim.diagnostics.stereo import run_stereo_bench, stereo_markdown
+    from drivesim.bench.stereo import run_stereo_bench, stereo_markdown
     from drivesim.stages.preprocess.depth import DEPTH_METHODS
 
     cfg = load_config(DepthConfig, preset=None, config_file=config, overrides=set_)

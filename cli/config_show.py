@@ -9,10 +9,10 @@ import typer
 import yaml
 from rich.table import Table
 
+from drivesim.chain.registry import CHAIN, OFF_CHAIN_CONFIGS
 from drivesim.cli.common import ConfigOption, console, set_option
 from drivesim.pipeline.config import StageConfig, describe_config, load_config
 from drivesim.pipeline.errors import ConfigError
-from drivesim.stages.chain import CHAIN, OFF_CHAIN_CONFIGS
 
 
 def _stage_configs() -> dict[str, tuple[type[StageConfig], str]]:

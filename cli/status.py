@@ -8,9 +8,9 @@ from typing import Annotated, Any
 import typer
 from rich.table import Table
 
+from drivesim.chain.registry import CHAIN
 from drivesim.cli.common import console, workspace
 from drivesim.pipeline.status import status_report
-from drivesim.stages.chain import CHAIN
 
 _STATE_STYLE = {"fresh": "green", "stale": "yellow", "missing": "dim"}
 

@@ -1,4 +1,4 @@
-"""`drivesim towns`: procedural towns the tool builds itself (stages/towns.py), to train on more than one place."""
+"""`drivesim towns`: procedural towns the tool builds itself (chain/towns.py), to train on more than one place."""
 
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ def build_command(
     Towns 8 and 9 are tree-lined (rows of trees beside the road; `per_town` in configs/towns.yaml), the others
     mostly built up.
     """
-    from drivesim.stages.towns import PRESET, TownsConfig, TownStage, build_towns, check_seeds
+    from drivesim.chain.towns import PRESET, TownsConfig, TownStage, build_towns, check_seeds
 
     overrides = list(set_ or [])
     if duration_s is not None:
@@ -59,7 +59,7 @@ def build_command(
 @towns_app.command("list")
 def list_command() -> None:
     """The towns of the workspace: each seed, built or not, and its world folder."""
-    from drivesim.stages.towns import TOWNS_DIR, is_built, town_world
+    from drivesim.chain.towns import TOWNS_DIR, is_built, town_world
 
     ws = workspace()
     found = sorted(int(p.name[4:]) for p in (ws.root / TOWNS_DIR).glob("seed*") if p.is_dir() and p.name[4:].isdigit())

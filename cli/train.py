@@ -88,6 +88,7 @@ def train_command(
     With --ensemble N, N runs are trained one after another and an ensemble run of them is made last.
     """
     # Imported here so `drivesim --help` stays fast (training pulls in torch and stable-baselines3).
+    from drivesim.chain.towns import training_towns
     from drivesim.stages.train.config import TrainConfig
     from drivesim.stages.train.resume import plan_resume, reopen
     from drivesim.stages.train.stage import run_training
@@ -122,7 +123,7 @@ def train_command(
         )
     choose_backend(backend, address, cfg.envs)
     if cfg.envs.backend == "ray":
-        from drivesim.stages.ray_cluster import import_ray
+        from drivesim.pipeline.ray_cluster import import_ray
 
         import_ray()  # a missing Ray is one line before anything runs
 
@@ -137,15 +138,16 @@ def train_command(
             soft_wrap=True,
         )
 
+    towns = training_towns(ws, cfg, worlds)  # upstream of the train stage: the towns its config names
     result = run_training(
-        ws, cfg, worlds=worlds or None, resume=None if plan is None else plan.run_dir, on_start=on_start
+        ws, cfg, worlds=worlds or None, resume=None if plan is None else plan.run_dir, on_start=on_start, towns=towns
     )
     _print_result(result)
 
 
 def _assemble(ws: Any, runs: list[Path], config: Path | None, overrides: list[str]) -> Any:
     """The ensemble run of finished runs (their task from the first one's policy.json)."""
-    from drivesim.stages.policy.run_folder import load_policy
+    from drivesim.policy.run_folder import load_policy
     from drivesim.stages.train.config import TrainConfig
     from drivesim.stages.train.stage import assemble_ensemble
 

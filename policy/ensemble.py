@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from drivesim.pipeline.errors import DrivesimError
-from drivesim.stages.policy.run_folder import (
+from drivesim.policy.run_folder import (
     CONFIG_JSON,
     NORMALIZATION_JSON,
     POLICY_JSON,
@@ -73,7 +73,7 @@ def write_ensemble_files(folder: Path, members: list[LoadedPolicy], train_config
     """policy.pt, policy.json, config.json and normalization.json of the ensemble of `members` into `folder`."""
     import torch
 
-    from drivesim.stages.policy.net import EnsembleNet
+    from drivesim.policy.net import EnsembleNet
 
     # Plain writes: `folder` is the stage's build folder, moved into place whole once the manifest is written.
     net = EnsembleNet([m.net for m in members])

@@ -1,8 +1,8 @@
 """The driving policy's network in plain torch: image -> standardized -> small CNN -> LSTM -> steering, value.
 
 Shared by training (wrapped for sb3-contrib's RecurrentPPO in `stages/train/sb3_policy.py`), evaluation
-(`stages/policy/run_folder.py::LoadedPolicy`) and export (`DrivingNet` is the module that becomes the ONNX graph).
-Importing this module imports torch; `stages/policy/run_folder.py` imports it only when a policy is loaded.
+(`policy/run_folder.py::LoadedPolicy`) and export (`DrivingNet` is the module that becomes the ONNX graph).
+Importing this module imports torch; `policy/run_folder.py` imports it only when a policy is loaded.
 
 Shapes: images (N, 3, H, W) uint8; LSTM state (layers, N, hidden) float32; actions (N, 1) in [-1, 1] (normalized
 steering: curvature = action * max_curvature_1pm of the env config).

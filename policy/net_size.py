@@ -1,4 +1,4 @@
-"""The size of a driving network (stages/policy/net.py::DrivingNet), counted from its architecture alone.
+"""The size of a driving network (policy/net.py::DrivingNet), counted from its architecture alone.
 
 A config or a run folder's policy.json can describe a network that would take all the memory there is (a 85 GB
 linear layer from a typo in `features_dim`); it is refused with one line *before* torch allocates anything.

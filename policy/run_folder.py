@@ -8,7 +8,7 @@ Run folder `runs/<task>-<YYYYmmdd-HHMMSS>/` (written by `drivesim train`):
                         "action": {"low": -1, "high": 1, "max_curvature_1pm": float | null}, "normalization": {...}}
     policy.pt          DrivingNet weights (a dict of tensors; read with torch.load(weights_only=True))
 
-An ensemble run (`drivesim train --ensemble N`, `stages/policy/ensemble.py`) holds config.json, policy.json (with
+An ensemble run (`drivesim train --ensemble N`, `policy/ensemble.py`) holds config.json, policy.json (with
 "ensemble": {"members": N, "runs": [member run names]}), policy.pt (the `EnsembleNet`'s weights), normalization.json
 and manifest.json; its members are run folders of their own beside it.
     normalization.json how observations are normalized before the network (per-image standardization, no stats
@@ -122,7 +122,7 @@ class LoadedPolicy:
 
     def export_module(self) -> Any:
         """The deterministic one-step policy as a `torch.nn.Module` for ONNX (see policy_net.ExportModule)."""
-        from drivesim.stages.policy.net import ExportModule
+        from drivesim.policy.net import ExportModule
 
         return ExportModule(self.net).eval()
 
@@ -149,7 +149,7 @@ MAX_ENSEMBLE_MEMBERS = 16
 def build_net(info: dict[str, Any]) -> Any:
     """A `DrivingNet` with the architecture recorded in policy.json (random weights), or an `EnsembleNet` of
     `info["ensemble"]["members"]` of them when policy.json describes an ensemble."""
-    from drivesim.stages.policy.net import EnsembleNet
+    from drivesim.policy.net import EnsembleNet
 
     if "ensemble" not in info:
         return _driving_net(info)
@@ -161,8 +161,8 @@ def build_net(info: dict[str, Any]) -> Any:
 
 def _driving_net(info: dict[str, Any]) -> Any:
     """One `DrivingNet` of the architecture in policy.json, its size checked first."""
-    from drivesim.stages.net_size import check_network_size
-    from drivesim.stages.policy.net import DrivingNet
+    from drivesim.policy.net import DrivingNet
+    from drivesim.policy.net_size import check_network_size
 
     arch = info["architecture"]
     # A damaged or hostile policy.json may describe a network larger than memory: refused before torch allocates it.

@@ -277,7 +277,7 @@ def widen_frame(
     camera when it is prepared, instead of being warped again at every step (per view, frames -1, +1, -2 cost 3.0x
     the warp alone per follow step, benchmarks/results/view_fill_speed.md).
     Why the first neighbour wins and not the nearest surface: the nearer a frame is in time, the smaller the pose
-    change its depth errors are warped over; on the real stereo snippet's lateral view (`diagnostics/stereo.py`) a
+    change its depth errors are warped over; on the real stereo snippet's lateral view (`bench/stereo.py`) a
     depth test across frames -1, -2, -3, +1 gave 23.18 dB with holes counted against 23.41 dB this way, and adding
     frames -4, -5, +2 lowered the depth test's figure to 22.98 dB while this way's stayed at 23.40.
     """

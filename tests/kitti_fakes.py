@@ -6,8 +6,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
-from drivesim.diagnostics.recordings import textured_image
+from recordings import textured_image
 
 FX_PX = 80.0
 

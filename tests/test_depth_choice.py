@@ -10,6 +10,7 @@ import pytest
 from test_preprocess_stage_fakes import add_lidar_wall, install_fake_poses, make_trace
 from test_stereo_bench import write_wall_folder
 
+from drivesim.chain.run import load_run_preset
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import InputError
 from drivesim.pipeline.workspace import Workspace
@@ -19,7 +20,6 @@ from drivesim.stages.preprocess import stage
 from drivesim.stages.preprocess.artifact import load_preprocessed
 from drivesim.stages.preprocess.config import PreprocessConfig
 from drivesim.stages.preprocess.depth import choose_method
-from drivesim.stages.run_chain import load_run_preset
 
 
 def test_auto_prefers_lidar_then_stereo_then_the_camera_only_method() -> None:

@@ -15,7 +15,7 @@ import torch
 from test_train import _drivesim, small_config
 
 from drivesim.pipeline.workspace import Workspace
-from drivesim.stages.policy.run_folder import load_policy
+from drivesim.policy.run_folder import load_policy
 from drivesim.stages.train.stage import run_training
 
 

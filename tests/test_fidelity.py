@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from drivesim.diagnostics.fidelity import ViewOffset, depth_metrics, image_metrics, run_fidelity
+from drivesim.bench.fidelity import ViewOffset, depth_metrics, image_metrics, run_fidelity
 from drivesim.pipeline.errors import ConfigError
 
 
@@ -80,7 +80,7 @@ def test_bench_fidelity_cli_json(tmp_path) -> None:
 
 def test_car_fidelity_places_the_car_and_harmonization_helps() -> None:
     """The inserted car covers the true car's pixels, and harmonization brings it closer to the truth."""
-    from drivesim.diagnostics.car_fidelity import OFFSETS_M, VARIANTS, synthetic_rows
+    from drivesim.bench.car_fidelity import OFFSETS_M, VARIANTS, synthetic_rows
 
     rows, images = synthetic_rows(frames=1, seed=0)
     assert {(r["offset_m"], r["variant"]) for r in rows} == {(o, v) for o in OFFSETS_M for v in VARIANTS}

@@ -1,9 +1,17 @@
 """The import rules of DESIGN §1, checked by parsing every module's imports (function-level ones included).
 
-- `pipeline/` imports nothing of ours but `pipeline`; `sim/` imports only `sim`.
-- A stage's modules (`stages/<x>/...`) import `pipeline`, `sim`, their own stage, the shared modules at the top of
-  `stages/` (the chain registry, the policy format) and an upstream stage's schema module, never another stage's
-  run module; nothing under `stages/`, `sim/` or `pipeline/` imports the CLI or the benches.
+The packages form layers, lowest first; a package imports only its own layer's packages and those below it:
+
+    pipeline, sim      the stage contract and shared infrastructure; the simulator (each imports only itself)
+    policy             the driving policy's network, run files and ONNX runtime (pipeline, sim)
+    stages             one package per stage (pipeline, sim, policy; see below)
+    chain              the chain registry, its walker and the procedural towns (everything above)
+    bench              the measurements behind `drivesim bench` (everything above)
+    cli                the typer commands (everything)
+
+A stage's modules (`stages/<x>/...`) import their own stage and an upstream stage's schema module, never another
+stage's run module; `stages/` holds nothing but stage packages. No module reaches itself through its imports
+(`if TYPE_CHECKING:` imports, which never run, aside).
 
 Run alone: `.venv/bin/pytest -q tests/test_import_rules.py`.
 """
@@ -11,16 +19,26 @@ Run alone: `.venv/bin/pytest -q tests/test_import_rules.py`.
 from __future__ import annotations
 
 import ast
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
+LAYERS: dict[str, set[str]] = {
+    "pipeline": {"pipeline"},
+    "sim": {"sim"},
+    "policy": {"pipeline", "sim", "policy"},
+    "stages": {"pipeline", "sim", "policy", "stages"},
+    "chain": {"pipeline", "sim", "policy", "stages", "chain"},
+    "bench": {"pipeline", "sim", "policy", "stages", "chain", "bench"},
+    "cli": {"pipeline", "sim", "policy", "stages", "chain", "bench", "cli", "configs"},
+}
+"""Each code folder -> the folders it may import from."""
+
 # Upstream schema modules (one per artifact, read by its writer and its readers).
 SCHEMA_MODULES = {"drivesim.stages.ingest.trace", "drivesim.stages.preprocess.artifact"}
-# Packages at the top of stages/ that are shared, not stages: the policy (its network, run files and ONNX runtime).
-SHARED_PACKAGES = {"policy"}
 
 
 def _module_name(file: Path) -> str:
@@ -30,15 +48,30 @@ def _module_name(file: Path) -> str:
     return ".".join(["drivesim", *parts])
 
 
-def imported_modules(file: Path) -> set[str]:
+def _type_checking_lines(tree: ast.AST) -> set[int]:
+    """Line numbers inside `if TYPE_CHECKING:` blocks (imports there are for the type checker only)."""
+    lines: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            for child in node.body:
+                lines.update(range(child.lineno, (child.end_lineno or child.lineno) + 1))
+    return lines
+
+
+def imported_modules(file: Path, at_run_time: bool = False) -> set[str]:
     """Every `drivesim...` module `file` imports, absolute or relative, at module or function level.
 
-    `from drivesim.stages.x import y` counts as `drivesim.stages.x.y` (y may be a module).
+    `from drivesim.stages.x import y` counts as `drivesim.stages.x.y` (y may be a module). With `at_run_time`, the
+    imports under `if TYPE_CHECKING:` are left out.
     """
     name = _module_name(file)
     package = name if file.name == "__init__.py" else name.rpartition(".")[0]
+    tree = ast.parse(file.read_text(), filename=str(file))
+    skipped = _type_checking_lines(tree) if at_run_time else set()
     found: set[str] = set()
-    for node in ast.walk(ast.parse(file.read_text(), filename=str(file))):
+    for node in ast.walk(tree):
+        if getattr(node, "lineno", None) in skipped:
+            continue
         if isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -56,7 +89,7 @@ def _files(folder: str) -> list[Path]:
     return sorted((REPO / folder).rglob("*.py"))
 
 
-def _violations(folder: str, allowed) -> list[str]:
+def _violations(folder: str, allowed: Callable[[Path, str], bool]) -> list[str]:
     return [
         f"{file.relative_to(REPO)} imports {module}"
         for file in _files(folder)
@@ -69,25 +102,24 @@ def _under(module: str, package: str) -> bool:
     return module == package or module.startswith(package + ".")
 
 
-def test_pipeline_imports_only_pipeline() -> None:
-    assert _violations("pipeline", lambda file, m: _under(m, "drivesim.pipeline")) == []
+def _layer_allows(file: Path, module: str) -> bool:
+    folder = file.relative_to(REPO).parts[0]
+    return module == "drivesim" or module.split(".")[1] in LAYERS[folder]
 
 
-def test_sim_imports_only_sim() -> None:
-    assert _violations("sim", lambda file, m: _under(m, "drivesim.sim")) == []
+@pytest.mark.parametrize("folder", sorted(LAYERS))
+def test_no_package_imports_a_layer_above_it(folder: str) -> None:
+    assert _violations(folder, _layer_allows) == []
 
 
 def _stage_import_allowed(file: Path, module: str) -> bool:
-    if _under(module, "drivesim.pipeline") or _under(module, "drivesim.sim") or module == "drivesim.stages":
-        return True
-    if not _under(module, "drivesim.stages"):
-        return False  # the CLI, the benches
-    parts = file.relative_to(REPO / "stages").parts
-    if len(parts) == 1:
-        return True  # the shared modules at the top of stages/ (chain registry and walker, policy format)
-    target = module.split(".")[2]
-    if target == parts[0] or target in SHARED_PACKAGES or (REPO / "stages" / f"{target}.py").is_file():
-        return True  # its own stage, a shared top-level module or package
+    if not _layer_allows(file, module):
+        return False  # the chain, the benches, the CLI
+    if not _under(module, "drivesim.stages") or module == "drivesim.stages":
+        return True  # pipeline, sim, policy
+    own = file.relative_to(REPO / "stages").parts[0]
+    if module.split(".")[2] == own:
+        return True  # its own stage
     if module.count(".") == 2:
         return True  # a stage package itself (its modules are checked)
     return any(_under(module, schema) for schema in SCHEMA_MODULES)
@@ -97,6 +129,13 @@ def test_no_stage_imports_another_stages_run_module() -> None:
     assert _violations("stages", _stage_import_allowed) == []
 
 
+def test_stages_holds_only_stage_packages() -> None:
+    """Every entry of stages/ is a stage's package (a shared module belongs a layer down, in pipeline/ or policy/)."""
+    entries = [p for p in (REPO / "stages").iterdir() if p.name not in ("__init__.py", "__pycache__")]
+    assert len(entries) >= 8
+    assert [p.name for p in entries if not (p / "__init__.py").is_file()] == []
+
+
 @pytest.mark.parametrize(
     ("file", "module", "allowed"),
     [
@@ -104,17 +143,94 @@ def test_no_stage_imports_another_stages_run_module() -> None:
         ("stages/world/build.py", "drivesim.stages.preprocess.artifact", True),
         ("stages/world/build.py", "drivesim.stages.world.config", True),
         ("stages/world/build.py", "drivesim.cli.common", False),
-        ("stages/world/build.py", "drivesim.diagnostics.fidelity", False),
-        ("stages/chain.py", "drivesim.stages.world.stage", True),
-        ("stages/evaluate/rollout.py", "drivesim.stages.policy.run_folder", True),
-        ("stages/evaluate/rollout.py", "drivesim.stages.policy.onnx_runtime", True),
+        ("stages/world/build.py", "drivesim.bench.fidelity", False),
+        ("stages/train/stage.py", "drivesim.chain.towns", False),
+        ("stages/train/stage.py", "drivesim.chain.registry", False),
+        ("stages/evaluate/rollout.py", "drivesim.policy.run_folder", True),
+        ("stages/evaluate/rollout.py", "drivesim.policy.onnx_runtime", True),
         ("stages/evaluate/rollout.py", "drivesim.stages.train.run", False),
     ],
 )
-def test_the_rule_itself(file: str, module: str, allowed: bool) -> None:
+def test_the_stage_rule_itself(file: str, module: str, allowed: bool) -> None:
     assert _stage_import_allowed(REPO / file, module) is allowed
+
+
+@pytest.mark.parametrize(
+    ("file", "module", "allowed"),
+    [
+        ("policy/run_folder.py", "drivesim.stages.train.config", False),
+        ("policy/run_folder.py", "drivesim.pipeline.workspace", True),
+        ("sim/warp.py", "drivesim.policy.net", False),
+        ("chain/run.py", "drivesim.stages.train.stage", True),
+        ("chain/run.py", "drivesim.cli.common", False),
+        ("bench/fidelity.py", "drivesim.cli.common", False),
+        ("cli/bench.py", "drivesim.bench.fidelity", True),
+    ],
+)
+def test_the_layer_rule_itself(file: str, module: str, allowed: bool) -> None:
+    assert _layer_allows(REPO / file, module) is allowed
+
+
+def _module_graph() -> dict[str, set[str]]:
+    """Module -> the modules of ours it imports when it runs (a `from x import name` resolved to module x)."""
+    modules = {_module_name(file): file for folder in LAYERS for file in _files(folder)}
+
+    def resolve(module: str) -> str | None:
+        while module and module not in modules:
+            module = module.rpartition(".")[0]
+        return module or None
+
+    return {
+        name: {r for m in imported_modules(file, at_run_time=True) if (r := resolve(m)) and r != name}
+        for name, file in modules.items()
+    }
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The groups of modules that reach each other through their imports (strongly connected, 2 or more)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for target in sorted(graph.get(node, ())):
+            if target not in index:
+                visit(target)
+                low[node] = min(low[node], low[target])
+            elif target in stack:
+                low[node] = min(low[node], index[target])
+        if low[node] == index[node]:
+            group = [stack.pop()]
+            while group[-1] != node:
+                group.append(stack.pop())
+            if len(group) > 1:
+                cycles.append(sorted(group))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return cycles
+
+
+def test_no_module_reaches_itself_through_its_imports() -> None:
+    assert import_cycles(_module_graph()) == []
+
+
+def test_the_cycle_finder_finds_a_circle() -> None:
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert import_cycles(graph) == [["a", "b", "c"]]
+    assert import_cycles({"a": {"b"}, "b": set()}) == []
 
 
 def test_function_level_imports_are_seen() -> None:
     # stage.py imports its run module inside the build function (so the registry stays light)
     assert "drivesim.stages.preprocess.run" in imported_modules(REPO / "stages/preprocess/stage.py")
+
+
+def test_type_checking_imports_do_not_count_at_run_time() -> None:
+    assert "drivesim.stages.evaluate.record" in imported_modules(REPO / "stages/evaluate/rollout.py")
+    run_time = imported_modules(REPO / "stages/evaluate/rollout.py", at_run_time=True)
+    assert "drivesim.stages.evaluate.record.RecordPlan" not in run_time

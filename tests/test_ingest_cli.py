@@ -12,9 +12,7 @@ from pathlib import Path
 
 import pytest
 from cli_helpers import REAL_DATA, interruptible
-
-from drivesim.cli.main import main
-from drivesim.diagnostics.recordings import (
+from recordings import (
     START_NS,
     Msg,
     drive_messages,
@@ -22,6 +20,8 @@ from drivesim.diagnostics.recordings import (
     textured_image,
     write_recording,
 )
+
+from drivesim.cli.main import main
 
 REAL = REAL_DATA
 HUSKY = REAL / "husky_gps_imu_odom.bag"

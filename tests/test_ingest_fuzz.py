@@ -36,8 +36,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from kitti_fakes import kitti_stereo_folder
-
-from drivesim.diagnostics.recordings import (
+from recordings import (
     START_NS,
     Msg,
     drive_messages,
@@ -48,6 +47,7 @@ from drivesim.diagnostics.recordings import (
     textured_image,
     write_recording,
 )
+
 from drivesim.pipeline.errors import DrivesimError
 from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.run import ingest_recording

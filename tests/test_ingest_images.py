@@ -7,8 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
-from drivesim.diagnostics.recordings import (
+from recordings import (
     Msg,
     drive_messages,
     image_values,
@@ -16,6 +15,7 @@ from drivesim.diagnostics.recordings import (
     textured_image,
     write_recording,
 )
+
 from drivesim.pipeline.errors import InputError
 from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.images import CameraModel, EncodingError, FrameProcessor, area_remap_tables, decode_raw

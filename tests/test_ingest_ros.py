@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from recordings import (
     DEFAULT_K,
     FORMATS,
@@ -27,6 +26,7 @@ from recordings import (
     tf_static_values,
     write_recording,
 )
+
 from drivesim.pipeline.errors import ConfigError, InputError
 from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.run import ingest_recording

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from recordings import drive_messages, write_recording
 
-from drivesim.diagnostics.recordings import drive_messages, write_recording
 from drivesim.pipeline.errors import InputError
 from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.run import ingest_recording

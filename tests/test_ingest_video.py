@@ -428,10 +428,11 @@ def test_a_frame_registered_off_its_neighbours_is_dropped() -> None:
 def test_lane_run_preset_trains_like_the_lane_preset_on_the_recording_alone() -> None:
     """`drivesim run VIDEO --preset lane` (the issue's video-to-policy run): configs/train/lane.yaml's training on
     top of the chain's train preset, stopped after 15 min, no procedural towns, 100 lane evaluation episodes."""
+    from drivesim.chain.registry import stage_by_name
+    from drivesim.chain.run import load_run_preset
+    from drivesim.chain.walk import stage_config
     from drivesim.pipeline.config import load_config
-    from drivesim.stages.chain import stage_by_name
     from drivesim.stages.evaluate.config import EvalConfig
-    from drivesim.stages.run_chain import load_run_preset, stage_config
     from drivesim.stages.train.config import TrainConfig
 
     overrides = load_run_preset("lane")

@@ -4,6 +4,8 @@ one, and a fit that learns the offset on a small world."""
 from __future__ import annotations
 
 import json
+import sys
+from pathlib import Path
 
 import gymnasium
 import numpy as np
@@ -12,8 +14,11 @@ import torch
 from sim_worlds import SMALL_VIEW, write_test_world
 
 import drivesim.sim.envs  # noqa: F401  (registers the envs)
-from drivesim.diagnostics.lateral_probe import blank_view_part, fit_probe, fit_readout, render_views, score_probe
 from drivesim.stages.train.config import PolicyConfig
+
+# The probe is research code in experiments/ (not installed), imported from its folder.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments" / "lateral_probe"))
+from lateral_probe import blank_view_part, fit_probe, fit_readout, render_views, score_probe  # noqa: E402
 
 # Photometric augmentation off, so that a mirrored view can be compared with the plain one pixel for pixel.
 NO_PHOTOMETRY = {"gamma": (1.0, 1.0), "brightness": (0.0, 0.0), "contrast": (1.0, 1.0), "saturation": (1.0, 1.0)}

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import pytest
 
+from drivesim.chain.registry import CHAIN
 from drivesim.pipeline.config import StageConfig, describe_config, load_config
 from drivesim.pipeline.errors import ConfigError, MissingArtifactError
 from drivesim.pipeline.status import status_report
 from drivesim.pipeline.workspace import Workspace, artifact_key
-from drivesim.stages.chain import CHAIN
 
 
 class _Image(StageConfig):

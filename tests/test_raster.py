@@ -6,8 +6,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-
-from drivesim.diagnostics.gl_reference import (
+from gl_reference import (
     GLRenderer,
     car_meshes,
     checker_texture,
@@ -15,6 +14,7 @@ from drivesim.diagnostics.gl_reference import (
     ground_plane,
     textured_quad,
 )
+
 from drivesim.sim import geometry as g
 from drivesim.sim import raster_kernel
 from drivesim.sim.mesh import Material, Mesh

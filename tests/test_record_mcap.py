@@ -30,7 +30,7 @@ from drivesim.pipeline.errors import ConfigError
 from drivesim.pipeline.workspace import Workspace
 from drivesim.sim.episode_mcap import EpisodeCapture, Road, write_episode_mcap
 from drivesim.sim.footprint import footprint
-from drivesim.stages.evaluate import record
+from drivesim.stages.evaluate import record, replay
 from drivesim.stages.evaluate.config import EvalConfig
 from drivesim.stages.evaluate.metrics import evaluate_episode
 from drivesim.stages.evaluate.rollout import PolicySpec, env_limits, read_episode, run_episode, run_episodes
@@ -234,7 +234,7 @@ def test_record_n_all_and_none(tmp_path):
         run_episodes(factory, PolicySpec("expert"), "overtake", seeds, episodes, workers=1, record=plan)
         results = [evaluate_episode(read_episode(episodes / f"{s}.json")) for s in seeds]
         assert [r.metrics.intervention for r in results] == [True, False, False, False]  # the expert fails seed 0
-        paths = record.finish_recordings(plan, results, factory, PolicySpec("expert"), "overtake", tmp_path / "out")
+        paths = replay.finish_recordings(plan, results, factory, PolicySpec("expert"), "overtake", tmp_path / "out")
         assert [int(p.stem) for p in paths] == expected, value
         assert record.recorded_seeds(tmp_path / f"work-{value}") == set(
             expected
@@ -251,8 +251,8 @@ def test_a_replayed_recording_is_the_one_the_worker_wrote(tmp_path):
     plan = record.record_plan("all", seeds, tmp_path / "by-worker", world)
     run_episodes(factory, PolicySpec("expert"), "overtake", seeds, tmp_path / "episodes", workers=1, record=plan)
     results = [evaluate_episode(read_episode(tmp_path / "episodes" / f"{s}.json")) for s in seeds]
-    replay = record.RecordPlan("all", None, 0, str(tmp_path / "replayed"), str(world))
-    paths = record.finish_recordings(replay, results, factory, PolicySpec("expert"), "overtake", tmp_path / "out")
+    to_replay = record.RecordPlan("all", None, 0, str(tmp_path / "replayed"), str(world))
+    paths = replay.finish_recordings(to_replay, results, factory, PolicySpec("expert"), "overtake", tmp_path / "out")
     assert [p.name for p in paths] == ["0.mcap", "1.mcap", "2.mcap"]
     for seed in seeds:
         assert (tmp_path / "replayed" / f"{seed}.mcap").read_bytes() == (

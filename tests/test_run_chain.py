@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from drivesim.chain.run import load_run_preset
 from drivesim.pipeline.errors import ConfigError
-from drivesim.stages.run_chain import load_run_preset
 
 TESTS = Path(__file__).parent
 
@@ -51,7 +51,7 @@ def drivesim(ws: Path, *args: str) -> subprocess.CompletedProcess:
 
 @pytest.mark.slow
 def test_run_walks_the_chain_then_skips_it(tmp_path: Path) -> None:
-    from drivesim.stages.chain import CHAIN
+    from drivesim.chain.registry import CHAIN
 
     names = [spec.name for spec in CHAIN]
     if "export" not in names:

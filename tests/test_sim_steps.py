@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from sim_worlds import SMALL_VIEW, write_test_world
 
-from drivesim.diagnostics.sim_steps import StepTimes, make_env, recording_car_drawn, time_env_steps
+from drivesim.bench.sim_steps import StepTimes, make_env, recording_car_drawn, time_env_steps
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from drivesim.diagnostics.stereo import (
+from drivesim.bench.stereo import (
     IDENTITY,
     REFERENCE,
     read_stereo_folder,

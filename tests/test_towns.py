@@ -1,4 +1,4 @@
-"""Procedural towns (`drivesim towns build`, stages/towns.py) on tiny drives: built through the chain, skipped when
+"""Procedural towns (`drivesim towns build`, chain/towns.py) on tiny drives: built through the chain, skipped when
 fresh, a changed setting redoing only its stage; `drivesim train` adds the towns its config names (building the
 missing ones first) to the workspace's world or the --world folders."""
 
@@ -10,11 +10,11 @@ import pytest
 import yaml
 from cli_helpers import drivesim_ok
 
+from drivesim.chain import towns as towns_module
+from drivesim.chain.towns import TownsConfig, ensure_towns, is_built, town_world
 from drivesim.pipeline.errors import DrivesimError
 from drivesim.pipeline.stage import StageResult
 from drivesim.pipeline.workspace import Workspace
-from drivesim.stages import towns as towns_module
-from drivesim.stages.towns import TownsConfig, ensure_towns, is_built, town_world
 from drivesim.stages.train import stage as train_stage
 from drivesim.stages.train.config import TrainConfig
 
@@ -133,7 +133,7 @@ def test_train_builds_the_missing_towns_first_and_uses_the_built_as_they_are(tmp
     monkeypatch.setattr(towns_module, "build_towns", fake_build)
     monkeypatch.setattr(train_stage, "run_stage", fake_run_stage)
     cfg = TrainConfig(task="overtake", towns=[4, 7])
-    train_stage.run_training(ws, cfg)
+    train_stage.run_training(ws, cfg, towns=towns_module.training_towns(ws, cfg))
     assert asked == [[7]] and is_built(ws, 7)
     assert list(seen["external"].values()) == [ws.root / "world", town_world(ws, 4), town_world(ws, 7)]
     # Both towns there now: nothing is built again.
@@ -143,7 +143,12 @@ def test_train_builds_the_missing_towns_first_and_uses_the_built_as_they_are(tmp
 def test_a_missing_workspace_world_is_one_line_before_any_town_is_built(tmp_path, monkeypatch) -> None:
     monkeypatch.setattr(towns_module, "build_towns", lambda *a, **k: pytest.fail("a town was built"))
     with pytest.raises(DrivesimError, match="no world artifact"):
-        train_stage.run_training(Workspace(tmp_path / "empty"), TrainConfig(task="overtake", towns=[1]))
+        towns_module.training_towns(Workspace(tmp_path / "empty"), TrainConfig(task="overtake", towns=[1]))
+
+
+def test_the_train_stage_refuses_a_config_with_towns_but_no_town_worlds(tmp_path) -> None:
+    with pytest.raises(DrivesimError, match="towns 1, 2, but their worlds were not given"):
+        train_stage.run_training(Workspace(tmp_path / "empty"), TrainConfig(task="overtake", towns=[1, 2]))
 
 
 def test_town_overrides_put_the_seed_and_drive_length_under_the_config() -> None:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from gl_reference import car_meshes, checker_texture
 
-from drivesim.diagnostics.gl_reference import car_meshes, checker_texture
 from drivesim.sim import geometry as g
 from drivesim.sim import warp as warp_module
 from drivesim.sim.mesh import Material, Mesh

@@ -17,12 +17,12 @@ from test_preprocess_stage_fakes import (
     make_trace,
 )
 
+from drivesim.chain.registry import CHAIN
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import MissingArtifactError
 from drivesim.pipeline.status import status_report
 from drivesim.pipeline.workspace import Workspace
 from drivesim.sim.world import World
-from drivesim.stages.chain import CHAIN
 from drivesim.stages.preprocess import stage as preprocess_stage
 from drivesim.stages.preprocess.config import PreprocessConfig
 from drivesim.stages.world.build import resize_depth, sim_resolution

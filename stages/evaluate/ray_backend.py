@@ -20,6 +20,7 @@ from types import ModuleType
 from typing import Any
 
 from drivesim.pipeline.errors import DrivesimError
+from drivesim.pipeline.ray_cluster import RaySession, cluster_cpus, cpus_per_actor, is_lost_worker, kill_actors
 from drivesim.stages.evaluate.metrics import EpisodeRecord, evaluate_episode
 from drivesim.stages.evaluate.rollout import (
     EnvFactory,
@@ -31,7 +32,6 @@ from drivesim.stages.evaluate.rollout import (
     run_episode,
     write_episode,
 )
-from drivesim.stages.ray_cluster import RaySession, cluster_cpus, cpus_per_actor, is_lost_worker, kill_actors
 
 IN_FLIGHT_PER_ACTOR = 2
 ACTOR_START_TIMEOUT_S = 600.0

@@ -130,7 +130,7 @@ def write_world_outputs(
     :param cfg: the eval config. :param jobs: the worlds (`stages.evaluate.stage.WorldJob`), in order.
     :param results: each world's episodes, in seed order. :param header: what was evaluated (metrics.json's header).
     """
-    from drivesim.stages.evaluate.record import finish_recordings
+    from drivesim.stages.evaluate.replay import finish_recordings
     from drivesim.stages.evaluate.report import Track, write_outputs
     from drivesim.stages.evaluate.rollout import PolicySpec
     from drivesim.stages.evaluate.video import render_videos

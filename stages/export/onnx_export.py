@@ -11,15 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from drivesim.policy.onnx_runtime import (
-    DIGEST_KEY,
-    INPUT_NAMES,
-    METADATA_FORMAT,
-    METADATA_PREFIX,
-    OUTPUT_NAMES,
-    OnnxPolicy,
-    metadata_digest,
-)
+from drivesim.policy.onnx_runtime import INPUT_NAMES, METADATA_FORMAT, METADATA_PREFIX, OUTPUT_NAMES, OnnxPolicy
 
 # Batch size is dynamic: the car runs one episode, evaluation may step several at once.
 DYNAMIC_AXES = {
@@ -39,8 +31,7 @@ def export_onnx(
     """Write `module` (forward(image_u8, h, c, episode_start) -> (action, h, c)) to `path` as one checked ONNX graph.
 
     Uses torch's legacy (TorchScript) exporter: the dynamo path needs onnxscript and writes the weights beside the
-    graph. `metadata` values are stored as JSON under `drivesim.<key>`, with `drivesim.digest` over them and the graph
-    (checked by `OnnxPolicy` on load).
+    graph. `metadata` values are stored as JSON under `drivesim.<key>`.
     """
     import onnx
     import torch
@@ -76,8 +67,6 @@ def export_onnx(
         entry = model.metadata_props.add()
         entry.key, entry.value = METADATA_PREFIX + key, json.dumps(value)
     model.producer_name = "drivesim"
-    entry = model.metadata_props.add()
-    entry.key, entry.value = METADATA_PREFIX + DIGEST_KEY, json.dumps(metadata_digest(model))
     onnx.checker.check_model(model, full_check=True)
     onnx.save(model, str(path))
 

@@ -76,9 +76,9 @@ def policy_metadata(policy: Any) -> dict[str, Any]:
 def _build(ctx: BuildContext) -> ExportSummary:
     import numpy as np
 
+    from drivesim.policy.onnx_runtime import OnnxPolicy
+    from drivesim.policy.run_folder import load_policy
     from drivesim.stages.export.onnx_export import check_images, compare_rollout, export_onnx, time_steps
-    from drivesim.stages.policy.onnx_runtime import OnnxPolicy
-    from drivesim.stages.policy.run_folder import load_policy
 
     cfg = ctx.config
     assert isinstance(cfg, ExportConfig)
@@ -150,7 +150,7 @@ SPEC: StageSpec[ExportSummary] = StageSpec(
 
 def resolve_run(ws: Workspace, cfg: ExportConfig) -> Path:
     """The run folder to export: `cfg.run`, else the workspace's newest finished run (ExportError when none)."""
-    from drivesim.stages.policy.run_folder import latest_run
+    from drivesim.policy.run_folder import latest_run
 
     if cfg.run is not None:
         run = Path(cfg.run)

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from stable_baselines3.common.vec_env import VecEnv
 
-from drivesim.stages.policy.net import DrivingNet
+from drivesim.policy.net import DrivingNet
 from drivesim.stages.train.callbacks import EpisodeRecord, summarize_episodes
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 from drivesim.pipeline.errors import DrivesimError
-from drivesim.stages.ray_cluster import RaySession, cpus_per_actor, is_lost_worker, kill_actors
+from drivesim.pipeline.ray_cluster import RaySession, cpus_per_actor, is_lost_worker, kill_actors
 
 
 class EnvWorker:

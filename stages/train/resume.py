@@ -15,7 +15,7 @@ from pathlib import Path
 from drivesim.pipeline.config import load_config_over
 from drivesim.pipeline.errors import ConfigError, DrivesimError
 from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
-from drivesim.stages.policy.run_folder import RUNS_DIR
+from drivesim.policy.run_folder import RUNS_DIR
 from drivesim.stages.train.config import TrainConfig
 
 

@@ -1,6 +1,6 @@
 """Writing a run folder's files: policy weights and description, checkpoints, progress.csv, curves.png.
 
-(The folder's layout is documented in `stages/policy/run_folder.py`, which reads it.) Every file is written to a
+(The folder's layout is documented in `policy/run_folder.py`, which reads it.) Every file is written to a
 temporary sibling and moved into place, so a kill at any moment leaves the previous version whole.
 """
 
@@ -15,8 +15,8 @@ from typing import Any
 
 import torch
 
-from drivesim.stages.policy.net import STANDARDIZE_EPS
-from drivesim.stages.policy.run_folder import NORMALIZATION_JSON, POLICY_JSON, POLICY_WEIGHTS
+from drivesim.policy.net import STANDARDIZE_EPS
+from drivesim.policy.run_folder import NORMALIZATION_JSON, POLICY_JSON, POLICY_WEIGHTS
 
 CHECKPOINTS = "checkpoints"
 LAST_CHECKPOINT = "last.pt"

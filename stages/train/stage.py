@@ -2,17 +2,15 @@
 
 A training run is resumable, so unlike other stages it does not build in a temporary folder that a crash removes:
 it trains in its run folder `runs/<task>-<timestamp>/` (checkpoint + progress.csv after every update, no manifest:
-an unfinished run), and only at the end does `run_stage` take the finished files, write manifest.json and move the
-folder into place. Callers that walk the chain pass `artifact=f"runs/{run_dir.name}"` with the folder set by
-`active_run`: call `run_training`, which does both (the build refuses to run without an active run folder).
+an unfinished run), handed to the build as the contract's `work_dir`, and only at the end does `run_stage` take the
+finished files, write manifest.json and move the folder into place. `run_training` passes both the run folder and
+`artifact=f"runs/{run_dir.name}"` (the build refuses to run without a run folder).
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
-from contextvars import ContextVar
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -21,18 +19,6 @@ from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, run_st
 from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.summary import TrainSummary
-
-_ACTIVE_RUN: ContextVar[Path | None] = ContextVar("drivesim_train_run", default=None)
-
-
-@contextmanager
-def active_run(run_dir: Path) -> Iterator[None]:
-    """Make `run_dir` the folder the stage's build trains in (a new run or one to resume)."""
-    token = _ACTIVE_RUN.set(run_dir)
-    try:
-        yield
-    finally:
-        _ACTIVE_RUN.reset(token)
 
 
 def _worlds_of(ctx: BuildContext) -> list[Path]:
@@ -54,7 +40,7 @@ def _build(ctx: BuildContext) -> TrainSummary:
 
     cfg = ctx.config
     assert isinstance(cfg, TrainConfig)
-    run_dir = _ACTIVE_RUN.get()
+    run_dir = ctx.work_dir
     if run_dir is None:
         # run_stage(ws, SPEC, cfg) alone would move the finished run over the whole runs/ folder.
         raise DrivesimError("the train stage runs through stages.train.stage.run_training (one folder per run)")
@@ -117,11 +103,11 @@ _MEMBER_PREFIX = "member_"
 
 
 def _build_ensemble(ctx: BuildContext, cfg: TrainConfig, run_dir: Path, members: list[Path]) -> TrainSummary:
-    """The ensemble run of the finished runs `members` (`stages/policy/ensemble.py`) in the stage's folder; its
+    """The ensemble run of the finished runs `members` (`policy/ensemble.py`) in the stage's folder; its
     summary adds up the members' training."""
     import json
 
-    from drivesim.stages.policy.ensemble import load_members, write_ensemble_files
+    from drivesim.policy.ensemble import load_members, write_ensemble_files
 
     loaded = load_members(members)
     write_ensemble_files(ctx.dir, loaded, cfg.model_dump(mode="json"))
@@ -193,53 +179,49 @@ def run_training(
     worlds: list[Path] | None = None,
     resume: Path | None = None,
     on_start: Callable[[Path], None] | None = None,
+    towns: list[Path] | None = None,
 ) -> StageResult[TrainSummary]:
     """Train a policy in a new run folder (or continue the unfinished run `resume`) and finish it with a manifest.
 
     :param ws: the workspace (runs/ goes in it; its world/ is the default world).
     :param cfg: the resolved train config.
-    :param worlds: world folders to train on (default: the workspace's world); ignored with the cost-free env. The
-        towns of `cfg.towns` are added (built first when missing, stages/towns.py).
+    :param worlds: world folders to train on (default: the workspace's world); ignored with the cost-free env.
     :param resume: an unfinished run folder to continue (`stages.train.resume` finds it and reopens a finished one).
     :param on_start: called with the run folder once the inputs are checked, right before training (the CLI
         reopens a finished run to train it further, and prints its header).
+    :param towns: the world folders of the towns `cfg.towns` names, built upstream (`chain.towns.training_towns`);
+        added after `worlds`. Refused when the config names towns and none are given.
     """
     from drivesim.stages.train.run import new_run_dir
 
+    if cfg.towns and cfg.envs.source != "cost_free" and not towns:
+        raise DrivesimError(
+            f"the config trains on towns {', '.join(map(str, cfg.towns))}, but their worlds were not given "
+            "(`drivesim train` builds them first)"
+        )
     if cfg.ensemble > 1 and resume is None:
-        return _train_ensemble(ws, cfg, worlds, on_start)
-    towns: list[Path] = []
-    if cfg.towns and cfg.envs.source != "cost_free":
-        from drivesim.stages.towns import ensure_towns
-
-        if not worlds:  # a missing world is one line before any town is built
-            ws.require("world", SPEC.upstream_hints["world"])
-        towns = ensure_towns(ws, cfg.towns)
+        return _train_ensemble(ws, cfg, worlds, on_start, towns)
     run_dir = resume if resume is not None else new_run_dir(ws.root, cfg.task)
     spec, external = training_inputs(ws, cfg, worlds, towns)
     for upstream in spec.requires:  # a missing world is one line before the header names a run folder
         ws.require(upstream, spec.upstream_hints.get(upstream, f"drivesim {upstream}"))
     if on_start is not None:
         on_start(run_dir)
-    with active_run(run_dir):
-        return run_stage(
-            ws,
-            spec,
-            cfg,
-            force=True,
-            external=external,
-            artifact=f"runs/{run_dir.name}",
-        )
+    return run_stage(ws, spec, cfg, force=True, external=external, artifact=f"runs/{run_dir.name}", work_dir=run_dir)
 
 
 def _train_ensemble(
-    ws: Workspace, cfg: TrainConfig, worlds: list[Path] | None, on_start: Callable[[Path], None] | None
+    ws: Workspace,
+    cfg: TrainConfig,
+    worlds: list[Path] | None,
+    on_start: Callable[[Path], None] | None,
+    towns: list[Path] | None,
 ) -> StageResult[TrainSummary]:
     """`cfg.ensemble` runs with seeds cfg.seed, cfg.seed + 1, ..., one after another, then their ensemble run."""
     members = []
     for k in range(cfg.ensemble):
         member_cfg = cfg.model_copy(update={"ensemble": 1, "seed": cfg.seed + k})
-        members.append(run_training(ws, member_cfg, worlds, on_start=on_start).path)
+        members.append(run_training(ws, member_cfg, worlds, on_start=on_start, towns=towns).path)
     return assemble_ensemble(ws, cfg, members)
 
 
@@ -251,6 +233,5 @@ def assemble_ensemble(ws: Workspace, cfg: TrainConfig, members: list[Path]) -> S
     cfg = cfg.model_copy(update={"ensemble": len(members)})
     run_dir = new_run_dir(ws.root, cfg.task)
     external = {f"{_MEMBER_PREFIX}{k:02d}": Path(m).absolute() for k, m in enumerate(members)}
-    with active_run(run_dir):
-        return run_stage(ws, replace(SPEC, requires=()), cfg, force=True, external=external,
-                         artifact=f"runs/{run_dir.name}")  # fmt: skip
+    spec = replace(SPEC, requires=())
+    return run_stage(ws, spec, cfg, force=True, external=external, artifact=f"runs/{run_dir.name}", work_dir=run_dir)
