@@ -12,20 +12,33 @@ Layout (DESIGN §2): `trace/`, `preprocessed/`, `world/`, `meshes/`, `runs/<task
     config_hash    str    sha256 of that config (canonical JSON)
     inputs         dict   name -> {"kind": "artifact"|"external", "path": str, "hash": str}
                           (artifact paths relative to the workspace, external paths absolute)
-    outputs        dict   relative file path -> {"size_bytes": int, "sha256": str}
+    command        str    the command that makes it ("drivesim build-world"), named when it must be rebuilt
+    outputs        dict   relative file path -> {"size_bytes": int, "mtime_ns": int, "sha256": str}
     artifact_hash  str    sha256 over the outputs: what downstream manifests record as their input hash
     key            str    sha256 of (stage, code_version, config_hash, inputs): equal key = nothing to redo
     summary        dict   stage-specific figures for `drivesim status`
     created_utc    str    ISO 8601
+
+An artifact's files are checked against its manifest wherever it is read (`require`, `check_folder`) and by
+`drivesim status`: size and mtime_ns first (one stat per file), the sha256 only for a file whose mtime moved, so a
+file changed after the build is found without hashing gigabytes on every command. An artifact whose files changed,
+or whose upstream artifact was rebuilt (or is itself stale) since, is refused by its readers with one line naming the
+commands that refresh it.
+
+A stage that writes an artifact holds the workspace's lock on it (`lock`: fcntl.flock on `.locks/<name>.lock`), so a
+second command writing the same artifact at the same time stops with one line instead of both writing.
 """
 
 from __future__ import annotations
 
 import errno
+import fcntl
 import json
 import os
 import re
 import shutil
+import stat
+import sys
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
@@ -34,15 +47,42 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from drivesim.pipeline.errors import DiskFullError, DrivesimError, MissingArtifactError
+from drivesim.pipeline.errors import (
+    ArtifactBusyError,
+    DiskFullError,
+    DrivesimError,
+    MissingArtifactError,
+    StaleArtifactError,
+)
 from drivesim.pipeline.hashing import fingerprint_external, sha256_file, sha256_json
+from drivesim.pipeline.json_files import read_json
 from drivesim.pipeline.version import code_version
 
 MANIFEST_NAME = "manifest.json"
+_MADE_FROM_THE_TRACE = ("preprocessed", "world")
+"""Artifacts made from the recording's trace: where one is missing with no trace either, every step is named."""
 _TMP_PREFIX = ".tmp-"
 _TMP_PID = re.compile(r"-(\d+)-[0-9a-f]{8}(?:-|$)")
 
 DEFAULT_WORKSPACE = Path("drivesim-work")
+LOCKS_DIR = ".locks"
+"""Folder of the workspace's lock files, one per artifact being written (`Workspace.lock`)."""
+_MAX_UPSTREAM_DEPTH = 16
+"""How deep the staleness check follows artifact inputs (a chain is a handful of stages; a loop stops here)."""
+_HELD_LOCKS: dict[Path, int] = {}
+"""Lock files this process holds, with how many nested `lock` calls hold each (the lock is re-entrant)."""
+
+
+@dataclass(frozen=True)
+class Staleness:
+    """Why an artifact no longer matches what the workspace holds, and what to rebuild.
+
+    :param reasons: why it is stale (empty when it is not).
+    :param rebuild: the artifacts to rebuild, upstream first, ending with the artifact itself (empty when fresh).
+    """
+
+    reasons: tuple[str, ...] = ()
+    rebuild: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -86,6 +126,7 @@ class Workspace:
 
     def __init__(self, root: Path | str = DEFAULT_WORKSPACE) -> None:
         self.root = Path(root).absolute()
+        self._hashes: dict[tuple[str, int, int], str] = {}  # (path, size, mtime_ns) -> sha256, for one command
 
     def artifact_dir(self, name: str) -> Path:
         """Folder of artifact `name` (it may not exist yet)."""
@@ -95,8 +136,8 @@ class Workspace:
         """The manifest of artifact `name`, or None when it is missing or unreadable (see `manifest_unreadable`)."""
         path = self.artifact_dir(name) / MANIFEST_NAME
         try:
-            manifest = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            manifest = read_json(path)
+        except (OSError, ValueError):  # unreadable, not JSON, nested too deeply, NaN
             return None
         return manifest if manifest_is_valid(manifest) else None
 
@@ -105,15 +146,188 @@ class Workspace:
         return (self.artifact_dir(name) / MANIFEST_NAME).exists() and self.read_manifest(name) is None
 
     def require(self, name: str, how_to_make: str) -> Path:
-        """The folder of an artifact a stage needs, or a clear error saying which command makes it."""
+        """The folder of an artifact a stage needs, or a clear error saying which command makes it: missing,
+        unreadable, changed since it was written, or stale (an upstream artifact rebuilt since, or stale itself)."""
         if self.read_manifest(name) is None:
             if self.manifest_unreadable(name):
                 raise MissingArtifactError(
                     f"the {name} artifact's {MANIFEST_NAME} is unreadable (damaged); rebuild it with `{how_to_make}`",
                     self.artifact_dir(name),
                 )
+            if name in _MADE_FROM_THE_TRACE and self.read_manifest("trace") is None:
+                raise MissingArtifactError(
+                    f"no {name} artifact in workspace {self.root}, nor a recording read into it: run `drivesim run "
+                    "RECORDING` (every stage), or `drivesim ingest RECORDING`, `drivesim preprocess` and "
+                    "`drivesim build-world` one by one"
+                )
             raise MissingArtifactError(f"no {name} artifact in workspace {self.root}; run `{how_to_make}` first")
+        staleness = self.staleness(name, externals=False)
+        if staleness.reasons:
+            commands = self.refresh_commands(staleness.rebuild, {name: how_to_make})
+            raise StaleArtifactError(
+                f"the {name} artifact is stale ({'; '.join(staleness.reasons)}); refresh it with {commands}",
+                self.artifact_dir(name),
+            )
         return self.artifact_dir(name)
+
+    def changed_outputs(self, folder: Path, manifest: dict[str, Any]) -> list[str]:
+        """The files of the artifact in `folder` that are missing or differ from what its manifest recorded.
+
+        Size and mtime_ns first (one stat per file); the sha256 only for a file whose mtime moved (a copy, a `touch`,
+        a rewrite of the same size), so an unchanged artifact costs no hashing.
+        """
+        changed = []
+        for rel, meta in manifest.get("outputs", {}).items():
+            path = Path(folder) / rel
+            try:
+                info = path.stat()
+            except OSError:
+                changed.append(rel)
+                continue
+            same_file = stat.S_ISREG(info.st_mode) and info.st_size == meta.get("size_bytes")
+            if not same_file or (
+                info.st_mtime_ns != meta.get("mtime_ns") and self._sha256(path, info) != meta.get("sha256")
+            ):
+                changed.append(rel)
+        return changed
+
+    def _sha256(self, path: Path, info: os.stat_result) -> str:
+        key = (str(path), info.st_size, info.st_mtime_ns)
+        if key not in self._hashes:
+            try:
+                self._hashes[key] = sha256_file(path)
+            except OSError:
+                return ""
+        return self._hashes[key]
+
+    def staleness(
+        self, name: str, manifest: dict[str, Any] | None = None, *, externals: bool = True, _depth: int = 0
+    ) -> Staleness:
+        """Why artifact `name` no longer matches the workspace, and what to rebuild (upstream first).
+
+        Stale: an output file changed since it was written; an artifact input missing, rebuilt since (another
+        artifact_hash) or itself stale, followed upstream; with `externals`, an external input (a recording) gone or
+        changed. Readers pass `externals=False`: an artifact stays a faithful product of the recording it was made
+        from when that recording is moved away later. The code version is not checked here (`drivesim status` shows
+        it): a new drivesim reads the artifacts of an older one.
+        """
+        manifest = self.read_manifest(name) if manifest is None else manifest
+        if manifest is None:
+            return Staleness(("manifest missing or unreadable",), (name,))
+        reasons: list[str] = []
+        rebuild: list[str] = []
+        for key, ref in sorted(manifest.get("inputs", {}).items()):
+            if ref["kind"] == "artifact":
+                upstream = self.read_manifest(ref["path"])
+                if upstream is None:
+                    reasons.append(f"input {ref['path']} is missing")
+                    continue
+                up = (
+                    self.staleness(ref["path"], upstream, externals=externals, _depth=_depth + 1)
+                    if _depth < _MAX_UPSTREAM_DEPTH
+                    else Staleness()
+                )
+                if up.reasons:
+                    reasons.append(f"input {ref['path']} is stale ({up.reasons[0]})")
+                    rebuild += [r for r in up.rebuild if r not in rebuild]
+                elif upstream.get("artifact_hash") != ref["hash"]:
+                    reasons.append(f"input {ref['path']} changed")
+            elif externals:
+                path = Path(ref["path"])
+                if not path.exists():
+                    reasons.append(f"input {key} {path} is gone")
+                elif fingerprint_external(path) != ref["hash"]:
+                    reasons.append(f"input {key} {path} changed")
+        changed = self.changed_outputs(self.artifact_dir(name), manifest)
+        if changed:
+            more = f" and {len(changed) - 1} more" if len(changed) > 1 else ""
+            reasons.append(f"file {changed[0]}{more} changed since it was written")
+        return Staleness(tuple(reasons), (*rebuild, name) if reasons else ())
+
+    def refresh_commands(self, rebuild: tuple[str, ...], hints: dict[str, str] | None = None) -> str:
+        """The commands that rebuild `rebuild` in order, as one phrase: "`drivesim preprocess`, then `drivesim
+        build-world`". Each artifact's command: from `hints`, else the one its manifest recorded."""
+        commands: list[str] = []
+        for name in rebuild:
+            manifest = self.read_manifest(name) or {}
+            command = (hints or {}).get(name) or manifest.get("command") or f"drivesim {manifest.get('stage', name)}"
+            if command not in commands:
+                commands.append(command)
+        return ", then ".join(f"`{c}`" for c in commands)
+
+    def check_input(self, path: Path) -> None:
+        """Refuse (one line) an input given by path whose files changed since its artifact's manifest was written:
+        an artifact folder (`--world PATH`, a run folder, a mesh library), or one file of an artifact (an ONNX file in
+        an export folder, a run's checkpoint). Anything that is not part of an artifact passes unchecked."""
+        path = Path(path)
+        if path.is_dir():
+            self.check_folder(path)
+            return
+        for folder in (path.parent, path.parent.parent):
+            if (folder / MANIFEST_NAME).is_file():
+                self.check_folder(folder, only=str(path.relative_to(folder)))
+                return
+
+    def check_folder(self, folder: Path, only: str | None = None) -> None:
+        """Refuse (one line) an artifact folder given by path whose files (or its file `only`) changed since its
+        manifest was written; a folder without a manifest (not an artifact) passes unchecked."""
+        folder = Path(folder)
+        if not (folder / MANIFEST_NAME).is_file():
+            return
+        try:
+            manifest = read_json(folder / MANIFEST_NAME)
+        except (OSError, ValueError):
+            manifest = None
+        if not manifest_is_valid(manifest):
+            return  # no outputs recorded to check against: the folder's own reader (the world loader) judges it
+        if only is not None:
+            if only not in manifest["outputs"]:
+                return
+            manifest = {**manifest, "outputs": {only: manifest["outputs"][only]}}
+        changed = self.changed_outputs(folder, manifest)
+        if changed:
+            command = manifest.get("command") or f"drivesim {manifest.get('stage') or 'run'}"
+            more = f" (and {len(changed) - 1} more files)" if len(changed) > 1 else ""
+            raise StaleArtifactError(
+                f"file {changed[0]}{more} changed since the {manifest.get('artifact') or 'this'} artifact was written "
+                f"(its size or sha256 differs from {MANIFEST_NAME}); rebuild it with `{command}`",
+                folder,
+            )
+
+    @contextmanager
+    def lock(self, name: str) -> Iterator[None]:
+        """Hold the workspace's lock on artifact `name` while writing it: a second process that asks for it stops
+        with one line (ArtifactBusyError, exit 2) naming the holder. Re-entrant within a process; released when the
+        process ends, however it ends (fcntl.flock)."""
+        path = self.root / LOCKS_DIR / f"{name.replace('/', '_')}.lock"
+        if path in _HELD_LOCKS:
+            _HELD_LOCKS[path] += 1
+            try:
+                yield
+            finally:
+                _HELD_LOCKS[path] -= 1
+            return
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 400, 0).decode(errors="replace").strip() or "another process"
+                raise ArtifactBusyError(
+                    f"another drivesim ({_printable(holder)}) is writing the {name} artifact of this workspace; "
+                    "wait for it to finish (or stop it), or write elsewhere (--workspace, or eval's --name)",
+                    self.artifact_dir(name),
+                ) from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"pid {os.getpid()}: drivesim {' '.join(sys.argv[1:])[:200]}\n".encode(), 0)
+            _HELD_LOCKS[path] = 1
+            try:
+                yield
+            finally:
+                del _HELD_LOCKS[path]
+        finally:
+            os.close(fd)  # releases the lock
 
     def artifact_input(self, name: str) -> InputRef:
         """An InputRef to artifact `name` for a downstream manifest."""
@@ -128,15 +342,11 @@ class Workspace:
         return InputRef(kind="external", path=str(Path(path).absolute()), hash=fingerprint_external(Path(path)))
 
     def is_fresh(self, name: str, key: str) -> bool:
-        """True when artifact `name` exists, was made with this key, and its files are all present."""
+        """True when artifact `name` exists, was made with this key, and its files are as it wrote them."""
         manifest = self.read_manifest(name)
         if manifest is None or manifest.get("key") != key:
             return False
-        folder = self.artifact_dir(name)
-        return all(
-            (folder / rel).is_file() and (folder / rel).stat().st_size == meta["size_bytes"]
-            for rel, meta in manifest.get("outputs", {}).items()
-        )
+        return not self.changed_outputs(self.artifact_dir(name), manifest)
 
     def fresh_manifest(
         self, name: str, stage: str, config: dict[str, Any], inputs: dict[str, InputRef]
@@ -175,8 +385,11 @@ class Workspace:
         stage: str,
         config: dict[str, Any],
         inputs: dict[str, InputRef],
+        command: str = "",
     ) -> Iterator[ArtifactBuild]:
         """Build artifact `name` in a temporary folder; on success write its manifest and move it into place.
+
+        `command` is what a user types to make it (recorded, and named when it must be rebuilt).
 
         On any exception, KeyboardInterrupt included, the temporary folder is removed and an existing artifact
         of that name is left as it was.
@@ -189,7 +402,7 @@ class Workspace:
         build = ArtifactBuild(dir=tmp)
         try:
             yield build
-            manifest = self._manifest(name, stage, config, inputs, build)
+            manifest = self._manifest(name, stage, config, inputs, build, command)
             (tmp / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2, default=str) + "\n")
             self._move_into_place(tmp, self.artifact_dir(name))
         except OSError as e:
@@ -209,17 +422,25 @@ class Workspace:
             raise
 
     def _manifest(
-        self, name: str, stage: str, config: dict[str, Any], inputs: dict[str, InputRef], build: ArtifactBuild
+        self,
+        name: str,
+        stage: str,
+        config: dict[str, Any],
+        inputs: dict[str, InputRef],
+        build: ArtifactBuild,
+        command: str,
     ) -> dict[str, Any]:
         outputs = {}
         for path in sorted(build.dir.rglob("*")):
             if path.is_file() and path.name != MANIFEST_NAME:
                 rel = str(path.relative_to(build.dir))
-                outputs[rel] = {"size_bytes": path.stat().st_size, "sha256": sha256_file(path)}
+                info = path.stat()
+                outputs[rel] = {"size_bytes": info.st_size, "mtime_ns": info.st_mtime_ns, "sha256": sha256_file(path)}
         config_hash = sha256_json(config)
         return {
             "stage": stage,
             "artifact": name,
+            "command": command or f"drivesim {stage}",
             "code_version": code_version(),
             "config": config,
             "config_hash": config_hash,
@@ -272,6 +493,11 @@ def manifest_is_valid(manifest: Any) -> bool:
         isinstance(manifest.get(k, default), t)
         for k, t, default in (("summary", dict, {}), ("key", str, ""), ("stage", str, ""), ("artifact", str, ""))
     )
+
+
+def _printable(text: str) -> str:
+    """`text` with control characters (a newline in a file name) shown as `?`, so a message stays one line."""
+    return "".join(c if c.isprintable() else "?" for c in text)
 
 
 def _folder_bytes(folder: Path) -> int:
