@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -10,7 +11,10 @@ from rich.console import Console
 
 from drivesim.pipeline.workspace import DEFAULT_WORKSPACE, Workspace
 
-console = Console()
+# Piped into a file or another program there is no window to fit: tables and lines keep their full width there
+# instead of rich's 80 columns, which cut table cells ("episod…") in a log.
+PIPED_WIDTH = 100_000
+console = Console(width=None if sys.stdout.isatty() else PIPED_WIDTH)
 err_console = Console(stderr=True)
 
 
@@ -42,8 +46,14 @@ ForceOption = Annotated[bool, typer.Option("--force", help="Redo the stage even 
 
 
 def workspace() -> Workspace:
-    """The workspace chosen with `--workspace` (default ./drivesim-work)."""
-    return Workspace(state.workspace)
+    """The workspace chosen with `--workspace` (default ./drivesim-work); one line (exit 2) when that path is a
+    file, a FIFO or a device rather than a folder."""
+    from drivesim.pipeline.errors import InputError
+
+    root = Path(state.workspace)
+    if root.exists() and not root.is_dir():
+        raise InputError("is not a folder; --workspace takes a folder (made when it does not exist)", root)
+    return Workspace(root)
 
 
 AddressOption = Annotated[

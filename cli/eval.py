@@ -10,6 +10,7 @@ import typer
 
 from drivesim.cli.common import AddressOption, ConfigOption, ForceOption, choose_backend, console, set_option, workspace
 from drivesim.pipeline.config import load_config
+from drivesim.pipeline.errors import ConfigError
 from drivesim.sim.envs.registry import TASK_NAMES
 
 TaskOption = Annotated[
@@ -22,7 +23,7 @@ PolicyOption = Annotated[
         "--policy",
         help="A run folder of `drivesim train` (or one of its checkpoints, RUN/checkpoints/NAME.pt), an exported "
         ".onnx file, 'expert', 'random' or 'straight' (never steers). "
-        "Default: the workspace's newest finished run of the task, else the expert.",
+        "Default: the workspace's newest finished run of the task (without one, eval asks you to name a policy).",
         show_default=False,
     ),
 ]
@@ -92,6 +93,14 @@ ScenarioOption = Annotated[
         show_default=False,
     ),
 ]
+TrustEntryPointOption = Annotated[
+    bool,
+    typer.Option(
+        "--trust-entry-point",
+        help="Let env_entry_point (in --set or --config) name your own gymnasium.Env class; its module is imported, "
+        "so its code runs: only for code you trust. Without it only drivesim's own env classes are accepted.",
+    ),
+]
 
 
 def eval_command(
@@ -111,6 +120,7 @@ def eval_command(
     config: ConfigOption = None,
     set_: set_option("env.max_lateral_m=2.0") = None,
     force: ForceOption = False,
+    trust_entry_point: TrustEntryPointOption = False,
 ) -> None:
     """Evaluate a policy in closed loop: intervention, clearance, deviation and yaw with 95 % intervals.
 
@@ -122,6 +132,8 @@ def eval_command(
     from drivesim.stages.evaluate.stage import choose_policy, run_eval
 
     ws = workspace()
+    if episodes is not None and episodes < 1:
+        raise ConfigError(f"--episodes {episodes}: episodes must be >= 1")
     overrides = list(set_ or [])
     for key, value in (("task", task), ("episodes", episodes), ("seed", seed), ("video", video), ("record", record)):
         if value is not None:
@@ -133,18 +145,18 @@ def eval_command(
     if meshes is not None:
         overrides.append(f"meshes={meshes.absolute()}")
     cfg = load_config(EvalConfig, preset="eval", config_file=config, overrides=overrides)
-    user_chose = config is not None or any(o.startswith("policy=") for o in overrides)
-    cfg = choose_policy(ws, cfg, policy, user_chose)
     if workers is not None:
         cfg.workers = workers
     choose_backend(backend, address, cfg)
     if name is not None:
         cfg.name = name
+    user_chose = config is not None or any(o.startswith("policy=") for o in overrides)
+    cfg = choose_policy(ws, cfg, policy, user_chose)
     where = f" in each of {len(cfg.world)} worlds" if cfg.world is not None and len(cfg.world) > 1 else ""
     console.print(
         f"evaluating {cfg.policy} on {cfg.task}: {cfg.episodes} episodes{where} from seed {cfg.seed}", highlight=False
     )
-    result = run_eval(ws, cfg, force=force)
+    result = run_eval(ws, cfg, force=force, trust_entry_point=trust_entry_point)
     _print_result(result, cfg)
 
 

@@ -2,7 +2,8 @@
 
 `main` is the CLI's one error boundary: every command raises and none catches. A `DrivesimError` (bad input, a
 missing artifact), a pydantic `ValidationError`, an `OSError` (disk full, permission denied) becomes one line on
-stderr and an exit code (2 for input errors); Ctrl-C and SIGTERM print what was kept and how to continue (130, 143).
+stderr and an exit code (2 for input errors); Ctrl-C, SIGTERM and SIGHUP print what was kept and how to continue
+(130, 143, 129).
 A real bug still shows its traceback.
 """
 
@@ -22,7 +23,7 @@ from drivesim.cli import bench, config_show, export, ingest, meshes, preprocess,
 from drivesim.cli import eval as eval_cmd
 from drivesim.cli import sim as sim_cmd
 from drivesim.cli.common import err_console, state
-from drivesim.pipeline.errors import DrivesimError, Interrupted, Terminated
+from drivesim.pipeline.errors import DrivesimError, Interrupted, Terminated, printable
 from drivesim.sim.envs.registry import TASK_NAMES
 
 
@@ -98,27 +99,30 @@ app.add_typer(bench.bench_app, name="bench", help="Measure the simulator: fideli
 
 
 _INTERRUPTED = "interrupted: no artifact was written; run the command again to redo it"
-_TERMINATED = "terminated (SIGTERM): no artifact was written; run the command again to redo it"
+_TERMINATED = "terminated ({name}): no artifact was written; run the command again to redo it"
 SIGTERM_EXIT_CODE = 128 + signal.SIGTERM
 SIGINT_EXIT_CODE = 128 + signal.SIGINT
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+"""Signals handled as Ctrl-C with the same cleanup: SIGTERM (`timeout`, Slurm, `docker stop`) and SIGHUP (the
+terminal or ssh session closed); each exits 128 + its number with one line naming it."""
 
 
 class _Signals:
-    """Which signal stopped the command (the exit code depends on it)."""
+    """Which signal stopped the command (the exit code depends on it): a signal number, or None for Ctrl-C."""
 
-    terminated = False
+    stopped_by: int | None = None
 
 
-def _on_sigterm(signum: int, frame: object) -> None:
-    """SIGTERM as Ctrl-C: the same cleanup (temporary folders, worker processes), then exit 143."""
-    _Signals.terminated = True
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the process at once
-    raise Terminated()
+def _on_stop_signal(signum: int, frame: object) -> None:
+    """SIGTERM or SIGHUP as Ctrl-C: the same cleanup (temporary folders, worker processes), then exit 128 + signum."""
+    _Signals.stopped_by = signum
+    signal.signal(signum, signal.SIG_DFL)  # the same signal again ends the process at once
+    raise Terminated(signum)
 
 
 def _print_error(text: str) -> None:
     # escape: a message's own brackets (`pip install 'drivesim[ray]'`, paths) are text, not rich markup
-    err_console.print(f"[bold red]error:[/] {escape(text)}", highlight=False, soft_wrap=True)
+    err_console.print(f"[bold red]error:[/] {escape(printable(text))}", highlight=False, soft_wrap=True)
 
 
 def _os_error_line(e: OSError) -> str:
@@ -146,15 +150,16 @@ def _free_space(folder: Path) -> str:
 
 
 def _stop(interrupt: KeyboardInterrupt) -> None:
-    """Exit after Ctrl-C (130) or SIGTERM (143) with one line saying what was kept and how to continue."""
-    code = SIGTERM_EXIT_CODE if _Signals.terminated or isinstance(interrupt, Terminated) else SIGINT_EXIT_CODE
+    """Exit after Ctrl-C (130), SIGTERM (143) or SIGHUP (129) with one line saying what was kept and how to go on."""
+    signum = _Signals.stopped_by or (interrupt.signum if isinstance(interrupt, Terminated) else None)
+    code = SIGINT_EXIT_CODE if signum is None else 128 + signum
     if isinstance(interrupt, Interrupted):
         text = interrupt.message
-        if code == SIGTERM_EXIT_CODE:
-            text = text.replace("interrupted", "terminated (SIGTERM)", 1)
+        if signum is not None:
+            text = text.replace("interrupted", f"terminated ({signal.Signals(signum).name})", 1)
     else:
-        text = _TERMINATED if code == SIGTERM_EXIT_CODE else _INTERRUPTED
-    err_console.print(escape(text), highlight=False, soft_wrap=True)
+        text = _INTERRUPTED if signum is None else _TERMINATED.format(name=signal.Signals(signum).name)
+    err_console.print(escape(printable(text)), highlight=False, soft_wrap=True)
     sys.exit(code)
 
 
@@ -164,8 +169,9 @@ def main() -> None:
 
     from drivesim.pipeline.config import validation_line
 
-    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
-        signal.signal(signal.SIGTERM, _on_sigterm)
+    for signum in STOP_SIGNALS:
+        if signal.getsignal(signum) is signal.SIG_DFL:  # not under nohup (SIGHUP ignored) or a caller's handler
+            signal.signal(signum, _on_stop_signal)
     try:
         code = app(standalone_mode=False)
         # Outside standalone mode click returns (not raises) the exit code of an aborted command.

@@ -14,6 +14,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from drivesim.pipeline.errors import ConfigError
+from drivesim.pipeline.input_paths import special_kind
 
 ConfigT = TypeVar("ConfigT", bound="StageConfig")
 
@@ -37,8 +38,26 @@ class ConfigSection(BaseModel):
     model_config = STRICT_MODEL_CONFIG
 
 
+# Deeper YAML nesting than this is refused: configs are three levels deep, and PyYAML's composer recurses once per
+# level, so a file nested a thousand deep would end in a RecursionError.
+MAX_CONFIG_DEPTH = 32
+
+
 class _UniqueKeyLoader(yaml.SafeLoader):
-    """A YAML safe loader that refuses a mapping holding the same key twice (PyYAML keeps the last one silently)."""
+    """A YAML safe loader that refuses a mapping holding the same key twice (PyYAML keeps the last one silently) and
+    nesting deeper than MAX_CONFIG_DEPTH."""
+
+    _depth = 0
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:  # noqa: D102
+        self._depth += 1
+        try:
+            if self._depth > MAX_CONFIG_DEPTH:
+                mark = self.peek_event().start_mark
+                raise yaml.composer.ComposerError(None, None, f"nested more than {MAX_CONFIG_DEPTH} levels deep", mark)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
 
 
 def _construct_unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
@@ -75,6 +94,9 @@ def read_config_text(path: Path) -> str:
     path = Path(path)
     if path.is_dir():
         raise ConfigError("is a folder; --config takes a YAML file", path)
+    kind = special_kind(path)
+    if kind is not None:  # a FIFO would block the read forever, a device never end
+        raise ConfigError(f"is {kind}, not a regular file; --config takes a YAML file", path)
     try:
         raw = path.read_bytes()
     except FileNotFoundError as e:

@@ -5,6 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 
 
+def printable(text: str) -> str:
+    """`text` with every character that is not printable (newline, carriage return, tab, escape sequences, Unicode
+    line separators, undecodable bytes of a file name) written as its Python escape (`\\n`, `\\x1b`, `\\udcff`), so
+    a file name cannot forge a second line or recolour the terminal."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape", "backslashreplace").decode() for c in text)
+
+
 class DrivesimError(Exception):
     """A problem with the user's input or workspace, reported as one readable line.
 
@@ -20,8 +29,8 @@ class DrivesimError(Exception):
         super().__init__(self.one_line())
 
     def one_line(self) -> str:
-        """The message as the single line the CLI prints."""
-        return f"{self.path}: {self.message}" if self.path is not None else self.message
+        """The message as the single line the CLI prints (control characters in it escaped)."""
+        return printable(f"{self.path}: {self.message}" if self.path is not None else self.message)
 
 
 class InputError(DrivesimError):
@@ -34,6 +43,15 @@ class ConfigError(DrivesimError):
 
 class MissingArtifactError(DrivesimError):
     """A stage needs an artifact that the workspace does not have yet."""
+
+
+class StaleArtifactError(MissingArtifactError):
+    """A stage needs an artifact whose files changed since it was written, or whose upstream artifact was rebuilt
+    since: the message names the commands that refresh it."""
+
+
+class ArtifactBusyError(DrivesimError):
+    """Another process is writing the same artifact of the workspace (it holds the artifact's lock)."""
 
 
 class ArtifactConflictError(DrivesimError):
@@ -55,7 +73,15 @@ class Interrupted(KeyboardInterrupt):
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM (what `timeout`, Slurm and `docker stop` send), raised in the main thread and handled like Ctrl-C."""
+    """SIGTERM (what `timeout`, Slurm and `docker stop` send) or SIGHUP (a closed terminal or ssh session), raised in
+    the main thread and handled like Ctrl-C.
+
+    :param signum: the signal that stopped the command.
+    """
+
+    def __init__(self, signum: int = 15) -> None:
+        self.signum = signum
+        super().__init__()
 
 
 class DiskFullError(DrivesimError):

@@ -7,6 +7,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+from drivesim.pipeline.input_paths import refuse_special_file
+
 _CHUNK_BYTES = 1 << 20
 
 
@@ -29,6 +31,7 @@ def fingerprint_external(path: Path) -> str:
     sha256 of its first and last MiB; a folder by the sorted fingerprints of its files.
     """
     path = Path(path)
+    refuse_special_file(path, "a recording file or folder")
     if path.is_dir():
         parts = [(str(p.relative_to(path)), fingerprint_external(p)) for p in sorted(path.rglob("*")) if p.is_file()]
         return sha256_json(parts)

@@ -1,5 +1,5 @@
-"""Worker processes that never outlive their parent: whatever ends the parent (Ctrl-C, SIGTERM, SIGKILL, a crash),
-its workers end too, so no orphan keeps writing into a work folder after the command is gone."""
+"""Worker processes that never outlive their parent: whatever ends the parent (Ctrl-C, SIGTERM, SIGHUP, SIGKILL, a
+crash), its workers end too, so no orphan keeps writing into a work folder after the command is gone."""
 
 from __future__ import annotations
 
@@ -14,6 +14,8 @@ from typing import Any
 
 PR_SET_PDEATHSIG = 1
 """prctl(2) option: the signal the kernel sends this process when its parent thread ends (Linux)."""
+GROUP_SIGNALS = (signal.SIGINT, signal.SIGHUP)
+"""Signals a terminal sends to the whole process group, which the parent handles for its workers."""
 WATCHDOG_POLL_S = 0.5
 """How often the fallback watchdog (not Linux) checks that the parent is still there [s]."""
 
@@ -22,11 +24,12 @@ def end_with_parent(parent_pid: int) -> None:
     """Call first thing in a worker process: it gets SIGKILL the moment `parent_pid` ends, whatever killed it.
 
     Linux: the kernel's parent-death signal (prctl PR_SET_PDEATHSIG), which also fires on the parent's SIGKILL.
-    Elsewhere: a daemon thread that polls the parent's pid. Ctrl-C is ignored here: the parent stops its workers
-    itself (a terminal sends SIGINT to the whole process group), so the episode in flight is not left half-written
-    with a traceback.
+    Elsewhere: a daemon thread that polls the parent's pid. Ctrl-C and a hang-up are ignored here: the parent stops
+    its workers itself (a terminal sends SIGINT, and SIGHUP when it closes, to the whole process group), so the
+    episode in flight is not left half-written with a traceback.
     """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for signum in GROUP_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
     armed = False
     if sys.platform.startswith("linux"):
         try:

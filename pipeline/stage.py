@@ -3,8 +3,9 @@
 A stage is a build function `build(ctx) -> summary` plus its identity (name, artifact folder, config model, preset,
 upstream artifacts, the command that makes it). `run_stage` does what every stage needs, in one place:
 
-    require the upstream artifacts -> freshness (config + input hashes + code version)
-    -> build in a temporary sibling folder -> write manifest.json -> move into place (os.replace)
+    require the upstream artifacts (present, unchanged, not stale) -> lock the artifact -> freshness (config +
+    input hashes + code version + its files unchanged) -> build in a temporary sibling folder -> write manifest.json
+    -> move into place (os.replace)
 
 so a crash or Ctrl-C never leaves a half-written artifact that looks fresh, and a second run with the same config
 and inputs prints "fresh, nothing to do". The summary is a typed pydantic model (`StageSummary`), recorded in the
@@ -141,31 +142,34 @@ def run_stage(
     input_dirs = {up: ws.require(up, hints.get(up, f"drivesim {up}")) for up in spec.requires}
     refs: dict[str, InputRef] = {up: ws.artifact_input(up) for up in spec.requires}
     external_paths = {k: Path(v) for k, v in (external or {}).items()}
+    for path in external_paths.values():  # a world, run or mesh library given by path: its files as written
+        ws.check_input(path)
     refs.update({k: ws.external_input(p) for k, p in external_paths.items()})
     config_json: dict[str, Any] = cfg.model_dump(mode="json")
-    if protect and not force:
-        differences = ws.other_settings(name, config_json)
-        if differences:
-            raise ArtifactConflictError(
-                f"holds a result made with other settings ({differences}); not replaced: {protect_hint}",
-                ws.artifact_dir(name),
+    with ws.lock(name):  # one writer per artifact: a second command writing it now stops with one line
+        if protect and not force:
+            differences = ws.other_settings(name, config_json)
+            if differences:
+                raise ArtifactConflictError(
+                    f"holds a result made with other settings ({differences}); not replaced: {protect_hint}",
+                    ws.artifact_dir(name),
+                )
+        manifest = None if force else ws.fresh_manifest(name, spec.name, config_json, refs)
+        if manifest is not None:
+            summary = spec.summary_model.model_validate(manifest.get("summary", {}))
+            return StageResult(stage=spec.name, path=ws.artifact_dir(name), skipped=True, summary=summary)
+        with ws.write_artifact(name, spec.name, config_json, refs, command=spec.command) as build:
+            ctx = BuildContext(
+                workspace=ws,
+                dir=build.dir,
+                config=cfg,
+                inputs=input_dirs,
+                external=external_paths,
+                notes=[],
+                work_dir=work_dir,
             )
-    manifest = None if force else ws.fresh_manifest(name, spec.name, config_json, refs)
-    if manifest is not None:
-        summary = spec.summary_model.model_validate(manifest.get("summary", {}))
-        return StageResult(stage=spec.name, path=ws.artifact_dir(name), skipped=True, summary=summary)
-    with ws.write_artifact(name, spec.name, config_json, refs) as build:
-        ctx = BuildContext(
-            workspace=ws,
-            dir=build.dir,
-            config=cfg,
-            inputs=input_dirs,
-            external=external_paths,
-            notes=[],
-            work_dir=work_dir,
-        )
-        summary = spec.build(ctx)
-        build.summary = summary.model_dump(mode="json")
+            summary = spec.build(ctx)
+            build.summary = summary.model_dump(mode="json")
     return StageResult(
         stage=spec.name, path=ws.artifact_dir(name), skipped=False, summary=summary, notes=tuple(ctx.notes)
     )

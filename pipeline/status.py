@@ -11,10 +11,8 @@ height_px, sensors: {name: {"topic": str, "type": str, "message_count": int}}).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
-from drivesim.pipeline.hashing import fingerprint_external
 from drivesim.pipeline.stage import StageSpec
 from drivesim.pipeline.version import code_version
 from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
@@ -22,30 +20,16 @@ from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
 STATUS_FORMAT_VERSION = 1
 
 
-def stale_reasons(ws: Workspace, manifest: dict[str, Any]) -> list[str]:
-    """Why an existing artifact no longer matches its inputs or code (empty when fresh)."""
+def stale_reasons(ws: Workspace, manifest: dict[str, Any], hints: dict[str, str] | None = None) -> list[str]:
+    """Why an existing artifact no longer matches its inputs, its own files or the code (empty when fresh); the last
+    reason names the commands that refresh it (`hints`: artifact -> command, over the ones the manifests recorded)."""
     reasons = []
     if manifest.get("code_version") != code_version():
         reasons.append(f"made by drivesim {manifest.get('code_version')}, this is {code_version()}")
-    for name, ref in manifest.get("inputs", {}).items():
-        if ref["kind"] == "artifact":
-            upstream = ws.read_manifest(ref["path"])
-            if upstream is None:
-                reasons.append(f"input {ref['path']} is missing")
-            elif upstream.get("artifact_hash") != ref["hash"]:
-                reasons.append(f"input {ref['path']} changed")
-        else:
-            path = Path(ref["path"])
-            if not path.exists():
-                reasons.append(f"input {name} {path} is gone")
-            elif fingerprint_external(path) != ref["hash"]:
-                reasons.append(f"input {name} {path} changed")
-    folder = ws.artifact_dir(manifest.get("artifact", ""))
-    for rel, meta in manifest.get("outputs", {}).items():
-        file = folder / rel
-        if not file.is_file() or file.stat().st_size != meta.get("size_bytes"):
-            reasons.append(f"file {rel} is missing or changed")
-            break
+    staleness = ws.staleness(manifest.get("artifact", ""), manifest)
+    reasons += staleness.reasons
+    if staleness.rebuild:
+        reasons.append(f"refresh: {ws.refresh_commands(staleness.rebuild, hints)}")
     return reasons
 
 
@@ -67,6 +51,7 @@ def status_report(ws: Workspace, chain: Sequence[StageSpec]) -> dict[str, Any]:
     A collection stage (many runs or evaluations) shows its newest complete artifact.
     """
     stages = []
+    hints = {spec.artifact: spec.command for spec in chain if not spec.collection}
     for spec in chain:
         artifact = (newest_complete(ws, spec.artifact) or spec.artifact) if spec.collection else spec.artifact
         manifest = ws.read_manifest(artifact)
@@ -94,7 +79,7 @@ def status_report(ws: Workspace, chain: Sequence[StageSpec]) -> dict[str, Any]:
                 }
             )
             continue
-        reasons = stale_reasons(ws, manifest)
+        reasons = stale_reasons(ws, manifest, {**hints, artifact: spec.command})
         stages.append(
             {
                 "stage": spec.name,

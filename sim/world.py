@@ -27,7 +27,6 @@ takes milliseconds even for an hour of driving and keeps the artifact free of pi
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -35,7 +34,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
-from drivesim.sim import association_kernel
+from drivesim.sim import association_kernel, world_checks
 from drivesim.sim.geometry import wrap_angle
 
 WORLD_FORMAT_VERSION = 1
@@ -70,6 +69,23 @@ class Association(NamedTuple):
     q_lat_m: float
     q_long_m: float
     q_rot_rad: float
+
+
+def _load_npy(path: Path) -> np.ndarray:
+    """A memory-mapped .npy array; a damaged file is a WorldError naming it."""
+    try:
+        return np.load(path, mmap_mode="r")
+    except (OSError, ValueError, EOFError) as e:
+        raise world_checks.WorldError(f"{path}: not a readable .npy array ({e}); rebuild the world") from e
+
+
+def _load_path(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of path.npz; a damaged file is a WorldError naming it."""
+    try:
+        with np.load(path) as data:
+            return {k: np.asarray(data[k]) for k in data.files}
+    except (OSError, ValueError, EOFError, KeyError) as e:
+        raise world_checks.WorldError(f"{path}: not a readable .npz archive ({e}); rebuild the world") from e
 
 
 def relative_pose(
@@ -129,33 +145,37 @@ class World:
 
     @classmethod
     def load(cls, root: Path | str) -> World:
-        """Open a world folder written by `drivesim build-world` (FileNotFoundError/ValueError name the bad file)."""
+        """Open and check a world folder written by `drivesim build-world`.
+
+        :raises FileNotFoundError: a file is missing. WorldError (a ValueError): a file is damaged or does not follow
+            the schema above (JSON nesting, non-finite or missing values, a singular K, NaN or negative depth); the
+            text names the file.
+        """
         root = Path(root)
         for name in ("frames.npy", "depth_m.npy", "camera.json", "path.npz", "world.json"):
             if not (root / name).is_file():
                 raise FileNotFoundError(f"{root / name}: missing; is {root} a world built by `drivesim build-world`?")
-        info = json.loads((root / "world.json").read_text())
+        info = world_checks.read_json_object(root / "world.json", ("format", "road_width_m", "lane_width_m"))
         if info.get("format") != WORLD_FORMAT_VERSION:
-            raise ValueError(
-                f"{root / 'world.json'}: world format {info.get('format')}, expected {WORLD_FORMAT_VERSION}"
+            raise world_checks.WorldError(
+                f"{root / 'world.json'}: world format {info.get('format')!r}, expected {WORLD_FORMAT_VERSION}"
             )
-        camera = json.loads((root / "camera.json").read_text())
-        frames = np.load(root / "frames.npy", mmap_mode="r")
-        depth = np.load(root / "depth_m.npy", mmap_mode="r")
-        with np.load(root / "path.npz") as data:
-            path = {k: np.asarray(data[k]) for k in data.files}
+        camera_json = root / "camera.json"
+        camera = world_checks.read_json_object(camera_json, ("K", "T_vehicle_camera", "width_px", "height_px"))
         world = cls(
             root=root,
-            frames=frames,
-            depth_m=depth,
-            K=np.asarray(camera["K"], dtype=float),
-            T_vehicle_camera=np.asarray(camera["T_vehicle_camera"], dtype=float),
-            width_px=int(camera["width_px"]),
-            height_px=int(camera["height_px"]),
-            camera_height_m=camera.get("camera_height_m"),
-            path=path,
-            road_width_m=float(info["road_width_m"]),
-            lane_width_m=float(info["lane_width_m"]),
+            frames=_load_npy(root / "frames.npy"),
+            depth_m=_load_npy(root / "depth_m.npy"),
+            K=world_checks.intrinsics(camera_json, camera["K"]),
+            T_vehicle_camera=world_checks.rigid_transform(camera_json, "T_vehicle_camera", camera["T_vehicle_camera"]),
+            width_px=world_checks.image_size(camera_json, "width_px", camera["width_px"]),
+            height_px=world_checks.image_size(camera_json, "height_px", camera["height_px"]),
+            camera_height_m=world_checks.finite_number(
+                camera_json, "camera_height_m", camera.get("camera_height_m"), positive=True, optional=True
+            ),
+            path=_load_path(root / "path.npz"),
+            road_width_m=world_checks.finite_number(root / "world.json", "road_width_m", info["road_width_m"], True),
+            lane_width_m=world_checks.finite_number(root / "world.json", "lane_width_m", info["lane_width_m"], True),
             info=info,
         )
         world._check()
@@ -165,14 +185,22 @@ class World:
     def _check(self) -> None:
         n = self.frame_count
         if n < 2:
-            raise ValueError(f"{self.root}: a world needs at least 2 frames, this one has {n}")
+            raise world_checks.WorldError(f"{self.root}: a world needs at least 2 frames, this one has {n}")
         if self.frames.shape != (n, self.height_px, self.width_px, 3) or self.frames.dtype != np.uint8:
-            raise ValueError(f"{self.root / 'frames.npy'}: {self.frames.dtype} {self.frames.shape} does not match")
+            raise world_checks.WorldError(
+                f"{self.root / 'frames.npy'}: {self.frames.dtype} {self.frames.shape} does not match"
+            )
         if self.depth_m.shape != (n, self.height_px, self.width_px) or self.depth_m.dtype != np.float32:
-            raise ValueError(f"{self.root / 'depth_m.npy'}: {self.depth_m.dtype} {self.depth_m.shape} does not match")
+            raise world_checks.WorldError(
+                f"{self.root / 'depth_m.npy'}: {self.depth_m.dtype} {self.depth_m.shape} does not match"
+            )
         for key in PATH_ARRAYS:
             if key not in self.path or len(self.path[key]) != n:
-                raise ValueError(f"{self.root / 'path.npz'}: array {key!r} is missing or not of length {n}")
+                raise world_checks.WorldError(
+                    f"{self.root / 'path.npz'}: array {key!r} is missing or not of length {n}"
+                )
+        world_checks.check_path_values(self.root / "path.npz", self.path, PATH_ARRAYS_FLOAT)
+        world_checks.check_depth(self.root / "depth_m.npy", self.depth_m)
 
     @property
     def frame_count(self) -> int:

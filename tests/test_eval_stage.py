@@ -25,7 +25,9 @@ TESTS_DIR = Path(__file__).parent
 
 def _factory(world: Path) -> EnvFactory:
     register_fake_envs()
-    return EnvFactory(FAKE["env_id"], {"world": str(world), "mode": "eval"}, entry_point=FAKE["env_entry_point"])
+    return EnvFactory(
+        FAKE["env_id"], {"world": str(world), "mode": "eval"}, entry_point=FAKE["env_entry_point"], trusted=True
+    )
 
 
 def _files(folder: Path) -> dict[str, bytes]:
@@ -132,6 +134,7 @@ def _fake_args(world: Path) -> list[str]:
         f"env_id={FAKE['env_id']}",
         "--set",
         f"env_entry_point={FAKE['env_entry_point']}",
+        "--trust-entry-point",
     ]
 
 
@@ -157,11 +160,11 @@ def test_bad_input_is_one_line_and_no_report(tmp_path, case):
         args += ["--policy", str(_make_run(tmp_path / "runs" / "follow-1", "follow"))]
     elif case == "short_world":
         short = fake_world(tmp_path / "world-too-short", frames=10)
-        args = _fake_args(short) + ["--episodes", "3", "--workers", "1"]
+        args = _fake_args(short) + ["--episodes", "3", "--workers", "1", "--policy", "expert"]
     else:
         empty = tmp_path / "empty"
         empty.mkdir()
-        args = _fake_args(empty) + ["--episodes", "3", "--workers", "1"]
+        args = _fake_args(empty) + ["--episodes", "3", "--workers", "1", "--policy", "expert"]
     result = _run_cli(tmp_path / "ws", *args)
     assert result.returncode == 2, result.stdout + result.stderr
     lines = [line for line in result.stderr.splitlines() if line.strip()]
@@ -197,7 +200,9 @@ def test_report_renders_with_its_images_in_headless_chromium(tmp_path):
     if chromium is None:
         pytest.skip("chromium is not installed (scripts/setup.sh installs it: apt-get install chromium)")
     world = fake_world(tmp_path / "world")
-    result = _run_cli(tmp_path / "ws", *_fake_args(world), "--episodes", "30", "--workers", "2", "--video", "2")
+    result = _run_cli(
+        tmp_path / "ws", *_fake_args(world), "--episodes", "30", "--workers", "2", "--video", "2", "--policy", "expert"
+    )
     assert result.returncode == 0, result.stdout + result.stderr
     folder = tmp_path / "ws" / "eval" / "overtake-expert"
     report = (folder / "report.html").read_text()

@@ -121,6 +121,7 @@ def test_cli_prints_a_row_per_world_and_the_pooled_row(tmp_path: Path) -> None:
     env = {**os.environ, "PYTHONPATH": str(TESTS_DIR), "OMP_NUM_THREADS": "1", "COLUMNS": "200"}
     args = ["--world", str(a), "--world", str(b), "--episodes", "2", "--workers", "1", "--policy", "expert"]
     args += ["--set", f"env_id={FAKE['env_id']}", "--set", f"env_entry_point={FAKE['env_entry_point']}"]
+    args.append("--trust-entry-point")
     done = subprocess.run(
         [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(tmp_path / "ws"), "eval", *args],
         capture_output=True,

@@ -170,7 +170,7 @@ def test_onnx_policy_evaluates_like_the_trained_run(tmp_path: Path, monkeypatch:
     metrics = {}
     for policy in (str(run), str(onnx_path)):
         cfg = EvalConfig(task="overtake", policy=policy, episodes=6, world=str(world), workers=1, **fake)
-        result = run_eval(ws, cfg)
+        result = run_eval(ws, cfg, trust_entry_point=True)
         metrics[policy] = json.loads((result.path / "metrics.json").read_text())
     torch_metrics, onnx_metrics = metrics[str(run)], metrics[str(onnx_path)]
     assert torch_metrics["aggregate"].keys() == onnx_metrics["aggregate"].keys()

@@ -51,7 +51,10 @@ SLOW = {"env_id": "drivesim-test/SlowOvertake-v0", "env_entry_point": "hardening
 def _eval_command(ws: Path, world: Path, *extra: str) -> list[str]:
     sets = [a for key, value in SLOW.items() for a in ("--set", f"{key}={value}")]
     return [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), "eval", "--world", str(world)] + [
+        "--policy",
+        "expert",
         *sets,
+        "--trust-entry-point",
         *extra,
     ]
 
@@ -271,7 +274,8 @@ def test_full_disk_names_the_folder_and_keeps_nothing(tmp_path, monkeypatch, cap
             monkeypatch.setattr(rollout, "write_episode", full)
         ws = small / "ws"
         sets = [a for key, value in FAKE.items() for a in ("--set", f"{key}={value}")]
-        args = ["eval", "--world", str(world), *sets, "--episodes", "60", "--workers", "1"]
+        args = ["eval", "--world", str(world), *sets, "--trust-entry-point", "--episodes", "60", "--workers", "1"]
+        args += ["--policy", "expert"]
         code, err = _cli(ws, *args, monkeypatch=monkeypatch, capsys=capsys)
         lines = [line for line in err.strip().splitlines() if not line.startswith("eval")]
         assert code == 1 and len(lines) == 1, err

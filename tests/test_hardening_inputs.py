@@ -6,7 +6,9 @@ libraries' chatter. Each case ends in one clear line (exit 2, or 1 for a full di
 from __future__ import annotations
 
 import errno
+import json
 import os
+import shutil
 import signal
 import sys
 from pathlib import Path
@@ -87,3 +89,191 @@ def test_reserved_memmap_falls_back_to_zeros_where_the_file_system_cannot_alloca
     back = np.load(tmp_path / "a.npy")
     assert back.shape == (3, 64, 64) and back[1].min() == 2.5 and back[0].max() == 0.0
     assert os.stat(tmp_path / "a.npy").st_blocks * 512 >= back.nbytes  # allocated, not sparse
+
+
+# ---------------------------------------------------------------- a world is checked when it is loaded
+
+
+@pytest.fixture(scope="module")
+def built_world(tmp_path_factory) -> Path:
+    """A small world built by the real build-world stage from the fake trace and poses."""
+    from drivesim.pipeline.config import load_config
+    from drivesim.stages.world.config import WorldConfig
+    from drivesim.stages.world.stage import run_build_world
+
+    with pytest.MonkeyPatch.context() as mp:
+        ws = Workspace(tmp_path_factory.mktemp("world") / "ws")
+        make_trace(ws)
+        install_fake_poses(mp)
+        preprocess_stage.run_preprocess(ws, PreprocessConfig.model_validate({"depth": {"method": "plane"}}))
+        return run_build_world(ws, load_config(WorldConfig, preset="world", overrides=["sim_width_px=48"])).path
+
+
+def _edit_json(name: str, edit) -> callable:
+    def apply(world: Path) -> None:
+        path = world / name
+        path.write_text(json.dumps(edit(json.loads(path.read_text())), allow_nan=True))
+
+    return apply
+
+
+def _set_camera(key: str, value) -> callable:
+    return _edit_json("camera.json", lambda c: {**c, key: value})
+
+
+def _depth(fill) -> callable:
+    def apply(world: Path) -> None:
+        depth = np.load(world / "depth_m.npy")
+        fill(depth)
+        np.save(world / "depth_m.npy", depth)
+
+    return apply
+
+
+def _nested(name: str, depth: int = 5000) -> callable:
+    def apply(world: Path) -> None:
+        (world / name).write_text("[" * depth + "]" * depth)
+
+    return apply
+
+
+def _overflow_focal(world: Path) -> None:
+    """1e999 is valid JSON that Python reads as infinity (not through the NaN/Infinity constants)."""
+    camera = json.loads((world / "camera.json").read_text())
+    camera["K"][0][0] = "FOCAL"
+    (world / "camera.json").write_text(json.dumps(camera).replace('"FOCAL"', "1e999"))
+
+
+def _path_nan(world: Path) -> None:
+    with np.load(world / "path.npz") as data:
+        arrays = {k: data[k].copy() for k in data.files}
+    arrays["yaw_rad"][3] = np.nan
+    np.savez(world / "path.npz", **arrays)
+
+
+DAMAGED_WORLDS = {
+    "nan focal length": (
+        _set_camera("K", [[float("nan"), 0, 24], [0, 24, 15], [0, 0, 1]]),
+        "camera.json: not valid JSON (NaN",
+    ),
+    "infinite focal length": (_overflow_focal, "camera.json: K is not a finite 3x3 matrix"),
+    "K all zero": (_set_camera("K", [[0, 0, 0], [0, 0, 0], [0, 0, 0]]), "camera.json: K has no positive focal"),
+    "K a string": (_set_camera("K", "eye"), "camera.json: K is not"),
+    "T not rigid": (_set_camera("T_vehicle_camera", np.diag([2.0, 1, 1, 1]).tolist()), "not a rigid transform"),
+    "width a float": (_set_camera("width_px", 48.5), "width_px is 48.5"),
+    "all-NaN depth": (_depth(lambda d: d.fill(np.nan)), "depth_m.npy: frame 0 has NaN depth"),
+    "negative depth": (_depth(lambda d: d.__setitem__((5, 3, 3), -4.0)), "frame 5 has negative depth"),
+    "world.json a list": (_edit_json("world.json", lambda w: [w]), "world.json: holds a JSON list, not an object"),
+    "world.json without a key": (
+        _edit_json("world.json", lambda w: {k: v for k, v in w.items() if k != "lane_width_m"}),
+        "world.json: lacks lane_width_m",
+    ),
+    "road width NaN": (_edit_json("world.json", lambda w: {**w, "road_width_m": float("nan")}), "not valid JSON (NaN"),
+    "deeply nested world.json": (_nested("world.json"), "world.json: nested more than 32 levels deep"),
+    "deeply nested camera.json": (_nested("camera.json"), "camera.json: nested more than"),
+    "path NaN": (_path_nan, "path.npz: yaw_rad holds non-finite"),
+    "frames.npy garbage": (lambda w: (w / "frames.npy").write_bytes(b"\x00" * 100), "frames.npy: not a readable"),
+}
+
+
+@pytest.mark.parametrize("case", list(DAMAGED_WORLDS))
+def test_damaged_world_is_refused_on_load_naming_the_file(built_world, tmp_path, case) -> None:
+    """Every damaged world file is a WorldError (a ValueError, which the stages print as one line) naming the file
+    and what is wrong: never a NaN that trains silently, a LinAlgError, KeyError or RecursionError."""
+    from drivesim.sim.world import World
+    from drivesim.sim.world_checks import WorldError
+
+    World.load(built_world)  # the undamaged world loads
+    world = tmp_path / "world"
+    shutil.copytree(built_world, world)
+    damage, expect = DAMAGED_WORLDS[case]
+    damage(world)
+    with pytest.raises(WorldError) as refused:
+        World.load(world)
+    assert expect in str(refused.value) and "\n" not in str(refused.value)
+
+
+def test_deeply_nested_manifest_is_a_damaged_artifact_not_a_recursion_error(tmp_path, monkeypatch, capsys) -> None:
+    ws = Workspace(tmp_path / "ws")
+    make_trace(ws)
+    (ws.artifact_dir("trace") / "manifest.json").write_text("[" * 5000 + "]" * 5000)
+    assert ws.read_manifest("trace") is None and ws.manifest_unreadable("trace")
+    code, err = _cli(ws.root, "preprocess", monkeypatch=monkeypatch, capsys=capsys)
+    lines = _error_lines(err)
+    assert code == 2 and len(lines) == 1 and "manifest.json is unreadable" in lines[0], err
+
+
+@pytest.mark.parametrize(
+    "text", ["a: " + "[" * 3000 + "]" * 3000, "a:\n" + "".join("  " * i + f"k{i}:\n" for i in range(1, 200))]
+)
+def test_deeply_nested_config_is_one_line(tmp_path, monkeypatch, capsys, text) -> None:
+    path = tmp_path / "deep.yaml"
+    path.write_text(text)
+    code, err = _cli(tmp_path / "ws", "config", "eval", "--config", str(path), monkeypatch=monkeypatch, capsys=capsys)
+    lines = _error_lines(err)
+    assert code == 2 and len(lines) == 1 and "nested more than 32 levels deep" in lines[0], err
+    assert len(err.splitlines()) == 1
+
+
+def test_json_reader_refuses_nan_and_depth_but_reads_strings_with_brackets() -> None:
+    from drivesim.pipeline.json_files import JsonFileError, loads_checked
+
+    assert loads_checked('{"a": "[[[[{{{{", "b": [[1]]}') == {"a": "[[[[{{{{", "b": [[1]]}
+    with pytest.raises(JsonFileError, match="NaN"):
+        loads_checked('{"a": NaN}')
+    with pytest.raises(JsonFileError, match="nested more than"):
+        loads_checked("[" * 33 + "]" * 33)
+
+
+# ---------------------------------------------------------------- paths that are not regular files or folders
+
+
+def _ingest_cli(ws: Path, recording: str, monkeypatch, capsys) -> tuple[int, str]:
+    return _cli(ws, "ingest", recording, monkeypatch=monkeypatch, capsys=capsys)
+
+
+@pytest.fixture
+def no_hang():
+    """Fail (instead of hanging the suite) when the code under test blocks for more than 30 s."""
+
+    def hung(signum, frame):
+        raise AssertionError("blocked for 30 s")
+
+    previous = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(30)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, previous)
+
+
+@pytest.mark.parametrize("kind", ["fifo recording", "fifo config", "/dev/zero recording", "/dev/null workspace"])
+def test_non_regular_files_are_refused_with_one_line(tmp_path, monkeypatch, capsys, no_hang, kind) -> None:
+    """A FIFO would block the first read forever, /dev/zero is a device, /dev/null is not a folder: each is one
+    line (exit 2) naming it, nothing is created, and nothing waits (the test would hang)."""
+    fifo = tmp_path / "drive.mcap"
+    os.mkfifo(fifo)
+    ws = tmp_path / "ws"
+    if kind == "fifo recording":
+        code, err = _ingest_cli(ws, str(fifo), monkeypatch, capsys)
+        expect = "is a FIFO (named pipe), not a regular file or folder"
+    elif kind == "fifo config":
+        code, err = _cli(ws, "train", "lane", "--config", str(fifo), monkeypatch=monkeypatch, capsys=capsys)
+        expect = "is a FIFO (named pipe), not a regular file; --config takes a YAML file"
+    elif kind == "/dev/zero recording":
+        code, err = _ingest_cli(ws, "/dev/zero", monkeypatch, capsys)
+        expect = "/dev/zero: is a device"
+    else:
+        ws = Path("/dev/null")
+        code, err = _ingest_cli(ws, str(tmp_path), monkeypatch, capsys)
+        expect = "/dev/null: is not a folder; --workspace takes a folder"
+    lines = _error_lines(err)
+    assert code == 2 and len(lines) == 1 and expect in lines[0], err
+    assert not (tmp_path / "ws").exists()
+
+
+def test_a_newline_in_a_file_name_cannot_forge_a_second_error_line(tmp_path, monkeypatch, capsys) -> None:
+    name = tmp_path / "drive\nerror: all is well \x1b[32m.mcap"
+    name.write_bytes(b"not a recording")
+    code, err = _ingest_cli(tmp_path / "ws", str(name), monkeypatch, capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "drive\\nerror: all is well \\x1b[32m.mcap" in err and "\x1b" not in err

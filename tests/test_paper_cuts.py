@@ -93,3 +93,55 @@ def test_a_folder_that_is_no_recording_lists_every_kind_drivesim_reads(tmp_path:
         "images only (with --fps)",
     ):
         assert kind in line, (kind, line)
+
+
+# ---------------------------------------------------------------- 3. eval with no trained policy
+
+
+def test_eval_without_a_trained_run_refuses_instead_of_evaluating_the_expert(tmp_path: Path) -> None:
+    from eval_fakes import FAKE, fake_world
+
+    ws = tmp_path / "ws"
+    world = fake_world(tmp_path / "my-drive" / "world")
+    fake_env = [
+        "--world",
+        str(world),
+        "--set",
+        f"env_id={FAKE['env_id']}",
+        "--set",
+        f"env_entry_point={FAKE['env_entry_point']}",
+    ]
+    fake_env.append("--trust-entry-point")
+    done = drivesim(ws, "eval", "--episodes", "3", "--workers", "1", *fake_env)
+    assert done.returncode == 2, done.stdout + done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "drivesim train overtake" in lines[0] and "--policy" in lines[0], done.stderr
+    assert "expert" in lines[0] and not (ws / "eval").exists() and done.stdout == ""
+    # Named, the expert is evaluated.
+    done = drivesim(ws, "eval", "--episodes", "3", "--workers", "1", "--policy", "expert", *fake_env)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert (ws / "eval" / "overtake-expert" / "metrics.json").is_file()
+
+
+# ---------------------------------------------------------------- 5. labels, empty lines, messages
+
+
+def test_episodes_0_says_episodes_must_be_at_least_1(tmp_path: Path) -> None:
+    done = drivesim(tmp_path / "ws", "eval", "--episodes", "0", "--policy", "expert")
+    assert done.returncode == 2
+    assert done.stderr.strip() == "error: --episodes 0: episodes must be >= 1", done.stderr
+
+
+def test_an_empty_workspace_names_every_step_to_a_world(tmp_path: Path) -> None:
+    for args in (["train", "overtake"], ["eval", "--policy", "expert"]):
+        done = drivesim(tmp_path / "ws", *args)
+        assert done.returncode == 2, done.stdout + done.stderr
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and "no world artifact" in lines[0], done.stderr
+        for step in (
+            "drivesim run RECORDING",
+            "drivesim ingest RECORDING",
+            "drivesim preprocess",
+            "drivesim build-world",
+        ):
+            assert step in lines[0], (step, lines[0])

@@ -23,6 +23,7 @@ from ray_fakes import SLOW_ENTRY_POINT, SLOW_ENV_ID, register_slow_env
 from sim_worlds import SMALL_VIEW, write_test_world
 
 from drivesim.pipeline.workspace import Workspace
+from drivesim.sim.envs.registry import task_spec
 from drivesim.stages.evaluate.config import EvalConfig
 from drivesim.stages.evaluate.metrics import aggregate, evaluate_episode
 from drivesim.stages.evaluate.rollout import EnvFactory, PolicySpec, read_episode, run_episodes
@@ -113,7 +114,8 @@ def test_without_ray_backend_ray_is_one_line_saying_how_to_install(tmp_path: Pat
     (hidden / "ray" / "__init__.py").write_text("raise ImportError(\"No module named 'ray'\")\n")
     world = _fake_world(tmp_path / "world")
     args = {
-        "eval": ["eval", "--backend", "ray", "--world", str(world), "--set", f"env_id={FAKE['env_id']}"],
+        "eval": ["eval", "--backend", "ray", "--world", str(world), "--policy", "expert"]
+        + ["--set", f"env_id={FAKE['env_id']}"],
         "train": ["train", "lane", "--backend", "ray", "--set", "envs.source=cost_free"],
     }[command]
     result = _drivesim(tmp_path / "ws", *args, env={"PYTHONPATH": f"{hidden}{os.pathsep}{TESTS_DIR}"})
@@ -126,8 +128,9 @@ def test_without_ray_backend_ray_is_one_line_saying_how_to_install(tmp_path: Pat
 
 def test_eval_on_ray_gives_the_local_files_and_metrics(cluster: Any, tmp_path: Path) -> None:
     world = _fake_world(tmp_path / "world")
-    args = ["--world", str(world), "--episodes", "12", "--seed", "100", "--workers", "2"]
+    args = ["--world", str(world), "--episodes", "12", "--seed", "100", "--workers", "2", "--policy", "expert"]
     args += ["--set", f"env_id={FAKE['env_id']}", "--set", f"env_entry_point={FAKE['env_entry_point']}"]
+    args.append("--trust-entry-point")
     on_ray = _drivesim(tmp_path / "ws", "eval", *args, "--backend", "ray", "--address", cluster.address)
     assert on_ray.returncode == 0, on_ray.stdout + on_ray.stderr
     assert "ray: 2 actors on 1 node(s)" in on_ray.stdout and "with 2 Ray actors" in on_ray.stdout
@@ -167,7 +170,9 @@ def _assert_same(a: Any, b: Any, where: str = "") -> None:
 def test_ray_vec_env_steps_like_dummy_vec_env(cluster: Any, tmp_path: Path) -> None:
     """Same seeds, same actions: the same observations, rewards, dones and infos, across automatic resets."""
     world = write_test_world(tmp_path / "world")
-    source = EnvSource(task="overtake", worlds=[world], overrides={**SMALL_VIEW, "episode_steps": 6})
+    source = EnvSource(
+        task="overtake", worlds=[world], config=task_spec("overtake").config_with({**SMALL_VIEW, "episode_steps": 6})
+    )
     dummy = source.make_vec(2, "dummy", seed=7)
     on_ray = source.make_vec(2, "ray", seed=7, address=cluster.address)
     try:
@@ -229,7 +234,7 @@ def test_killed_worker_node_loses_no_episode_and_runs_none_twice(cluster: Any, t
 
     register_slow_env()
     world = _fake_world(tmp_path / "world")
-    factory = EnvFactory(SLOW_ENV_ID, {"world": str(world), "mode": "eval"}, entry_point=SLOW_ENTRY_POINT)
+    factory = EnvFactory(SLOW_ENV_ID, {"world": str(world), "mode": "eval"}, SLOW_ENTRY_POINT, trusted=True)
     seeds = list(range(16))
     worker = cluster.add_node(num_cpus=1, node_ip_address=LOOPBACK)
     cluster.wait_for_nodes()
@@ -256,7 +261,7 @@ def test_killed_worker_node_loses_no_episode_and_runs_none_twice(cluster: Any, t
     assert sorted(p.name for p in folder.iterdir()) == sorted(f"{s}.json" for s in seeds)  # no leftovers
     clean = tmp_path / "clean" / "episodes"  # the same episodes without the delay: FakeDrivingEnv, one process
     register_fake_envs()
-    fast = EnvFactory(FAKE["env_id"], {"world": str(world), "mode": "eval"}, entry_point=FAKE["env_entry_point"])
+    fast = EnvFactory(FAKE["env_id"], {"world": str(world), "mode": "eval"}, FAKE["env_entry_point"], trusted=True)
     run_episodes(fast, PolicySpec("expert"), "overtake", seeds, clean, workers=1)
     assert _files(folder) == _files(clean)
     assert _headline(folder) == _headline(clean)

@@ -360,7 +360,7 @@ def test_warm_start_clones_the_expert() -> None:
     [
         (["train", "bogus"], "choose one of " + ", ".join(TASK_NAMES)),
         (["train", "lane", "--world", "/nonexistent"], "not a world folder"),
-        (["train", "lane"], "run `drivesim build-world` first"),
+        (["train", "lane"], "`drivesim ingest RECORDING`, `drivesim preprocess` and `drivesim build-world`"),
         (["train", "--resume", "nope"], "no such run folder"),
         (
             ["train", "cutin", "--set", "envs.config.weight_colision=1"],

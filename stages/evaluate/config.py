@@ -6,18 +6,9 @@ from typing import Any, Literal
 
 from pydantic import Field, field_serializer, field_validator, model_validator
 
-from drivesim.pipeline.config import StageConfig, load_yaml_text, preset_path
+from drivesim.pipeline.config import StageConfig
 from drivesim.sim.envs.config import EnvConfig
-from drivesim.sim.envs.registry import TaskName
-
-# The paper's Table II scenarios as env settings: the front car static or moving, the ego passing on its left or right.
-SCENARIOS: dict[str, dict[str, Any]] = {
-    "static": {"other_speed_mps": (0.0, 0.0)},
-    "dynamic": {"other_speed_mps": (1.0, 4.0)},
-    "pass-left": {"front_side": "right"},
-    "pass-right": {"front_side": "left"},
-}
-Scenario = Literal["static", "dynamic", "pass-left", "pass-right"]
+from drivesim.sim.envs.registry import TaskName, task_spec
 
 
 class EvalConfig(StageConfig):
@@ -25,10 +16,9 @@ class EvalConfig(StageConfig):
 
     task: TaskName = "overtake"
     """The task to evaluate (sim/envs/registry.py lists the tasks and their gymnasium ids)."""
-    scenario: list[Scenario] = []
-    """The paper's Table II scenarios to restrict the episodes to: static or dynamic (front car at 0 m/s, or 1-4
-    m/s), pass-left or pass-right (the ego passes on that side); combine one of each, e.g. [static, pass-left].
-    Empty: the task's own distribution (the report's scenario table then splits its episodes)."""
+    scenario: list[str] = []
+    """The task's scenarios to restrict the episodes to, at most one of each group (overtake's, the paper's Table II:
+    static or dynamic, pass-left or pass-right). Empty: the task's own distribution."""
     policy: str = "expert"
     """`expert` (the env's privileged expert), `random` (uniform random steering, a baseline), a run folder of
     `drivesim train` (or one of its checkpoints, `<run>/checkpoints/<name>.pt`), or an exported `.onnx` file."""
@@ -55,7 +45,8 @@ class EvalConfig(StageConfig):
     env_id: str | None = None
     """Gymnasium id to evaluate in instead of the task's drivesim env (a user's own registered env)."""
     env_entry_point: str | None = None
-    """`module:Class` registering `env_id` first when it is not registered yet."""
+    """`module:Class` of a `gymnasium.Env` subclass, registering `env_id` first when it is not registered yet: one of
+    drivesim's env classes, or your own with `drivesim eval --trust-entry-point` (its module is imported)."""
     workers: int | None = Field(None, ge=1, le=4096, exclude=True)
     """Worker processes (Ray actors with backend ray); null = one per core (of the cluster). Not part of the
     artifact's identity (same seeds, same numbers)."""
@@ -77,6 +68,16 @@ class EvalConfig(StageConfig):
             raise ValueError(f"{value!r}: use failures, all, none or a number of episodes")
         return int(text) if text.isdigit() else text
 
+    @field_validator("env_entry_point")
+    @classmethod
+    def _entry_point_form(cls, value: str | None) -> str | None:
+        """`module:Class`, checked when the config is read (which classes may be registered: `entry_point.py`)."""
+        from drivesim.stages.evaluate.entry_point import parse_entry_point
+
+        if value is not None:
+            parse_entry_point(value)
+        return value
+
     @field_validator("world", mode="before")
     @classmethod
     def _world_list(cls, value: Any) -> Any:
@@ -96,26 +97,30 @@ class EvalConfig(StageConfig):
         """The env keys the user set (preset, --config or --set) and the scenarios', to apply over a run's training
         env config."""
         overrides = self.env.model_dump(mode="json", exclude_unset=True)
+        settings = {name: env for group in self._task_scenarios() for name, env in group.items()}
         for name in self.scenario:
-            overrides.update(SCENARIOS[name])
+            overrides.update(settings[name])
         return overrides
+
+    def _task_scenarios(self) -> tuple[dict[str, dict[str, Any]], ...]:
+        """The task's scenario groups (`DrivingEnv.scenarios()`; () for none)."""
+        return task_spec(self.task).env_class().scenarios() if self.scenario else ()
 
     @model_validator(mode="after")
     def _check_scenarios(self) -> EvalConfig:
-        for pair in (("static", "dynamic"), ("pass-left", "pass-right")):
-            if set(pair) <= set(self.scenario):
-                raise ValueError(f"scenario: {pair[0]} and {pair[1]} exclude each other; choose one")
+        groups = self._task_scenarios()
+        known = [name for group in groups for name in group]
+        for name in self.scenario:
+            if name not in known:
+                offer = f"choose from {', '.join(known)}" if known else "it has none; leave scenario empty"
+                raise ValueError(f"scenario {name!r} is not one of the {self.task} task's scenarios: {offer}")
+        for group in groups:
+            chosen = [name for name in group if name in self.scenario]
+            if len(chosen) > 1:
+                raise ValueError(f"scenario: {' and '.join(chosen)} exclude each other; choose one")
         return self
 
     def start_env_config(self) -> dict[str, Any]:
-        """The env config of a policy that brings none (the expert): the task's training preset's env settings
-        (e.g. cutin's faster other car), then the keys the user set. A user's own env (`env_id`) gets only those."""
-        preset = {} if self.env_id is not None else task_preset_env(self.task)
-        return {**preset, **self.env_overrides()}
-
-
-def task_preset_env(task: str) -> dict[str, Any]:
-    """`envs.config` of the task's training preset (`configs/train/<task>.yaml`), {} when it sets none."""
-    path = preset_path(f"train/{task}")
-    data = load_yaml_text(path.read_text()) if path.is_file() else {}
-    return dict(((data or {}).get("envs") or {}).get("config") or {})
+        """The env config of a policy that brings none (the expert): the keys the user set and the scenarios'; the
+        env puts them over its task's own settings (`default_config()`)."""
+        return self.env_overrides()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections import deque
 from collections.abc import Callable, Iterable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -49,12 +50,15 @@ class EnvFactory:
 
     :param env_id: the gymnasium id, e.g. "drivesim/Overtake-v0".
     :param kwargs: keyword arguments of `gymnasium.make` (world, meshes, mode, config).
-    :param entry_point: "module:Class" to register `env_id` with first when it is not registered (tests' fakes).
+    :param entry_point: "module:Class" to register `env_id` with first when it is not registered (a user's own env).
+    :param trusted: whether `entry_point` may name a class outside drivesim's envs (`--trust-entry-point`); either
+        way it must be a `gymnasium.Env` subclass (`stages/evaluate/entry_point.py`).
     """
 
     env_id: str
     kwargs: dict[str, Any] = field(default_factory=dict)
     entry_point: str | None = None
+    trusted: bool = False
 
     def __call__(self) -> Any:
         """A new env."""
@@ -63,7 +67,10 @@ class EnvFactory:
         if self.env_id.startswith("drivesim/"):
             import drivesim.sim.envs  # noqa: F401  (registers the drivesim envs)
         if self.entry_point is not None and self.env_id not in gymnasium.registry:
-            gymnasium.register(self.env_id, entry_point=self.entry_point)
+            from drivesim.stages.evaluate.entry_point import env_class
+
+            # The checked class itself, so gymnasium imports and calls nothing else than what was checked.
+            gymnasium.register(self.env_id, entry_point=env_class(self.entry_point, self.trusted))
         return gymnasium.make(self.env_id, **self.kwargs)
 
 
@@ -160,9 +167,7 @@ class PolicySpec:
         try:
             from drivesim.policy.onnx_runtime import OnnxPolicy
         except ImportError as e:
-            raise DrivesimError(
-                "this version of drivesim cannot run ONNX policies (no policy.onnx_runtime)"
-            ) from e
+            raise DrivesimError("this version of drivesim cannot run ONNX policies (no policy.onnx_runtime)") from e
         return OnnxPolicy(Path(self.path))
 
 
@@ -258,8 +263,19 @@ def read_episode(path: Path) -> EpisodeRecord | None:
 
 
 def completed_seeds(folder: Path, seeds: Iterable[int]) -> set[int]:
-    """The seeds whose episode files are on disk and readable."""
-    return {s for s in seeds if (folder / f"{s}.json").is_file() and read_episode(folder / f"{s}.json") is not None}
+    """The seeds whose episode files are on disk and readable (the folder is listed once, each file read once)."""
+    try:
+        with os.scandir(folder) as entries:
+            on_disk = {entry.name for entry in entries if entry.is_file()}
+    except (FileNotFoundError, NotADirectoryError):
+        return set()
+    return {s for s in set(seeds) if f"{s}.json" in on_disk and read_episode(folder / f"{s}.json") is not None}
+
+
+def seeds_to_run(folder: Path, seeds: list[int]) -> list[int]:
+    """The seeds of `seeds` (in their order) whose episode file is not in `folder` yet, found in one pass."""
+    done = completed_seeds(folder, seeds)
+    return [s for s in seeds if s not in done]
 
 
 @dataclass(frozen=True)
@@ -324,6 +340,33 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+WORKER_MEMORY_BYTES = 600 * 2**20
+"""Memory one worker process is counted for: its imports alone (torch, onnxruntime, gymnasium, drivesim's envs) take
+about 300 MiB resident, and its env, renderer buffers and policy come on top."""
+
+
+def capped_workers(requested: int | None, episodes: int) -> tuple[int, str | None]:
+    """Worker processes for `episodes` episodes: `requested` (None: one per core) capped by the episodes, by the
+    cores this process may use and by the memory available now (`WORKER_MEMORY_BYTES` each); with one line for the
+    user when the cores or the memory lowered a requested number (None otherwise).
+    """
+    import psutil
+
+    cores = default_workers()
+    available = psutil.virtual_memory().available
+    by_memory = max(1, int(available // WORKER_MEMORY_BYTES))
+    wanted = min(cores if requested is None else max(1, requested), max(1, episodes))
+    workers = min(wanted, cores, by_memory)
+    if requested is None or workers >= wanted:
+        return workers, None
+    why = (
+        f"{cores} cores available to this process"
+        if workers == cores
+        else f"{available / 2**30:.1f} GiB of memory available, about {WORKER_MEMORY_BYTES / 2**20:.0f} MiB per worker"
+    )
+    return workers, f"--workers {requested} lowered to {workers}: {why}"
+
+
 def run_episodes(
     env_factory: EnvFactory,
     policy_spec: PolicySpec,
@@ -345,7 +388,7 @@ def run_episodes(
     :param on_episode: called in this process after each episode (progress display).
     :param record: which episodes the workers write as MCAP recordings (`stages/evaluate/record.py`); None: none.
     """
-    todo = [s for s in seeds if s not in completed_seeds(folder, seeds)]
+    todo = seeds_to_run(folder, seeds)
     if not todo:
         return 0
     if workers <= 1:
@@ -367,11 +410,11 @@ def run_episodes(
     ) as pool:
         # A bounded number in flight, so Ctrl-C stops soon and the pool does not queue every seed up front.
         pending = set()
-        queue = list(todo)
+        queue = deque(todo)
         try:
             while queue or pending:
                 while queue and len(pending) < 2 * workers:
-                    pending.add(pool.submit(_worker_episode, queue.pop(0)))
+                    pending.add(pool.submit(_worker_episode, queue.popleft()))
                 finished, pending = wait(pending, return_when=FIRST_COMPLETED)
                 for future in finished:
                     done = future.result()

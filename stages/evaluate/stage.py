@@ -10,6 +10,7 @@ folder, ONNX file or world is refused with one line before any episode runs, and
 
 from __future__ import annotations
 
+import functools
 import json
 import shutil
 import time
@@ -239,19 +240,25 @@ class WorldJob:
     recording: Any
 
 
-def _factory(cfg: EvalConfig, world: Path, meshes: Path | None) -> Any:
+def _env_id(cfg: EvalConfig) -> str:
     from drivesim.sim.envs.registry import task_spec
+
+    return cfg.env_id or task_spec(cfg.task).env_id
+
+
+def _factory(cfg: EvalConfig, world: Path, meshes: Path | None, trusted: bool) -> Any:
     from drivesim.stages.evaluate.rollout import EnvFactory
 
     return EnvFactory(
-        env_id=cfg.env_id or task_spec(cfg.task).env_id,
+        env_id=_env_id(cfg),
         kwargs={"world": str(world), "meshes": None if meshes is None else str(meshes), "mode": "eval"}
         | ({"config": cfg.start_env_config()} if cfg.start_env_config() else {}),
         entry_point=cfg.env_entry_point,
+        trusted=trusted,
     )
 
 
-def _jobs(ctx: BuildContext, policy_spec: Any, seeds: list[int], partial: Path) -> list[WorldJob]:
+def _jobs(ctx: BuildContext, policy_spec: Any, seeds: list[int], partial: Path, trusted: bool) -> list[WorldJob]:
     """Every world checked (env, policy) before any episode runs, with its work folders; one world keeps today's
     layout (`episodes/`, `recordings/`), several go to `worlds/<label>/`."""
     from drivesim.stages.evaluate.record import RECORDINGS_DIR, record_plan
@@ -264,7 +271,7 @@ def _jobs(ctx: BuildContext, policy_spec: Any, seeds: list[int], partial: Path) 
     meshes = ctx.external.get("meshes")
     factories = []
     for world in worlds:
-        factory = _factory(cfg, world, meshes)
+        factory = _factory(cfg, world, meshes, trusted)
         factories.append(replace(factory, kwargs=_open_and_check(cfg, factory, policy_spec, world)))
     episodes_dir = _prepare_partial(partial, _partial_key(ctx, cfg.model_dump(mode="json")), ctx.notes)
     if len(worlds) == 1:
@@ -286,7 +293,7 @@ def _run_jobs(
     """Run every world's missing episodes (one progress bar over all); returns (episodes run now, episodes found on
     disk, workers, seconds)."""
     from drivesim.pipeline.progress import progress_bar
-    from drivesim.stages.evaluate.rollout import RunningRate, completed_seeds, default_workers, run_episodes
+    from drivesim.stages.evaluate.rollout import RunningRate, capped_workers, completed_seeds, run_episodes
 
     def kept() -> int:
         return sum(len(completed_seeds(job.episodes_dir, seeds)) for job in jobs)
@@ -295,7 +302,9 @@ def _run_jobs(
     total = len(seeds) * len(jobs)
     if resumed:
         notes.append(f"resumed: {resumed} of {total} episodes were already on disk")
-    workers = cfg.workers or default_workers()
+    workers, capped = capped_workers(cfg.workers, total - resumed)
+    if capped and cfg.backend == "local":
+        notes.append(capped)
     rate = RunningRate()
     ran = 0
     started = time.perf_counter()
@@ -357,7 +366,7 @@ def _results(job: WorldJob, seeds: list[int]) -> list[Any]:
     return results
 
 
-def _build(ctx: BuildContext) -> EvalSummary:
+def _build(ctx: BuildContext, trusted: bool = False) -> EvalSummary:
     from drivesim.stages.evaluate.replay import finish_recordings
     from drivesim.stages.evaluate.report import Track, write_outputs
     from drivesim.stages.evaluate.rollout import PolicySpec
@@ -370,7 +379,7 @@ def _build(ctx: BuildContext) -> EvalSummary:
     name = cfg.name or default_name(cfg.task, cfg.policy)
     partial = ctx.workspace.root / EVAL_DIR / f"{PARTIAL_PREFIX}{name}"
     seeds = [cfg.seed + i for i in range(cfg.episodes)]
-    jobs = _jobs(ctx, policy_spec, seeds, partial)
+    jobs = _jobs(ctx, policy_spec, seeds, partial, trusted)
     ran, resumed, workers, elapsed = _run_jobs(cfg, jobs, policy_spec, seeds, partial, ctx.notes)
     header = {
         "policy": _policy_label(cfg.policy),
@@ -433,7 +442,11 @@ SPEC: StageSpec[EvalSummary] = StageSpec(
 
 def choose_policy(ws: Workspace, cfg: EvalConfig, policy: str | None, user_chose: bool) -> EvalConfig:
     """The config with the policy to evaluate: `policy` when given; else, when the user named none (no `--policy`,
-    no `policy=` in --set or --config), the workspace's newest finished run of the task, else the expert."""
+    no `policy=` in --set or --config), the workspace's newest finished run of the task.
+
+    :raises ConfigError: the user named no policy and the workspace has no finished run of the task (evaluating
+        the expert instead would pass its figures off as the user's policy's).
+    """
     from drivesim.policy.run_folder import latest_run
 
     if policy is not None:
@@ -441,7 +454,12 @@ def choose_policy(ws: Workspace, cfg: EvalConfig, policy: str | None, user_chose
     if user_chose or cfg.policy != "expert":
         return cfg
     newest = latest_run(ws, cfg.task)
-    return cfg if newest is None else cfg.model_copy(update={"policy": str(newest)})
+    if newest is None:
+        raise ConfigError(
+            f"no trained {cfg.task} policy in {ws.root / 'runs'}: train one first (`drivesim train {cfg.task}`), "
+            "or name what to evaluate: --policy RUN|FILE.onnx|expert|random|straight"
+        )
+    return cfg.model_copy(update={"policy": str(newest)})
 
 
 def beside_name(name: str, cfg: EvalConfig) -> str:
@@ -451,7 +469,7 @@ def beside_name(name: str, cfg: EvalConfig) -> str:
 
 
 def run_eval(
-    ws: Workspace, cfg: EvalConfig, force: bool = False, keep_other: str = "refuse"
+    ws: Workspace, cfg: EvalConfig, force: bool = False, keep_other: str = "refuse", trust_entry_point: bool = False
 ) -> StageResult[EvalSummary]:
     """Evaluate `cfg.policy` into `eval/<name>/` (resuming an interrupted evaluation of the same settings).
 
@@ -464,7 +482,12 @@ def run_eval(
     :param force: evaluate again even when `eval/<name>/` is fresh; with "refuse", replace one made with other
         settings.
     :param keep_other: "refuse" or "beside".
+    :param trust_entry_point: let `cfg.env_entry_point` name a gymnasium.Env class outside drivesim's envs (its
+        module is imported); without it such an entry point is refused before anything of it is imported.
     """
+    from drivesim.stages.evaluate.entry_point import check_env_entry
+
+    trusted = check_env_entry(_env_id(cfg), cfg.env_entry_point, trust_entry_point)
     if cfg.backend == "ray":
         from drivesim.pipeline.ray_cluster import import_ray
 
@@ -483,17 +506,21 @@ def run_eval(
         external["meshes"] = plan.meshes
     if plan.policy_path is not None:
         external["policy"] = plan.policy_path
-    spec = SPEC if plan.world_in_workspace else replace(SPEC, requires=())
-    result = run_stage(
-        ws,
-        spec,
-        cfg,
-        force=force,
-        external=external,
-        artifact=f"{EVAL_DIR}/{plan.name}",
-        protect=True,
-        protect_hint="--force replaces it, --name NAME writes this evaluation beside it",
-    )
-    if not result.skipped:
-        shutil.rmtree(ws.root / EVAL_DIR / f"{PARTIAL_PREFIX}{plan.name}", ignore_errors=True)
+    spec = replace(SPEC, build=functools.partial(_build, trusted=trusted))
+    spec = spec if plan.world_in_workspace else replace(spec, requires=())
+    # The name's lock covers its work folder too: a second evaluation into this name stops with one line instead of
+    # emptying the work folder of the one running.
+    with ws.lock(f"{EVAL_DIR}/{plan.name}"):
+        result = run_stage(
+            ws,
+            spec,
+            cfg,
+            force=force,
+            external=external,
+            artifact=f"{EVAL_DIR}/{plan.name}",
+            protect=True,
+            protect_hint="--force replaces it, --name NAME writes this evaluation beside it",
+        )
+        if not result.skipped:
+            shutil.rmtree(ws.root / EVAL_DIR / f"{PARTIAL_PREFIX}{plan.name}", ignore_errors=True)
     return result

@@ -11,7 +11,15 @@ from typing import Any
 
 import numpy as np
 
-from drivesim.policy.onnx_runtime import INPUT_NAMES, METADATA_FORMAT, METADATA_PREFIX, OUTPUT_NAMES, OnnxPolicy
+from drivesim.policy.onnx_runtime import (
+    DIGEST_KEY,
+    INPUT_NAMES,
+    METADATA_FORMAT,
+    METADATA_PREFIX,
+    OUTPUT_NAMES,
+    OnnxPolicy,
+    metadata_digest,
+)
 
 # Batch size is dynamic: the car runs one episode, evaluation may step several at once.
 DYNAMIC_AXES = {
@@ -31,7 +39,8 @@ def export_onnx(
     """Write `module` (forward(image_u8, h, c, episode_start) -> (action, h, c)) to `path` as one checked ONNX graph.
 
     Uses torch's legacy (TorchScript) exporter: the dynamo path needs onnxscript and writes the weights beside the
-    graph. `metadata` values are stored as JSON under `drivesim.<key>`.
+    graph. `metadata` values are stored as JSON under `drivesim.<key>`, with `drivesim.digest` over them and the graph
+    (checked by `OnnxPolicy` on load).
     """
     import onnx
     import torch
@@ -67,6 +76,8 @@ def export_onnx(
         entry = model.metadata_props.add()
         entry.key, entry.value = METADATA_PREFIX + key, json.dumps(value)
     model.producer_name = "drivesim"
+    entry = model.metadata_props.add()
+    entry.key, entry.value = METADATA_PREFIX + DIGEST_KEY, json.dumps(metadata_digest(model))
     onnx.checker.check_model(model, full_check=True)
     onnx.save(model, str(path))
 

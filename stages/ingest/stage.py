@@ -9,6 +9,7 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
+from drivesim.pipeline.native_log import native_messages_to
 from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, StageSummary, run_stage
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.ingest.config import IngestConfig
@@ -42,11 +43,18 @@ class IngestSummary(StageSummary):
     """Sensor name -> messages left out as unreadable or non-finite (a damaged frame, a NaN GPS fix)."""
 
 
+# Where the decoders' own messages (libjpeg, libpng, FFmpeg, OpenCV) go instead of the terminal.
+NATIVE_LOG = Path("logs") / "ingest-decoders.log"
+
+
 def _build(ctx: BuildContext) -> IngestSummary:
     from drivesim.stages.ingest.run import ingest_recording  # rosbags, mcap, cv2: only when it runs
 
-    result = ingest_recording(ctx.external["recording"], ctx.config, ctx.dir)  # type: ignore[arg-type]
+    with native_messages_to(ctx.workspace.root / NATIVE_LOG) as log:
+        result = ingest_recording(ctx.external["recording"], ctx.config, ctx.dir)  # type: ignore[arg-type]
     ctx.notes.extend(result.notes)
+    if log.lines:
+        ctx.notes.append(f"the image and video decoders said {log.lines} line(s), kept in {log.path}")
     return IngestSummary.model_validate(result.summary)
 
 

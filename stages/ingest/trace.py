@@ -66,7 +66,6 @@ non-finite (`skipped`).
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -74,6 +73,7 @@ from typing import Any
 import numpy as np
 
 from drivesim.pipeline.errors import InputError
+from drivesim.pipeline.json_files import read_json
 
 CALIBRATION_KEYS = (
     "width_px",
@@ -314,9 +314,9 @@ def validate_trace(path: Path | str) -> TraceInfo:
         if not (path / name).is_file():
             raise _fail(path / name, "missing file")
     try:
-        calibration = json.loads((path / "calibration.json").read_text())
-        sources = json.loads((path / "sources.json").read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        calibration = read_json(path / "calibration.json")
+        sources = read_json(path / "sources.json")
+    except ValueError as e:  # not JSON, not UTF-8, nested too deeply, NaN
         raise _fail(path, f"unreadable JSON ({e})") from e
     if not isinstance(calibration, dict) or not isinstance(sources, dict):
         raise _fail(path, "calibration.json and sources.json must hold JSON objects")
@@ -375,7 +375,7 @@ def open_trace(trace_dir: Path) -> TraceView:
     """Open the trace's frames (memory-mapped), stamps and calibration; InputError naming the file when malformed."""
     info = validate_trace(trace_dir)
     try:
-        calibration = json.loads((trace_dir / "calibration.json").read_text())
+        calibration = read_json(trace_dir / "calibration.json")
         frames = np.load(trace_dir / "frames.npy", mmap_mode="r")
         frame_times_ns = np.load(trace_dir / "frame_times_ns.npy")
     except FileNotFoundError as e:

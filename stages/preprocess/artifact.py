@@ -25,7 +25,6 @@ Files:
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from drivesim.pipeline.errors import InputError
+from drivesim.pipeline.json_files import read_json
 from drivesim.sim.world import PATH_ARRAYS, PATH_ARRAYS_FLOAT
 
 # poses.npz holds the same per-frame arrays as the world's path.npz: one schema, defined by the simulator's loader.
@@ -72,7 +72,7 @@ def load_preprocessed(root: Path) -> Preprocessed:
         with np.load(root / "poses.npz") as data:
             poses = {k: np.asarray(data[k]) for k in data.files}
         depth = np.load(root / "depth.npy", mmap_mode="r")
-        origin = json.loads((root / "origin.json").read_text())
+        origin = read_json(root / "origin.json")
     except (OSError, ValueError) as e:
         raise InputError(f"unreadable preprocessed artifact: {e}", root) from e
     validate_preprocessed(root, poses, depth, origin)
@@ -103,6 +103,8 @@ def validate_preprocessed(
         raise InputError("poses.npz: t_ns must be strictly increasing", root)
     if depth_m.dtype != np.float32 or depth_m.ndim != 3 or depth_m.shape[0] != n:
         raise InputError(f"depth.npy must be float32 ({n}, H, W), got {depth_m.dtype} {depth_m.shape}", root)
+    if not isinstance(origin, dict):
+        raise InputError("origin.json must hold a JSON object; run `drivesim preprocess --force`", root)
     absent = [k for k in ORIGIN_KEYS if k not in origin]
     if absent:
         raise InputError(f"origin.json lacks {', '.join(absent)}", root)

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, field_validator, model_validator
 
 from drivesim.pipeline.config import STRICT_MODEL_CONFIG, StageConfig
 from drivesim.policy.net_size import check_network_size
 from drivesim.sim.envs.config import EnvConfig, check_torch_device
-from drivesim.sim.envs.registry import TaskName
+from drivesim.sim.envs.registry import TASKS, TaskName, task_spec
 
 ConvLayer = tuple[
     Annotated[int, Field(ge=1, le=4096)], Annotated[int, Field(ge=1, le=64)], Annotated[int, Field(ge=1, le=64)]
@@ -24,8 +24,10 @@ class _Section(BaseModel):
 class PolicyConfig(_Section):
     """The CNN + LSTM (policy/net.py)."""
 
-    conv_layers: list[ConvLayer] = Field(default_factory=lambda: [(16, 5, 2), (32, 3, 2), (64, 3, 1)], max_length=32)
-    """Convolutions as (out_channels, kernel_px, stride_px), 'valid' padding, ReLU after each."""
+    conv_layers: list[ConvLayer] = Field(
+        default_factory=lambda: [(16, 5, 2), (32, 3, 2), (64, 3, 1)], min_length=1, max_length=32
+    )
+    """Convolutions as (out_channels, kernel_px, stride_px), 'valid' padding, ReLU after each; at least one."""
     input_pool: int = Field(2, ge=1, le=64)
     """Average-pool factor applied to the standardized image before the first convolution (1: none)."""
     features_dim: int = Field(128, ge=1)
@@ -64,8 +66,8 @@ class PPOConfig(_Section):
     max_grad_norm: float = Field(0.5, gt=0.0)
     """Gradient norm clip."""
     normalize_reward: bool = True
-    """Divide rewards by the running std of the discounted return (SB3 VecNormalize), so the shared trunk's value
-    loss stays of order 1 (without it lane keeping learned several times slower, benchmarks/results)."""
+    """Divide rewards by the running std of the discounted return (SB3 VecNormalize), so the shared trunk's value loss
+    stays of order 1."""
     target_kl: float | None = Field(None, gt=0.0)
     """Stop an update's epochs early when the KL divergence exceeds 1.5x this (None: never)."""
 
@@ -85,7 +87,8 @@ class EnvsConfig(_Section):
     """batched: worker processes the episodes are split over, stepping in parallel (1: in the learner's process;
     the number of cores is a good choice when the simulator dominates)."""
     config: EnvConfig = Field(default_factory=EnvConfig)
-    """The env config of every training episode (sim/envs/config.py; its keys are listed below as envs.config.*)."""
+    """The env config of every training episode: the task's own (`default_config()` in sim/envs/<task>.py) with the
+    keys given here on top (sim/envs/config.py lists them)."""
     worker_threads: int = Field(1, ge=1, le=4096)
     """torch threads in each env worker process."""
     backend: Literal["local", "ray"] = "local"
@@ -106,10 +109,8 @@ class EvalConfig(_Section):
     seed: int = Field(1_000_000, ge=0)
     """First held-back seed (training episodes never use seeds at or above it)."""
     keep_best: bool = False
-    """On: the run's policy is the weights of its best periodic evaluation (success rate, then mean return).
-    Off (the default): the last update's weights, what the run really ends with; the best evaluation's are kept in
-    checkpoints/best.pt either way (`drivesim eval --policy RUN/checkpoints/best.pt`). A choice made on a few
-    dozen held-back episodes is optimistic (issue 19: 96 % on 50 episodes, 79.5 % on 1000)."""
+    """On: the run's policy is its best periodic evaluation's weights (success, then mean return). Off: the last
+    update's. The best are in checkpoints/best.pt either way."""
 
 
 class WarmStartConfig(_Section):
@@ -161,27 +162,20 @@ class TrainConfig(StageConfig):
     total_steps: int = Field(2_000_000, ge=1)
     """Env steps to train for (warm start not counted)."""
     towns: list[int] = []
-    """Procedural towns to train on as well (seeds): town N is `<workspace>/towns/seed<N>/world`, built first when
-    missing (`drivesim towns build`, chain/towns.py), added to the workspace's world or the --world folders;
-    [] for none."""
+    """Procedural towns (seeds) to train on as well: town N is `<workspace>/towns/seed<N>/world`, built first when
+    missing, added to the run's worlds; [] for none."""
     time_limit_s: float | None = Field(None, gt=0.0)
     """Stop after this much training wall time, at the end of an update, and finish the run [s] (None: no limit)."""
     seed: int = Field(0, ge=0)
     """Seed of the policy's initialization and of the training episodes."""
     ensemble: int = Field(1, ge=1, le=16)
-    """Policies to train, one after another with seeds seed, seed + 1, ... (each a run of its own), made into one
-    ensemble run whose steering is the mean of theirs (`policy/ensemble.py`); 1: one policy. On a real drive
-    none of them trained on, the seed alone moves a lane policy from 0 % to 100 % of the episodes; three batches of
-    four of the recipe with the encoder's auxiliary lane target and one real street in training, 0-97.5 % each,
-    passed 100 % as ensembles, where four trained with random erasing as well (0-90 % each) passed 1 %: the mean
-    cancels biases that differ between seeds, not one they share (benchmarks/results/transfer.md, the ensemble
-    table)."""
+    """Policies to train with seeds seed, seed + 1, ..., made into one ensemble run whose steering is the mean of theirs
+    (`policy/ensemble.py`); 1: one policy."""
     learner_threads: int = Field(2, ge=1, le=4096)
     """torch threads of the learner (this process)."""
     rollout_threads: int | None = Field(None, ge=1, le=4096)
-    """torch threads of the learner while it collects a rollout (None: learner_threads). With the envs in worker
-    processes (envs.processes > 1), 1 leaves the cores to the workers: the learner only runs the policy on the
-    envs' images then, and its idle torch threads would compete with them."""
+    """torch threads of the learner while it collects a rollout (None: learner_threads); 1 leaves the cores to the env
+    worker processes when envs.processes > 1."""
     device: str = "cpu"
     """torch device of the learner (PPO's updates, the warm start, the imitation): "cpu" or "cuda". With a GPU, set
     envs.config.render_device too, so the views are rendered there as well."""
@@ -206,6 +200,27 @@ class TrainConfig(StageConfig):
     @classmethod
     def _device(cls, value: str) -> str:
         return check_torch_device(value)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _task_env_config(cls, data: Any) -> Any:
+        """envs.config: the task's env settings (`default_config()` of its class) under the keys given."""
+        task = data.get("task", cls.model_fields["task"].default) if isinstance(data, dict) else None
+        if not isinstance(task, str) or task not in TASKS:
+            return data  # not a mapping or a bad task: refused by the fields' own checks
+        envs = data.get("envs")
+        if isinstance(envs, EnvsConfig):
+            envs = envs.model_dump(exclude_unset=True) | {"config": envs.config}
+        if envs is not None and not isinstance(envs, dict):
+            return data
+        envs = dict(envs or {})
+        given = envs.get("config")
+        if isinstance(given, EnvConfig):  # its keys set by hand count, its defaults give way to the task's
+            given = given.model_dump(exclude_unset=True)
+        if given is not None and not isinstance(given, dict):
+            return data  # not a mapping: refused by the field's own check
+        defaults = task_spec(task).env_class().default_config().model_dump()
+        return {**data, "envs": {**envs, "config": {**defaults, **(given or {})}}}
 
     @field_validator("towns")
     @classmethod

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -18,6 +19,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from drivesim.pipeline.config import validation_line
 from drivesim.pipeline.errors import ConfigError, DrivesimError, Interrupted
+from drivesim.pipeline.workspace import MANIFEST_NAME
 from drivesim.policy.run_folder import CONFIG_JSON, RUNS_DIR
 from drivesim.stages.train.best import BEST_CHECKPOINT, BestPolicy
 from drivesim.stages.train.callbacks import RunState, TrainingCallback
@@ -66,14 +68,20 @@ class TrainOutcome:
 
 
 def new_run_dir(workspace_root: Path, task: str) -> Path:
-    """A new `runs/<task>-<YYYYmmdd-HHMMSS>` folder name (a suffix when that second is taken); not created."""
+    """A new, empty run folder `runs/<task>-<YYYYmmdd-HHMMSS>` (`-2`, `-3`, ... when that name is taken), created
+    here: os.mkdir fails for a name that exists, so two runs started in the same second never share a folder."""
     stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
     base = workspace_root / RUNS_DIR / f"{task}-{stamp}"
+    base.parent.mkdir(parents=True, exist_ok=True)
     run_dir, i = base, 1
-    while run_dir.exists():
-        i += 1
-        run_dir = base.with_name(f"{base.name}-{i}")
-    return run_dir
+    while True:
+        try:
+            os.mkdir(run_dir)
+        except FileExistsError:
+            i += 1
+            run_dir = base.with_name(f"{base.name}-{i}")
+            continue
+        return run_dir
 
 
 def write_run_config(
@@ -88,8 +96,39 @@ def write_run_config(
             "env_config": env_config,
             "observation_shape": [int(v) for v in observation_shape],
             "worlds": [str(w) for w in source.worlds],
+            "world_hashes": world_hashes(source.worlds),
             "meshes": None if source.meshes is None else str(source.meshes),
         },
+    )
+
+
+def world_hashes(worlds: list[Path]) -> list[str | None]:
+    """Each world's artifact_hash from its manifest (None for a folder without one): which build of each world a
+    run trains on, so that a run is continued only on the worlds it started on."""
+    hashes: list[str | None] = []
+    for world in worlds:
+        try:
+            value = json.loads((Path(world) / MANIFEST_NAME).read_text()).get("artifact_hash")
+        except (OSError, UnicodeDecodeError, ValueError, AttributeError, RecursionError):
+            value = None
+        hashes.append(value if isinstance(value, str) else None)
+    return hashes
+
+
+def continues_run(run_dir: Path, cfg: TrainConfig, worlds: list[Path]) -> bool:
+    """True when `run_dir` is an unfinished run (no manifest) started with this very config on these worlds (the
+    same folders holding the same builds): the run that a re-run of the chain continues instead of starting anew."""
+    if (run_dir / MANIFEST_NAME).exists():
+        return False
+    try:
+        saved = json.loads((run_dir / CONFIG_JSON).read_text())
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
+        return False
+    return (
+        isinstance(saved, dict)
+        and saved.get("train") == cfg.model_dump(mode="json")
+        and saved.get("worlds") == [str(w) for w in worlds]
+        and saved.get("world_hashes") == world_hashes(worlds)
     )
 
 

@@ -36,6 +36,16 @@ class EncoderExtractor(BaseFeaturesExtractor):
         return self.encoder(observations)
 
 
+def _conv_layers(conv_layers: list | None) -> list[list[int]]:
+    """The convolutions exactly as given (the architecture recorded is the one built); at least one is needed."""
+    layers = [list(map(int, layer)) for layer in conv_layers or []]
+    if not layers or any(len(layer) != 3 or min(layer) < 1 for layer in layers):
+        raise ValueError(
+            f"conv_layers {conv_layers!r}: give at least one (out_channels, kernel_px, stride_px), each >= 1"
+        )
+    return layers
+
+
 class DrivingLstmPolicy(RecurrentActorCriticPolicy):
     """Small CNN -> one shared LSTM -> Gaussian steering and value; for `RecurrentPPO`.
 
@@ -64,7 +74,7 @@ class DrivingLstmPolicy(RecurrentActorCriticPolicy):
         **kwargs: Any,
     ) -> None:
         self.arch = {
-            "conv_layers": [list(map(int, layer)) for layer in (conv_layers or [(16, 5, 2), (32, 3, 2)])],
+            "conv_layers": _conv_layers(conv_layers),
             "features_dim": int(features_dim),
             "input_pool": int(input_pool),
             "lstm_hidden_size": int(lstm_hidden_size),
