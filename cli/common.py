@@ -60,9 +60,8 @@ AddressOption = Annotated[
     str | None,
     typer.Option(
         "--address",
-        help="With --backend ray: the cluster, 'auto' (started by `ray start` on this machine) or the head's "
-        "host:port. Default: start Ray on this machine for this command. Every node needs drivesim and the world "
-        "(and meshes and policy) at the same paths.",
+        help="With --backend ray: 'auto' (a cluster started by `ray start` here) or the head's host:port; default: "
+        "start Ray here. Every node needs drivesim and the files at the same paths.",
         show_default=False,
     ),
 ]

@@ -18,6 +18,8 @@ _STATE_STYLE = {"fresh": "green", "stale": "yellow", "missing": "dim"}
 def _summary_text(summary: dict[str, Any]) -> str:
     parts = []
     for key, value in summary.items():
+        if value in ({}, [], None, ""):  # nothing to say (an ingest that skipped no message): no empty "skipped:"
+            continue
         if isinstance(value, dict):
             inner = ", ".join(
                 f"{k} ({v.get('message_count', '?')})" if isinstance(v, dict) else f"{k}={v}" for k, v in value.items()

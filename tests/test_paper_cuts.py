@@ -13,6 +13,11 @@ REPO = Path(__file__).resolve().parents[1]
 TESTS_DIR = Path(__file__).parent
 
 
+def _no_window(environ: os._Environ[str]) -> dict[str, str]:
+    """The environment without a terminal size (COLUMNS, LINES), as in a cron job or a CI log."""
+    return {k: v for k, v in environ.items() if k not in ("COLUMNS", "LINES")}
+
+
 def drivesim(
     ws: Path, *args: str, env: dict[str, str] | None = None, timeout_s: float = 120
 ) -> subprocess.CompletedProcess[str]:
@@ -22,7 +27,7 @@ def drivesim(
         capture_output=True,
         text=True,
         timeout=timeout_s,
-        env={**os.environ, "PYTHONPATH": str(TESTS_DIR), "OMP_NUM_THREADS": "1", **(env or {})},
+        env={**_no_window(os.environ), "PYTHONPATH": str(TESTS_DIR), "OMP_NUM_THREADS": "1", **(env or {})},
     )
 
 
@@ -145,3 +150,51 @@ def test_an_empty_workspace_names_every_step_to_a_world(tmp_path: Path) -> None:
             "drivesim build-world",
         ):
             assert step in lines[0], (step, lines[0])
+
+
+# ---------------------------------------------------------------- 4 and 5. piped tables, world labels, status
+
+
+def _ingested_workspace(ws: Path, recording_name: str) -> Path:
+    """A user's workspace after `drivesim ingest <recording_name>.mcap`, with a (fake) world beside its trace."""
+    from eval_fakes import fake_world
+    from recordings import drive_messages, write_recording
+
+    ws.parent.mkdir(parents=True, exist_ok=True)
+    rec = write_recording(ws.parent / f"{recording_name}.mcap", "mcap", drive_messages(n_frames=5))
+    done = drivesim(ws, "ingest", str(rec))
+    assert done.returncode == 0, done.stdout + done.stderr
+    fake_world(ws / "world")
+    return ws
+
+
+def test_piped_eval_table_is_whole_and_labels_worlds_by_their_recording(tmp_path: Path) -> None:
+    from eval_fakes import FAKE
+
+    a = _ingested_workspace(tmp_path / "a" / "my-work", "drive_0005")
+    b = _ingested_workspace(tmp_path / "b" / "my-work", "drive_0009")
+    args = ["--world", str(a / "world"), "--world", str(b / "world"), "--episodes", "2", "--workers", "1"]
+    args += ["--policy", "expert", "--set", f"env_id={FAKE['env_id']}", "--trust-entry-point"]
+    done = drivesim(tmp_path / "ws", "eval", *args, "--set", f"env_entry_point={FAKE['env_entry_point']}")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "…" not in done.stdout, done.stdout
+    header = next(line for line in done.stdout.splitlines() if "world" in line and "episodes" in line and "┃" in line)
+    for heading in ("intervention", "collision", "off lane", "min clearance (m, all episodes)"):
+        assert heading in header, (heading, header)
+    rows = [line.split("│")[1].strip() for line in done.stdout.splitlines() if line.startswith("│")]
+    assert rows[:2] == ["drive_0005", "drive_0009"], rows
+    assert "my-work" not in done.stdout, done.stdout
+    assert {p.name for p in (tmp_path / "ws" / "eval" / "overtake-expert" / "worlds").iterdir()} == {
+        "drive_0005",
+        "drive_0009",
+    }
+
+
+def test_piped_status_prints_no_empty_field(tmp_path: Path) -> None:
+    ws = _ingested_workspace(tmp_path / "my-work", "drive")
+    done = drivesim(ws, "status")
+    assert done.returncode == 0, done.stderr
+    trace_row = next(line for line in done.stdout.splitlines() if line.lstrip("│ ").startswith("ingest"))
+    assert "frame_count=5" in trace_row and "tf_static (1) │" in trace_row, done.stdout  # the whole summary, one line
+    # The ingest skipped no message: no "skipped:" with nothing after it (checked across folded lines too).
+    assert "skipped" not in re.sub(r"[\s│]", "", done.stdout), done.stdout

@@ -4,8 +4,7 @@ world, the pooled figures, and, for a run folder's policy, which worlds it train
 Layout of `eval/<name>/` with several worlds: `worlds/<label>/` holds each world's complete single-world output
 (metrics.json, episodes/, recordings/, figures, report.html); the top level holds the pooled metrics.json (with
 `per_world`, `groups` and `gap`), episodes.csv (a `world` column first), the pooled figures and report.html with the
-per-world table. Labels name the world folder (its parent's name for a folder called `world`, as in
-`towns/seed3/world` -> `seed3`), made unique with a suffix.
+per-world table. Labels name the world (`world_label`), made unique with a suffix.
 """
 
 from __future__ import annotations
@@ -46,10 +45,28 @@ TABLE_COLUMNS = (
 
 
 def world_label(world: Path) -> str:
-    """A short folder-safe name for a world: its folder's name, or its parent's when the folder is called `world`."""
+    """A short folder-safe name for a world: for a workspace's `world/`, the name of the recording it was built from
+    (`drive_0005.bag` -> `drive_0005`; a town's `towns/seed3/world` -> `seed3`), else the folder's own name."""
     world = Path(world)
-    name = world.parent.name if world.name == "world" and world.parent.name else world.name
+    name = world.name
+    if world.name == "world" and world.parent.name:
+        name = _recording_name(world.parent) or world.parent.name
     return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "world"
+
+
+def _recording_name(workspace: Path) -> str | None:
+    """The stem of the recording a workspace's trace was read from (trace/sources.json), or None: none is recorded,
+    or the workspace is a procedural town's (`towns/seed<N>`), whose drive is synthesized and named by its seed."""
+    if workspace.parent.name == "towns":
+        return None
+    try:
+        recording = json.loads((workspace / "trace" / "sources.json").read_text()).get("recording")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if not isinstance(recording, str) or not recording.strip():
+        return None
+    path = Path(recording.rstrip("/"))
+    return path.stem or None  # `drive.bag` -> drive; a folder (KITTI drive, rosbag2, images) keeps its whole name
 
 
 def world_labels(worlds: Sequence[Path]) -> list[str]:
