@@ -58,7 +58,7 @@ FORMATS: dict[str, RecordingFormat] = {
     "kitti_raw": RecordingFormat(is_kitti_raw_drive, ingest_kitti_raw),
     "kitti_odometry_stereo": RecordingFormat(is_kitti_stereo, ingest_kitti_stereo),
     "kitti_odometry": RecordingFormat(is_kitti_odometry, ingest_kitti_odometry),
-    "video": RecordingFormat(is_video, ingest_video),  # a video file, or a folder of images only (issue 23)
+    "video": RecordingFormat(is_video, ingest_video),  # a video file, or a folder of images only
 }
 
 
