@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from drivesim.diagnostics.sim_steps import make_env
+from drivesim.bench.sim_steps import make_env
 from drivesim.sim.view import CarPlacement, ViewSynthesizer
 
 HERE = Path(__file__).resolve().parent
