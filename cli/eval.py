@@ -21,9 +21,8 @@ PolicyOption = Annotated[
     str | None,
     typer.Option(
         "--policy",
-        help="A run folder of `drivesim train` (or one of its checkpoints, RUN/checkpoints/NAME.pt), an exported "
-        ".onnx file, 'expert', 'random' or 'straight' (never steers). "
-        "Default: the workspace's newest finished run of the task (without one, eval asks you to name a policy).",
+        help="A `drivesim train` run folder or checkpoint (RUN/checkpoints/NAME.pt), an .onnx file, 'expert', "
+        "'random' or 'straight' (never steers). Default: the workspace's newest finished run of the task.",
         show_default=False,
     ),
 ]
@@ -59,9 +58,8 @@ WorldOption = Annotated[
     list[Path] | None,
     typer.Option(
         "--world",
-        help="World folder (default: the workspace's world/). Repeatable: --episodes episodes in each world, one "
-        "table with a row per world and the pooled figures; a run folder's training worlds are labelled train, "
-        "the others unseen.",
+        help="World folder (default: the workspace's world/). Repeatable: the same seeds in each world, a row per "
+        "world labelled train or unseen, and the pooled figures.",
         show_default=False,
     ),
 ]
@@ -97,8 +95,8 @@ TrustEntryPointOption = Annotated[
     bool,
     typer.Option(
         "--trust-entry-point",
-        help="Let env_entry_point (in --set or --config) name your own gymnasium.Env class; its module is imported, "
-        "so its code runs: only for code you trust. Without it only drivesim's own env classes are accepted.",
+        help="Let env_entry_point (--set or --config) name your own gymnasium.Env class; its module is imported and "
+        "runs, so only for code you trust.",
     ),
 ]
 

@@ -53,9 +53,8 @@ def ingest_command(
     path: Annotated[
         Path,
         typer.Argument(
-            help="ROS1 .bag, rosbag2 folder, .mcap file, KITTI raw drive (..._sync) or odometry folder, or a video "
-            "(.mp4/.mov/.mkv/.avi; or a folder of images with --fps): poses by SfM, scale from --camera-height-m "
-            "or a GPS track."
+            help="ROS1 .bag, rosbag2 folder, .mcap file, KITTI raw (..._sync) or odometry folder, a video "
+            "(.mp4/.mov/.mkv/.avi) or a folder of images (--fps); a video's scale from --camera-height-m or --gps."
         ),
     ],
     topic: TopicOption = None,

@@ -26,9 +26,8 @@ def run_command(
     recording: Annotated[
         Path | None,
         typer.Argument(
-            help="Your recording (ROS1 .bag, rosbag2 folder, .mcap, KITTI raw drive or odometry folder, a video "
-            "with --camera-height-m or a GPS track, or a folder of images with --fps): the flags of `drivesim "
-            "ingest` apply. Default: the embedded demo drive, synthesized first into <workspace>/recordings/demo.mcap.",
+            help="Your recording (.bag, rosbag2 folder, .mcap, KITTI folder, video, image folder with --fps); the "
+            "flags of `drivesim ingest` apply. Default: the embedded demo drive.",
             show_default=False,
         ),
     ] = None,

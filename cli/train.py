@@ -48,8 +48,7 @@ EnsembleOption = Annotated[
     typer.Option(
         "--ensemble",
         help="Train this many policies (seeds seed, seed+1, ...; each a run of its own) and make them one ensemble "
-        "run whose steering is the mean of theirs: where the seeds' biases differ, far steadier on a drive none of "
-        "them saw than any one seed (benchmarks/results/transfer.md).",
+        "run whose steering is the mean of theirs.",
         show_default=False,
     ),
 ]

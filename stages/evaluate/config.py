@@ -20,15 +20,15 @@ class EvalConfig(StageConfig):
     """The task's scenarios to restrict the episodes to, at most one of each group (overtake's, the paper's Table II:
     static or dynamic, pass-left or pass-right). Empty: the task's own distribution."""
     policy: str = "expert"
-    """`expert` (the env's privileged expert), `random` (uniform random steering, a baseline), a run folder of
-    `drivesim train` (or one of its checkpoints, `<run>/checkpoints/<name>.pt`), or an exported `.onnx` file."""
+    """`expert` (privileged expert), `random` (a baseline), a `drivesim train` run folder or one of its checkpoints
+    (`<run>/checkpoints/<name>.pt`), or an exported `.onnx` file."""
     episodes: int = Field(1000, ge=1, le=10_000_000)
     """Number of episodes; episode i is reset with seed `seed + i`."""
     seed: int = Field(0, ge=0)
     """Seed of the first episode."""
     world: list[str] | None = None
-    """World folder(s) to evaluate in, each with the same seeds and `episodes` episodes (one path or a list);
-    null = the workspace's world/. Several worlds give a table with a row per world and the pooled figures."""
+    """World folder(s) to evaluate in, each with the same seeds and `episodes` episodes; null = the workspace's world/.
+    Several give a row per world and pooled figures."""
     meshes: str | None = None
     """Vehicle mesh library folder; null = the workspace's meshes/ when built, else the procedural library."""
     env: EnvConfig = Field(default_factory=EnvConfig)
@@ -37,16 +37,15 @@ class EvalConfig(StageConfig):
     video: int = Field(0, ge=0, le=1000)
     """MP4s to render of chosen episodes (alternately the worst and the best)."""
     record: str | int = "failures"
-    """Episodes written as Foxglove MCAP files, `recordings/<seed>.mcap`: failures = those with an intervention, the
-    first 50 by seed; all; N (a number) = the first N episodes; none or 0 = no recordings
-    (stages/evaluate/record.py)."""
+    """Episodes written as Foxglove MCAP, `recordings/<seed>.mcap`: failures (with an intervention, the first 50 by
+    seed), all, N (the first N episodes), or none."""
     clearance_histogram_max_m: float = Field(2.0, gt=0)
     """Upper end of the per-step clearance histogram (Fig. 5) [m]."""
     env_id: str | None = None
     """Gymnasium id to evaluate in instead of the task's drivesim env (a user's own registered env)."""
     env_entry_point: str | None = None
-    """`module:Class` of a `gymnasium.Env` subclass, registering `env_id` first when it is not registered yet: one of
-    drivesim's env classes, or your own with `drivesim eval --trust-entry-point` (its module is imported)."""
+    """`module:Class` of a gymnasium.Env subclass, registered as `env_id` when it is not yet: a drivesim env, or your
+    own with `drivesim eval --trust-entry-point`."""
     workers: int | None = Field(None, ge=1, le=4096, exclude=True)
     """Worker processes (Ray actors with backend ray); null = one per core (of the cluster). Not part of the
     artifact's identity (same seeds, same numbers)."""

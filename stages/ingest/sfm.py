@@ -25,7 +25,7 @@ if TYPE_CHECKING:
 
 MIN_SFM_FRAMES = 10
 # The mapper varies from run to run (its threads), and its first pair must see its points under 16 degrees: driving
-# forward, few pairs in a 10-frame window (the default until 2026-11-27) do. On a rendered 30-frame drive, 4 of seeds
+# forward, few pairs in a 10-frame window do. On a rendered 30-frame drive, 4 of seeds
 # 0-7 found no pair or one no third frame could join (a 2-frame model whose focal length then ran off to a 165 degree
 # view; CI failed on it). At 4 degrees 22 of 24 seeds mapped all 30 frames, but on the KITTI drive a 4 degree pair
 # bent the path (-55 % long, focal 130 degrees). So a drive left mostly unregistered is mapped again: once more at 16
@@ -239,8 +239,8 @@ def _refine_focal(model, opts: SfmOptions) -> None:
     81 and 87 degrees), so a few outlying matches decided it under least squares: the same frames gave 81.2 degrees
     decoded from an MP4 and 87.4 from their PNGs (true 81.4). Under the Cauchy loss, with the 20 frame window, the
     MP4, the PNGs and KITTI odometry 06 (true 81.8) give 83.5-83.9 degrees (`benchmarks/results/video_sfm.md`).
-    Mapping again with the refined value held fixed did not move it nearer (2026-11-25, least squares: 85.3 degrees
-    after a second mapping) and costs a second mapping, so it is not done.
+    Mapping again with the refined value held fixed did not move it nearer (least squares: 85.3 degrees after a
+    second mapping) and costs a second mapping, so it is not done.
     """
     import pycolmap
 

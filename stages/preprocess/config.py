@@ -56,9 +56,8 @@ class PoseConfig(StageConfig):
     altitude_smoothing_s: float = Field(2.0, ge=0)
     """Gaussian smoothing of the altitude over time (s, sigma)."""
     curvature_min_speed_mps: float = Field(1.0, gt=0)
-    """Curvature regularisation speed v0 (m/s): curvature is fitted as yaw_rate = kappa*speed over the samples near
-    each point with a prior kappa = 0 worth a sample at v0/10 each, so stops take the road's curvature from their
-    neighbours and crawls cannot blow it up (unsmoothed: yaw_rate*v/(v^2+v0^2))."""
+    """Speed v0 (m/s) of the curvature fit's prior kappa = 0 (yaw_rate = kappa * speed), so stops take the road's
+    curvature from their neighbours and crawls stay bounded."""
     curvature_smoothing_m: float = Field(2.0, ge=0)
     """Gaussian smoothing of the curvature along the arc length (m, sigma)."""
     sfm_scale_m: float | None = Field(None, gt=0)
@@ -76,16 +75,15 @@ class MvsConfig(StageConfig):
     num_hypotheses: int = Field(48, ge=4, le=512)
     """Fronto-parallel depth planes swept, spaced evenly in inverse depth between min_depth_m and max_depth_m."""
     min_depth_m: float = Field(3.0, gt=0.0)
-    """Nearest depth swept (m). The planes are even in inverse depth, so from 2 m the 2-3 m slice took a third of
-    them; the road nearer than this keeps its own per-pixel hypothesis, the ground plane (results/depth.md)."""
+    """Nearest depth swept (m); the planes are even in inverse depth. Road nearer than this keeps the ground plane as
+    its hypothesis."""
     patch_size_px: int = Field(13, ge=3, le=31)
     """Side of the square window of the ZNCC matching cost, in matching-resolution pixels (odd)."""
     matching_width_px: int = Field(448, ge=32)
     """Width of the images the sweep runs on (matching resolution); frames wider than this are downscaled."""
     aggregation_radius_px: int = Field(0, ge=0, le=15)
-    """Edge-aware cost aggregation: the matching cost of each hypothesis is smoothed by a guided filter of this
-    radius (matching pixels) guided by the reference image, so a small patch gets the support of a large one without
-    blurring depth across object edges; 0 disables."""
+    """Radius (matching pixels) of the guided filter that smooths each hypothesis's matching cost, guided by the
+    reference image so depth edges stay sharp; 0 disables."""
     aggregation_eps: float = Field(1e-3, gt=0.0)
     """Guided filter regularization (grey variance, grey in [0, 1]): edges weaker than about sqrt(eps) are smoothed
     across."""
@@ -100,16 +98,15 @@ class MvsConfig(StageConfig):
     """Stereo is trusted only where the second-best cost minimum (away from the best) is this much worse."""
     min_parallax_px: float = Field(0.25, ge=0.0)
     """Stereo is trusted only where a 25 % depth change moves the pixel at least this far (matching pixels) in the
-    widest-baseline neighbour: near the focus of expansion of a forward drive there is no parallax to measure."""
+    widest-baseline neighbour."""
     plane_margin: float = Field(0.03, ge=0.0)
     """The ground plane is kept wherever its ZNCC cost is within this margin of the best swept plane."""
     plane_prior_margin: float = Field(0.0, ge=0.0)
-    """A guessed pixel below the horizon (no trusted stereo, no matching plane, filled from around) takes the ground
-    plane unless its guessed depth's cost beats the plane's by more than this (ZNCC cost (1 - ZNCC) / 2); 0 disables
-    (the guess stays)."""
+    """A filled pixel below the horizon takes the ground plane unless its own depth's cost beats the plane's by more
+    than this (ZNCC cost (1 - ZNCC) / 2); 0 disables."""
     fill_sigma_px: float = Field(3.0, ge=0.0)
-    """Pixels with neither trusted stereo nor an agreeing plane take the inverse depth of trusted pixels around them,
-    Gaussian-weighted with this sigma (matching pixels), where those surround them densely enough; 0 disables."""
+    """Sigma (matching pixels) of the Gaussian fill of pixels with neither trusted stereo nor an agreeing plane, from
+    the trusted inverse depth around them; 0 disables."""
     sky_max_std: float = Field(0.012, ge=0.0)
     """Sky: textureless pixels (grey window deviation below this, grey in [0, 1]) above the horizon connected to the
     image top; they get max_depth_m."""
@@ -162,10 +159,8 @@ class DepthConfig(StageConfig):
     """Per-frame depth estimation."""
 
     method: Literal["auto", "plane", "mvs", "stereo", "lidar"] = "auto"
-    """auto: the best the recording supports, lidar > stereo > mvs (the choice is printed); plane: flat ground from
-    camera height and pitch (fast baseline); mvs: multi-view stereo over neighbouring frames fused with the plane
-    (camera only); stereo: semi-global matching on the recording's rectified second camera (needs one in the
-    trace); lidar: projected point cloud (needs one in the trace)."""
+    """auto (lidar > stereo > mvs, as the recording allows; printed), plane (flat ground, fast), mvs (multi-view stereo,
+    camera only), stereo (second camera), lidar (point cloud)."""
     max_depth_m: float = Field(80.0, gt=0.0)
     """Farthest depth (m): sky, rays above the horizon and anything without an estimate get this value."""
     mvs: MvsConfig = Field(default_factory=MvsConfig)

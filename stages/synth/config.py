@@ -22,8 +22,7 @@ class RoadConfig(StageConfig):
     """Width of the parking strip between the edge line and the curb, on each side (m)."""
     edge_lines: bool = True
     """White lines at the lanes' outer edges. Off: only the dashed centre line is painted, and a lane ends where the
-    parking strip's asphalt begins, as on many streets; a town like that tested whether lane policies steer by the
-    edge lines (issue 19: they keep such a lane, benchmarks/results/steer_bias.md)."""
+    parking strip's asphalt begins."""
     sidewalk_width_m: float = Field(2.5, gt=0.5, le=6.0)
     """Width of the raised sidewalk behind each curb (m)."""
     curb_height_m: float = Field(0.15, gt=0.0, le=0.4)

@@ -159,9 +159,8 @@ def warm_start(
         new, share = _collect(model, venv, cfg.steps_per_iteration // n, beta, rng, carry)
         data = _concat(data, new)
         # `epochs` passes over all data so far: round i costs i + 1 times round 0 (36 rounds' worth for 8 rounds).
-        # Passes over one round's size instead (a constant cost per round) make 4.5x fewer gradient steps for 8
-        # rounds: the one run with it (and with the 60-degree view, new as well) held 72 % of its held-back episodes
-        # after the warm start, against 87 % before (issue 19); the cost it saves is ~5 min of one core.
+        # Passes over one round's size instead would cost less but make 4.5x fewer gradient steps for 8 rounds and
+        # left a weaker warm start (experiments/NOTEBOOK.md).
         batches = minibatches(
             len(data.obs), cfg.epochs * max(1, len(data.obs) // chunks_per_batch), chunks_per_batch, rng
         )

@@ -30,8 +30,8 @@ class WorldConfig(StageConfig):
     sim_width_px: int = Field(320, ge=16, le=4096)
     """Width of the simulated camera image (px); the height keeps the recording's aspect ratio."""
     depth_resize: Literal["min", "nearest"] = "min"
-    """How depth is resized to the simulation resolution: min keeps the nearest surface of each block (thin near
-    objects and depth edges survive, occlusions stay conservative); nearest picks one source pixel."""
+    """How depth is resized to the simulation resolution: min keeps each block's nearest surface (thin objects and edges
+    survive); nearest picks one source pixel."""
     lane_width_m: float = Field(3.5, gt=0.0)
     """Width of the ego lane, centred on the recorded path (m)."""
     road_width_m: float = Field(7.0, gt=0.0)

@@ -1,0 +1,119 @@
+"""Descriptions a user reads stay short and say what a key does: every config field of every stage (the env's
+included) has a description of at most 200 characters, every CLI option's help is at most 200 characters, and no
+code comment in the product packages carries a date (comments say what and why, not when)."""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import io
+import pkgutil
+import re
+import tokenize
+from collections.abc import Iterator
+from pathlib import Path
+
+import click
+import typer.main
+from pydantic import BaseModel
+
+import drivesim.stages
+
+REPO = Path(__file__).resolve().parents[1]
+PRODUCT_PACKAGES = ("cli", "pipeline", "stages", "sim", "policy", "bench", "chain")
+MAX_DESCRIPTION_CHARS = 200
+DATE = re.compile(r"\b20\d\d-[01]\d-[0-3]\d\b")
+
+
+def config_modules() -> list[str]:
+    """Every stage's config module, the env config and the pipeline's own config models."""
+    stages = [
+        f"drivesim.stages.{m.name}.config"
+        for m in pkgutil.iter_modules(drivesim.stages.__path__)
+        if m.ispkg and (REPO / "stages" / m.name / "config.py").exists()
+    ]
+    return [*stages, "drivesim.sim.envs.config", "drivesim.pipeline.config"]
+
+
+def models(model: type[BaseModel], seen: set[type[BaseModel]]) -> Iterator[type[BaseModel]]:
+    """The model and every model nested in its fields (in unions and lists too), each once."""
+    if model in seen:
+        return
+    seen.add(model)
+    yield model
+    for field in model.model_fields.values():
+        stack = [field.annotation]
+        while stack:
+            annotation = stack.pop()
+            if inspect.isclass(annotation) and issubclass(annotation, BaseModel):
+                yield from models(annotation, seen)
+            stack.extend(getattr(annotation, "__args__", ()))
+
+
+def config_fields() -> list[tuple[str, str]]:
+    """(model.field, description) of every field of every config model."""
+    seen: set[type[BaseModel]] = set()
+    fields = []
+    for name in config_modules():
+        module = importlib.import_module(name)
+        for obj in vars(module).values():
+            if inspect.isclass(obj) and issubclass(obj, BaseModel) and obj.__module__ == module.__name__:
+                for model in models(obj, seen):
+                    fields += [(f"{model.__name__}.{k}", f.description or "") for k, f in model.model_fields.items()]
+    return fields
+
+
+def test_the_stage_configs_are_all_walked() -> None:
+    names = {name.split(".")[0] for name, _ in config_fields()}
+    for model in ("TrainConfig", "EvalConfig", "EnvConfig", "DepthConfig", "IngestConfig", "WorldConfig"):
+        assert model in names
+    assert len(config_fields()) > 200
+
+
+def test_every_config_field_has_a_short_description() -> None:
+    fields = config_fields()
+    missing = [name for name, text in fields if not text.strip()]
+    too_long = [f"{name} ({len(text)} chars)" for name, text in fields if len(text) > MAX_DESCRIPTION_CHARS]
+    assert not missing, f"config fields without a description: {missing}"
+    assert not too_long, f"config descriptions over {MAX_DESCRIPTION_CHARS} characters: {too_long}"
+
+
+def option_helps() -> list[tuple[str, str]]:
+    """(command option, help) of every option and argument of every drivesim command."""
+    from drivesim.cli.main import app
+
+    helps = []
+    stack: list[tuple[str, click.Command]] = [("drivesim", typer.main.get_command(app))]
+    while stack:
+        path, command = stack.pop()
+        for param in command.params:
+            helps.append((f"{path} {param.name}", getattr(param, "help", None) or ""))
+        stack += [(f"{path} {name}", sub) for name, sub in getattr(command, "commands", {}).items()]
+    return helps
+
+
+def test_every_cli_option_help_is_short() -> None:
+    helps = option_helps()
+    assert any(name == "drivesim eval policy" for name, _ in helps)
+    too_long = [f"{name} ({len(text)} chars)" for name, text in helps if len(text) > MAX_DESCRIPTION_CHARS]
+    assert not too_long, f"option help texts over {MAX_DESCRIPTION_CHARS} characters: {too_long}"
+
+
+def dated_comments(source: str) -> list[tuple[int, str]]:
+    """(line, comment) of every `#` comment in a Python source that holds a date like 2026-11-27."""
+    tokens = tokenize.generate_tokens(io.StringIO(source).readline)
+    return [(t.start[0], t.string) for t in tokens if t.type == tokenize.COMMENT and DATE.search(t.string)]
+
+
+def test_dated_comments_are_found() -> None:
+    assert dated_comments("x = 1  # the default until 2026-11-27\ny = '2026-11-27'  # a plain comment\n") == [
+        (1, "# the default until 2026-11-27")
+    ]
+
+
+def test_no_code_comment_in_the_product_carries_a_date() -> None:
+    found = []
+    for package in PRODUCT_PACKAGES:
+        for path in sorted((REPO / package).rglob("*.py")):
+            found += [f"{path.relative_to(REPO)}:{line}: {text}" for line, text in dated_comments(path.read_text())]
+    assert not found, "dated comments (say what and why, not when):\n" + "\n".join(found)
