@@ -26,10 +26,10 @@ from drivesim.stages.evaluate.rollout import (
     EnvFactory,
     EpisodeDone,
     PolicySpec,
-    completed_seeds,
     env_limits,
     limit_worker_threads,
     run_episode,
+    seeds_to_run,
     write_episode,
 )
 
@@ -157,7 +157,7 @@ def run_episodes_ray(
     :param workers: actors to start; None = one per CPU of the cluster.
     :param on_episode: called in this process after each episode is written (progress display).
     """
-    todo = [s for s in seeds if s not in completed_seeds(folder, seeds)]
+    todo = seeds_to_run(folder, seeds)
     if not todo:
         return RayEvalOutcome(0, 0, 0, 0)
     with RaySession(address) as ray:
