@@ -198,3 +198,30 @@ def test_piped_status_prints_no_empty_field(tmp_path: Path) -> None:
     assert "frame_count=5" in trace_row and "tf_static (1) │" in trace_row, done.stdout  # the whole summary, one line
     # The ingest skipped no message: no "skipped:" with nothing after it (checked across folded lines too).
     assert "skipped" not in re.sub(r"[\s│]", "", done.stdout), done.stdout
+
+
+# ---------------------------------------------------------------- 6. no pointer to a tool that is not installed
+
+
+def test_the_report_points_to_a_topic_lister_that_is_installed_and_works(tmp_path: Path) -> None:
+    import html
+    import shlex
+
+    from eval_fakes import FAKE, fake_world
+
+    world = fake_world(tmp_path / "world")
+    args = ["--world", str(world), "--episodes", "4", "--workers", "1", "--policy", "expert", "--record", "all"]
+    args += ["--set", f"env_id={FAKE['env_id']}", "--set", f"env_entry_point={FAKE['env_entry_point']}"]
+    done = drivesim(tmp_path / "ws", "eval", *args, "--trust-entry-point")
+    assert done.returncode == 0, done.stdout + done.stderr
+    folder = tmp_path / "ws" / "eval" / "overtake-expert"
+    report = (folder / "report.html").read_text()
+    assert "mcap info" not in report and "mcap cat" not in report
+    for doc in (REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))):
+        assert not re.search(r"`mcap (info|cat|list|doctor)", doc.read_text()), doc  # the mcap CLI is not installed
+    # The command the report gives, as a user pastes it (with the venv's python), lists the episode's topics.
+    snippet = html.unescape(re.search(r"<code>(python -c .*?)</code>", report).group(1))
+    recording = sorted((folder / "recordings").glob("*.mcap"))[0]
+    argv = shlex.split(snippet.replace("FILE.mcap", shlex.quote(str(recording))))
+    listed = subprocess.run([sys.executable, *argv[1:]], capture_output=True, text=True, timeout=60, check=True)
+    assert {"/camera/image", "/ego/step", "/log"} <= set(listed.stdout.split()), listed.stdout

@@ -36,6 +36,11 @@ FAILURES_CAP = 50
 """Most failed episodes `--record failures` writes (about 1-3 MB each at the default 160 x 64 view, 300 steps)."""
 RECORDINGS_DIR = "recordings"
 LAYOUT_HINT = "docs/foxglove_layout.json"
+TOPICS_SNIPPET = (
+    "python -c \"import sys, mcap.reader as r; s = r.make_reader(open(sys.argv[1], 'rb')).get_summary(); "
+    'print(*sorted(c.topic for c in s.channels.values()))" FILE.mcap'
+)
+"""A command that lists an episode file's topics with the installed `mcap` package (it has no command-line tool)."""
 _MODES = ("failures", "all", "none")
 
 
@@ -164,5 +169,6 @@ def recordings_html(out_dir: Path, results: Sequence[EpisodeResult]) -> str:
         f"<h2>Recordings (Foxglove)</h2><table><tr><th>outcome</th><th>episodes</th><th>recording</th></tr>{rows}"
         f"</table><p class=ci>One MCAP per episode in <code>{RECORDINGS_DIR}/</code>: camera, both cars as boxes with "
         f"their footprints, the road, and plots of action, rewards and clearance. Open one in the Foxglove app with "
-        f"the layout <code>{LAYOUT_HINT}</code>, or inspect it with <code>mcap info</code>.</p>"
+        f"the layout <code>{LAYOUT_HINT}</code>, or list its topics with the <code>mcap</code> Python package drivesim "
+        f"installs: <code>{html.escape(TOPICS_SNIPPET)}</code>.</p>"
     )
