@@ -87,6 +87,13 @@ SECTIONS: tuple[Section, ...] = (
         ("eval.md",),
     ),
     Section(
+        "eval_startup",
+        "Evaluation start-up",
+        "time before the first episode of a 10,000-episode evaluation",
+        "python benchmarks/bench_eval_startup.py",
+        ("eval_startup.md", "eval_startup.json"),
+    ),
+    Section(
         "ray",
         "Evaluation on Ray",
         "Ray's overhead against local workers",
@@ -201,7 +208,7 @@ SECTIONS: tuple[Section, ...] = (
 # Files under results/ that are no benchmark's section, and why.
 NOT_SECTIONS: dict[str, str] = {"targets.md": "the issue targets table, linked from the summary"}
 
-DATE = re.compile(r"(20\d\d-\d\d-\d\d)(?:[ T,]+(\d\d:\d\d)(?:[-:0-9]*)? ?UTC)?")
+DATE = re.compile(r"(20\d\d-\d\d-\d\d)(?:[ T,]+(\d\d:\d\d))?")
 MACHINE = re.compile(r"(\d+-core CPU(?: \((?:[^()]|\([^)]*\))*\))?|NVIDIA [A-Z0-9]+(?: [0-9A-Za-z]+GB)?|\d+ cores)")
 LOAD = re.compile(r"load average(?: after| before)?:? ([0-9]+(?:\.[0-9]+)?)")
 
@@ -275,10 +282,15 @@ def demote(lines: list[str]) -> list[str]:
     return [("##" + line) if line.startswith("#") else line for line in lines]
 
 
+def restated(when: Measured) -> bool:
+    """Whether a file measured then is restated (measured on or after RESTATED_SINCE)."""
+    return when.date != "?" and when.date >= RESTATED_SINCE
+
+
 def section_text(section: Section, results_dir: Path) -> tuple[list[str], Measured]:
-    """A section's markdown lines and its first file's measurement."""
-    first = (results_dir / section.files[0]).read_text()
-    when = measured(first)
+    """A section's markdown lines and its first file's measurement; each file older than RESTATED_SINCE (and the
+    pictures of a section whose first file is) gets one line instead of its figures."""
+    first = measured((results_dir / section.files[0]).read_text())
     links = ", ".join(f"[`{name}`](results/{name})" for name in section.files)
     lines = [
         f'<a id="{section.key}"></a>',
@@ -287,23 +299,25 @@ def section_text(section: Section, results_dir: Path) -> tuple[list[str], Measur
         f"Files: {links}. Measure again: `{section.command}`.",
         "",
     ]
-    if when.date == "?" or when.date < RESTATED_SINCE:
-        lines.append(
-            f"Measured {when.date} on older code: its figures are not restated here. Run the command above to measure "
-            "them on today's code."
-        )
-        return lines, when
     for name in section.files:
         if name.endswith(".md"):
-            lines += demote(wrap((results_dir / name).read_text().strip())) + [""]
-        elif name.endswith(".png"):
+            when = measured((results_dir / name).read_text())
+            if restated(when):
+                lines += demote(wrap((results_dir / name).read_text().strip())) + [""]
+            else:
+                lines += [
+                    f"`{name}`: measured {when.date} on older code; its figures are not restated here. Run the "
+                    "command above to measure them on today's code.",
+                    "",
+                ]
+        elif name.endswith(".png") and restated(first):
             lines += [f"![{name}](results/{name})", ""]
-    return lines, when
+    return lines, first
 
 
 def summary_row(section: Section, when: Measured) -> str:
     """The summary table's row of one section."""
-    stated = "restated" if when.date != "?" and when.date >= RESTATED_SINCE else "not restated (older code)"
+    stated = "restated" if restated(when) else "not restated (older code)"
     measured_at = f"{when.date} {when.time_utc}".strip()
     return (
         f"| [{section.title}](#{section.key}) | {section.measures} | {measured_at} | {when.machine} | {when.load} | "
