@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from contextlib import suppress
 from dataclasses import replace
 from pathlib import Path
 
@@ -201,13 +202,22 @@ def run_training(
         )
     if cfg.ensemble > 1 and resume is None:
         return _train_ensemble(ws, cfg, worlds, on_start, towns)
-    run_dir = resume if resume is not None else new_run_dir(ws.root, cfg.task)
     spec, external = training_inputs(ws, cfg, worlds, towns)
     for upstream in spec.requires:  # a missing world is one line before the header names a run folder
         ws.require(upstream, spec.upstream_hints.get(upstream, f"drivesim {upstream}"))
-    if on_start is not None:
-        on_start(run_dir)
-    return run_stage(ws, spec, cfg, force=True, external=external, artifact=f"runs/{run_dir.name}", work_dir=run_dir)
+    run_dir = resume if resume is not None else new_run_dir(ws.root, cfg.task)  # created: no other run takes it
+    try:
+        with ws.lock(f"runs/{run_dir.name}"):  # one process trains a run folder at a time (`--resume` twice)
+            if on_start is not None:
+                on_start(run_dir)
+            return run_stage(
+                ws, spec, cfg, force=True, external=external, artifact=f"runs/{run_dir.name}", work_dir=run_dir
+            )
+    except BaseException:
+        if resume is None:
+            with suppress(OSError):
+                run_dir.rmdir()  # a new run that stopped before writing anything leaves no empty folder
+        raise
 
 
 def _train_ensemble(
