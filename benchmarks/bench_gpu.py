@@ -119,7 +119,7 @@ def train_rows(world_dir: str, device: str, counts: list[int], updates: int) -> 
         overrides = [f"device={where}", f"envs.config.render_device={where}", f"envs.count={count}"]
         overrides += ["envs.vec_env=batched", "envs.processes=1", f"learner_threads={threads}"]
         cfg = load_config(TrainConfig, preset="train/overtake", overrides=overrides)
-        source = EnvSource(task="overtake", worlds=[Path(world_dir)], overrides=cfg.envs.config.model_dump())
+        source = EnvSource(task="overtake", worlds=[Path(world_dir)], config=cfg.envs.config)
         torch.set_num_threads(threads)
         timed_env = TimedVecEnv(source.make_vec(cfg.envs.count, "batched", seed=0))
         try:

@@ -39,7 +39,6 @@ def render_command(
     vehicle footprints."""
     from drivesim.pipeline.errors import DrivesimError
     from drivesim.sim.envs.render_episode import render_episode
-    from drivesim.stages.evaluate.config import task_preset_env
 
     if policy != "expert":
         raise DrivesimError(f"--policy {policy!r}: only 'expert' can drive here; use `drivesim eval --video` for runs")
@@ -48,7 +47,7 @@ def render_command(
     if meshes is None and (ws.root / "meshes").is_dir():
         meshes = ws.root / "meshes"
     try:
-        summary = render_episode(task, world, meshes, out, seed, mcap=mcap, env_config=task_preset_env(task))
+        summary = render_episode(task, world, meshes, out, seed, mcap=mcap)
     except (ValueError, FileNotFoundError) as exc:
         raise DrivesimError(str(exc)) from None
     console.print(

@@ -8,16 +8,12 @@ import pytest
 from sim_worlds import SMALL_VIEW, write_test_world
 
 import drivesim.sim.envs  # noqa: F401  (registers the envs)
-from drivesim.pipeline.config import load_config
-from drivesim.stages.train.config import TrainConfig
 
 
 @pytest.fixture(scope="module")
 def cutin_env(tmp_path_factory: pytest.TempPathFactory) -> gymnasium.Env:
     world = write_test_world(tmp_path_factory.mktemp("cutin") / "world", length_m=400.0, curve_from_m=250.0)
-    preset = load_config(TrainConfig, preset="train/cutin").envs.config  # the preset's task settings
-    config = {**preset.model_dump(), **SMALL_VIEW}
-    return gymnasium.make("drivesim/CutIn-v0", world=str(world), meshes=None, mode="eval", config=config)
+    return gymnasium.make("drivesim/CutIn-v0", world=str(world), meshes=None, mode="eval", config=SMALL_VIEW)
 
 
 def _drive_with_expert(env: gymnasium.Env, seed: int) -> tuple[list[dict], dict]:
@@ -51,8 +47,7 @@ def test_the_other_car_passes_and_cuts_in_ahead_and_the_expert_holds_its_lane(cu
 def test_cutin_rewards_are_lane_comfort_and_the_dilated_gap(cutin_env) -> None:
     _, info = cutin_env.reset(seed=5)
     _, reward, _, _, info = cutin_env.step(np.zeros(1, np.float32))
-    assert info["rewards"]["pass"] == 0.0
-    assert set(info["rewards"]) == {"lane", "pass", "collision", "comfort"}
+    assert set(info["rewards"]) == {"lane", "collision", "comfort"}  # no pass term: overtake's own
     assert reward == pytest.approx(sum(info["rewards"].values()))
 
 
@@ -66,13 +61,15 @@ def test_the_registry_is_the_one_list_of_tasks() -> None:
         task_spec("merge")
 
 
-def test_the_expert_is_evaluated_with_the_task_presets_env() -> None:
-    """`drivesim eval --task cutin` (the expert brings no env config): the preset's faster other car, and the
+def test_the_expert_is_evaluated_in_the_task_s_own_env(tmp_path) -> None:
+    """`drivesim eval --task cutin` (the expert brings no env config): the task's faster other car, and the
     user's keys on top."""
     from drivesim.stages.evaluate.config import EvalConfig
 
-    env = EvalConfig.model_validate({"task": "cutin", "env": {"episode_steps": 99}}).start_env_config()
-    assert env["other_speed_mps"] == [10.0, 12.0] and env["episode_steps"] == 99
+    keys = EvalConfig.model_validate({"task": "cutin", "env": {"episode_steps": 99}}).start_env_config()
+    world = write_test_world(tmp_path / "world", length_m=400.0, curve_from_m=250.0)
+    env = gymnasium.make("drivesim/CutIn-v0", world=str(world), mode="eval", config={**SMALL_VIEW, **keys})
+    assert env.unwrapped.config.other_speed_mps == (10.0, 12.0) and env.unwrapped.config.episode_steps == 99
 
 
 @pytest.mark.parametrize(("side", "sign"), [("left", 1.0), ("right", -1.0)])

@@ -27,6 +27,13 @@ def world_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_test_world(tmp_path_factory.mktemp("sim-world") / "world")
 
 
+STILL = {
+    "gamma": (1.0, 1.0), "brightness": (0.0, 0.0), "contrast": (1.0, 1.0), "saturation": (1.0, 1.0),
+    "pitch_jitter_deg": 0.0, "blur_sigma_px": (0.0, 0.0), "noise_std": (0.0, 0.0),
+}  # fmt: skip
+"""Training augmentation that leaves the view as rendered (lane's own pitch, blur and noise off too)."""
+
+
 def _make(world_dir: Path, task: str, mode: str = "train", **overrides: object) -> gymnasium.Env:
     return gymnasium.make(TASKS[task], world=str(world_dir), meshes=None, mode=mode, config={**SMALL_VIEW, **overrides})
 
@@ -270,7 +277,7 @@ def test_a_mirrored_episode_flips_the_image_and_the_steering(world_dir: Path) ->
     """mirror_probability 1: the policy sees the plain episode's image flipped left to right, its steering +a moves
     the ego as -a does in the plain episode, the expert's label and the lane position are negated; evaluation is
     never mirrored."""
-    still = {"gamma": (1.0, 1.0), "brightness": (0.0, 0.0), "contrast": (1.0, 1.0), "saturation": (1.0, 1.0)}
+    still = STILL
     plain, mirrored = _make(world_dir, "lane", **still), _make(world_dir, "lane", **still, mirror_probability=1.0)
     obs_plain, _ = plain.reset(seed=5)
     obs_mirrored, _ = mirrored.reset(seed=5)
@@ -326,7 +333,7 @@ def test_cutout_erases_its_rectangles_to_one_colour_each_and_moves_them_every_st
 def test_a_training_episode_with_cutout_sees_erased_rectangles_and_evaluation_never(world_dir: Path) -> None:
     """cutout_count (1, 1): each training observation differs from the plain episode's (the same start state, the
     same photometric draw) in one rectangle, a new one at each step; an evaluation episode is the plain one."""
-    still = {"gamma": (1.0, 1.0), "brightness": (0.0, 0.0), "contrast": (1.0, 1.0), "saturation": (1.0, 1.0)}
+    still = STILL
     cut = {"cutout_count": (1, 1), "cutout_size": (0.3, 0.3)}
     plain, erased = _make(world_dir, "lane", **still), _make(world_dir, "lane", **still, **cut)
     obs_plain, info_plain = plain.reset(seed=3)
@@ -360,8 +367,8 @@ def test_cutout_sizes_outside_zero_to_one_are_refused() -> None:
 def test_a_pitched_episode_sees_its_view_shifted_and_evaluation_never(world_dir: Path) -> None:
     """pitch_jitter_deg: the training observation is the plain episode's shifted by the drawn pitch's rows (the same
     start state: the draw comes last), within the asked angle at the image's focal length; evaluation is unchanged."""
-    still = {"gamma": (1.0, 1.0), "brightness": (0.0, 0.0), "contrast": (1.0, 1.0), "saturation": (1.0, 1.0)}
-    plain, pitched = _make(world_dir, "lane", **still), _make(world_dir, "lane", **still, pitch_jitter_deg=4.0)
+    still = STILL
+    plain, pitched = _make(world_dir, "lane", **still), _make(world_dir, "lane", **{**still, "pitch_jitter_deg": 4.0})
     shifts = []
     for seed in range(6):
         obs_plain, info_plain = plain.reset(seed=seed)
@@ -375,7 +382,7 @@ def test_a_pitched_episode_sees_its_view_shifted_and_evaluation_never(world_dir:
     focal_rows_px = float(env.worlds[0].K[1, 1]) * env.config.observation_height_px / env.roi_px_of(0)[3]
     assert max(abs(s) for s in shifts) <= focal_rows_px * np.tan(np.radians(4.0)) + 1e-9
     assert min(abs(s) for s in shifts) < max(abs(s) for s in shifts)  # drawn per episode
-    evaluation = _make(world_dir, "lane", "eval", **still, pitch_jitter_deg=4.0)
+    evaluation = _make(world_dir, "lane", "eval", **{**still, "pitch_jitter_deg": 4.0})
     np.testing.assert_array_equal(evaluation.reset(seed=5)[0], plain.reset(seed=5)[0])
 
 

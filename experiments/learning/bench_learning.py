@@ -33,6 +33,7 @@ from drivesim.chain.towns import training_towns
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.workspace import Workspace
 from drivesim.policy.run_folder import load_policy
+from drivesim.sim.envs.registry import task_spec
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.envs import EnvSource
 from drivesim.stages.train.stage import run_training
@@ -80,7 +81,7 @@ def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
 
 def evaluate(task: str, world: Path, episodes: int, policy=None, env_config: dict | None = None) -> dict:  # noqa: ANN001
     """Success rate and termination causes over held-back seeds; a random policy when `policy` is None."""
-    env = EnvSource(task=task, worlds=[world], overrides=env_config or {}).make_env("eval")
+    env = EnvSource(task=task, worlds=[world], config=task_spec(task).config_with(env_config)).make_env("eval")
     rng = np.random.default_rng(0)
     successes, causes, lengths = 0, {}, []
     for i in range(episodes):

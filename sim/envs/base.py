@@ -1,8 +1,9 @@
 """The common driving environment: one ego agent (the policy) and, for follow and overtake, one front car.
 
 Subclasses (`lane.py`, `follow.py`, `overtake.py`, `cutin.py`, listed in `registry.py`) own their task through the
-hooks of `DrivingEnv` (start state of the other car, reward terms, success and whether it ends the episode,
-per-task measurements, the expert's target offset); the base never asks which task it is. Their class docstrings
+hooks of `DrivingEnv` (its default config, start state of the other car, reward terms, success and whether it ends
+the episode, per-task measurements, evaluation scenarios, the expert's target offset); the base never asks which task
+it is. Their class docstrings
 describe spaces, rewards, start and end in one place. The step is split into `advance` (dynamics,
 association, rewards) and `observation_from` (augmentation of a rendered view) so that `vector.py` can render many
 episodes in one call.
@@ -13,7 +14,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import cv2
 import gymnasium
@@ -23,7 +24,7 @@ from gymnasium import spaces
 from drivesim.sim.agents import Agent, LateralProfile, ReferencePath, pursue_profile
 from drivesim.sim.dynamics import BicycleState, curvature_of_steering
 from drivesim.sim.envs.augment import Augmentation, ViewJitter
-from drivesim.sim.envs.config import EnvConfig
+from drivesim.sim.envs.config import TASK_ONLY_KEYS, EnvConfig
 from drivesim.sim.envs.rewards import collision_reward, comfort_reward, lane_reward
 from drivesim.sim.envs.roi import roi_for
 from drivesim.sim.envs.termination import termination_flags
@@ -63,13 +64,18 @@ def load_vehicles(meshes: Any) -> Any:
 
 
 class DrivingEnv(gymnasium.Env):
-    """Base of the drivesim tasks (see the subclasses for the task documentation)."""
+    """Base of the drivesim tasks (see the subclasses for the task documentation).
+
+    `config`: an `EnvConfig` is taken whole; a dict (or None) gives its keys over the task's `default_config()`.
+    """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
     task = "lane"
     _mirrored = False  # this episode seen mirrored (EnvConfig.mirror_probability); drawn at each reset
     _jitter = ViewJitter()  # this episode's pitch, blur and noise (EnvConfig.pitch_jitter_deg, ...); drawn at reset
     has_other = False
+    task_keys: ClassVar[tuple[str, ...]] = ()
+    """The keys of `config.TASK_ONLY_KEYS` this task reads (`config_keys`)."""
 
     def __init__(
         self,
@@ -81,7 +87,7 @@ class DrivingEnv(gymnasium.Env):
     ) -> None:
         if mode not in ("train", "eval"):
             raise ValueError(f"mode: {mode!r}; use 'train' or 'eval'")
-        self.config = config if isinstance(config, EnvConfig) else EnvConfig(**(config or {}))
+        self.config = config if isinstance(config, EnvConfig) else self.config_with(config or {})
         self.mode = mode
         self.render_mode = render_mode
         c = self.config
@@ -97,6 +103,28 @@ class DrivingEnv(gymnasium.Env):
         self.step_count = 0
         self.sim: Simulator | None = None
         self._last_rgb: np.ndarray | None = None
+
+    # --- the task's config ---------------------------------------------------------------------------------------
+    @classmethod
+    def default_config(cls) -> EnvConfig:
+        """The task's env config as it is trained; a task extends its base's (`model_copy(update=...)`)."""
+        return EnvConfig()
+
+    @classmethod
+    def config_with(cls, overrides: dict[str, Any]) -> EnvConfig:
+        """The task's `default_config()` with `overrides` (keys of `EnvConfig`) on top, validated."""
+        return EnvConfig.model_validate({**cls.default_config().model_dump(), **overrides})
+
+    @classmethod
+    def config_keys(cls) -> tuple[str, ...]:
+        """The `EnvConfig` keys this task reads: every task's, and its own of `TASK_ONLY_KEYS`."""
+        return tuple(k for k in EnvConfig.model_fields if k not in TASK_ONLY_KEYS or k in cls.task_keys)
+
+    @classmethod
+    def scenarios(cls) -> tuple[dict[str, dict[str, Any]], ...]:
+        """Named evaluation scenarios as env settings, in groups whose members exclude each other (choose at most one
+        per group: `drivesim eval --scenario`); () for a task without scenarios."""
+        return ()
 
     # --- timings -------------------------------------------------------------------------------------------------
     @property
@@ -114,10 +142,10 @@ class DrivingEnv(gymnasium.Env):
         """Refuse a front car placed past the road an episode is sure to have: such an episode ends at its first step
         with end_of_data (every agent must stay end_margin_m from the end of the recording), which no figure shows."""
         c = self.config
-        places_front_car = type(self)._place_other is DrivingEnv._place_other  # cut-in draws its own placement
-        if self.has_other and places_front_car and c.front_distance_m[1] > c.min_path_length_m:
+        ahead_m = self._farthest_start_ahead_m()
+        if ahead_m is not None and ahead_m > c.min_path_length_m:
             raise ValueError(
-                f"front_distance_m up to {c.front_distance_m[1]:g} m puts the front car past the "
+                f"front_distance_m up to {ahead_m:g} m puts the front car past the "
                 f"{c.min_path_length_m:g} m of road an episode is sure to have ahead (min_path_length_m): such "
                 "episodes end at their first step; give front_distance_m within min_path_length_m"
             )
@@ -229,6 +257,11 @@ class DrivingEnv(gymnasium.Env):
         )
 
     # --- task hooks (a task subclass overrides what it needs; the base never asks which task it is) -----------
+    def _farthest_start_ahead_m(self) -> float | None:
+        """How far ahead of the ego the other car may start at most, metres (`_place_other`'s front_distance_m);
+        None: no other car, or one that does not start ahead."""
+        return self.config.front_distance_m[1] if self.has_other else None
+
     def _speeds(self, rng: np.random.Generator) -> tuple[float, float]:
         """(ego, other) speeds of a new episode from ego_speed_mps and other_speed_mps, m/s (NaN: no other car)."""
         c = self.config
@@ -260,11 +293,11 @@ class DrivingEnv(gymnasium.Env):
         return LateralProfile.constant(lateral_m)
 
     def _reward_terms(self, steering_accel_radps2: float) -> dict[str, float]:
-        """The weighted reward terms by name (their sum is the reward); `pass` is 0 unless a task pays it."""
+        """The weighted reward terms by name (their sum is the reward): lane, collision and comfort; a task adds its
+        own (overtake's pass)."""
         c, m = self.config, self._m
         return {
             "lane": c.weight_lane * lane_reward(self._lane_error(), c.max_lateral_m),
-            "pass": 0.0,
             "collision": c.weight_collision * collision_reward(m["dilated_overlap"]),
             "comfort": c.weight_comfort * comfort_reward(steering_accel_radps2),
         }

@@ -6,6 +6,7 @@ import numpy as np
 
 from drivesim.sim.agents import LateralProfile, ReferencePath
 from drivesim.sim.envs.base import DrivingEnv
+from drivesim.sim.envs.config import OTHER_CAR_KEYS, EnvConfig
 
 START_BEHIND_M = (2.0, 6.0)
 """Range of how far behind the ego (centre to centre, along the road) the other car starts, m."""
@@ -22,13 +23,13 @@ class CutInEnv(DrivingEnv):
 
     ## Rewards
     lane = weight_lane · (1 - (q_lat / Z_lat)²); collision = weight_collision · -|Dilate(P_ego) ∩ P_other| / |P_ego|
-    (the paper's dilated polygons: the gap term); comfort = -weight_comfort · |δ̈|; pass = 0.
+    (the paper's dilated polygons: the gap term); comfort = -weight_comfort · |δ̈|.
 
     ## Start state
     The ego as in Lane-v0 at a speed from ego_speed_mps (held). The other car starts 2-6 m behind it in the
-    adjacent lane (front_lateral_m to a random side) at a speed from other_speed_mps (choose ranges above the ego's:
-    the preset `configs/train/cutin.yaml` does), drives with pure pursuit and, once it is front_distance_m ahead of
-    the ego (centre to centre, along the road), moves into the ego's lane centre over CUT_DURATION_S.
+    adjacent lane (front_lateral_m to a random side) at a speed from other_speed_mps (above the ego's in
+    `default_config()`: it passes only when faster), drives with pure pursuit and, once it is front_distance_m
+    ahead of the ego (centre to centre, along the road), moves into the ego's lane centre over CUT_DURATION_S.
 
     ## Episode end
     As Lane-v0, plus collision: the undilated footprints overlap by more than collision_overlap_train of the ego's
@@ -38,6 +39,30 @@ class CutInEnv(DrivingEnv):
 
     task = "cutin"
     has_other = True
+    task_keys = (*OTHER_CAR_KEYS, "other_speed_mps")
+
+    @classmethod
+    def default_config(cls) -> EnvConfig:
+        """The base's, with an other car faster than the ego in the adjacent lane, 15-s episodes and the road its
+        pass needs."""
+        return (
+            super()
+            .default_config()
+            .model_copy(
+                update={
+                    "ego_speed_mps": (5.0, 8.0),
+                    "other_speed_mps": (10.0, 12.0),  # faster than the ego, so that it passes it from behind
+                    "front_distance_m": (5.0, 15.0),  # where it cuts in, ahead of the ego
+                    "front_lateral_m": (3.2, 3.8),  # the adjacent lane's centre
+                    "episode_steps": 150,  # 15 s: the cut-in happens within about 11 s of the start
+                    "min_path_length_m": 190.0,  # the other car drives 12 m/s for 15 s
+                    "weight_collision": 50.0,
+                }
+            )
+        )
+
+    def _farthest_start_ahead_m(self) -> float | None:
+        return None  # it starts behind the ego; front_distance_m is where it cuts in
 
     def _place_other(
         self,

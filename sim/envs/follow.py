@@ -6,6 +6,7 @@ import numpy as np
 
 from drivesim.sim.agents import LateralProfile, ReferencePath
 from drivesim.sim.envs.base import DrivingEnv
+from drivesim.sim.envs.config import OTHER_CAR_KEYS
 from drivesim.sim.envs.expert import EXPERT_LOOKAHEAD_M
 
 
@@ -19,7 +20,7 @@ class FollowEnv(DrivingEnv):
     ## Rewards
     lane = weight_lane · (1 - (e / Z_lat)²) with e the ego's lateral distance from the front car's path
     (info["state"]["tracking_error_m"]); collision = weight_collision · -|Dilate(P_ego) ∩ P_other| / |P_ego|;
-    comfort = -weight_comfort · |δ̈|; pass = 0.
+    comfort = -weight_comfort · |δ̈|.
 
     ## Start state
     The ego as in Lane-v0; the front car front_distance_m ahead and front_lateral_m to a random side, heading
@@ -28,12 +29,16 @@ class FollowEnv(DrivingEnv):
     mirrored offset at random places.
 
     ## Episode end
-    As Lane-v0, plus collision: the undilated footprints overlap by more than 5 % of the ego's area in training
-    (0 % in evaluation). info["success"]: ended without an intervention.
+    As Lane-v0, plus collision: the undilated footprints overlap by more than collision_overlap_train of the ego's
+    area in training (collision_overlap_eval in evaluation). info["success"]: ended without an intervention.
+
+    ## Evaluation extras
+    info["state"]["tracking_error_m"], reported as the mean tracking error and along the track (Fig. 6).
     """
 
     task = "follow"
     has_other = True
+    task_keys = (*OTHER_CAR_KEYS, "follow_speed_mps")
 
     def _speeds(self, rng: np.random.Generator) -> tuple[float, float]:
         speed = float(rng.uniform(*self.config.follow_speed_mps))

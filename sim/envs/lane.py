@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from drivesim.sim.envs.base import DrivingEnv
+from drivesim.sim.envs.config import EnvConfig
 
 
 class LaneEnv(DrivingEnv):
@@ -18,7 +19,7 @@ class LaneEnv(DrivingEnv):
     episode's photometric augmentation in training.
 
     ## Rewards (each weighted term by name in info["rewards"], their sum is the reward)
-    lane = weight_lane · (1 - (q_lat / Z_lat)²); comfort = -weight_comfort · |δ̈|; pass and collision are 0.
+    lane = weight_lane · (1 - (q_lat / Z_lat)²); comfort = -weight_comfort · |δ̈|; collision is 0.
 
     ## Start state
     A random place of the recorded path with at least min_path_length_m of road ahead; the ego within
@@ -33,3 +34,12 @@ class LaneEnv(DrivingEnv):
 
     task = "lane"
     has_other = False
+
+    @classmethod
+    def default_config(cls) -> EnvConfig:
+        """The base's, with each training episode's camera pitched by up to 3 degrees, a blur and sensor noise."""
+        return (
+            super()
+            .default_config()
+            .model_copy(update={"pitch_jitter_deg": 3.0, "blur_sigma_px": (0.0, 1.0), "noise_std": (0.0, 0.03)})
+        )

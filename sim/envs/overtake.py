@@ -2,15 +2,25 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from drivesim.sim.envs.base import DrivingEnv
+from drivesim.sim.envs.config import OTHER_CAR_KEYS, EnvConfig
 from drivesim.sim.envs.expert import EXPERT_CLEARANCE_M
 from drivesim.sim.envs.rewards import pass_reward
 from drivesim.sim.envs.winnable import OvertakeStart, SteeringLimits, is_winnable
 
 MAX_REDRAWS = 100
-"""Most redraws of an unwinnable start with `redraw_unwinnable` (about 5 % of the default starts are unwinnable)."""
+"""Most redraws of an unwinnable start with `redraw_unwinnable`."""
+
+SCENARIOS: tuple[dict[str, dict[str, Any]], ...] = (
+    {"static": {"other_speed_mps": (0.0, 0.0)}, "dynamic": {"other_speed_mps": (1.0, 4.0)}},
+    {"pass-left": {"front_side": "right"}, "pass-right": {"front_side": "left"}},
+)
+"""The paper's Table II scenarios as env settings: the front car static or moving; the ego passing on its left or
+right (the front car on the other side). One of each group at most."""
 
 
 class OvertakeEnv(DrivingEnv):
@@ -41,10 +51,28 @@ class OvertakeEnv(DrivingEnv):
     (undilated overlap above collision_overlap_train of the ego's area in training, collision_overlap_eval in
     evaluation: any overlap in both by default) or end_of_data. Truncated:
     time_limit after episode_steps steps.
+
+    ## Evaluation extras
+    info["state"]["pass_margin_m"]; info["episode"]["winnable"] (the report's winnable / unwinnable table); the
+    Table II scenarios (`scenarios()`: static or dynamic front car, pass-left or pass-right).
     """
 
     task = "overtake"
     has_other = True
+    task_keys = (
+        *OTHER_CAR_KEYS, "other_speed_mps", "pass_distance_m", "return_lateral_m", "weight_pass",
+        "redraw_unwinnable", "end_on_success_in_training",
+    )  # fmt: skip
+
+    @classmethod
+    def default_config(cls) -> EnvConfig:
+        """The base's, with a dilated-overlap penalty of 50 (a margin worth keeping before any overlap ends the
+        episode) and a third of the training episodes in grey."""
+        return super().default_config().model_copy(update={"weight_collision": 50.0, "grey_probability": 0.3})
+
+    @classmethod
+    def scenarios(cls) -> tuple[dict[str, dict[str, Any]], ...]:
+        return SCENARIOS
 
     def reset_state(self, seed: int | None) -> None:
         """Draw the start state; label it winnable or not, and redraw an unwinnable one when the config says so."""
@@ -83,10 +111,11 @@ class OvertakeEnv(DrivingEnv):
         return {"pass_margin_m": ego.distance_m - other.distance_m - self._gap_m}
 
     def _reward_terms(self, steering_accel_radps2: float) -> dict[str, float]:
+        """The base's terms and pass = weight_pass · R_pass, in the order lane, pass, collision, comfort."""
         terms = super()._reward_terms(steering_accel_radps2)
         c = self.config
-        terms["pass"] = c.weight_pass * pass_reward(self._m["pass_margin_m"], c.pass_distance_m)
-        return terms
+        passed = c.weight_pass * pass_reward(self._m["pass_margin_m"], c.pass_distance_m)
+        return {"lane": terms.pop("lane"), "pass": passed, **terms}
 
     def _success_now(self, intervention: bool) -> bool:
         m, c = self._m, self.config

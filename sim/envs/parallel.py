@@ -67,7 +67,7 @@ class ProcessBatchedVecEnv(VecEnv):
 
     :param task: a task of sim/envs/registry.py. :param n_envs: number of episodes.
     :param world: a world folder or a list of them. :param meshes: the meshes folder or None (procedural).
-    :param mode: "train" or "eval". :param config: a dict of EnvConfig overrides (picklable).
+    :param mode: "train" or "eval". :param config: an EnvConfig, or a dict of keys over the task's (both pickle).
     :param seed: the first reset of episode i uses seed + i (None: random).
     :param workers: worker processes (at most n_envs). :param worker_threads: torch threads in each worker.
     """

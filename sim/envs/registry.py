@@ -4,18 +4,38 @@ Every other list of tasks is derived from `TASKS`: the gymnasium ids (`drivesim/
 of `drivesim train` and `drivesim eval` (`TaskName`), the batched env classes and the CLI's help. Importing this
 module is light (no simulator, no torch); the env class of a task is imported when it is first made.
 
-Adding a task: a module `sim/envs/<task>.py` with a `DrivingEnv` subclass that owns its start state, rewards,
-success and expert target (see `base.py`'s hooks), a preset `configs/train/<task>.yaml`, a test, and one line below.
+A task is one class: its module `sim/envs/<task>.py` holds a `DrivingEnv` subclass that owns everything about it,
+its env settings (`default_config()`, extending the base's, which is what `drivesim train <task>` trains and
+`gymnasium.make(env_id, world=...)` makes), the config keys it reads (`task_keys`), its start state, reward terms,
+success, measurements (the evaluation reports those it finds), scenarios and expert target (see `base.py`'s hooks).
+The train preset `configs/train/<task>.yaml` is optional and holds budgets only (steps, PPO, envs, warm start).
+
+A new task takes three files: its module, one line in `_SPECS` below, and one test. For example:
+
+    # sim/envs/slalom.py
+    class SlalomEnv(DrivingEnv):  # keep the lane at a higher speed; a class docstring says so
+        task = "slalom"
+
+        @classmethod
+        def default_config(cls) -> EnvConfig:
+            return super().default_config().model_copy(update={"ego_speed_mps": (10.0, 14.0)})
+
+    # here, in _SPECS:
+    TaskSpec("slalom", "drivesim/Slalom-v0", "drivesim.sim.envs.slalom:SlalomEnv", "keep the lane, fast"),
+
+tests/test_tasks.py then checks that `gymnasium.make` and `drivesim train slalom` build the same env; the task's own
+test checks what it is for (docs/new_task.md).
 """
 
 from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 if TYPE_CHECKING:
     from drivesim.sim.envs.base import DrivingEnv
+    from drivesim.sim.envs.config import EnvConfig
 
 
 @dataclass(frozen=True)
@@ -37,6 +57,10 @@ class TaskSpec:
         """The task's env class (imported on first use)."""
         module, name = self.entry_point.split(":")
         return getattr(importlib.import_module(module), name)
+
+    def config_with(self, overrides: dict[str, Any] | None = None) -> EnvConfig:
+        """The task's env config as trained (its class's `default_config()`) with `overrides` on top, validated."""
+        return self.env_class().config_with(overrides or {})
 
 
 _SPECS = (

@@ -24,7 +24,8 @@ def render_episode(
     """Drive one episode of `task` with the expert at the world's full image size; write the MP4, the strip and the
     bird's-eye plot, and with `mcap` the episode for Foxglove as `episode.mcap` (sim/episode_mcap.py).
 
-    :param env_config: the task's env settings (e.g. its training preset's); the view is always the whole image.
+    :param env_config: env keys over the task's own settings (`default_config()`); the view is always the whole
+        image.
     """
     from drivesim.sim.envs.registry import task_spec
     from drivesim.sim.episode_mcap import EpisodeCapture, Road, write_episode_mcap

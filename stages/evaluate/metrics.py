@@ -19,7 +19,8 @@ Per episode (all distances in metres, angles in radians, absolute values):
                      or overlap); undefined (NaN) without a front car (lane task).
     max_deviation_m  the largest |q_lat|: lateral shift of the ego from the lane centre (the recorded path).
     max_yaw_rad      the largest |q_rot|: ego heading minus the road heading at the associated frame.
-    mean_tracking_error_m  (follow) mean of the env's per-step tracking error; NaN for other tasks.
+    mean_tracking_error_m  mean of the env's per-step tracking error, for a task that measures one (follow's
+                     `info["state"]["tracking_error_m"]`); NaN for the others.
 
 Aggregates over episodes, each with a 95 % confidence interval:
     rates (intervention, each cause, success, end of data): Wilson score interval of the binomial proportion
@@ -259,7 +260,9 @@ def evaluate_episode(record: EpisodeRecord) -> EpisodeResult:
     has_other = bool(np.any(np.isfinite(clearance)))
     tracking = traj.get("tracking_error_m")
     mean_tracking = float("nan")
-    if record.task == "follow" and tracking is not None and np.any(np.isfinite(tracking)):
+    if tracking is not None and np.any(
+        np.isfinite(tracking)
+    ):  # a task that measures it (follow's `_task_measurements`)
         mean_tracking = float(np.nanmean(np.abs(tracking)))
     ep = record.episode
     metrics = EpisodeMetrics(

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from drivesim.sim.envs.registry import task_spec
 from drivesim.stages.evaluate import plots
 from drivesim.stages.evaluate.metrics import (
     LEVELS,
@@ -95,17 +96,18 @@ def write_outputs(
     metrics = [r.metrics for r in results]
     agg = aggregate(metrics)
     levels = breakdowns(metrics)
-    scenarios = scenario_table(metrics)
+    # The Table II split, for a task that has those scenarios (overtake's `scenarios()`).
+    scenarios = scenario_table(metrics) if task_spec(task).env_class().scenarios() else []
+    tracking = agg["mean_tracking_error_m"].n > 0  # the task measures a tracking error (follow)
     figures = {
         "breakdown.png": plots.plot_breakdowns(levels, out_dir / "breakdown.png"),
         "clearance.png": plots.plot_clearance(results, out_dir / "clearance.png", clearance_max_m),
     }
     if track is not None:
         along = along_track(results, len(track.x_m))
-        tracking = task == "follow"
         figures["track.png"] = plots.plot_track(track.x_m, track.y_m, along, out_dir / "track.png", tracking=tracking)
     figures["relative.png"] = plots.plot_relative(results, out_dir / "relative.png")
-    if task == "follow" and track is not None:
+    if tracking and track is not None:
         figures["tracking.png"] = plots.plot_tracking(track.arc_length_m, along, out_dir / "tracking.png")
     data = {
         "format": 1,

@@ -28,7 +28,8 @@ class EnvSource:
     :param task: a task of the registry (sim/envs/registry.py).
     :param worlds: world folders (episodes are drawn from all of them); empty with `cost_free`.
     :param meshes: the vehicle mesh library folder, or None for the procedural one.
-    :param overrides: the env config as a dict (EnvsConfig.config dumped; picklable for worker processes).
+    :param config: the env config (`EnvsConfig.config`: the task's with the run's keys on top; pydantic models
+        pickle for worker processes); None: the task's own (`default_config()`).
     :param cost_free: use `CostFreeDrivingEnv` instead of the simulator (speed of the learner alone; tests).
     :param worker_threads: torch threads in each subprocess worker.
     :param processes: worker processes of the batched envs (1: in this process).
@@ -37,7 +38,7 @@ class EnvSource:
     task: str
     worlds: list[Path] = field(default_factory=list)
     meshes: Path | None = None
-    overrides: dict[str, Any] = field(default_factory=dict)
+    config: EnvConfig | None = None
     cost_free: bool = False
     worker_threads: int = 1
     processes: int = 1
@@ -71,7 +72,7 @@ class EnvSource:
                 self._world_arg(),
                 None if self.meshes is None else str(self.meshes),
                 mode,
-                self.overrides or None,
+                self.env_config(),
                 seed,
                 workers=self.processes,
                 worker_threads=self.worker_threads,
@@ -85,7 +86,7 @@ class EnvSource:
                 self._world_arg(),
                 None if self.meshes is None else str(self.meshes),
                 mode,
-                self.overrides or None,
+                self.env_config(),
                 seed,
             )
             return venv
@@ -96,14 +97,18 @@ class EnvSource:
         venv.seed(seed)
         return venv
 
+    def env_config(self) -> EnvConfig:
+        """The env config every env of the source gets: `config`, else the task's own."""
+        return self.config if self.config is not None else task_spec(self.task).config_with()
+
     def resolved_env_config(self, env: gymnasium.Env) -> dict[str, Any]:
-        """The full env config of a made env (its `config` when it has one), else the overrides; `roi_px` resolved
+        """The full env config of a made env (its `config` when it has one), else the source's; `roi_px` resolved
         to the region the policy sees when every world of the run has the same one (else left null; left null too
         when the region is given in degrees, `roi_fov_deg`, which places it on any camera)."""
         unwrapped = env.unwrapped
         config = getattr(unwrapped, "config", None)
         if not hasattr(config, "model_dump"):
-            return dict(self.overrides)
+            return self.env_config().model_dump(mode="json")
         resolved = config.model_dump(mode="json")
         roi_of = getattr(unwrapped, "roi_px_of", None)
         if callable(roi_of) and resolved.get("roi_fov_deg") is None:
@@ -129,7 +134,7 @@ class _EnvFn:
         if self.source.cost_free:
             from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
 
-            env_config = EnvConfig(**self.source.overrides)
+            env_config = self.source.env_config()
             return CostFreeDrivingEnv(env_config.observation_shape, episode_steps=env_config.episode_steps)
         import drivesim.sim.envs  # noqa: F401  (registers the drivesim envs)
 
@@ -139,7 +144,7 @@ class _EnvFn:
             world=self.source._world_arg(),
             meshes=meshes,
             mode=self.mode,
-            config=self.source.overrides or None,
+            config=self.source.env_config(),
         )
 
 

@@ -53,7 +53,7 @@ def _build(ctx: BuildContext) -> TrainSummary:
         task=cfg.task,
         worlds=[] if cost_free else _worlds_of(ctx),
         meshes=None if cost_free else _meshes_of(ctx.workspace),
-        overrides=cfg.envs.config.model_dump(),
+        config=cfg.envs.config,
         cost_free=cost_free,
         worker_threads=cfg.envs.worker_threads,
         processes=cfg.envs.processes,
