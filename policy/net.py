@@ -199,10 +199,9 @@ class EnsembleNet(nn.Module):
     LSTM state is the members' states side by side along the hidden axis (layers, N, members x hidden), so that code
     written for one net (the rollout, the ONNX export) carries an ensemble's state unchanged.
 
-    Why: on a real drive none of them trained on, policies of one recipe that differ only in their seed pass from
-    0 % to 100 % of the episodes, each leaving the lane on the side of its own steering bias; where those biases
-    differ, the mean of four cancels them (benchmarks/results/transfer.md, the ensemble table). Weight names:
-    `members.<k>.<DrivingNet name>`.
+    Why: policies of one recipe that differ only in their seed can carry different steering biases; the mean
+    cancels biases that differ between members (experiments/NOTEBOOK.md). Weight names: `members.<k>.<DrivingNet
+    name>`.
     """
 
     def __init__(self, members: Sequence[DrivingNet]) -> None:

@@ -1,7 +1,7 @@
 """Ensemble runs (`drivesim train --ensemble N`, `--ensemble-of`): the members are runs of their own, the ensemble's
 steering is the mean of their clipped steering, it exports to ONNX, and runs that see different observations are
 refused with one line. Tiny cost-free trainings; whether ensembles transfer better is a benchmark
-(benchmarks/results/transfer.md), not a test."""
+(experiments/transfer), not a test."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The best policy of a run: the weights of the periodic evaluation with the highest success rate so far.
 
 PPO on a task whose reward and success disagree for a while can drift after its best evaluation (the overtake
-curves of benchmarks/results/learning.md did), so a run keeps those weights in `checkpoints/best.pt` and, with
+curves of experiments/learning did), so a run keeps those weights in `checkpoints/best.pt` and, with
 `eval.keep_best`, writes them as the run's policy. Ties on success go to the higher mean return, then to the
 later evaluation.
 """

@@ -1,14 +1,13 @@
-"""An auxiliary target for the image encoder: where the ego is in its lane (issue 19).
+"""An auxiliary target for the image encoder: where the ego is in its lane.
 
-Policies trained on procedural towns steer back to the lane there but barely respond to a lateral shift on a real drive
-they never saw (benchmarks/results/steer_bias_cutout.md: -0.17 to +0.34 per metre on KITTI raw against +0.33 to +0.95
-on an unseen town): their features carry the ego's place in the lane only through whatever cue the towns offered.
-The simulator knows that place at every step. With `lane_aux.epochs` > 0, after each PPO update a linear head on the
-encoder's features is fitted, together with the encoder, to the ego's lateral offset from the lane centre and its
-heading relative to it at each step of the rollout PPO just used (`epochs` passes, mean squared error on the offsets
-divided by the task's max_lateral_m and max_rotation_rad), in the picture's frame (a mirrored episode's offsets
-mirrored). It alternates with PPO's epochs like PPG's auxiliary phase, as the imitation regularizer does
-(stages/train/imitation.py). The head is not part of the policy: it is not saved, and a resumed run starts a new one.
+Policies trained on procedural towns may carry the ego's place in the lane only through whatever cue the towns offered
+(experiments/steer_bias). The simulator knows that place at every step. With `lane_aux.epochs` > 0, after each PPO
+update a linear head on the encoder's features is fitted, together with the encoder, to the ego's lateral offset from
+the lane centre and its heading relative to it at each step of the rollout PPO just used (`epochs` passes, mean squared
+error on the offsets divided by the task's max_lateral_m and max_rotation_rad), in the picture's frame (a mirrored
+episode's offsets mirrored). It alternates with PPO's epochs like PPG's auxiliary phase, as the imitation regularizer
+does (stages/train/imitation.py). The head is not part of the policy: it is not saved, and a resumed run starts a new
+one.
 """
 
 from __future__ import annotations
