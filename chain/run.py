@@ -15,6 +15,7 @@ unfinished one that it continues from its last checkpoint; eval and export: the 
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -143,13 +144,34 @@ def _needs_run(walk: Walk, stage: str) -> Path:
     return walk.run_dir
 
 
-def _run_eval(walk: Walk, spec: StageSpec, cfg: StageConfig) -> StageResult:
+def _run_eval(walk: Walk, spec: StageSpec, cfg: StageConfig, trust_entry_point: bool = False) -> StageResult:
     from drivesim.stages.evaluate.stage import run_eval
 
     cfg = cfg.model_copy(update={"policy": str(_needs_run(walk, "eval"))})
     # An evaluation the user made in this workspace with other settings (`drivesim eval --episodes 1000`) is kept:
     # the chain's own evaluation goes beside it.
-    return run_eval(walk.ws, cfg, force=walk.force, keep_other="beside")  # type: ignore[arg-type]
+    return run_eval(
+        walk.ws,
+        cfg,  # type: ignore[arg-type]
+        force=walk.force,
+        keep_other="beside",
+        trust_entry_point=trust_entry_point,
+    )
+
+
+def _check_eval_entry_point(overrides: dict[str, Any], trust_entry_point: bool) -> None:
+    """An `eval.env_entry_point` the evaluation may not register is refused before the first stage, not after
+    training (`stages/evaluate/entry_point.py`)."""
+    from drivesim.sim.envs.registry import task_spec
+    from drivesim.stages.evaluate.config import EvalConfig
+    from drivesim.stages.evaluate.entry_point import check_env_entry
+
+    section = overrides.get("eval") or {}
+    entry_point = section.get("env_entry_point")
+    if entry_point is not None:
+        task = str(section.get("task", EvalConfig.model_fields["task"].default))
+        env_id = str(section.get("env_id") or task_spec(task).env_id)
+        check_env_entry(env_id, str(entry_point), trust_entry_point)
 
 
 def _run_export(walk: Walk, spec: StageSpec, cfg: StageConfig) -> StageResult:
@@ -180,6 +202,7 @@ def run_chain(
     overrides: dict[str, Any],
     force: bool = False,
     on_stage: Callable[[StageRun], None] | None = None,
+    trust_entry_point: bool = False,
 ) -> ChainRun:
     """Walk the chain registry: synth the demo drive when `recording` is None, then every stage in order.
 
@@ -188,10 +211,13 @@ def run_chain(
     :param overrides: stage name -> config overrides (a run preset).
     :param force: redo every stage even when fresh.
     :param on_stage: called after each stage (progress for the CLI).
+    :param trust_entry_point: let `eval.env_entry_point` name a gymnasium.Env class outside drivesim's envs.
     """
     from drivesim.chain.registry import CHAIN
 
-    done = walk_chain(ws, recording, overrides, CHAIN, RUNNERS, force=force, on_stage=on_stage)
+    _check_eval_entry_point(overrides, trust_entry_point)
+    runners = {**RUNNERS, "eval": functools.partial(_run_eval, trust_entry_point=trust_entry_point)}
+    done = walk_chain(ws, recording, overrides, CHAIN, runners, force=force, on_stage=on_stage)
     return ChainRun(
         stages=done, report_html=_file_of(done, "eval", "report.html"), onnx=_file_of(done, "export", "policy.onnx")
     )

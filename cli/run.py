@@ -35,8 +35,8 @@ def run_command(
         str,
         typer.Option(
             "--preset",
-            help="Run preset in configs/run/: demo (about 9 min on 2 cores), lane (a lane-keeping policy, "
-            "15 min of training) or full.",
+            help="Run preset in configs/run/: demo (5.8 min on a quiet 2-core VM), lane (a lane-keeping policy, "
+            "at most 15 min of training) or full.",
         ),
     ] = "demo",
     config: Annotated[
@@ -60,6 +60,14 @@ def run_command(
     start_s: StartOption = None,
     end_s: EndOption = None,
     fps: FpsOption = None,
+    trust_entry_point: Annotated[
+        bool,
+        typer.Option(
+            "--trust-entry-point",
+            help="Let eval.env_entry_point name your own gymnasium.Env class; its module is imported, so its code "
+            "runs: only for code you trust. Without it only drivesim's own env classes are accepted.",
+        ),
+    ] = False,
 ) -> None:
     """Run every stage in order: (synth,) ingest, preprocess, build-world, meshes, train, eval, export.
 
@@ -81,7 +89,9 @@ def run_command(
         for note in done.notes:
             console.print(f"  [dim]{note}[/]", highlight=False, soft_wrap=True)
 
-    result = run_chain(workspace(), recording, overrides, force=force, on_stage=on_stage)
+    result = run_chain(
+        workspace(), recording, overrides, force=force, on_stage=on_stage, trust_entry_point=trust_entry_point
+    )
     total_s = sum(s.wall_s for s in result.stages)
     console.print(f"[bold green]chain finished[/] in {total_s / 60:.1f} min", highlight=False)
     if result.report_html is not None:

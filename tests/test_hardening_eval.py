@@ -124,6 +124,17 @@ def test_an_untrusted_entry_points_module_is_never_imported(tmp_path, monkeypatc
     assert not (canary / "imported").exists()
 
 
+def test_drivesim_run_refuses_an_untrusted_entry_point_before_its_first_stage(tmp_path, monkeypatch, capsys, canary):
+    """`drivesim run --config` with an eval env_entry_point: one line before anything runs (not after training)."""
+    config = tmp_path / "evil.yaml"
+    config.write_text("eval:\n  env_id: evil/X-v0\n  env_entry_point: canary_mod:run\n")
+    ws = tmp_path / "ws"
+    code, err = _cli(ws, "run", "--config", str(config), monkeypatch=monkeypatch, capsys=capsys)
+    lines = _error_lines(err)
+    assert code == 2 and len(lines) == 1 and "--trust-entry-point" in lines[0], err
+    assert not ws.exists() and not (canary / "imported").exists()
+
+
 @pytest.mark.parametrize(
     ("entry_point", "says"),
     [
