@@ -277,3 +277,111 @@ def test_a_newline_in_a_file_name_cannot_forge_a_second_error_line(tmp_path, mon
     code, err = _ingest_cli(tmp_path / "ws", str(name), monkeypatch, capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert "drive\\nerror: all is well \\x1b[32m.mcap" in err and "\x1b" not in err
+
+
+# ---------------------------------------------------------------- pose streams whose stamps cannot time the drive
+
+ARC_RADIUS_M, ODOM_SPEED_MPS, ODOM_PERIOD_NS = 50.0, 10.0, 50_000_000
+
+
+def _odometry_values(t_ns: int, i: int) -> dict:
+    """nav_msgs/Odometry on a left arc of ARC_RADIUS_M, sample i at ODOM_SPEED_MPS."""
+    from recordings import header
+
+    yaw = ODOM_SPEED_MPS * i * ODOM_PERIOD_NS * 1e-9 / ARC_RADIUS_M
+    position = {"x": ARC_RADIUS_M * np.sin(yaw), "y": ARC_RADIUS_M * (1 - np.cos(yaw))}
+    orientation = {"z": float(np.sin(yaw / 2)), "w": float(np.cos(yaw / 2))}
+    return {
+        "header": header(t_ns, "odom"),
+        "child_frame_id": "base_link",
+        "pose": {"pose": {"position": position, "orientation": orientation}},
+        "twist": {"twist": {"linear": {"x": ODOM_SPEED_MPS}}},
+    }
+
+
+def _odometry_drive(folder: Path, stamp_of) -> tuple[Path, Path]:
+    """An MCAP of 52 camera frames and 104 odometry messages in log order whose header stamps are
+    `stamp_of(i, log_time_ns)`; ingested into folder/trace. Returns (recording, trace folder)."""
+    from recordings import START_NS, Msg, drive_messages, write_recording
+
+    from drivesim.stages.ingest.config import IngestConfig
+    from drivesim.stages.ingest.run import ingest_recording
+
+    msgs = drive_messages(n_frames=52, with_gps=False, with_twist=False, with_imu=False)
+    for i in range(104):
+        t = START_NS + i * ODOM_PERIOD_NS + 7
+        msgs.append(Msg("/odom", "nav_msgs/msg/Odometry", t, _odometry_values(stamp_of(i, t), i)))
+    recording = write_recording(folder / "drive.mcap", "mcap", sorted(msgs, key=lambda m: m.t_ns))
+    trace = folder / "trace"
+    trace.mkdir()
+    ingest_recording(recording, IngestConfig(), trace)
+    return recording, trace
+
+
+def _odometry_poses(trace: Path):
+    from drivesim.stages.preprocess import poses, series
+    from drivesim.stages.preprocess.config import PoseConfig
+
+    return poses.estimate_poses(series.load_series(trace), np.load(trace / "frame_times_ns.npy"), PoseConfig())
+
+
+def test_odometry_with_a_few_swapped_stamps_is_sorted_and_measures_the_drive(tmp_path) -> None:
+    """One swapped pair in 104 (two publishers interleaving): sorted, and the world is the drive's length."""
+    start = 1_700_000_000_000_000_007
+
+    def swap_one(i: int, t: int) -> int:
+        return t + ODOM_PERIOD_NS if i == 40 else t - ODOM_PERIOD_NS if i == 41 else t
+
+    _, trace = _odometry_drive(tmp_path, swap_one)
+    fused = _odometry_poses(trace)
+    drive_m = ODOM_SPEED_MPS * (np.load(trace / "frame_times_ns.npy")[-1] - start + 7) * 1e-9
+    assert fused.arc_length_m[-1] == pytest.approx(drive_m, abs=0.2)
+    assert np.allclose(fused.curvature_1pm, 1 / ARC_RADIUS_M, atol=2e-3)
+
+
+@pytest.mark.parametrize(
+    ("case", "expect"),
+    [
+        ("shuffled", "the odometry stamps go back in time at"),
+        ("stuck clock", "odometry samples share their stamp with another of different values"),
+    ],
+)
+def test_odometry_whose_stamps_cannot_time_it_is_refused_at_ingest(tmp_path, case, expect) -> None:
+    """Shuffled stamps (a 66 m zig-zag for a 51 m drive before) and a clock that ticks every other message (wrong
+    speeds and curvature) are refused with one line naming the recording, not sorted into a wrong world."""
+    from drivesim.pipeline.errors import InputError
+
+    rng = np.random.default_rng(1)
+    shuffle = np.arange(104)
+    for j in range(0, 100, 4):
+        shuffle[j : j + 4] = rng.permutation(shuffle[j : j + 4])
+
+    def shuffled(i: int, t: int) -> int:
+        return t + int(shuffle[i] - i) * ODOM_PERIOD_NS
+
+    def stuck(i: int, t: int) -> int:
+        return t - (i % 2) * ODOM_PERIOD_NS
+
+    with pytest.raises(InputError) as refused:
+        _odometry_drive(tmp_path, shuffled if case == "shuffled" else stuck)
+    line = refused.value.one_line()
+    assert expect in line and line.startswith(str(tmp_path / "drive.mcap")) and "\n" not in line
+
+
+def test_repeated_identical_messages_are_kept_once(tmp_path) -> None:
+    """The same odometry message recorded twice (same stamp, same values) is not an error: it is kept once."""
+    from drivesim.stages.ingest.stamps import ordered_series
+
+    t = np.array([0, 10, 10, 20], dtype=np.int64)
+    x = np.array([0.0, 1.0, 1.0, 2.0])
+    out = ordered_series({"t_ns": t, "x": x}, "odometry")
+    assert out["t_ns"].tolist() == [0, 10, 20] and out["x"].tolist() == [0.0, 1.0, 2.0]
+
+
+def test_pose_stream_that_never_overlaps_the_camera_is_refused(tmp_path) -> None:
+    """Odometry stamped 1000 s after the camera: refused (it was a 0.0 m world), naming both time spans."""
+    from drivesim.pipeline.errors import InputError
+
+    _, trace = _odometry_drive(tmp_path, lambda i, t: t + 1000 * 10**9)
+    with pytest.raises(InputError, match=r"cover 0 of the 52 camera frames .*poses 1000\.0 s to 1005\.2 s"):
+        _odometry_poses(trace)

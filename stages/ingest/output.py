@@ -14,6 +14,8 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from drivesim.stages.ingest.stamps import ordered_series
+
 
 @dataclass
 class IngestResult:
@@ -135,13 +137,11 @@ class Series:
         return len(self.columns["t_ns"])
 
     def save(self, path: Path) -> int:
-        """Write the series as .npz, stably sorted by time (topics from several publishers may interleave)."""
-        arrays = {name: col.array() for name, col in self.columns.items()}
-        order = np.argsort(arrays["t_ns"], kind="stable")
-        if np.any(order != np.arange(len(order))):
-            arrays = {name: a[order] for name, a in arrays.items()}
+        """Write the series as .npz sorted by time, one sample per stamp (`stamps.ordered_series`: a position stream
+        named by the file, e.g. odometry.npz, whose stamps cannot time it is refused); the samples written."""
+        arrays = ordered_series({name: col.array() for name, col in self.columns.items()}, Path(path).stem)
         np.savez(path, **arrays)
-        return len(order)
+        return len(arrays["t_ns"])
 
 
 def empty_gps_series() -> Series:

@@ -22,6 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from drivesim.pipeline.errors import InputError
 from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.kitti import (
     ingest_kitti_odometry,
@@ -79,7 +80,12 @@ def ingest_recording(path: Path, cfg: IngestConfig, out_dir: Path) -> IngestResu
     path = Path(path)
     fmt = detect_format(path)
     trace = TraceWriter(Path(out_dir), path, fmt)
-    FORMATS[fmt].read(path, cfg, trace)
+    try:
+        FORMATS[fmt].read(path, cfg, trace)
+    except InputError as e:
+        if e.path is not None:
+            raise
+        raise InputError(e.message, path) from e  # every ingest error names the recording
     result = trace.finish()
     validate_trace(out_dir)
     return result

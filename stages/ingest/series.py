@@ -23,6 +23,7 @@ from drivesim.stages.ingest.output import (
     empty_odometry_series,
     empty_speed_series,
 )
+from drivesim.stages.ingest.stamps import ordered_series
 
 _NAN4 = np.full(4, np.nan)
 
@@ -216,12 +217,9 @@ class TfPoseRecorder:
 
     def save(self, out_dir: Path, tf: StaticTfTree, vehicle_frame: str | None) -> None:
         """odometry.npz of the trace's vehicle frame: velocities by forward differences in the vehicle frame."""
-        t_ns = self.series.columns["t_ns"].array()
-        T = self.series.columns["T_parent_vehicle"].array()
-        order = np.argsort(t_ns, kind="stable")
-        t_ns, T = t_ns[order], T[order]
-        keep = np.concatenate([[True], np.diff(t_ns) > 0])  # one pose per stamp
-        t_ns, T = t_ns[keep], T[keep]
+        raw = {"t_ns": self.series.columns["t_ns"].array(), "T": self.series.columns["T_parent_vehicle"].array()}
+        ordered = ordered_series(raw, "/tf vehicle poses")  # sorted, one pose per stamp
+        t_ns, T = ordered["t_ns"], ordered["T"]
         T_child_vehicle = tf.lookup(self.child, vehicle_frame) if vehicle_frame and self.child else None
         if T_child_vehicle is not None:
             T = T @ T_child_vehicle

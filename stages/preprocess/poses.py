@@ -559,7 +559,50 @@ def estimate_poses(
     T_vc = np.eye(4) if T_vehicle_camera is None else np.asarray(T_vehicle_camera, dtype=float)
     inputs = PoseInputs(series, frame_times_ns, frames, K, T_vc)
     source = cfg.source if cfg.source != "auto" else _auto_source(series, cfg)
+    check_time_overlap(source, _source_times(series, source), frame_times_ns)
     return POSE_SOURCES[source](inputs, cfg)
+
+
+# Frames this close outside a pose stream's first and last stamp still count as covered: a 1 Hz GPS's first fix
+# may come up to a second after the first frame.
+OVERLAP_MARGIN_S = 1.0
+MIN_COVERED_FRACTION = 0.5
+"""Share of the camera frames that must fall within the pose stream's time span; outside it a car would stand still
+(poses are held at the stream's ends), so a drive mostly outside it would be a wrong, shorter world."""
+
+
+def _source_times(series: SensorSeries, source: str) -> np.ndarray | None:
+    """The stamps of the stream that times a pose source (None for sfm, which poses the frames themselves)."""
+    stream = {
+        "given": series.given_poses,
+        "gps_imu": series.gps,
+        "odometry": series.odometry,
+        "ground_truth": series.ground_truth,
+    }.get(source)
+    return None if stream is None or len(stream.t_ns) == 0 else np.asarray(stream.t_ns, dtype=np.int64)
+
+
+def check_time_overlap(source: str, stream_t_ns: np.ndarray | None, frame_times_ns: np.ndarray) -> None:
+    """Refuse (InputError) when fewer than MIN_COVERED_FRACTION of the frames fall within the pose stream's time span
+    (widened by OVERLAP_MARGIN_S): the camera's and the pose stream's clocks do not overlap."""
+    if stream_t_ns is None:
+        return
+    margin_ns = int(OVERLAP_MARGIN_S * 1e9)
+    first, last = int(stream_t_ns.min()) - margin_ns, int(stream_t_ns.max()) + margin_ns
+    covered = int(np.count_nonzero((frame_times_ns >= first) & (frame_times_ns <= last)))
+    if covered >= MIN_COVERED_FRACTION * len(frame_times_ns):
+        return
+    t0 = int(frame_times_ns[0])
+
+    def span(a_ns: int, b_ns: int) -> str:
+        return f"{(a_ns - t0) / 1e9:.1f} s to {(b_ns - t0) / 1e9:.1f} s"
+
+    raise InputError(
+        f"the {source} poses cover {covered} of the {len(frame_times_ns)} camera frames in time (poses "
+        f"{span(int(stream_t_ns.min()), int(stream_t_ns.max()))}, frames {span(t0, int(frame_times_ns[-1]))} after "
+        "the first frame): the clocks of the camera and the pose stream do not overlap; fix the recording's stamps "
+        "or choose another pose source (--set poses.source=...)"
+    )
 
 
 def _auto_source(series: SensorSeries, cfg: PoseConfig) -> str:
