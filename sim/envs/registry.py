@@ -10,21 +10,21 @@ its env settings (`default_config()`, extending the base's, which is what `drive
 success, measurements (the evaluation reports those it finds), scenarios and expert target (see `base.py`'s hooks).
 The train preset `configs/train/<task>.yaml` is optional and holds budgets only (steps, PPO, envs, warm start).
 
-A new task takes three files: its module, one line in `_SPECS` below, and one test. For example:
+A new task takes three files: its module, one line in `_SPECS` below, and one test (docs/new_task.md). E.g.:
 
-    # sim/envs/slalom.py
-    class SlalomEnv(DrivingEnv):  # keep the lane at a higher speed; a class docstring says so
-        task = "slalom"
+    # sim/envs/fastlane.py
+    class FastLaneEnv(LaneEnv):  # its class docstring says what the task is
+        task = "fastlane"
 
         @classmethod
         def default_config(cls) -> EnvConfig:
-            return super().default_config().model_copy(update={"ego_speed_mps": (10.0, 14.0)})
+            return super().default_config().model_copy(update={"ego_speed_mps": (15.0, 20.0)})
 
     # here, in _SPECS:
-    TaskSpec("slalom", "drivesim/Slalom-v0", "drivesim.sim.envs.slalom:SlalomEnv", "keep the lane, fast"),
+    TaskSpec("fastlane", "drivesim/FastLane-v0", "drivesim.sim.envs.fastlane:FastLaneEnv", "keep the lane, fast"),
 
-tests/test_tasks.py then checks that `gymnasium.make` and `drivesim train slalom` build the same env; the task's own
-test checks what it is for (docs/new_task.md).
+tests/test_tasks.py checks every registered task (`gymnasium.make` is the env `drivesim train <task>` builds); the
+task's own test checks what it is for.
 """
 
 from __future__ import annotations
