@@ -43,9 +43,13 @@ def render_command(
     if policy != "expert":
         raise DrivesimError(f"--policy {policy!r}: only 'expert' can drive here; use `drivesim eval --video` for runs")
     ws = workspace()
-    world = world or ws.root / "world"
+    # the workspace's world as its readers take it (not stale, its files as built); a folder given by path, checked
+    world = ws.require("world", "drivesim build-world") if world is None else world
     if meshes is None and (ws.root / "meshes").is_dir():
         meshes = ws.root / "meshes"
+    for folder in (world, meshes):
+        if folder is not None:
+            ws.check_input(folder)
     try:
         summary = render_episode(task, world, meshes, out, seed, mcap=mcap)
     except (ValueError, FileNotFoundError) as exc:
