@@ -30,8 +30,12 @@ def _worlds_of(ctx: BuildContext) -> list[Path]:
 
 
 def _meshes_of(ws: Workspace) -> Path | None:
+    """The workspace's mesh library, its files checked against its manifest, or None when it has none."""
     folder = ws.artifact_dir("meshes")
-    return folder if (folder / MANIFEST_NAME).is_file() else None
+    if not (folder / MANIFEST_NAME).is_file():
+        return None
+    ws.check_input(folder)
+    return folder
 
 
 def _build(ctx: BuildContext) -> TrainSummary:
