@@ -237,7 +237,7 @@ class TrainingCallback(BaseCallback):
             "policy": self.model.policy.driving_net_state(),
             "optimizer": self.model.policy.optimizer.state_dict(),
             "num_timesteps": steps,
-            "n_updates": int(self.model._n_updates),
+            "n_updates": self.model.updates_done,
             "wall_s": float(self.wall_s()),
             "episodes": int(self.state.episodes),
             "torch_rng": torch.get_rng_state(),

@@ -82,9 +82,10 @@ class ChunkedRolloutBuffer(RecurrentRolloutBuffer):
         per_batch = max(1, (batch_size or self.buffer_size * self.n_envs) // self.sequence_length)
         order = np.random.permutation(chunks)
         for start in range(0, chunks, per_batch):
-            yield self._chunk_samples(order[start : start + per_batch])
+            yield self.chunk_samples(order[start : start + per_batch])
 
-    def _chunk_samples(self, chunk_ids: np.ndarray) -> RecurrentRolloutBufferSamples:
+    def chunk_samples(self, chunk_ids: np.ndarray) -> RecurrentRolloutBufferSamples:
+        """The steps of chunks `chunk_ids` (chunk id k * n_envs + e: env e's k-th `sequence_length` steps), in order."""
         k, env = chunk_ids // self.n_envs, chunk_ids % self.n_envs
         t = k[:, None] * self.sequence_length + np.arange(self.sequence_length)[None, :]
         e = np.broadcast_to(env[:, None], t.shape)
@@ -163,6 +164,17 @@ class ChunkedRecurrentPPO(RecurrentPPO):
             n_envs=self.n_envs,
             sequence_length=self.sequence_length,
         )
+
+    @property
+    def updates_done(self) -> int:
+        """Gradient updates made so far (over every epoch and minibatch), as SB3 logs them in `train/n_updates`."""
+        return int(self._n_updates)
+
+    @updates_done.setter
+    def updates_done(self, count: int) -> None:
+        # SB3 keeps this counter private (`_n_updates`, no public setter); a resumed run sets it here, in this one
+        # place, so that the update count it logs and checkpoints goes on from the checkpoint's.
+        self._n_updates = int(count)
 
     def collect_rollouts(self, *args: Any, **kwargs: Any) -> bool:
         start = time.perf_counter()

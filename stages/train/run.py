@@ -230,7 +230,7 @@ def _restore(model: ChunkedRecurrentPPO, path: Path, venv: VecNormalize) -> dict
         venv.ret_rms.var = np.float64(checkpoint["return_var"])
         venv.ret_rms.count = float(checkpoint["return_count"])
     model.num_timesteps = int(checkpoint.get("num_timesteps", 0))
-    model._n_updates = int(checkpoint.get("n_updates", 0))
+    model.updates_done = int(checkpoint.get("n_updates", 0))
     if "torch_rng" in checkpoint:
         torch.set_rng_state(checkpoint["torch_rng"])
     return checkpoint
@@ -362,7 +362,7 @@ def train_in_folder(
             plot_curves(state.rows, run_dir / CURVES_PNG, f"{cfg.task}: {run_dir.name}")
         return TrainOutcome(
             steps=int(model.num_timesteps),
-            updates=int(model._n_updates),
+            updates=model.updates_done,
             episodes=state.episodes,
             wall_s=callback.wall_s(),
             steps_per_s=(model.num_timesteps - start_steps) / max(elapsed, 1e-9),

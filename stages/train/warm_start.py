@@ -130,7 +130,7 @@ def _fit_value(
                 loss_value = loss.item()
         with torch.no_grad():  # the values the second round's returns bootstrap from
             for ids in np.array_split(np.arange(steps_per_env * n // L), max(1, steps_per_env * n // L // 64)):
-                batch = buffer._chunk_samples(ids)
+                batch = buffer.chunk_samples(ids)
                 values, _, _ = policy.evaluate_actions(
                     batch.observations.float(), batch.actions, batch.lstm_states, batch.episode_starts
                 )
