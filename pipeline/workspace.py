@@ -174,9 +174,10 @@ class Workspace:
         """The files of the artifact in `folder` that are missing or differ from what its manifest recorded.
 
         Size and mtime_ns first (one stat per file); the sha256 only for a file whose mtime moved (a copy, a `touch`,
-        a rewrite of the same size), so an unchanged artifact costs no hashing.
+        a rewrite of the same size, a manifest written before mtimes were recorded), so an unchanged artifact costs no
+        hashing. A file whose bytes are the same gets its new mtime recorded, so it is hashed once, not every time.
         """
-        changed = []
+        changed, same_bytes = [], {}
         for rel, meta in manifest.get("outputs", {}).items():
             path = Path(folder) / rel
             try:
@@ -184,11 +185,15 @@ class Workspace:
             except OSError:
                 changed.append(rel)
                 continue
-            same_file = stat.S_ISREG(info.st_mode) and info.st_size == meta.get("size_bytes")
-            if not same_file or (
-                info.st_mtime_ns != meta.get("mtime_ns") and self._sha256(path, info) != meta.get("sha256")
-            ):
+            if not stat.S_ISREG(info.st_mode) or info.st_size != meta.get("size_bytes"):
                 changed.append(rel)
+            elif info.st_mtime_ns != meta.get("mtime_ns"):
+                if self._sha256(path, info) == meta.get("sha256"):
+                    same_bytes[rel] = info.st_mtime_ns
+                else:
+                    changed.append(rel)
+        if same_bytes:
+            _record_mtimes(Path(folder) / MANIFEST_NAME, same_bytes, manifest)
         return changed
 
     def _sha256(self, path: Path, info: os.stat_result) -> str:
@@ -493,6 +498,26 @@ def manifest_is_valid(manifest: Any) -> bool:
         isinstance(manifest.get(k, default), t)
         for k, t, default in (("summary", dict, {}), ("key", str, ""), ("stage", str, ""), ("artifact", str, ""))
     )
+
+
+def _record_mtimes(path: Path, mtimes: dict[str, int], manifest: dict[str, Any]) -> None:
+    """Record the new mtime_ns of output files whose bytes were found unchanged in the manifest at `path`, when it is
+    still the manifest that was checked (written atomically, its own mtime kept: `drivesim status` orders runs by it).
+    Best effort: a read-only workspace is hashed again next time."""
+    with suppress(OSError, ValueError, TypeError, KeyError):
+        info = path.stat()
+        current = json.loads(path.read_text())
+        if current.get("outputs") != manifest.get("outputs"):
+            return
+        for rel, mtime_ns in mtimes.items():
+            current["outputs"][rel]["mtime_ns"] = mtime_ns
+        tmp = path.with_name(f"{_TMP_PREFIX}{path.name}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+        try:
+            tmp.write_text(json.dumps(current, indent=2, default=str) + "\n")
+            os.utime(tmp, ns=(info.st_atime_ns, info.st_mtime_ns))
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
 
 
 def _printable(text: str) -> str:

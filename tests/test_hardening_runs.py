@@ -137,15 +137,17 @@ def test_a_world_file_changed_after_the_build_is_found_by_status_readers_and_the
 ) -> None:
     """world/frames.npy overwritten with other bytes of the same size: status says stale naming the file and the
     command; eval (the workspace's world, or the folder by path) refuses in one line; build-world's freshness check
-    no longer says "nothing to do". A `touch` (same bytes, new time) stays fresh: the hash decides."""
+    no longer says "nothing to do". A `touch` (same bytes, new time) stays fresh: the hash decides, once."""
     register_fake_envs()
     ws = _chain_workspace(tmp_path)
     frames = ws.artifact_dir("world") / "frames.npy"
     key = ws.read_manifest("world")["key"]
     assert ws.is_fresh("world", key)
 
-    os.utime(frames)  # a touch: mtime moves, the bytes do not
+    os.utime(frames, ns=(frames.stat().st_atime_ns, frames.stat().st_mtime_ns + 10**9))  # a touch: same bytes
     assert _rows(ws)["build-world"]["state"] == "fresh" and ws.is_fresh("world", key)
+    recorded = ws.read_manifest("world")["outputs"]["frames.npy"]["mtime_ns"]
+    assert recorded == frames.stat().st_mtime_ns  # hashed once, then known unchanged by its time again
 
     data = np.load(frames)
     data[0, 0, 0, 0] ^= 0xFF  # one byte changed, same size
