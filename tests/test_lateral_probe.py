@@ -21,7 +21,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments" / "la
 from lateral_probe import blank_view_part, fit_probe, fit_readout, render_views, score_probe  # noqa: E402
 
 # Photometric augmentation off, so that a mirrored view can be compared with the plain one pixel for pixel.
-NO_PHOTOMETRY = {"gamma": (1.0, 1.0), "brightness": (0.0, 0.0), "contrast": (1.0, 1.0), "saturation": (1.0, 1.0)}
+# The lane task trains with a jittered, blurred and noisy camera by default: off here, so pictures compare exactly.
+NO_PHOTOMETRY = {
+    "gamma": (1.0, 1.0),
+    "brightness": (0.0, 0.0),
+    "contrast": (1.0, 1.0),
+    "saturation": (1.0, 1.0),
+    "pitch_jitter_deg": 0.0,
+    "blur_sigma_px": (0.0, 0.0),
+    "noise_std": (0.0, 0.0),
+}
 
 
 @pytest.fixture(scope="module")
