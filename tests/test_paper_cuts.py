@@ -156,14 +156,19 @@ def test_an_empty_workspace_names_every_step_to_a_world(tmp_path: Path) -> None:
 
 
 def _ingested_workspace(ws: Path, recording_name: str) -> Path:
-    """A user's workspace after `drivesim ingest <recording_name>.mcap`, with a (fake) world beside its trace."""
+    """A user's workspace after `drivesim ingest <recording_name>.mcap` (run in-process: the commands under test
+    are the later ones), with a (fake) world beside its trace."""
     from eval_fakes import fake_world
     from recordings import drive_messages, write_recording
 
+    from drivesim.pipeline.config import load_config
+    from drivesim.pipeline.workspace import Workspace
+    from drivesim.stages.ingest.config import IngestConfig
+    from drivesim.stages.ingest.stage import run_ingest
+
     ws.parent.mkdir(parents=True, exist_ok=True)
     rec = write_recording(ws.parent / f"{recording_name}.mcap", "mcap", drive_messages(n_frames=5))
-    done = drivesim(ws, "ingest", str(rec))
-    assert done.returncode == 0, done.stdout + done.stderr
+    run_ingest(Workspace(ws), rec, load_config(IngestConfig, preset="ingest"))
     fake_world(ws / "world")
     return ws
 
