@@ -97,9 +97,9 @@ def _fresh_run(ws: Workspace, spec: StageSpec, cfg: StageConfig) -> Path | None:
 
 def _unfinished_run(ws: Workspace, cfg: StageConfig, towns: list[Path]) -> Path | None:
     """The newest unfinished run under runs/ started with this very train config on the same worlds (their same
-    builds) that no other command is training now, or None: what a re-run of the chain continues after a crash or
-    Ctrl-C in training, from its last checkpoint."""
-    from drivesim.pipeline.errors import ArtifactBusyError
+    builds), or None: what a re-run of the chain continues after a crash or Ctrl-C in training, from its last
+    checkpoint. When another command is training it now, the run's lock stops this one with one line instead of a
+    second training of the same config beside it."""
     from drivesim.policy.run_folder import CONFIG_JSON, RUNS_DIR
     from drivesim.stages.train.run import continues_run
     from drivesim.stages.train.stage import training_inputs
@@ -113,13 +113,7 @@ def _unfinished_run(ws: Workspace, cfg: StageConfig, towns: list[Path]) -> Path 
         for run_dir in (ws.root / RUNS_DIR).glob(f"{cfg.task}-*")  # type: ignore[attr-defined]
         if (run_dir / CONFIG_JSON).is_file() and continues_run(run_dir, cfg, worlds)  # type: ignore[arg-type]
     ]
-    for _, run_dir in sorted(found, reverse=True):
-        try:
-            with ws.lock(f"{RUNS_DIR}/{run_dir.name}"):
-                return run_dir
-        except ArtifactBusyError:
-            continue  # another command is training it now
-    return None
+    return max(found)[1] if found else None
 
 
 def _run_train(walk: Walk, spec: StageSpec, cfg: StageConfig) -> StageResult:

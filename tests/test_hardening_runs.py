@@ -315,7 +315,8 @@ def train_run_training(ws: Workspace, cfg):  # noqa: ANN001, ANN201
 
 def test_the_chain_continues_an_interrupted_training_of_the_same_config(tmp_path) -> None:
     """`drivesim run` after Ctrl-C in training: the unfinished run of the same config is continued from its last
-    checkpoint (no second run beside it); a different config starts a run of its own and leaves it alone."""
+    checkpoint (no second run beside it); while another command trains it, one line instead of a twin run; a
+    different config starts a run of its own and leaves it alone."""
     from drivesim.chain.run import RUNNERS
     from drivesim.chain.walk import Walk
     from drivesim.stages.train.stage import SPEC
@@ -330,7 +331,15 @@ def test_the_chain_continues_an_interrupted_training_of_the_same_config(tmp_path
     assert steps == [256, 512]  # continued from the checkpoint at 256, not from step 0
     assert ws.read_manifest(f"runs/{run_dir.name}")["summary"]["steps"] == 512
 
-    other = _interrupted_run(ws, 256, 512)
-    seeded = RUNNERS["train"](walk, SPEC, small_config(512, ["seed=7"]))
-    assert seeded.path not in (run_dir, other)
+    other = _interrupted_run(ws, 256, 768)
+    holder = _hold_lock(ws.root, f"runs/{other.name}")  # another command is training it now: one line, no twin run
+    try:
+        with pytest.raises(ArtifactBusyError, match=f"pid {holder.pid}.*runs/{other.name}"):
+            RUNNERS["train"](walk, SPEC, small_config(768))
+    finally:
+        holder.kill()
+        holder.wait()
+    seeded = RUNNERS["train"](walk, SPEC, small_config(256, ["seed=7"]))
+    assert seeded.path not in (run_dir, other) and seeded.summary.steps == 256
     assert not (other / "manifest.json").exists()  # another config's run is not taken over
+    assert len(list((ws.root / "runs").iterdir())) == 3
