@@ -83,6 +83,8 @@ def test_a_users_keys_go_over_the_tasks_settings() -> None:
     typed = TrainConfig(task="cutin", envs=EnvsConfig(count=2, config=EnvConfig(weight_lane=2.0)))
     assert typed.envs.count == 2 and typed.envs.config.weight_lane == 2.0
     assert typed.envs.config.other_speed_mps == (10.0, 12.0)
+    typed.total_steps = 5  # an assignment is validated again: the env config stays typed, with its keys
+    assert isinstance(typed.envs.config, EnvConfig) and typed.envs.config.weight_lane == 2.0
     assert TrainConfig(task="lane").envs.config == task_spec("lane").config_with()
     # a saved run's config (every key) stays exactly as it was saved
     saved = TrainConfig(task="cutin").model_dump(mode="json")

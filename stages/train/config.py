@@ -208,18 +208,19 @@ class TrainConfig(StageConfig):
         task = data.get("task", cls.model_fields["task"].default) if isinstance(data, dict) else None
         if not isinstance(task, str) or task not in TASKS:
             return data  # not a mapping or a bad task: refused by the fields' own checks
+        defaults = task_spec(task).env_class().default_config().model_dump()
         envs = data.get("envs")
-        if isinstance(envs, EnvsConfig):
-            envs = envs.model_dump(exclude_unset=True) | {"config": envs.config}
+        if isinstance(envs, EnvsConfig):  # typed (or an assignment): its config's keys set by hand over the task's
+            config = EnvConfig.model_validate({**defaults, **envs.config.model_dump(exclude_unset=True)})
+            return {**data, "envs": envs.model_copy(update={"config": config})}
         if envs is not None and not isinstance(envs, dict):
             return data
         envs = dict(envs or {})
         given = envs.get("config")
-        if isinstance(given, EnvConfig):  # its keys set by hand count, its defaults give way to the task's
+        if isinstance(given, EnvConfig):
             given = given.model_dump(exclude_unset=True)
         if given is not None and not isinstance(given, dict):
             return data  # not a mapping: refused by the field's own check
-        defaults = task_spec(task).env_class().default_config().model_dump()
         return {**data, "envs": {**envs, "config": {**defaults, **(given or {})}}}
 
     @field_validator("towns")
