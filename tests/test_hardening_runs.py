@@ -237,33 +237,40 @@ def test_a_second_writer_of_an_artifact_stops_with_one_line_until_the_first_ends
 
 
 def test_two_evaluations_into_one_name_never_touch_each_others_work(tmp_path) -> None:
-    """A second `eval --name N` with other settings while the first runs: one line, exit 2, the first's work
-    folder untouched; the first finishes with all its episodes."""
+    """A second `eval --name N` with other settings while the first runs: one line, exit 2, nothing of the first's
+    work folder removed (it used to empty it); the first goes on writing episodes after."""
     world = fake_world(tmp_path / "world")
     ws = tmp_path / "ws"
-    first_cmd = _eval_command(
-        ws, world, "--episodes", "3", "--workers", "1", "--name", "shared", "--trust-entry-point", "--policy", "expert"
-    )
+    common = ["--name", "shared", "--trust-entry-point", "--policy", "expert", "--workers", "1"]
     episodes = ws / "eval" / ".partial-shared" / "episodes"
-    first = subprocess.Popen(first_cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    first = subprocess.Popen(
+        _eval_command(ws, world, "--episodes", "40", *common),  # about 70 s: still running when the second ends
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+    )
     try:
         _wait_for_episodes(episodes, 1, first)
-        kept = sorted(p.name for p in episodes.glob("*.json"))
-        second_cmd = _eval_command(
-            ws, world, "--episodes", "2", "--seed", "50", "--name", "shared", "--policy", "expert"
+        kept = {p.name for p in episodes.glob("*.json")}
+        second = subprocess.run(
+            _eval_command(ws, world, "--episodes", "2", "--seed", "50", *common),
+            capture_output=True,
+            text=True,
+            env=_env(),
+            timeout=120,
         )
-        second = subprocess.run([*second_cmd, "--trust-entry-point"], capture_output=True, text=True, env=_env())
         lines = _error_lines(second.stderr)
         assert second.returncode == 2 and len(lines) == 1, second.stderr
-        assert "is writing the eval/shared artifact" in lines[0] and f"pid {first.pid}" in lines[0]
-        assert set(kept) <= {p.name for p in episodes.glob("*.json")}, "the second evaluation removed episodes"
-        _, err = first.communicate(timeout=120)
+        assert "is writing the eval/shared artifact" in lines[0] and f"pid {first.pid}" in lines[0], lines[0]
+        assert first.poll() is None, "the first evaluation ended before the second was refused"
+        assert kept <= {p.name for p in episodes.glob("*.json")}, "the second evaluation removed episodes"
+        _wait_for_episodes(episodes, len(kept) + 1, first)  # the first goes on in its work folder
     finally:
-        if first.poll() is None:
-            first.kill()
-    assert first.returncode == 0, err
-    final = ws / "eval" / "shared"
-    assert sorted(p.name for p in (final / "episodes").glob("*.json")) == ["0.json", "1.json", "2.json"]
+        first.send_signal(signal.SIGTERM)
+        first.communicate(timeout=60)
+    assert first.returncode == 143
+    assert not (ws / "eval" / "shared").exists() and kept <= {p.name for p in episodes.glob("*.json")}
 
 
 # ---------------------------------------------------------------- 12: SIGHUP as SIGTERM
