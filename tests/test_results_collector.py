@@ -88,3 +88,26 @@ def test_an_old_measurement_states_no_figure(collector: ModuleType) -> None:
             assert (old_line in body) == (date < collector.RESTATED_SINCE), (section.key, name)
         if all(date < collector.RESTATED_SINCE for date in dates.values()):
             assert "|---" not in body, section.key  # none of its tables
+
+
+def test_readme_figures_link_to_a_results_section_and_every_doc_link_resolves(collector: ModuleType) -> None:
+    repo = BENCHMARKS.parent
+    readme = (repo / "README.md").read_text()
+    headline = readme.split("## Headline figures")[1].split("\n## ")[0]
+    rows = [line for line in headline.splitlines() if line.startswith("| ") and not line.startswith("| what")]
+    anchors = {s.key for s in collector.SECTIONS}
+    assert 0 < len(rows) <= 12
+    for row in rows:
+        links = re.findall(r"\(benchmarks/RESULTS\.md#([a-z_0-9]+)\)", row)
+        assert links and set(links) <= anchors, row
+    docs = [repo / "README.md", *sorted((repo / "docs").glob("*.md")), repo / "experiments" / "NOTEBOOK.md"]
+    docs += [BENCHMARKS / "results" / "targets.md"]
+    for doc in docs:
+        for link in re.findall(r"\]\(([^)\s]+)\)", doc.read_text()):
+            path, _, anchor = link.partition("#")
+            if link.startswith("http") or not path:
+                continue
+            target = (doc.parent / path).resolve()
+            assert target.exists(), f"{doc.name}: {link}"
+            if anchor and target.name == "RESULTS.md":
+                assert anchor in anchors, f"{doc.name}: {link}"
