@@ -70,6 +70,15 @@ def test_each_task_has_its_own_settings() -> None:
     assert task_spec("follow").config_with() == EnvConfig()
 
 
+def test_task_only_keys_are_grouped_by_the_task_that_reads_them() -> None:
+    """Every key of TASK_ONLY_KEYS is some task's, each task lists only such keys, lane none of them."""
+    classes = [task_spec(t).env_class() for t in TASK_NAMES]
+    assert all(set(c.task_keys) <= set(TASK_ONLY_KEYS) for c in classes)
+    assert set(TASK_ONLY_KEYS) == {key for c in classes for key in c.task_keys}
+    assert task_spec("lane").env_class().task_keys == ()
+    assert set(task_spec("lane").env_class().config_keys()) == set(EnvConfig.model_fields) - set(TASK_ONLY_KEYS)
+
+
 @pytest.mark.parametrize("task", TASK_NAMES)
 def test_train_presets_hold_budgets_only(task: str) -> None:
     data = yaml.safe_load(preset_path(f"train/{task}").read_text())
