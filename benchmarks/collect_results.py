@@ -173,7 +173,7 @@ SECTIONS: tuple[Section, ...] = (
         "fidelity",
         "Depth and view fidelity",
         "depth and novel views against ground truth",
-        "drivesim bench fidelity --frames 32",
+        "drivesim bench fidelity --frames N --markdown F",
         ("fidelity.md", "fidelity.png"),
     ),
     Section(
