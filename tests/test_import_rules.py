@@ -9,9 +9,9 @@ The packages form layers, lowest first; a package imports only its own layer's p
     bench              the measurements behind `drivesim bench` (everything above)
     cli                the typer commands (everything)
 
-A stage's modules (`stages/<x>/...`) import their own stage and an upstream stage's schema module, never another
-stage's run module; `stages/` holds nothing but stage packages. No module reaches itself through its imports
-(`if TYPE_CHECKING:` imports, which never run, aside).
+A stage's modules (`stages/<x>/...`) import their own stage, an upstream stage's schema module and ingest's SfM
+pipeline, never another stage's run module; `stages/` holds nothing but stage packages. No module reaches itself
+through its imports (`if TYPE_CHECKING:` imports, which never run, aside).
 
 Run alone: `.venv/bin/pytest -q tests/test_import_rules.py`.
 """
@@ -37,8 +37,9 @@ LAYERS: dict[str, set[str]] = {
 }
 """Each code folder -> the folders it may import from."""
 
-# Upstream schema modules (one per artifact, read by its writer and its readers).
-SCHEMA_MODULES = {"drivesim.stages.ingest.trace", "drivesim.stages.preprocess.artifact"}
+# Upstream modules another stage may import: the artifact schemas (one per artifact, read by its writer and its
+# readers) and the one SfM pipeline (ingest's videos, preprocess's camera-only recordings).
+SCHEMA_MODULES = {"drivesim.stages.ingest.trace", "drivesim.stages.preprocess.artifact", "drivesim.stages.ingest.sfm"}
 
 
 def _module_name(file: Path) -> str:

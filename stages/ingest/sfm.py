@@ -192,15 +192,25 @@ def pipeline_options(
 
 
 def reconstruct(
-    image_dir: Path, names: list[str], K: np.ndarray | None, size: tuple[int, int], opts: SfmOptions, work_dir: Path
+    image_dir: Path,
+    names: list[str],
+    K: np.ndarray | None,
+    size: tuple[int, int],
+    opts: SfmOptions,
+    work_dir: Path,
+    min_frames: int = MIN_SFM_FRAMES,
 ) -> SfmResult:
     """Reconstruct the images `names` (in time order, all `size` = (width, height) px) in `image_dir`.
 
+    The one SfM pipeline: ingest's videos and preprocess's camera-only recordings (`stages/preprocess/sfm.py`) both
+    come here.
+
     :param K: intrinsics at that size, or None to estimate the focal length (principal point at the centre).
+    :param min_frames: fewer images are refused.
     :raises InputError: too few images, or no piece of at least 3 frames could be reconstructed.
     """
-    if len(names) < MIN_SFM_FRAMES:
-        raise InputError(f"too short for SfM: {len(names)} frames, at least {MIN_SFM_FRAMES} needed")
+    if len(names) < min_frames:
+        raise InputError(f"too short for SfM: {len(names)} frames, at least {min_frames} needed")
     import pycolmap
 
     database = work_dir / "database.db"

@@ -1,4 +1,4 @@
-"""Camera-only poses: incremental structure-from-motion with pycolmap (SIFT, sequential matching, known intrinsics),
+"""Camera-only poses: the SfM pipeline of `stages/ingest/sfm.py` (pycolmap, known intrinsics) on a recording's frames,
 scaled to metres from a speed series or a user-given path length.
 
 The reconstruction's world is re-anchored at the first vehicle pose (x forward, z up when the drive starts level).
@@ -21,8 +21,8 @@ SCALE_HINT = (
 )
 
 
-def _write_images(frames: np.ndarray, folder: Path, max_width_px: int) -> tuple[list[str], float]:
-    """Frames as PNGs at most `max_width_px` wide; returns (names, resize factor)."""
+def _write_images(frames: np.ndarray, folder: Path, max_width_px: int) -> tuple[list[str], tuple[int, int]]:
+    """Frames as PNGs at most `max_width_px` wide; returns (names, (width, height) px of the PNGs)."""
     h, w = frames.shape[1:3]
     factor = min(1.0, max_width_px / w)
     size = (max(1, round(w * factor)), max(1, round(h * factor)))
@@ -34,15 +34,18 @@ def _write_images(frames: np.ndarray, folder: Path, max_width_px: int) -> tuple[
         name = f"{i:06d}.png"
         cv2.imwrite(str(folder / name), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
         names.append(name)
-    return names, size[0] / w
+    return names, size
 
 
 def reconstruct(frames: np.ndarray, K: np.ndarray, max_width_px: int = 640, overlap: int = 10) -> dict[int, np.ndarray]:
-    """Camera poses T_sfm_camera (4x4, arbitrary scale and frame) of the frames pycolmap registers, by frame index.
+    """Camera poses T_sfm_camera (4x4, arbitrary scale and frame) of the frames the SfM pipeline registers in its
+    largest piece (`stages/ingest/sfm.py`: known intrinsics, each frame matched with the next `overlap`, no loop
+    closure), by frame index.
 
     :raises InputError: fewer than 2 frames, or no reconstruction could be made.
     """
-    import pycolmap  # heavy import, only for camera-only recordings
+    from drivesim.stages.ingest.sfm import SfmOptions
+    from drivesim.stages.ingest.sfm import reconstruct as reconstruct_images
 
     if len(frames) < 2:
         raise InputError("SfM needs at least 2 frames")
@@ -50,51 +53,12 @@ def reconstruct(frames: np.ndarray, K: np.ndarray, max_width_px: int = 640, over
         tmp_dir = Path(tmp)
         image_dir = tmp_dir / "images"
         image_dir.mkdir()
-        names, factor = _write_images(frames, image_dir, max_width_px)
+        names, size = _write_images(frames, image_dir, max_width_px)
+        factor = size[0] / frames.shape[2]
         Ks = scale_intrinsics(np.asarray(K, dtype=float), factor, factor)
-        database = tmp_dir / "database.db"
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = "PINHOLE"
-        reader.camera_params = ",".join(repr(float(v)) for v in (Ks[0, 0], Ks[1, 1], Ks[0, 2], Ks[1, 2]))
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.use_gpu = False
-        pycolmap.extract_features(
-            database,
-            image_dir,
-            camera_mode=pycolmap.CameraMode.SINGLE,
-            reader_options=reader,
-            extraction_options=extraction,
-            device=pycolmap.Device.cpu,
-        )
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = overlap
-        pairing.loop_detection = False
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.use_gpu = False
-        pycolmap.match_sequential(
-            database, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
-        )
-        options = pycolmap.IncrementalPipelineOptions()
-        options.ba_refine_focal_length = False
-        options.ba_refine_principal_point = False
-        options.ba_refine_extra_params = False
-        options.multiple_models = False
-        options.random_seed = 0
-        out_dir = tmp_dir / "sparse"
-        out_dir.mkdir()
-        models = pycolmap.incremental_mapping(database, image_dir, out_dir, options=options)
-        if not models:
-            raise InputError(f"SfM could not reconstruct the {len(frames)} frames (too little texture or motion)")
-        model = max(models.values(), key=lambda m: m.num_reg_images())
-        index = {name: i for i, name in enumerate(names)}
-        poses = {}
-        for image in model.images.values():
-            if not image.has_pose:
-                continue
-            T_cam_world = np.eye(4)
-            T_cam_world[:3, :] = image.cam_from_world().matrix()
-            poses[index[image.name]] = invert(T_cam_world)
-    return poses
+        opts = SfmOptions(window=overlap, loop_keyframes=0)
+        result = reconstruct_images(image_dir, names, Ks, size, opts, tmp_dir, min_frames=2)
+    return {int(i): T for i, T in zip(result.image_index, result.T_sfm_camera, strict=True)}
 
 
 def metric_scale(
