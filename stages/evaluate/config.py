@@ -26,6 +26,9 @@ class EvalConfig(StageConfig):
     """Number of episodes; episode i is reset with seed `seed + i`."""
     seed: int = Field(0, ge=0)
     """Seed of the first episode."""
+    baseline_episodes: int = Field(200, ge=0, le=10_000_000)
+    """Episodes of the baselines beside a trained policy (the expert, and the run's warm start when it kept one), on
+    the evaluation's first seeds; at most `episodes`; 0: no baselines."""
     world: list[str] | None = None
     """World folder(s) to evaluate in, each with the same seeds and `episodes` episodes; null = the workspace's world/.
     Several give a row per world and pooled figures."""

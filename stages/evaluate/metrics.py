@@ -21,6 +21,9 @@ Per episode (all distances in metres, angles in radians, absolute values):
     max_yaw_rad      the largest |q_rot|: ego heading minus the road heading at the associated frame.
     mean_tracking_error_m  mean of the env's per-step tracking error, for a task that measures one (follow's
                      `info["state"]["tracking_error_m"]`); NaN for the others.
+    pass_shortfall_m how far the ego still was from having passed: Z_pass (`limits["pass_distance_m"]`) minus the
+                     largest pass margin it reached (`info["state"]["pass_margin_m"]`, centre to centre along the
+                     road), 0 once it got Z_pass ahead; NaN for a task without a pass (or a record without both).
 
 Aggregates over episodes, each with a 95 % confidence interval:
     rates (intervention, each cause, success, end of data): Wilson score interval of the binomial proportion
@@ -84,6 +87,7 @@ TRAJECTORY_FIELDS = (
     "other_y_m",
     "other_yaw_rad",
     "tracking_error_m",
+    "pass_margin_m",
     "action",
 )
 
@@ -183,6 +187,8 @@ class EpisodeMetrics:
     other_lateral_m: float = float("nan")
     winnable: bool | None = None
     """Overtake: False for a start the hardest swerve cannot escape (sim/envs/winnable.py); None without a label."""
+    pass_shortfall_m: float = float("nan")
+    """Overtake: Z_pass minus the largest pass margin reached, at least 0 [m]; NaN without a pass."""
 
     def row(self) -> dict[str, Any]:
         """A flat dict for episodes.csv."""
@@ -285,8 +291,17 @@ def evaluate_episode(record: EpisodeRecord) -> EpisodeResult:
         other_lateral_m=_number(ep, "other_lateral_m"),
         return_=float(record.return_),
         winnable=ep["winnable"] if isinstance(ep.get("winnable"), bool) else None,
+        pass_shortfall_m=_pass_shortfall_m(traj.get("pass_margin_m"), record.limits.get("pass_distance_m")),
     )
     return EpisodeResult(metrics=metrics, clearance_m=clearance, overlap_m2=overlap, record=record)
+
+
+def _pass_shortfall_m(margins_m: np.ndarray | None, pass_distance_m: float | None) -> float:
+    """Z_pass minus the largest pass margin of the episode, at least 0; NaN without both."""
+    if margins_m is None or pass_distance_m is None:
+        return float("nan")
+    finite = margins_m[np.isfinite(margins_m)]
+    return max(float(pass_distance_m) - float(finite.max()), 0.0) if finite.size else float("nan")
 
 
 @dataclass(frozen=True)

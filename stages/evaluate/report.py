@@ -37,6 +37,9 @@ PAPER_TABLE_I = {
     "max_deviation_m": (0.361, 0.360),
     "max_yaw_rad": (0.112, 0.082),
 }
+PAPER_SETUP = {"front_distance_m": (6.0, 15.0), "front_lateral_m": (1.0, 2.0), "collision_overlap_train": 0.05}
+"""The paper's Table I setup (§IV-A): the front car 6-15 m ahead and 1-2 m aside of the ego, with a random heading;
+a collision at 5 % overlap in training, 0 % in evaluation. It gives no Z_pass, Z_lat or car sizes."""
 TABLE_ROWS = (
     ("intervention", "average intervention ↓", "{:.3f}"),
     ("min_clearance_m", "minimum clearance over all episodes (m) ↑", "{:.3f}"),
@@ -68,6 +71,36 @@ class Track:
         """From the world's path.npz."""
         with np.load(Path(world_dir) / "path.npz") as path:
             return cls(np.asarray(path["x_m"]), np.asarray(path["y_m"]), np.asarray(path["arc_length_m"]))
+
+
+def geometry_note(task: str, env_overrides: dict[str, Any]) -> str:
+    """One line: where the task's geometry (its env config with `env_overrides`) differs from the paper's Table I
+    setup; "" for a task without a front car to pass."""
+    spec = task_spec(task)
+    if not spec.env_class().has_other or "pass_distance_m" not in spec.env_class().task_keys:
+        return ""
+    c = spec.config_with(env_overrides)
+    near, far = c.front_distance_m
+    low, high = c.front_lateral_m
+    parts = []
+    if (near, far) != PAPER_SETUP["front_distance_m"]:
+        parts.append(f"the front car {near:g}-{far:g} m ahead (paper 6-15 m)")
+    side = "" if c.front_side == "either" else f", on the {c.front_side}"
+    parts.append(
+        f"{low:g}-{high:g} m from the lane centre{side}, heading along the road (paper: 1-2 m from the ego, a "
+        "random heading)"
+    )
+    parts.append(
+        f"moving at {c.other_speed_mps[0]:g}-{c.other_speed_mps[1]:g} m/s, the ego at "
+        f"{c.ego_speed_mps[0]:g}-{c.ego_speed_mps[1]:g} m/s"
+    )
+    if c.collision_overlap_train != PAPER_SETUP["collision_overlap_train"]:
+        parts.append(f"a training collision above {100 * c.collision_overlap_train:g} % overlap (paper 5 %)")
+    parts.append(
+        f"passed {c.pass_distance_m:g} m ahead and back within {c.return_lateral_m:g} m of the centre, off lane beyond "
+        f"{c.max_lateral_m:g} m, the ego {c.ego_length_m:g} x {c.ego_width_m:g} m (the paper gives none of these)"
+    )
+    return "Our task's geometry where it differs from the paper's: " + "; ".join(parts) + "."
 
 
 def write_outputs(
@@ -212,13 +245,13 @@ def _html(
         edges = ", ".join(f"{e:.3g}" for e in b.edges)
         name = esc(plots.FACTOR_LABELS[b.factor])
         level_rows.append(f"<tr><td>{name}<br><span class=ci>quartiles {edges}</span></td>{cells}</tr>")
-    worst = sorted(results, key=lambda r: (not r.metrics.intervention, _finite_or(r.metrics.min_clearance_m, 1e9)))[:10]
     worst_rows = "".join(
-        f"<tr><td>{r.metrics.seed}</td><td>{'yes' if r.metrics.intervention else 'no'}</td>"
-        f"<td>{_causes(r)}</td><td>{r.metrics.min_clearance_m:.3f}</td><td>{r.metrics.max_deviation_m:.3f}</td>"
-        f"<td>{r.metrics.max_yaw_rad:.3f}</td><td>{r.metrics.steps}</td>"
+        f"<tr><td>{r.metrics.seed}</td><td>{_winnable(r)}</td><td>{'yes' if r.metrics.intervention else 'no'}</td>"
+        f"<td>{_causes(r)}</td><td>{_number(r.metrics.pass_shortfall_m)}</td>"
+        f"<td>{_number(r.metrics.min_clearance_m)}</td><td>{_number(r.metrics.max_deviation_m)}</td>"
+        f"<td>{_number(r.metrics.max_yaw_rad)}</td><td>{r.metrics.steps}</td>"
         f"<td>{recording_link(out_dir, r.metrics.seed) if out_dir else '—'}</td></tr>"
-        for r in worst
+        for r in worst_episodes(results)
     )
     captions = {
         "breakdown.png": "Fig. 4: intervention rate and maximum deviation by trial difficulty (95 % CI)",
@@ -233,14 +266,16 @@ def _html(
 <html lang="en"><head><meta charset="utf-8"><title>drivesim evaluation: {esc(str(data.get("policy", "")))}</title>
 <style>{_CSS}</style></head><body>
 <h1>drivesim evaluation — {esc(str(data.get("task", "")))}, policy {esc(str(data.get("policy", "")))}</h1>
-<table class=meta>{meta}</table>{extra_html}
+<table class=meta>{meta}{_trained_on_html(data.get("trained_on"))}</table>{extra_html}
 <h2>Metrics beside the paper's Table I</h2>
 <table><tr><th>metric</th><th>this evaluation [95 % CI]</th><th>paper, garage</th><th>paper, outdoor</th></tr>
 {"".join(rows)}{"".join(extra)}</table>
+{f"<p class=ci>{esc(data['geometry_note'])}</p>" if data.get("geometry_note") else ""}
 <p class=ci>Intervention: polygon overlap &gt; 0, off lane or over-rotation. Minimum clearance: mean over all
 episodes (a collision counts 0) of the smallest distance between the two footprints. Maximum deviation / yaw: mean
 over the episodes of the largest |q_lat| / |q_rot|. Rates: Wilson interval; means: percentile bootstrap (2000
 resamples). Definitions: <code>drivesim.stages.evaluate.metrics</code>.</p>
+{_baselines_html(data.get("baselines") or [])}
 <h2>Interventions by cause, and outcomes</h2>
 <table><tr><th>cause</th><th>episodes</th><th>rate</th></tr>{causes}</table>
 <p class=ci>An episode may have more than one cause.</p>
@@ -252,8 +287,11 @@ these episodes (initial lateral difference: the smallest is the most challenging
 <h2>Figures</h2>
 {images}
 <h2>Worst episodes</h2>
-<table><tr><th>seed</th><th>intervention</th><th>causes</th><th>min clearance (m)</th><th>max deviation (m)</th>
-<th>max yaw (rad)</th><th>steps</th><th>recording</th></tr>{worst_rows}</table>
+<table><tr><th>seed</th><th>winnable start</th><th>intervention</th><th>causes</th><th>still to pass (m)</th>
+<th>min clearance (m)</th><th>max deviation (m)</th><th>max yaw (rad)</th><th>steps</th><th>recording</th></tr>
+{worst_rows}</table>
+<p class=ci>The failed episodes: those whose start can be won first, then the farthest from success (the distance
+still needed to pass the front car by Z_pass; without a pass, the fewest steps driven), then by seed.</p>
 <p class=ci>Every episode: <code>episodes.csv</code>, per-step trajectories in <code>episodes/&lt;seed&gt;.json</code>;
 aggregates in <code>metrics.json</code>.</p>
 {recordings_html(out_dir, results) if out_dir else ""}
@@ -306,8 +344,77 @@ def _starts_html(rows: Sequence[dict[str, Any]]) -> str:
     )
 
 
-def _finite_or(value: float, default: float) -> float:
-    return value if math.isfinite(value) else default
+WORST_EPISODES = 10
+
+
+def worst_key(r: EpisodeResult) -> tuple[bool, bool, float, int, int]:
+    """Sort key of the worst episodes: failures first, those whose start can be won (or is not labelled) before
+    the unwinnable, then the farthest from success (the distance still needed to pass; without a pass, the fewest
+    steps driven), then the seed: no two episodes tie."""
+    m = r.metrics
+    shortfall = m.pass_shortfall_m if math.isfinite(m.pass_shortfall_m) else 0.0
+    return (m.success, m.winnable is False, -shortfall, m.steps, m.seed)
+
+
+def worst_episodes(results: Sequence[EpisodeResult], count: int = WORST_EPISODES) -> list[EpisodeResult]:
+    """The `count` worst episodes (`worst_key`), failures only."""
+    return sorted((r for r in results if not r.metrics.success), key=worst_key)[:count]
+
+
+def _baselines_html(rows: Sequence[dict[str, Any]]) -> str:
+    """The policy beside its baselines (the expert, the warm start) on the same seeds; empty without baselines."""
+    if not rows:
+        return ""
+    heads = "".join(f"<th>{html.escape(label)}</th>" for _, label in BASELINE_COLUMNS)
+    body = "".join(
+        f"<tr><td>{html.escape(r['row'])}</td><td>{r['episodes']}</td>"
+        + "".join(f"<td>{_json_cell(r[k])}</td>" for k, _ in BASELINE_COLUMNS)
+        + "</tr>"
+        for r in rows
+    )
+    first, last = rows[0].get("seeds") or (None, None)
+    return (
+        "<h2>Beside the expert and the warm start, on the same seeds</h2>"
+        f"<table><tr><th>policy</th><th>episodes</th>{heads}</tr>{body}</table>"
+        f"<p class=ci>Seeds {first} to {last}: the evaluation's first <code>baseline_episodes</code>. The expert "
+        "steers with the privileged state; the warm start is the run's policy before any PPO update "
+        "(<code>checkpoints/warm_start.pt</code>).</p>"
+    )
+
+
+BASELINE_COLUMNS = (
+    ("intervention", "intervention"),
+    ("success", "success"),
+    ("collision", "collision"),
+    ("off_lane", "off lane"),
+    ("over_rotation", "over-rotation"),
+    ("min_clearance_m", "min clearance (m)"),
+    ("max_deviation_m", "max deviation (m)"),
+    ("max_yaw_rad", "max yaw (rad)"),
+)
+
+
+def _json_cell(e: dict[str, Any]) -> str:
+    """An estimate from metrics.json with its 95 % interval ("—" without a value)."""
+    if not e.get("n") or e.get("value") is None:
+        return "—"
+    return f"{e['value']:.3f} <span class=ci>[{e['ci_low']:.3f}, {e['ci_high']:.3f}]</span>"
+
+
+def _trained_on_html(worlds: Sequence[dict[str, Any]] | None) -> str:
+    """A header row naming the worlds the policy trained on; empty when that is not known."""
+    if worlds is None:
+        return ""
+    names = ", ".join(html.escape(w["world"]) for w in worlds) or "—"
+    return f"<tr><th>trained on</th><td>{names}</td></tr>"
+
+
+def _winnable(r: EpisodeResult) -> str:
+    return "—" if r.metrics.winnable is None else "yes" if r.metrics.winnable else "no"
+
+
+def _number(value: float) -> str:
+    return f"{value:.3f}" if math.isfinite(value) else "—"
 
 
 def _causes(r: EpisodeResult) -> str:

@@ -172,12 +172,13 @@ class PolicySpec:
 
 
 def env_limits(env: Any) -> dict[str, float]:
-    """The env's Z_lat / Z_rot when its config names them (recorded with each episode), else {}."""
+    """The env's Z_lat / Z_rot / Z_pass when its config names them (recorded with each episode), else {}."""
     config = getattr(env.unwrapped, "config", None)
     limits = {}
     for key, names in (
         ("max_lateral_m", ("max_lateral_m", "z_lat_m", "off_lane_m", "max_q_lat_m")),
         ("max_rotation_rad", ("max_rotation_rad", "z_rot_rad", "max_q_rot_rad")),
+        ("pass_distance_m", ("pass_distance_m",)),
     ):
         for name in names:
             value = getattr(config, name, None)

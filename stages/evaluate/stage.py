@@ -193,7 +193,8 @@ def _make_env(factory: Any, world: Path) -> Any:
 
 
 # Keys that do not change what an episode is: an interrupted evaluation of 100 episodes resumes into one of 1000.
-_REPORT_ONLY_KEYS = ("episodes", "video", "clearance_histogram_max_m", "record")  # record: missing ones are replayed
+# record: missing ones are replayed; baseline_episodes: the baselines' episodes have a work folder of their own.
+_REPORT_ONLY_KEYS = ("episodes", "baseline_episodes", "video", "clearance_histogram_max_m", "record")
 
 
 def _partial_key(ctx: BuildContext, config_json: dict[str, Any]) -> str:
@@ -366,6 +367,55 @@ def _results(job: WorldJob, seeds: list[int]) -> list[Any]:
     return results
 
 
+def _run_baselines(
+    cfg: EvalConfig, job: WorldJob, policy_spec: Any, seeds: list[int], partial: Path, notes: list[str]
+) -> list[tuple[Any, list[Any]]]:
+    """The expert and the run's warm start (`stages/evaluate/baselines.py`) on the first `baseline_episodes` seeds,
+    in the policy's env; each with its evaluated episodes."""
+    from drivesim.stages.evaluate.baselines import BASELINES_DIR, baselines_for
+    from drivesim.stages.evaluate.rollout import PolicySpec
+
+    count = min(cfg.baseline_episodes, len(seeds))
+    ran = []
+    for baseline in baselines_for(policy_spec.kind, policy_spec.path) if count else []:
+        folder = partial / BASELINES_DIR / baseline.key / "episodes"
+        folder.mkdir(parents=True, exist_ok=True)
+        base_job = WorldJob(job.world, baseline.key, job.factory, folder, None)
+        _run_jobs(cfg, [base_job], PolicySpec.parse(baseline.policy), seeds[:count], partial, notes)
+        ran.append((baseline, _results(base_job, seeds[:count])))
+    return ran
+
+
+def _table_extras(
+    cfg: EvalConfig,
+    job: WorldJob,
+    policy_spec: Any,
+    label: str,
+    results: list[Any],
+    seeds: list[int],
+    partial: Path,
+    notes: list[str],
+) -> dict[str, Any]:
+    """metrics.json's keys beside Table I: `baselines` (their rows), `trained_on` (the worlds a run's policy trained
+    on) and `geometry_note` (where the task's geometry differs from the paper's Table I setup)."""
+    from drivesim.stages.evaluate.baselines import baseline_rows
+    from drivesim.stages.evaluate.report import geometry_note
+    from drivesim.stages.evaluate.worlds import training_worlds, world_label
+
+    ran = _run_baselines(cfg, job, policy_spec, seeds, partial, notes)
+    trained = training_worlds(policy_spec.kind, policy_spec.path)
+    return {
+        "baselines": baseline_rows(label, results, ran),
+        "trained_on": None
+        if trained is None
+        else [
+            {"world": world_label(w), "path": str(w)}
+            for w in sorted(trained, key=lambda w: (w.parent.parent.name == "towns", str(w)))  # its own world first
+        ],
+        "geometry_note": geometry_note(cfg.task, job.factory.kwargs.get("config") or {}),
+    }
+
+
 def _build(ctx: BuildContext, trusted: bool = False) -> EvalSummary:
     from drivesim.stages.evaluate.replay import finish_recordings
     from drivesim.stages.evaluate.report import Track, write_outputs
@@ -404,7 +454,10 @@ def _build(ctx: BuildContext, trusted: bool = False) -> EvalSummary:
         for seed in seeds:
             shutil.copy2(job.episodes_dir / f"{seed}.json", ctx.dir / "episodes" / f"{seed}.json")
         finish_recordings(job.recording, results, job.factory, policy_spec, cfg.task, ctx.dir)  # before the report
-        data = write_outputs(ctx.dir, results, Track.load(job.world), cfg.task, header, cfg.clearance_histogram_max_m)
+        extra = _table_extras(cfg, job, policy_spec, header["policy"], results, seeds, partial, ctx.notes)
+        data = write_outputs(
+            ctx.dir, results, Track.load(job.world), cfg.task, header, cfg.clearance_histogram_max_m, extra=extra
+        )
         videos = [p.name for p in render_videos(results, cfg.video, job.factory, policy_spec, ctx.dir)]
     agg = data["aggregate"]
     return EvalSummary(
