@@ -26,13 +26,14 @@ DATE = re.compile(r"\b20\d\d-[01]\d-[0-3]\d\b")
 
 
 def config_modules() -> list[str]:
-    """Every stage's config module, the env config and the pipeline's own config models."""
+    """Every stage's config module and every other module with user-facing config models (env, pipeline, chain)."""
     stages = [
         f"drivesim.stages.{m.name}.config"
         for m in pkgutil.iter_modules(drivesim.stages.__path__)
         if m.ispkg and (REPO / "stages" / m.name / "config.py").exists()
     ]
-    return [*stages, "drivesim.sim.envs.config", "drivesim.pipeline.config"]
+    others = ["drivesim.sim.envs.config", "drivesim.pipeline.config", "drivesim.pipeline.stage"]
+    return [*stages, *others, "drivesim.chain.run", "drivesim.chain.towns", "drivesim.chain.walk"]
 
 
 def models(model: type[BaseModel], seen: set[type[BaseModel]]) -> Iterator[type[BaseModel]]:
