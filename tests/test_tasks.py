@@ -142,6 +142,27 @@ def test_the_table_ii_scenarios_are_overtakes() -> None:
         EvalConfig(task="overtake", scenario=["static", "dynamic"])
 
 
+def test_the_report_shows_the_scenario_table_for_the_task_that_has_the_scenarios(tmp_path: Path) -> None:
+    """The same passing episodes: overtake's report splits them by its Table II scenarios; cut-in's, whose other car
+    comes from behind, has no such table; neither reports a tracking error (follow's measurement)."""
+    from dataclasses import replace
+
+    from eval_fakes import pass_record
+
+    from drivesim.stages.evaluate.metrics import evaluate_episode
+    from drivesim.stages.evaluate.report import write_outputs
+
+    results = []
+    for seed in range(3):  # a front car at 5 m/s, 1.5 m right of the lane centre
+        result = evaluate_episode(pass_record(2.6, seed=seed))
+        results.append(replace(result, metrics=replace(result.metrics, other_speed_mps=5.0, other_lateral_m=-1.5)))
+    overtake = write_outputs(tmp_path / "overtake", results, None, "overtake", {})
+    cutin = write_outputs(tmp_path / "cutin", results, None, "cutin", {})
+    assert [row["episodes"] for row in overtake["scenarios"]] == [0, 3, 3, 0]  # moving car, passed on the left
+    assert cutin["scenarios"] == [] and "scenario" not in (tmp_path / "cutin" / "report.html").read_text()
+    assert overtake["aggregate"]["mean_tracking_error_m"]["n"] == 0
+
+
 # A task's name compared as a string: ==/!= either side, `in` a collection of strings, a match case.
 _NAMES = "|".join(TASK_NAMES)
 _COMPARED = re.compile(
