@@ -195,6 +195,13 @@ def test_piped_eval_table_is_whole_and_labels_worlds_by_their_recording(tmp_path
     }
 
 
+def test_every_command_prints_through_the_one_console_that_knows_it_is_piped() -> None:
+    """Every table of every command (status, config, eval, bench, synth, the run's result) goes through
+    `cli.common.console`, the one that keeps full width when piped: no command makes a Console of its own."""
+    others = [p.name for p in sorted((REPO / "cli").glob("*.py")) if "Console(" in p.read_text()]
+    assert others == ["common.py"], others
+
+
 def test_piped_status_prints_no_empty_field(tmp_path: Path) -> None:
     ws = _ingested_workspace(tmp_path / "my-work", "drive")
     done = drivesim(ws, "status")
