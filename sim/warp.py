@@ -272,7 +272,6 @@ def forward_warp(
         # The compiled path keeps nothing per frame but its smallest depth: hand it the views' frames.
         rgb, depth_m = rgb.index_select(0, frame_of_view), depth_m.index_select(0, frame_of_view)
         caller_tensors, frame_of_view = (rgb, depth_m), None
-    _, H, W = depth_m.shape
     B = depth_m.shape[0] if frame_of_view is None else int(frame_of_view.numel())
     T = _as_tensor(T_dst_src, device)
     if T.dim() == 2:
@@ -282,9 +281,7 @@ def forward_warp(
     x0, y0, w, h = roi if roi is not None else (0, 0, out_width_px, out_height_px)
     if w <= 0 or h <= 0 or x0 < 0 or y0 < 0 or x0 + w > out_width_px or y0 + h > out_height_px:
         raise ValueError(f"roi {roi} is not inside the {out_width_px}x{out_height_px} destination image")
-    ex0, ey0, ew, eh = rendered_region(out_width_px, out_height_px, (x0, y0, w, h), fill_holes)
-    ex1, ey1 = ex0 + ew, ey0 + eh
-
+    extended = rendered_region(out_width_px, out_height_px, (x0, y0, w, h), fill_holes)
     if use_kernel and device.type == "cpu":
         result = _warp_with_kernel(
             rgb,
@@ -292,16 +289,41 @@ def forward_warp(
             K_src,
             T_dst_src,
             K_dst,
-            (ex0, ey0, ew, eh),
+            extended,
             (x0, y0, w, h),
             fill_holes,
             caller_tensors,
-            partial=(ew, eh) != (out_width_px, out_height_px),
+            partial=extended[2:] != (out_width_px, out_height_px),
         )
-        return WarpResult(rgb=result.rgb[0], depth_m=result.depth_m[0], valid=result.valid[0]) if squeeze else result
-    K_s = _as_tensor(K_src, device)
-    source = _prepare_source(rgb, depth_m, K_s, caller_tensors)
-    K_d = _as_tensor(K_dst, device)
+    else:
+        K_s = _as_tensor(K_src, device)
+        source = _prepare_source(rgb, depth_m, K_s, caller_tensors)
+        keys = _nearest_keys(source, K_s, T, _as_tensor(K_dst, device), depth_m.shape[1:], extended,
+                             (out_width_px, out_height_px), frame_of_view)  # fmt: skip
+        if fill_holes:
+            keys = _fill_cracks(keys)
+        ex0, ey0 = extended[:2]
+        keys = keys[:, y0 - ey0 : y0 - ey0 + h, x0 - ex0 : x0 - ex0 + w].reshape(B, h * w)
+        result = _gather(keys, source, rgb.dtype, depth_m.shape[1:], (h, w), frame_of_view)
+    return WarpResult(rgb=result.rgb[0], depth_m=result.depth_m[0], valid=result.valid[0]) if squeeze else result
+
+
+def _nearest_keys(
+    source: _Source,
+    K_s: torch.Tensor,
+    T: torch.Tensor,
+    K_d: torch.Tensor,
+    source_size: tuple[int, int],
+    extended: tuple[int, int, int, int],
+    out_size: tuple[int, int],
+    frame_of_view: torch.Tensor | None,
+) -> torch.Tensor:
+    """The torch path's z-buffer: (B, eh, ew) keys of the rendered region `extended`, each the nearest point's
+    (depth bits << 32 | source pixel), `_EMPTY_KEY` where none lands."""
+    H, W = source_size
+    ex0, ey0, ew, eh = extended
+    B = T.shape[0]
+    device = T.device
     # q = K_dst (R P + t finite): finite points move with the camera, points at infinity only turn.
     M = (K_d @ T[:, :3, :3]).to(torch.float32)
     c = (K_d @ T[:, :3, 3:]).to(torch.float32)  # (B, 3, 1)
@@ -310,10 +332,11 @@ def forward_warp(
         P, fin, near, sky = (t.index_select(0, frame_of_view) for t in (P, fin, near, sky))
     window_pixels = None
     window = None
-    if (ew, eh) != (out_width_px, out_height_px):
+    if (ew, eh) != out_size:
         window = _source_window(
-            source.min_depth_m, K_s.cpu().numpy(), (H, W), T.cpu().numpy(), K_d.cpu().numpy(), (ex0, ey0, ex1, ey1)
-        )
+            source.min_depth_m, K_s.cpu().numpy(), (H, W), T.cpu().numpy(), K_d.cpu().numpy(),
+            (ex0, ey0, ex0 + ew, ey0 + eh),
+        )  # fmt: skip
     if window is not None and (window[2] - window[0]) * (window[3] - window[1]) < H * W:
         # Only the source pixels that can land in the region: a rectangle of the source frame.
         sx0, sy0, sx1, sy1 = window
@@ -349,31 +372,36 @@ def forward_warp(
     pix += u.reshape(-1).index_select(0, flat).to(torch.int64)
     keys = torch.full((B * eh * ew,), _EMPTY_KEY, dtype=torch.int64, device=device)
     keys.scatter_reduce_(0, pix, key, reduce="amin")
-    keys = keys.reshape(B, eh, ew)
-    if fill_holes:
-        keys = _fill_cracks(keys)
-    keys = keys[:, y0 - ey0 : y0 - ey0 + h, x0 - ex0 : x0 - ex0 + w].reshape(B, h * w)
+    return keys.reshape(B, eh, ew)
 
+
+def _gather(
+    keys: torch.Tensor,
+    source: _Source,
+    dtype: torch.dtype,
+    source_size: tuple[int, int],
+    size: tuple[int, int],
+    frame_of_view: torch.Tensor | None,
+) -> WarpResult:
+    """The warp's colour, depth and mask from the z-buffer's (B, h * w) keys of the region of `size` (h, w)."""
+    H, W = source_size
+    B = keys.shape[0]
+    h, w = size
     valid = keys != _EMPTY_KEY
     depth_out = (keys >> 32).to(torch.int32).view(torch.float32)  # +inf where empty, by the choice of _EMPTY_KEY
     src_index = (keys & _LOW32).clamp_(max=H * W - 1)
     if frame_of_view is not None:
         src_index += frame_of_view[:, None] * (H * W)
     elif B > 1:
-        src_index += torch.arange(B, device=device)[:, None] * (H * W)
+        src_index += torch.arange(B, device=keys.device)[:, None] * (H * W)
     src_index = src_index.reshape(-1)
-    if rgb.dtype == torch.uint8:
+    if dtype == torch.uint8:
         packed = source.colour.index_select(0, src_index) * valid.reshape(-1)
         out_rgb = packed.view(torch.uint8).reshape(-1, 4)[:, :3].contiguous()  # bytes as packed: any endianness
     else:
         out_rgb = torch.stack([row.index_select(0, src_index) for row in source.colour], -1)
         out_rgb *= valid.reshape(-1, 1)
-    result = WarpResult(
-        rgb=out_rgb.reshape(B, h, w, 3), depth_m=depth_out.reshape(B, h, w), valid=valid.reshape(B, h, w)
-    )
-    if squeeze:
-        result = WarpResult(rgb=result.rgb[0], depth_m=result.depth_m[0], valid=result.valid[0])
-    return result
+    return WarpResult(rgb=out_rgb.reshape(B, h, w, 3), depth_m=depth_out.reshape(B, h, w), valid=valid.reshape(B, h, w))
 
 
 def _min_depth(depth_m: torch.Tensor, caller_tensors: tuple[torch.Tensor, torch.Tensor]) -> float:
