@@ -135,7 +135,7 @@ def _os_error_line(e: OSError) -> str:
         return f"permission denied: {path if path is not None else 'a file this command needed'}"
     if e.errno == errno.EROFS:
         return f"read-only file system: cannot write {path if path is not None else state.workspace}"
-    reason = e.strerror or type(e).__name__
+    reason = e.strerror or str(e).strip() or type(e).__name__  # an OSError raised with a text has no strerror
     return f"{reason}: {path}" if path is not None else f"{reason} ({type(e).__name__})"
 
 

@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Iterator
+import threading
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 
 @dataclass
@@ -43,9 +45,11 @@ def native_messages_to(log_path: Path) -> Iterator[NativeLog]:
     python_stderr.flush()
     sys.stderr = os.fdopen(os.dup(terminal_fd), "w", buffering=1, encoding="utf-8", errors="backslashreplace")
     os.dup2(log_fd, 2)
+    _REDIRECTS.append(log.path)
     try:
         yield log
     finally:
+        _REDIRECTS.pop()
         sys.stderr.flush()
         os.dup2(terminal_fd, 2)
         sys.stderr.close()
@@ -53,6 +57,75 @@ def native_messages_to(log_path: Path) -> Iterator[NativeLog]:
         os.close(terminal_fd)
         os.close(log_fd)
         log.lines = _lines_after(log.path, start)
+
+
+_REDIRECTS: list[Path] = []  # the logs descriptor 2 points at, innermost last
+
+
+class _Gate:
+    """Many shared holders or one exclusive holder at a time, a waiting exclusive one served first."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._shared = 0
+        self._exclusive = False
+        self._waiting = 0
+
+    @contextmanager
+    def shared(self) -> Iterator[None]:
+        with self._cond:
+            self._cond.wait_for(lambda: not self._exclusive and not self._waiting)
+            self._shared += 1
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._shared -= 1
+                self._cond.notify_all()
+
+    @contextmanager
+    def exclusive(self) -> Iterator[None]:
+        with self._cond:
+            self._waiting += 1
+            self._cond.wait_for(lambda: not self._exclusive and not self._shared)
+            self._waiting -= 1
+            self._exclusive = True
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._exclusive = False
+                self._cond.notify_all()
+
+
+_GATE = _Gate()
+
+
+def _stderr_size() -> int | None:
+    """Bytes in the log descriptor 2 points at, or None when no `native_messages_to` block is in force."""
+    return os.fstat(2).st_size if _REDIRECTS else None
+
+
+def call_watched(native_call: Callable[..., Any], *args: Any) -> tuple[Any, str]:
+    """(the call's result, what native code wrote to stderr during it) inside a `native_messages_to` block; outside
+    one the text is always "".
+
+    Watched calls run side by side (the common case: nothing is written); when the log grew meanwhile, the call is
+    run again alone, so the text is this call's own and not a concurrent one's.
+    """
+    with _GATE.shared():
+        before = _stderr_size()
+        result = native_call(*args)
+        quiet = before is None or _stderr_size() == before
+    if quiet:
+        return result, ""
+    with _GATE.exclusive():
+        start = _stderr_size() or 0
+        result = native_call(*args)
+        with open(_REDIRECTS[-1], "rb") as f:
+            f.seek(start)
+            said = f.read().decode("utf-8", "replace")
+    return result, said
 
 
 def _lines_after(path: Path, offset: int) -> int:

@@ -13,6 +13,7 @@ import signal
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from test_preprocess_stage_fakes import install_fake_poses, make_trace
@@ -385,3 +386,120 @@ def test_pose_stream_that_never_overlaps_the_camera_is_refused(tmp_path) -> None
     _, trace = _odometry_drive(tmp_path, lambda i, t: t + 1000 * 10**9)
     with pytest.raises(InputError, match=r"cover 0 of the 52 camera frames .*poses 1000\.0 s to 1005\.2 s"):
         _odometry_poses(trace)
+
+
+# ---------------------------------------------------------------- damaged frames, cut videos, blank cameras, odd sizes
+
+
+def _damaged_jpeg(data: np.ndarray | bytes) -> np.ndarray:
+    """The JPEG cut in the middle of its scan and closed with an end marker: it still decodes, the lower half grey,
+    and libjpeg says "Corrupt JPEG data: premature end of data segment"."""
+    data = bytes(data)
+    return np.frombuffer(data[: len(data) // 2] + b"\xff\xd9", np.uint8)
+
+
+def _jpeg_drive(folder: Path, damaged: int, image_fn=None) -> Path:
+    """An MCAP of 20 JPEG camera frames (GPS, IMU, twist) whose first `damaged` frames are damaged."""
+    from recordings import drive_messages, textured_image, write_recording
+
+    image_fn = image_fn or (lambda i: textured_image(160, 100, i))
+    msgs = drive_messages(n_frames=20, width=160, height=100, compressed="jpeg", image_fn=image_fn)
+    for m in [m for m in msgs if m.topic.endswith("compressed")][:damaged]:
+        m.values["data"] = _damaged_jpeg(m.values["data"])
+    return write_recording(folder / "drive.mcap", "mcap", msgs)
+
+
+def _ingest(recording: Path, out: Path):
+    from drivesim.stages.ingest.config import IngestConfig
+    from drivesim.stages.ingest.run import ingest_recording
+
+    out.mkdir()
+    return ingest_recording(recording, IngestConfig(), out)
+
+
+def test_a_few_damaged_jpeg_frames_are_left_out_and_reported(tmp_path) -> None:
+    """Two of 20 frames that decode with "Corrupt JPEG data": left out (not kept with invented pixels), counted in
+    the summary and said in a note."""
+    result = _ingest(_jpeg_drive(tmp_path, damaged=2), tmp_path / "trace")
+    assert result.summary["frame_count"] == 18 and result.summary["skipped"] == {"camera": 2}
+    assert any("left out 2 damaged camera frame(s) of 20" in note for note in result.notes)
+
+
+def test_many_damaged_jpeg_frames_refuse_the_recording(tmp_path) -> None:
+    """Seven of 20 damaged (35 %, past the 10 % a drive may lose): refused with one line, not ingested with grey
+    blocks."""
+    from drivesim.pipeline.errors import InputError
+
+    with pytest.raises(InputError, match=r"7 of 20 frames are damaged \(the image decoder reported corrupt data"):
+        _ingest(_jpeg_drive(tmp_path, damaged=7), tmp_path / "trace")
+
+
+@pytest.mark.parametrize("colour", [0, 255])
+def test_a_camera_without_a_picture_is_refused(tmp_path, colour) -> None:
+    """An all-black (or all-white) camera through the whole drive is refused at ingest."""
+    from drivesim.pipeline.errors import InputError
+
+    flat = lambda i: np.full((100, 160, 3), colour, np.uint8)  # noqa: E731
+    with pytest.raises(InputError, match=r"shows no picture: 20 of 20 frames looked at are one flat colour"):
+        _ingest(_jpeg_drive(tmp_path, damaged=0, image_fn=flat), tmp_path / "trace")
+
+
+def test_a_dark_but_real_picture_is_not_called_blank(tmp_path) -> None:
+    from recordings import textured_image
+
+    dark = lambda i: (textured_image(160, 100, i) // 12).astype(np.uint8)  # noqa: E731
+    result = _ingest(_jpeg_drive(tmp_path, damaged=0, image_fn=dark), tmp_path / "trace")
+    assert result.summary["frame_count"] == 20
+
+
+@pytest.mark.parametrize(("width", "height"), [(4000, 8), (8, 3000), (12, 8)])
+def test_absurd_image_sizes_are_refused_with_one_line(tmp_path, monkeypatch, capsys, width, height) -> None:
+    """A 4000x8 strip, an 8x3000 column or a 12x8 thumbnail is no driving camera: one line, exit 2, no trace (a
+    100000x1 image gave a 640x1 trace, then "error: OSError (OSError)")."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(5):
+        cv2.imwrite(str(folder / f"{i:03d}.png"), rng.integers(0, 255, (height, width, 3), dtype=np.uint8))
+    code, err = _cli(
+        tmp_path / "ws",
+        "ingest",
+        str(folder),
+        "--fps",
+        "10",
+        "--camera-height-m",
+        "1.5",
+        monkeypatch=monkeypatch,
+        capsys=capsys,
+    )
+    lines = _error_lines(err)
+    assert code == 2 and len(lines) == 1 and f"pictures of {width}x{height} px" in lines[0], err
+    assert not (tmp_path / "ws" / "trace").exists()
+
+
+def _mjpeg_avi(path: Path, frames: int) -> Path:
+    from recordings import textured_image
+
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (160, 96))
+    for i in range(frames):
+        writer.write(textured_image(160, 96, i))
+    writer.release()
+    return path
+
+
+def test_a_video_cut_short_is_refused_and_ffmpeg_stays_quiet(tmp_path) -> None:
+    """An AVI announcing 60 frames cut in half (30 decode): one line naming both counts and the --end-s that takes
+    the part that decodes, and nothing else on stderr: FFmpeg's own "overread" goes to the workspace's log."""
+    import subprocess
+
+    whole = _mjpeg_avi(tmp_path / "whole.avi", 60).read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(whole[: len(whole) // 2])
+    ws = tmp_path / "ws"
+    command = [sys.executable, "-m", "drivesim.cli.main", "-w", str(ws), "ingest", str(cut), "--camera-height-m", "1.5"]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1, done.stderr
+    assert "the video announces 60 frames but only 30 decode" in lines[0] and "--end-s 2.9" in lines[0]
+    log = ws / "logs" / "ingest-decoders.log"
+    assert "overread" in log.read_text() and not (ws / "trace").exists()

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from drivesim.pipeline.native_log import call_watched
 from drivesim.sim.geometry import scale_intrinsics
 
 # OpenCV 5 names Bayer patterns by the sensor's first row pair, as ROS does (BayerRGGB = R at (0, 0)).
@@ -48,6 +49,33 @@ class EncodingError(ValueError):
 
 class CorruptImageError(EncodingError):
     """One image message is damaged (empty, short or undecodable payload); the stream itself may be fine."""
+
+
+class DamagedImageError(CorruptImageError):
+    """An image that decodes, but whose decoder reported damaged data on the way (libjpeg's "Corrupt JPEG data",
+    "Premature end of JPEG file"): its pixels are partly invented (grey or smeared blocks)."""
+
+
+# Words of the decoders' messages that mean the data was damaged (not, e.g., libpng's notes on colour profiles).
+_DAMAGE_WORDS = ("corrupt", "premature end", "invalid", "crc error", "truncated", "bad huffman", "error")
+
+
+def decode_image_bytes(data: bytes | np.ndarray, flag: int = cv2.IMREAD_COLOR) -> np.ndarray:
+    """BGR (or grey) uint8 pixels of a JPEG or PNG file's bytes, as cv2.imdecode gives them.
+
+    :raises CorruptImageError: empty or undecodable data. DamagedImageError: the decoder reported damaged data
+        while decoding (seen only inside `pipeline.native_log.native_messages_to`, which ingest sets up).
+    """
+    buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data.view(np.uint8).ravel()
+    if buf.size == 0:  # cv2.imdecode raises a cv2.error (!buf.empty()) rather than returning None
+        raise CorruptImageError("image is empty (0 bytes)")
+    pixels, said = call_watched(cv2.imdecode, buf, flag)
+    if pixels is None:
+        raise CorruptImageError("image could not be decoded (not a valid jpeg/png)")
+    damage = [line.strip() for line in said.splitlines() if any(w in line.lower() for w in _DAMAGE_WORDS)]
+    if damage:
+        raise DamagedImageError(f"the image decoder reported damaged data ({damage[0][:120]})")
+    return pixels
 
 
 def _rows(data: bytes | np.ndarray, height: int, step: int, row_bytes: int) -> np.ndarray:
@@ -130,15 +158,10 @@ def compressed_format_ok(fmt: str) -> bool:
 
 def decode_compressed(data: bytes | np.ndarray, reduce_factor: int = 1) -> np.ndarray:
     """RGB uint8 from a jpeg/png CompressedImage payload, optionally decoded at 1/2, 1/4 or 1/8 size."""
-    buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data.view(np.uint8).ravel()
-    if buf.size == 0:  # cv2.imdecode raises a cv2.error (!buf.empty()) rather than returning None
-        raise CorruptImageError("compressed image is empty (0 bytes)")
     flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4}.get(
         reduce_factor, cv2.IMREAD_REDUCED_COLOR_8
     )
-    bgr = cv2.imdecode(buf, flag)
-    if bgr is None:
-        raise CorruptImageError("compressed image could not be decoded (not a valid jpeg/png)")
+    bgr = decode_image_bytes(data, flag)
     # image_transport's compressed plugin encodes colour images from bgr8, so the decoded order is BGR.
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 

@@ -18,7 +18,13 @@ from drivesim.pipeline.errors import InputError
 from drivesim.pipeline.progress import progress_bar
 from drivesim.sim.geometry import camera_mount, invert, se3
 from drivesim.stages.ingest.config import IngestConfig
-from drivesim.stages.ingest.images import CameraModel, FrameProcessor, working_size
+from drivesim.stages.ingest.images import (
+    CameraModel,
+    CorruptImageError,
+    FrameProcessor,
+    decode_image_bytes,
+    working_size,
+)
 from drivesim.stages.ingest.output import FrameStore, empty_gps_series, empty_imu_series, empty_speed_series
 from drivesim.stages.ingest.trace import rigid_problem
 from drivesim.stages.ingest.writer import Extrinsics, FrameStream, TraceWriter, config_extrinsics
@@ -120,9 +126,10 @@ def _read_rgb(path: Path) -> np.ndarray:
         raise InputError(f"cannot read the image: {e.strerror}", path) from e
     if data.startswith(_PNG_MAGIC) and (problem := png_problem(data)):
         raise InputError(problem, path)
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
-    if img is None:
-        raise InputError("unreadable image file (damaged or not a png/jpeg)", path)
+    try:
+        img = decode_image_bytes(data)
+    except CorruptImageError as e:
+        raise InputError(f"unreadable image file (damaged or not a png/jpeg): {e}", path) from e
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 

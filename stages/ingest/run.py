@@ -18,11 +18,13 @@ A recording nothing matches gets the one-line explanation of `sources.unrecognis
 
 from __future__ import annotations
 
+import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from drivesim.pipeline.errors import InputError
+from drivesim.pipeline.native_log import native_messages_to
 from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.kitti import (
     ingest_kitti_odometry,
@@ -71,21 +73,29 @@ def detect_format(path: Path) -> str:
     raise unrecognised(path)
 
 
-def ingest_recording(path: Path, cfg: IngestConfig, out_dir: Path) -> IngestResult:
+def ingest_recording(path: Path, cfg: IngestConfig, out_dir: Path, native_log: Path | None = None) -> IngestResult:
     """Read the recording at `path` (any format of FORMATS) into the trace folder `out_dir`.
 
+    What the image and video decoders print (libjpeg, libpng, FFmpeg) goes to `native_log` (appended; a temporary
+    file when None), not the terminal; a frame they report damaged is left out and counted (writer.FrameStream).
     Raises InputError/ConfigError with one line naming the file and the problem; `out_dir` is then incomplete
     and must be discarded (Workspace.write_artifact does that). What is written has passed `validate_trace`.
     """
     path = Path(path)
     fmt = detect_format(path)
     trace = TraceWriter(Path(out_dir), path, fmt)
-    try:
-        FORMATS[fmt].read(path, cfg, trace)
-    except InputError as e:
-        if e.path is not None:
-            raise
-        raise InputError(e.message, path) from e  # every ingest error names the recording
+    with (
+        tempfile.TemporaryDirectory(prefix="drivesim-decoders-") as tmp,
+        native_messages_to(native_log or Path(tmp) / "decoders.log") as log,
+    ):
+        try:
+            FORMATS[fmt].read(path, cfg, trace)
+        except InputError as e:
+            if e.path is not None:
+                raise
+            raise InputError(e.message, path) from e  # every ingest error names the recording
+    if log.lines and native_log is not None:
+        trace.notes.append(f"the image and video decoders printed {log.lines} line(s), kept in {log.path}")
     result = trace.finish()
     validate_trace(out_dir)
     return result

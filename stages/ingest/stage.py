@@ -9,7 +9,6 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
-from drivesim.pipeline.native_log import native_messages_to
 from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, StageSummary, run_stage
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.ingest.config import IngestConfig
@@ -50,11 +49,9 @@ NATIVE_LOG = Path("logs") / "ingest-decoders.log"
 def _build(ctx: BuildContext) -> IngestSummary:
     from drivesim.stages.ingest.run import ingest_recording  # rosbags, mcap, cv2: only when it runs
 
-    with native_messages_to(ctx.workspace.root / NATIVE_LOG) as log:
-        result = ingest_recording(ctx.external["recording"], ctx.config, ctx.dir)  # type: ignore[arg-type]
+    recording, log = ctx.external["recording"], ctx.workspace.root / NATIVE_LOG
+    result = ingest_recording(recording, ctx.config, ctx.dir, native_log=log)  # type: ignore[arg-type]
     ctx.notes.extend(result.notes)
-    if log.lines:
-        ctx.notes.append(f"the image and video decoders said {log.lines} line(s), kept in {log.path}")
     return IngestSummary.model_validate(result.summary)
 
 

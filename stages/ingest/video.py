@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from drivesim.pipeline.errors import InputError
+from drivesim.stages.ingest.images import CorruptImageError, decode_image_bytes
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi", ".m4v", ".webm", ".mpg", ".mpeg", ".ts")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -31,6 +32,7 @@ class FrameSource:
     :param fps: nominal frame rate (Hz).
     :param files: the image files of an image folder (empty for a video).
     :param note: how the times were obtained, for the user.
+    :param announced_frames: the frame count the video's container announces (0: it announces none; an image folder).
     """
 
     path: Path
@@ -41,6 +43,7 @@ class FrameSource:
     fps: float
     files: tuple[Path, ...] = ()
     note: str = ""
+    announced_frames: int = 0
 
     @property
     def duration_s(self) -> float:
@@ -74,6 +77,7 @@ def probe_video(path: Path) -> FrameSource:
     cap = _open(path)
     try:
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        announced = max(0, int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0))
         width, height = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
         stamps_ms = []
         while cap.grab():
@@ -92,7 +96,7 @@ def probe_video(path: Path) -> FrameSource:
         note = f"video {width}x{height}, {len(stamps)} frames, times from the frame rate {fps:g} Hz"
     if fps <= 0 and len(times_ns) > 1:
         fps = (len(times_ns) - 1) / (times_ns[-1] * 1e-9)
-    return FrameSource(path, "video", times_ns, width, height, fps, note=note)
+    return FrameSource(path, "video", times_ns, width, height, fps, note=note, announced_frames=announced)
 
 
 def probe_image_folder(folder: Path, fps: float | None) -> FrameSource:
@@ -105,12 +109,20 @@ def probe_image_folder(folder: Path, fps: float | None) -> FrameSource:
         raise InputError("no PNG or JPEG images in the folder", folder)
     if fps is None:
         raise InputError("an image folder needs its frame rate: give --fps (e.g. --fps 10)", folder)
-    first = cv2.imread(str(files[0]), cv2.IMREAD_COLOR)
-    if first is None:
-        raise InputError("unreadable image file", files[0])
+    first = read_image_file(files[0])
     times_ns = np.round(np.arange(len(files)) * 1e9 / fps).astype(np.int64)
     note = f"image folder {first.shape[1]}x{first.shape[0]}, {len(files)} frames at {fps:g} Hz"
     return FrameSource(folder, "image_folder", times_ns, first.shape[1], first.shape[0], fps, tuple(files), note)
+
+
+def read_image_file(path: Path) -> np.ndarray:
+    """BGR pixels of one PNG/JPEG file; InputError when it cannot be read, decoded, or decodes with damage."""
+    try:
+        return decode_image_bytes(path.read_bytes())
+    except OSError as e:
+        raise InputError(f"cannot read the image file: {e.strerror or e}", path) from e
+    except CorruptImageError as e:
+        raise InputError(f"unreadable image file: {e}", path) from e
 
 
 def select_frames(times_ns: np.ndarray, start_s: float | None, end_s: float | None) -> np.ndarray:
@@ -145,9 +157,7 @@ def iter_frames(source: FrameSource, indices: np.ndarray) -> Iterator[tuple[int,
     wanted = set(int(i) for i in indices)
     if source.kind == "image_folder":
         for i in indices:
-            bgr = cv2.imread(str(source.files[int(i)]), cv2.IMREAD_COLOR)
-            if bgr is None:
-                raise InputError("unreadable image file", source.files[int(i)])
+            bgr = read_image_file(source.files[int(i)])
             if bgr.shape[:2] != (source.height_px, source.width_px):
                 raise InputError(f"image is {bgr.shape[1]}x{bgr.shape[0]}, the first one differs", source.files[i])
             yield int(i), cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)

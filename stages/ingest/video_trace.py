@@ -42,7 +42,7 @@ from drivesim.stages.ingest.video import (
     select_frames,
     thin_to_rate,
 )
-from drivesim.stages.ingest.writer import Extrinsics, TraceWriter
+from drivesim.stages.ingest.writer import Extrinsics, TraceWriter, image_size_problem
 
 SCALE_HINT = (
     "a video needs a metric scale: give --camera-height-m (the camera's height above the road, e.g. 1.4) "
@@ -277,8 +277,23 @@ def _save_gps(trace: TraceWriter, gps: GpsTrack, t0_ns: int, t1_ns: int) -> None
     trace.add_sensor("gps", gps.path.name, gps.kind or gps.path.suffix.lstrip(".").lower(), count)
 
 
+# A video that decodes to fewer than this share of the frames its container announces is cut short (an interrupted
+# copy, download or recording); it is refused unless --end-s says to take only the part that decodes.
+MIN_DECODED_FRACTION = 0.9
+
+
 def _probe(path: Path, cfg: IngestConfig) -> FrameSource:
     source = probe_video(path) if path.is_file() else probe_image_folder(path, cfg.video.fps)
+    problem = image_size_problem(source.width_px, source.height_px)
+    if problem:
+        raise InputError(problem, path)
+    decoded, announced = len(source.times_ns), source.announced_frames
+    if decoded < MIN_DECODED_FRACTION * announced and cfg.video.end_s is None:
+        raise InputError(
+            f"the video announces {announced} frames but only {decoded} decode ({source.duration_s:.1f} s): the file "
+            f"is cut short; copy it again, or ingest the part that decodes with --end-s {source.duration_s:.1f}",
+            path,
+        )
     window = select_frames(source.times_ns, cfg.video.start_s, cfg.video.end_s)
     if len(window) < MIN_SFM_FRAMES:
         raise InputError(
@@ -293,6 +308,8 @@ def ingest_video(path: Path, cfg: IngestConfig, trace: TraceWriter) -> None:
     """Read a video file or an image folder into `trace`: frames, SfM poses (poses.npz), metric scale."""
     started = time.perf_counter()
     source = _probe(path, cfg)
+    if 0 < len(source.times_ns) < source.announced_frames:
+        trace.notes.append(f"the video announces {source.announced_frames} frames; {len(source.times_ns)} decode")
     camera = _camera(source, cfg)
     gps = _gps(path, source, cfg)
     if gps is None and cfg.extrinsics.camera_height_m is None:

@@ -21,13 +21,26 @@ import numpy as np
 
 from drivesim.pipeline.errors import InputError
 from drivesim.stages.ingest.config import IngestConfig
-from drivesim.stages.ingest.images import FrameProcessor
+from drivesim.stages.ingest.images import DamagedImageError, FrameProcessor
 from drivesim.stages.ingest.output import FrameStore, IngestResult, OrderedPipeline, write_json
 from drivesim.stages.ingest.trace import rigid_problem
 
 # A recording whose camera loses more than this fraction of its messages is refused rather than ingested with gaps:
 # a few dropped frames happen on real drives; more means the stream itself is broken or not what it claims to be.
 MAX_SKIPPED_FRAME_FRACTION = 0.25
+# Frames that decode but whose decoder reported damaged data (grey or smeared blocks) are left out too; more than this
+# fraction of them means the recording itself is damaged (a bad copy, a failing disk), which is refused.
+MAX_DAMAGED_FRAME_FRACTION = 0.10
+# A camera picture narrower or wider than these (width / height) is not a driving camera (a line scan, a strip of a
+# panorama, a mis-read size); nor is one with a side under MIN_SIDE_PX or over MAX_SIDE_PX.
+MIN_ASPECT, MAX_ASPECT = 0.25, 8.0
+MIN_SIDE_PX, MAX_SIDE_PX = 16, 20_000
+# A frame shows nothing when the spread of its grey levels (1st to 99th percentile) is under NO_SIGNAL_SPREAD of 255:
+# all black, all white or one colour. A camera showing nothing on more than MAX_BLANK_FRACTION of its frames (a
+# covered lens, a dead sensor, the wrong topic) is refused; BLANK_SAMPLE_FRAMES evenly spaced frames are looked at.
+NO_SIGNAL_SPREAD = 8
+MAX_BLANK_FRACTION = 0.5
+BLANK_SAMPLE_FRAMES = 64
 
 
 @dataclass(frozen=True)
@@ -62,6 +75,35 @@ def intrinsics_problem(K: np.ndarray) -> str | None:
     return None
 
 
+def image_size_problem(width_px: int, height_px: int) -> str | None:
+    """Why a camera picture of this size is not one drivesim can use (too small, too large, absurd aspect), or None."""
+    if min(width_px, height_px) < MIN_SIDE_PX or max(width_px, height_px) > MAX_SIDE_PX:
+        return f"pictures of {width_px}x{height_px} px: each side must be {MIN_SIDE_PX} to {MAX_SIDE_PX} px"
+    if not MIN_ASPECT <= width_px / height_px <= MAX_ASPECT:
+        return (
+            f"pictures of {width_px}x{height_px} px (aspect {width_px / height_px:.3g}): a driving camera's width / "
+            f"height is {MIN_ASPECT:g} to {MAX_ASPECT:g}"
+        )
+    return None
+
+
+def blank_frames(frames_path: Path) -> tuple[int, int]:
+    """(frames that show no picture, frames looked at) among BLANK_SAMPLE_FRAMES evenly spaced rows of frames.npy."""
+    if not frames_path.is_file():
+        return 0, 0
+    frames = np.load(frames_path, mmap_mode="r")
+    n = frames.shape[0]
+    if n == 0:
+        return 0, 0
+    rows = np.unique(np.linspace(0, n - 1, min(n, BLANK_SAMPLE_FRAMES)).round().astype(int))
+    blank = 0
+    for i in rows:
+        grey = np.asarray(frames[i, ::2, ::2], dtype=np.float32).mean(axis=2)
+        low, high = np.percentile(grey, (1, 99))
+        blank += bool(high - low < NO_SIGNAL_SPREAD)
+    return blank, len(rows)
+
+
 class TraceWriter:
     """Collects what a reader found and writes the trace's calibration and sources once, checked.
 
@@ -91,6 +133,9 @@ class TraceWriter:
         self, topic: str, processor: FrameProcessor, source_size: tuple[int, int], distortion_model: str = "none"
     ) -> None:
         """The trace's camera: its topic (or folder), the processor that made the frames, the recorded size."""
+        problem = image_size_problem(*source_size) or image_size_problem(processor.out_width, processor.out_height)
+        if problem:
+            raise self.fail(f"camera {topic}: {problem}")
         for name, K in (("K", processor.K_source), ("K at the working resolution", processor.K_out)):
             problem = intrinsics_problem(K)
             if problem:
@@ -145,6 +190,13 @@ class TraceWriter:
         if self._camera is None or self._extrinsics is None:
             raise self.fail("the reader set no camera or extrinsics")
         topic, processor, (source_w, source_h), distortion = self._camera
+        blank, looked_at = blank_frames(self.out_dir / "frames.npy")
+        if blank > MAX_BLANK_FRACTION * looked_at:
+            raise self.fail(
+                f"camera {topic} shows no picture: {blank} of {looked_at} frames looked at are one flat colour (all "
+                "black, white or grey: a covered lens, a dead camera or the wrong topic; --topic camera=... picks "
+                "another)"
+            )
         ext = self._extrinsics
         np.save(self.out_dir / "frame_times_ns.npy", times)
         calibration = {
@@ -206,6 +258,7 @@ class FrameStream:
         self._skippable = skippable
         self.kept_times: list[int] = []
         self.skipped = 0
+        self.damaged = 0
         self.first_problem = ""
         self._pipeline = OrderedPipeline(self._safe_work, self._sink)
 
@@ -225,6 +278,7 @@ class FrameStream:
         self._advance()
         if isinstance(frames, BaseException):
             self.skipped += 1
+            self.damaged += isinstance(frames, DamagedImageError)
             self.first_problem = self.first_problem or str(frames).splitlines()[0]
             return
         self.store.write(frames)
@@ -238,9 +292,19 @@ class FrameStream:
         """Write what remains; the stamps of the written frames. InputError when too many were unreadable."""
         self._pipeline.finish()
         total = self.skipped + len(self.kept_times)
+        if self.damaged > MAX_DAMAGED_FRAME_FRACTION * total:
+            raise self.writer.fail(
+                f"camera {camera}: {self.damaged} of {total} frames are damaged (the image decoder reported corrupt "
+                f"data; more than {MAX_DAMAGED_FRAME_FRACTION:.0%} of a drive cannot be left out); the recording "
+                "itself is damaged: copy it again from its source"
+            )
         if self.skipped and (self.skipped > MAX_SKIPPED_FRAME_FRACTION * total or not self.kept_times):
             raise self.writer.fail(
                 f"camera {camera}: {self.skipped} of {total} messages are unreadable (first: {self.first_problem})"
+            )
+        if self.damaged:
+            self.writer.notes.append(
+                f"left out {self.damaged} damaged camera frame(s) of {total} (the image decoder reported corrupt data)"
             )
         self.writer.skip("camera", self.skipped)
         return np.asarray(self.kept_times, dtype=np.int64)
