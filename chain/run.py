@@ -28,6 +28,26 @@ from drivesim.pipeline.stage import StageResult, StageSpec
 from drivesim.pipeline.workspace import Workspace
 
 RUN_PRESETS_DIR = "run"
+DEMO_PRESET = "demo"
+"""The short run on the embedded demo drive: only when asked for (`--preset demo`, `make demo`)."""
+RECORDING_PRESET = "recording"
+"""The run without --preset, on a user's recording or on the demo drive alike."""
+GPU_PRESETS = (RECORDING_PRESET,)
+"""Presets whose training and rendering run on a GPU when torch sees one."""
+GPU_OVERRIDES: dict[str, Any] = {"train": {"device": "cuda", "envs": {"config": {"render_device": "cuda"}}}}
+
+
+def choose_run_preset(preset: str | None) -> str:
+    """The run preset `drivesim run` uses: the one asked for, else the recording preset (the demo preset only when
+    asked for by name)."""
+    return preset if preset is not None else RECORDING_PRESET
+
+
+def gpu_available() -> bool:
+    """Whether torch sees a CUDA device."""
+    import torch
+
+    return bool(torch.cuda.is_available())
 
 
 @dataclass
@@ -40,7 +60,8 @@ class ChainRun:
 
 
 def load_run_preset(name: str | None, config_file: Path | None = None, overrides: Iterable[str] = ()) -> dict:
-    """Per-stage overrides: the preset `configs/run/<name>.yaml`, a user file, then `stage.key=value` overrides."""
+    """Per-stage overrides: the preset `configs/run/<name>.yaml` (with `GPU_OVERRIDES` for a preset of
+    `GPU_PRESETS` where torch sees a GPU), a user file, then `stage.key=value` overrides."""
     import yaml
 
     data: dict[str, Any] = {}
@@ -62,6 +83,8 @@ def load_run_preset(name: str | None, config_file: Path | None = None, overrides
         if not isinstance(loaded, dict) or not all(isinstance(v, dict) for v in loaded.values()):
             raise ConfigError("a run preset maps stage names to their config overrides (a mapping each)", path)
         data = deep_merge(data, loaded)
+        if path == paths[0] and name in GPU_PRESETS and gpu_available():
+            data = deep_merge(data, GPU_OVERRIDES)  # part of the preset: a user's file or --set still overrides it
     for text in overrides:
         keys, value = parse_override(text)
         if len(keys) < 2:

@@ -160,10 +160,14 @@ def eval_command(
 
 def _print_result(result: Any, cfg: Any) -> None:
     """The evaluation's one-paragraph summary, its report and its recordings."""
+    from drivesim.cli.result import print_result
+
     s = result.summary
     report = result.path / "report.html"
     if result.skipped:
-        console.print(f"{result.path} is fresh, nothing to do; --force redoes it\nreport: {report}", soft_wrap=True)
+        console.print(f"{result.path} is fresh, nothing to do; --force redoes it", soft_wrap=True)
+        if not print_result(result.path):
+            console.print(f"report: {report}", soft_wrap=True)
         return
     for note in result.notes:
         console.print(note, highlight=False, soft_wrap=True)
@@ -178,12 +182,14 @@ def _print_result(result: Any, cfg: Any) -> None:
         f"intervention {s.intervention:.3f} "
         f"(collision {s.collision:.3f}, off lane {s.off_lane:.3f}, over-rotation {s.over_rotation:.3f}), "
         f"min clearance {show(s.min_clearance_m)} m (all episodes), max deviation {show(s.max_deviation_m)} m, "
-        f"max yaw {show(s.max_yaw_rad)} rad{speed}\nreport: {report}",
+        f"max yaw {show(s.max_yaw_rad)} rad{speed}",
         highlight=False,
         soft_wrap=True,
     )
     _print_worlds(result.path / "metrics.json")
     _print_starts(result.path / "metrics.json")
+    if not print_result(result.path):  # the Table I rows, the worlds trained on, the report
+        console.print(f"report: {report}", highlight=False, soft_wrap=True)
     recordings = sorted([*result.path.glob("recordings/*.mcap"), *result.path.glob("worlds/*/recordings/*.mcap")])
     if recordings:
         console.print(

@@ -32,13 +32,14 @@ def run_command(
         ),
     ] = None,
     preset: Annotated[
-        str,
+        str | None,
         typer.Option(
             "--preset",
-            help="Run preset in configs/run/: demo (5.8 min on a quiet 2-core VM), lane (a lane-keeping policy, "
-            "at most 15 min of training) or full.",
+            help="Run preset in configs/run/: recording (the default, at most 40 min of training), demo (5.8 min on "
+            "a quiet 2-core VM), lane (a lane-keeping policy) or full.",
+            show_default=False,
         ),
-    ] = "demo",
+    ] = None,
     config: Annotated[
         Path | None,
         typer.Option("--config", help="YAML file of per-stage overrides (stage: {key: value}), after the preset."),
@@ -72,16 +73,18 @@ def run_command(
     """Run every stage in order: (synth,) ingest, preprocess, build-world, meshes, train, eval, export.
 
     A stage whose artifact is fresh (same config, same inputs) is skipped, so running it again after a crash or
-    Ctrl-C continues where it stopped. Ends with the path of the evaluation's HTML report and of the ONNX policy.
+    Ctrl-C continues where it stopped. Without --preset the recording preset is used (the demo preset only when
+    asked for: --preset demo). Ends with the result (the policy's Table I rows beside the expert's, the warm
+    start's and the paper's), the worlds it trained on, and the paths of the HTML report and of the ONNX policy.
     """
     # Imported here so `drivesim --help` stays fast.
-    from drivesim.chain.run import StageRun, load_run_preset, run_chain
+    from drivesim.chain.run import StageRun, choose_run_preset, load_run_preset, run_chain
 
     video = video_overrides(
         camera_height_m, hfov_deg, calibration, gps, video_start_utc, start_s, end_s, fps, prefix="ingest."
     )
     topics = [f"ingest.{o}" for o in topic_overrides(topic)]
-    overrides = load_run_preset(preset, config, [*(set_ or []), *topics, *video])
+    overrides = load_run_preset(choose_run_preset(preset), config, [*(set_ or []), *topics, *video])
 
     def on_stage(done: StageRun) -> None:
         state = "[dim]fresh, skipped[/]" if done.skipped else f"[green]done[/] in {done.wall_s:.1f} s"
@@ -92,9 +95,12 @@ def run_command(
     result = run_chain(
         workspace(), recording, overrides, force=force, on_stage=on_stage, trust_entry_point=trust_entry_point
     )
+    from drivesim.cli.result import print_result
+
     total_s = sum(s.wall_s for s in result.stages)
     console.print(f"[bold green]chain finished[/] in {total_s / 60:.1f} min", highlight=False)
     if result.report_html is not None:
+        print_result(result.report_html.parent, report_line=False)  # the Table I rows and the worlds trained on
         console.print(f"report: {result.report_html}", highlight=False, soft_wrap=True)
     if result.onnx is not None:
         console.print(f"policy: {result.onnx}", highlight=False, soft_wrap=True)
