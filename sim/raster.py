@@ -916,32 +916,8 @@ class Rasterizer:
         a = _take(scene.attribute_table, src)  # (24, P): corner-major, 8 attributes per corner
         attr = torch.addcmul(torch.addcmul(a[0:8] * (w0 * inv_sum), a[8:16], w1 * inv_sum), a[16:24], w2 * inv_sum)
 
-        normal_world = attr[0:3]
-        if B == 1:
-            normal_cam = R_cam_world[0] @ normal_world
-        else:  # each pixel's camera rotation, gathered (no per-camera loop: thousands of cameras on a GPU)
-            R_pixel = R_cam_world.index_select(0, row // H)  # (P, 3, 3)
-            normal_cam = torch.einsum("pij,jp->ip", R_pixel, normal_world)
-        K_inv = torch.as_tensor(np.linalg.inv(K.cpu().numpy()), dtype=torch.float32, device=dev)
-        ray = torch.addcmul(torch.addcmul(K_inv[:, 2:3], K_inv[:, 0:1], xf), K_inv[:, 1:2], yf)
-        to_viewer = normalize3(-ray)
-        normal_cam = normalize3(normal_cam)
-        facing = (dot3(normal_cam, to_viewer) >= 0).to(torch.float32).mul_(2.0).sub_(1.0)  # +1 or -1: two-sided
-        normal_cam *= facing
-
-        base = attr[3:6]
-        if scene.textured:
-            tex_id = scene.texture_index.index_select(0, src)
-            textured = (tex_id >= 0).nonzero().squeeze(1)
-            if textured.numel() == tex_id.numel():
-                base = base * _sample_bilinear(scene.texels, _take(scene.texture_info, tex_id), attr[6], attr[7])
-            elif textured.numel():
-                info = _take(scene.texture_info, tex_id.index_select(0, textured))
-                uv = _take(attr[6:8], textured)
-                texture = _sample_bilinear(scene.texels, info, uv[0], uv[1])
-                base = base.clone()
-                for c in range(3):
-                    base[c].index_copy_(0, textured, base[c].index_select(0, textured) * texture[c])
+        normal_cam, to_viewer = _camera_normals(attr[0:3], R_cam_world, K, row // H if B > 1 else None, xf, yf)
+        base = _textured_base(scene, src, attr) if scene.textured else attr[3:6]
         mat = _take(scene.material, src)
         if paint is not None:
             base, mat = _painted(base, mat, src, row // H, paint)
@@ -965,6 +941,48 @@ class Rasterizer:
             object_id=object_id.reshape(B, H, W),
             normal_cam=normal_out.T.reshape(B, H, W, 3).contiguous(),
         )
+
+
+def _camera_normals(
+    normal_world: torch.Tensor,
+    R_cam_world: torch.Tensor,
+    K: torch.Tensor,
+    camera: torch.Tensor | None,
+    xf: torch.Tensor,
+    yf: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(normal, to viewer), (3, P) each in the camera frame at pixels (xf, yf), the normal turned to face the viewer
+    (two-sided). `camera`: each pixel's camera (None for one camera)."""
+    if camera is None:
+        normal_cam = R_cam_world[0] @ normal_world
+    else:  # each pixel's camera rotation, gathered (no per-camera loop: thousands of cameras on a GPU)
+        R_pixel = R_cam_world.index_select(0, camera)  # (P, 3, 3)
+        normal_cam = torch.einsum("pij,jp->ip", R_pixel, normal_world)
+    K_inv = torch.as_tensor(np.linalg.inv(K.cpu().numpy()), dtype=torch.float32, device=normal_world.device)
+    ray = torch.addcmul(torch.addcmul(K_inv[:, 2:3], K_inv[:, 0:1], xf), K_inv[:, 1:2], yf)
+    to_viewer = normalize3(-ray)
+    normal_cam = normalize3(normal_cam)
+    facing = (dot3(normal_cam, to_viewer) >= 0).to(torch.float32).mul_(2.0).sub_(1.0)  # +1 or -1: two-sided
+    normal_cam *= facing
+    return normal_cam, to_viewer
+
+
+def _textured_base(scene: PackedScene, src: torch.Tensor, attr: torch.Tensor) -> torch.Tensor:
+    """The (3, P) base colour of the pixels of triangles `src`: the interpolated colour times the texture, on the
+    textured triangles."""
+    base = attr[3:6]
+    tex_id = scene.texture_index.index_select(0, src)
+    textured = (tex_id >= 0).nonzero().squeeze(1)
+    if textured.numel() == tex_id.numel():
+        base = base * _sample_bilinear(scene.texels, _take(scene.texture_info, tex_id), attr[6], attr[7])
+    elif textured.numel():
+        info = _take(scene.texture_info, tex_id.index_select(0, textured))
+        uv = _take(attr[6:8], textured)
+        texture = _sample_bilinear(scene.texels, info, uv[0], uv[1])
+        base = base.clone()
+        for c in range(3):
+            base[c].index_copy_(0, textured, base[c].index_select(0, textured) * texture[c])
+    return base
 
 
 def _painted(
