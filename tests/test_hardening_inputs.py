@@ -503,3 +503,42 @@ def test_a_video_cut_short_is_refused_and_ffmpeg_stays_quiet(tmp_path) -> None:
     assert "the video announces 60 frames but only 30 decode" in lines[0] and "--end-s 2.9" in lines[0]
     log = ws / "logs" / "ingest-decoders.log"
     assert "overread" in log.read_text() and not (ws / "trace").exists()
+
+
+def test_damaged_world_through_eval_is_one_line_and_exit_2(built_world, tmp_path, monkeypatch, capsys) -> None:
+    """K = 0 gave a LinAlgError traceback: now `drivesim eval` says which file is wrong, exit 2, no report."""
+    world = tmp_path / "world"
+    shutil.copytree(built_world, world)
+    _set_camera("K", [[0, 0, 0], [0, 0, 0], [0, 0, 0]])(world)
+    (world / "manifest.json").unlink()  # a world made by hand or by another tool: no hashes to catch the edit
+    args = ["eval", "--world", str(world), "--policy", "expert", "--task", "lane", "--episodes", "1"]
+    code, err = _cli(tmp_path / "ws", *args, monkeypatch=monkeypatch, capsys=capsys)
+    lines = _error_lines(err)
+    assert code == 2 and len(lines) == 1 and "camera.json: K has no positive focal lengths" in lines[0], err
+    assert not (tmp_path / "ws" / "eval" / "lane-expert").exists()
+
+
+def test_an_os_error_with_only_a_text_prints_the_text(tmp_path, monkeypatch, capsys) -> None:
+    import drivesim.cli.status as status_cli
+
+    def fail(*args, **kwargs):
+        raise OSError("cannot map world/frames.npy")
+
+    monkeypatch.setattr(status_cli, "status_report", fail)
+    code, err = _cli(tmp_path / "ws", "status", monkeypatch=monkeypatch, capsys=capsys)
+    assert code == 1 and _error_lines(err) == ["error: cannot map world/frames.npy (OSError)"], err
+
+
+def test_decoder_messages_stay_out_of_the_terminal(tmp_path) -> None:
+    """`drivesim ingest` of a drive with two damaged JPEGs: libjpeg's "Corrupt JPEG data" lines go to the
+    workspace's log, the terminal gets drivesim's own lines only."""
+    import subprocess
+
+    recording = _jpeg_drive(tmp_path, damaged=2)
+    ws = tmp_path / "ws"
+    command = [sys.executable, "-m", "drivesim.cli.main", "-w", str(ws), "ingest", str(recording)]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "Corrupt JPEG" not in done.stderr + done.stdout
+    assert "Corrupt JPEG data" in (ws / "logs" / "ingest-decoders.log").read_text()
+    assert "left out 2 damaged camera frame(s)" in done.stdout
