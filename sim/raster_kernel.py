@@ -127,30 +127,7 @@ def setup(
         n_front = int(z0 >= near) + int(z1 >= near) + int(z2 >= near)
         if n_front == 0:
             continue
-        # Candidate points of the bbox: the corners, plus the edge/near-plane intersections of a crossing triangle
-        # (whose corners behind the plane are then left out).
-        px[0], px[1], px[2] = x0, x1, x2
-        py[0], py[1], py[2] = y0, y1, y2
-        pz[0], pz[1], pz[2] = z0, z1, z2
-        count = 3
-        if n_front < 3:
-            count = 0
-            for i in range(3):
-                if pz[i] >= near:
-                    px[count], py[count], pz[count] = px[i], py[i], pz[i]
-                    count += 1
-            xs = (x0, x1, x2)
-            ys = (y0, y1, y2)
-            zs = (z0, z1, z2)
-            for i in range(3):
-                j = (i + 1) % 3
-                zi, zj = zs[i], zs[j]
-                if (zi - near) * (zj - near) < 0:
-                    s = min(max((near - zi) / (zj - zi), f32(0.0)), f32(1.0))
-                    px[count] = xs[i] + s * (xs[j] - xs[i])
-                    py[count] = ys[i] + s * (ys[j] - ys[i])
-                    pz[count] = zi + s * (zj - zi)
-                    count += 1
+        count = _bbox_points(vc, t, n_front, near, px, py, pz)
         u_lo = v_lo = np.inf
         u_hi = v_hi = -np.inf
         for i in range(count):
@@ -192,6 +169,41 @@ def setup(
         index[n] = t
         n += 1
     return n
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bbox_points(
+    vc: np.ndarray, t: int, n_front: int, near: float, px: np.ndarray, py: np.ndarray, pz: np.ndarray
+) -> int:
+    """Fill px, py, pz with the points triangle t's bbox is made of; returns their count: its corners, or for a
+    triangle crossing the near plane the corners in front of it and the edges' crossings of it."""
+    f32 = np.float32
+    x0, x1, x2 = vc[0, t], vc[1, t], vc[2, t]
+    y0, y1, y2 = vc[3, t], vc[4, t], vc[5, t]
+    z0, z1, z2 = vc[6, t], vc[7, t], vc[8, t]
+    px[0], px[1], px[2] = x0, x1, x2
+    py[0], py[1], py[2] = y0, y1, y2
+    pz[0], pz[1], pz[2] = z0, z1, z2
+    if n_front == 3:
+        return 3
+    count = 0
+    for i in range(3):
+        if pz[i] >= near:
+            px[count], py[count], pz[count] = px[i], py[i], pz[i]
+            count += 1
+    xs = (x0, x1, x2)
+    ys = (y0, y1, y2)
+    zs = (z0, z1, z2)
+    for i in range(3):
+        j = (i + 1) % 3
+        zi, zj = zs[i], zs[j]
+        if (zi - near) * (zj - near) < 0:
+            s = min(max((near - zi) / (zj - zi), f32(0.0)), f32(1.0))
+            px[count] = xs[i] + s * (xs[j] - xs[i])
+            py[count] = ys[i] + s * (ys[j] - ys[i])
+            pz[count] = zi + s * (zj - zi)
+            count += 1
+    return count
 
 
 @njit(cache=True, nogil=True)
