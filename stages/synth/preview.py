@@ -9,6 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.patches import Circle, FancyArrow, Patch, Polygon, Rectangle  # noqa: E402
 
 from drivesim.stages.synth import textures  # noqa: E402
@@ -62,7 +63,6 @@ def write_map(
 ) -> None:
     """Bird's-eye map around the drive: road, lane lines, sidewalks, buildings, trees, parked cars, the driven path,
     GPS fixes, a north arrow and a scale bar."""
-    road_cfg = world.config.road
     t = np.linspace(0.0, duration_s, 200)
     st = traj.state(t)
     margin = 45.0
@@ -74,6 +74,54 @@ def write_map(
 
     fig, ax = plt.subplots(figsize=(9, 9))
     ax.set_facecolor(GRASS)
+    _draw_road(ax, world, span)
+    _draw_layout(ax, world)
+    if gps is not None:
+        ax.plot(
+            gps["true_enu_m"][:, 0] + gps["error_enu_m"][:, 0],
+            gps["true_enu_m"][:, 1] + gps["error_enu_m"][:, 1],
+            ".",
+            color="#ffd23f",
+            ms=3,
+            label="GPS fixes",
+        )
+    ax.plot(st["x_m"], st["y_m"], color="#e8412c", lw=2.2, label="driven path (right lane centre)")
+    ax.plot(st["x_m"][0], st["y_m"][0], "o", color="#e8412c", ms=8, mec="white", label="start")
+    ax.annotate(
+        "",
+        xy=(st["x_m"][-1], st["y_m"][-1]),
+        xytext=(st["x_m"][-5], st["y_m"][-5]),
+        arrowprops={"arrowstyle": "-|>", "color": "#e8412c", "lw": 2.2, "mutation_scale": 18},
+    )
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal")
+    ax.set_xlabel("east (m)")
+    ax.set_ylabel("north (m)")
+    _draw_north_and_scale(ax, (x0, x1, y0, y1), span)
+    handles, _ = ax.get_legend_handles_labels()
+    handles += [
+        Patch(facecolor=(0.75, 0.7, 0.64), edgecolor="#4a4038", label="buildings"),
+        Patch(facecolor="#2f5e24", label="trees"),
+        Patch(facecolor=(0.55, 0.06, 0.06), edgecolor="black", label="parked cars"),
+        Patch(facecolor=ASPHALT, label="road (two lanes + parking)"),
+        Patch(facecolor=PAVING, label="sidewalks"),
+    ]
+    ax.legend(handles=handles, loc="upper left", fontsize=9, framealpha=0.85)
+    ax.set_title(
+        f"synthetic world, seed {world.seed}: {world.road.length_m:.0f} m of road, "
+        f"{len(world.layout.buildings)} buildings, {len(world.layout.trees)} trees, "
+        f"{len(world.layout.cars)} parked cars",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    fig.savefig(path, format="png", dpi=110)
+    plt.close(fig)
+
+
+def _draw_road(ax: Axes, world: SynthWorld, span: float) -> None:
+    """Sidewalks, curbs, asphalt, the edge lines and the dashed centre line, on a map `span` metres wide."""
+    road_cfg = world.config.road
     s0, s1 = 0.0, world.road.length_m
     half = road_half_width_m(road_cfg)
     outer = sidewalk_outer_m(road_cfg)
@@ -92,6 +140,9 @@ def write_map(
     centre[~dash_on] = np.nan
     ax.plot(centre[:, 0], centre[:, 1], color="white", lw=max(lw, 0.6), solid_capstyle="butt")
 
+
+def _draw_layout(ax: Axes, world: SynthWorld) -> None:
+    """The buildings (shaded by height), trees and parked cars seen from above."""
     for b in world.layout.buildings:
         corners = np.array([[1, 1], [-1, 1], [-1, -1], [1, -1]]) * [b.length_m / 2, b.depth_m / 2]
         c, sn = np.cos(b.yaw_rad), np.sin(b.yaw_rad)
@@ -116,30 +167,11 @@ def write_map(
         tr = matplotlib.transforms.Affine2D().rotate(car.yaw_rad).translate(car.x_m, car.y_m) + ax.transData
         rect.set_transform(tr)
         ax.add_patch(rect)
-    if gps is not None:
-        ax.plot(
-            gps["true_enu_m"][:, 0] + gps["error_enu_m"][:, 0],
-            gps["true_enu_m"][:, 1] + gps["error_enu_m"][:, 1],
-            ".",
-            color="#ffd23f",
-            ms=3,
-            label="GPS fixes",
-        )
-    ax.plot(st["x_m"], st["y_m"], color="#e8412c", lw=2.2, label="driven path (right lane centre)")
-    ax.plot(st["x_m"][0], st["y_m"][0], "o", color="#e8412c", ms=8, mec="white", label="start")
-    ax.annotate(
-        "",
-        xy=(st["x_m"][-1], st["y_m"][-1]),
-        xytext=(st["x_m"][-5], st["y_m"][-5]),
-        arrowprops={"arrowstyle": "-|>", "color": "#e8412c", "lw": 2.2, "mutation_scale": 18},
-    )
 
-    ax.set_xlim(x0, x1)
-    ax.set_ylim(y0, y1)
-    ax.set_aspect("equal")
-    ax.set_xlabel("east (m)")
-    ax.set_ylabel("north (m)")
-    # north arrow and scale bar in the top-right / bottom-left corners
+
+def _draw_north_and_scale(ax: Axes, limits: tuple[float, float, float, float], span: float) -> None:
+    """A north arrow in the top-right corner and a scale bar in the bottom-left one of the map `limits`."""
+    x0, x1, y0, y1 = limits
     ax.add_patch(
         FancyArrow(
             x1 - 0.07 * span,
@@ -167,24 +199,6 @@ def write_map(
         fontsize=10,
         bbox={"facecolor": "white", "alpha": 0.7, "edgecolor": "none", "pad": 1},
     )
-    handles, _ = ax.get_legend_handles_labels()
-    handles += [
-        Patch(facecolor=(0.75, 0.7, 0.64), edgecolor="#4a4038", label="buildings"),
-        Patch(facecolor="#2f5e24", label="trees"),
-        Patch(facecolor=(0.55, 0.06, 0.06), edgecolor="black", label="parked cars"),
-        Patch(facecolor=ASPHALT, label="road (two lanes + parking)"),
-        Patch(facecolor=PAVING, label="sidewalks"),
-    ]
-    ax.legend(handles=handles, loc="upper left", fontsize=9, framealpha=0.85)
-    ax.set_title(
-        f"synthetic world, seed {world.seed}: {world.road.length_m:.0f} m of road, "
-        f"{len(world.layout.buildings)} buildings, {len(world.layout.trees)} trees, "
-        f"{len(world.layout.cars)} parked cars",
-        fontsize=10,
-    )
-    fig.tight_layout()
-    fig.savefig(path, format="png", dpi=110)
-    plt.close(fig)
 
 
 def _nice_length(length_m: float) -> float:

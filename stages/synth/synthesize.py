@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import cv2
 import numpy as np
@@ -138,38 +139,12 @@ def _synthesize(
     events = _sensor_events(cfg, gps, imu, wheel, ns)
     pending = [p for p in (output, sidecar_path(output), *preview_paths(output))]
     tmp = {p: p.with_name(f".{p.name}.tmp-{os.getpid()}") for p in pending}
-    render_s = 0.0
     keep_idx = set(np.unique(np.linspace(0, len(frame_t) - 1, PREVIEW_FRAMES).round().astype(int)).tolist())
-    thumbs: list[tuple[float, np.ndarray]] = []
-    cam = world.camera
     try:
         with open(tmp[output], "wb") as stream:
-            writer = rec.RecordingWriter(stream)
-            writer.add_metadata("drivesim_synth", {"seed": str(cfg.seed), "config": json.dumps(cfg.model_dump())})
-            writer.write("/tf_static", rec.tf_static_msg(cam.T_vehicle_camera, ns(0.0)), ns(0.0))
-            e = 0
-            for k, t in enumerate(frame_t):
-                t_ns = ns(float(t))
-                while e < len(events) and events[e][0] <= t_ns:
-                    writer.write(events[e][1], events[e][2](), events[e][0])
-                    e += 1
-                T_world_vehicle = traj.vehicle_pose(float(t))
-                tic = time.perf_counter()
-                rgb, depth = world.render(T_world_vehicle @ cam.T_vehicle_camera, cam.K, cam.width_px, cam.height_px)
-                render_s += time.perf_counter() - tic
-                writer.write("/camera/camera_info", rec.camera_info_msg(cam.K, cam.width_px, cam.height_px, t_ns), t_ns)
-                writer.write("/camera/image_raw", rec.image_msg(rgb, t_ns), t_ns)
-                writer.write("/ground_truth/depth", rec.depth_msg(depth, t_ns), t_ns)
-                writer.write("/ground_truth/pose", rec.pose_stamped_msg(T_world_vehicle, t_ns), t_ns)
-                if preview and k in keep_idx:
-                    scale = PREVIEW_WIDTH_PX / cam.width_px
-                    thumbs.append((float(t), cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)))
-                if on_frame is not None:
-                    on_frame(k + 1, len(frame_t))
-            while e < len(events):
-                writer.write(events[e][1], events[e][2](), events[e][0])
-                e += 1
-            writer.finish()
+            counts, render_s, thumbs = _record_drive(
+                stream, cfg, world, traj, frame_t, events, ns, keep_idx if preview else set(), on_frame
+            )
         sidecar = {
             "seed": cfg.seed,
             "config": cfg.model_dump(mode="json"),
@@ -192,7 +167,6 @@ def _synthesize(
         for path in tmp.values():
             path.unlink(missing_ok=True)
 
-    counts = dict(writer.counts)
     return SynthResult(
         output=output,
         sidecar=sidecar_path(output),
@@ -205,6 +179,52 @@ def _synthesize(
         size_bytes=output.stat().st_size,
         path_length_m=float(traj.arc_length_m(duration) - traj.arc_length_m(0.0)),
     )
+
+
+def _record_drive(
+    stream: BinaryIO,
+    cfg: SynthConfig,
+    world: SynthWorld,
+    traj: Trajectory,
+    frame_t: np.ndarray,
+    events: list,
+    ns: Callable[[float], int],
+    thumb_frames: set[int],
+    on_frame: Callable[[int, int], None] | None,
+) -> tuple[dict[str, int], float, list[tuple[float, np.ndarray]]]:
+    """Write the drive's recording into `stream`: each camera frame rendered, with its camera info, ground-truth
+    depth and pose, and the sensor `events` in time order; returns (messages per topic, render seconds, the
+    thumbnails of the frames `thumb_frames` with their times)."""
+    cam = world.camera
+    render_s = 0.0
+    thumbs: list[tuple[float, np.ndarray]] = []
+    writer = rec.RecordingWriter(stream)
+    writer.add_metadata("drivesim_synth", {"seed": str(cfg.seed), "config": json.dumps(cfg.model_dump())})
+    writer.write("/tf_static", rec.tf_static_msg(cam.T_vehicle_camera, ns(0.0)), ns(0.0))
+    e = 0
+    for k, t in enumerate(frame_t):
+        t_ns = ns(float(t))
+        while e < len(events) and events[e][0] <= t_ns:
+            writer.write(events[e][1], events[e][2](), events[e][0])
+            e += 1
+        T_world_vehicle = traj.vehicle_pose(float(t))
+        tic = time.perf_counter()
+        rgb, depth = world.render(T_world_vehicle @ cam.T_vehicle_camera, cam.K, cam.width_px, cam.height_px)
+        render_s += time.perf_counter() - tic
+        writer.write("/camera/camera_info", rec.camera_info_msg(cam.K, cam.width_px, cam.height_px, t_ns), t_ns)
+        writer.write("/camera/image_raw", rec.image_msg(rgb, t_ns), t_ns)
+        writer.write("/ground_truth/depth", rec.depth_msg(depth, t_ns), t_ns)
+        writer.write("/ground_truth/pose", rec.pose_stamped_msg(T_world_vehicle, t_ns), t_ns)
+        if k in thumb_frames:
+            scale = PREVIEW_WIDTH_PX / cam.width_px
+            thumbs.append((float(t), cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)))
+        if on_frame is not None:
+            on_frame(k + 1, len(frame_t))
+    while e < len(events):
+        writer.write(events[e][1], events[e][2](), events[e][0])
+        e += 1
+    writer.finish()
+    return dict(writer.counts), render_s, thumbs
 
 
 def _sensor_events(cfg: SynthConfig, gps: dict, imu: dict, wheel: dict, ns: Callable[[float], int]) -> list:
