@@ -137,10 +137,6 @@ def run_filter_smoother(
     Fs = np.empty((K, STATE_SIZE, STATE_SIZE))
     accepted = np.zeros(K, dtype=bool)
 
-    q_a = noise.accel_std_mps2**2
-    q_al = noise.yaw_accel_std_radps2**2
-    q_b = noise.gyro_bias_walk_radps_per_sqrt_s**2
-    q_p = noise.position_walk_m_per_sqrt_s**2
     t_list = meas.t_s.tolist()
     w_list = meas.yaw_rate_radps.tolist()
     wr_list = meas.yaw_rate_var.tolist()
@@ -168,13 +164,7 @@ def run_filter_smoother(
             x0_, x1_, x2_, x3_, x4_, x5_ = x.tolist()
             _predict_into(x0_, x1_, x2_, x3_, x4_, x5_, dt, pred, F)
             x[:] = pred
-            # Discretised white-noise acceleration / yaw acceleration (with the speed-position coupling neglected).
-            Q[IX, IX] = Q[IY, IY] = q_p * dt
-            Q[IV, IV] = q_a * dt
-            Q[IW, IW] = q_al * dt
-            Q[IYAW, IYAW] = q_al * dt**3 / 3.0
-            Q[IYAW, IW] = Q[IW, IYAW] = q_al * dt**2 / 2.0
-            Q[IB, IB] = q_b * dt
+            _process_noise_into(Q, dt, noise)
             P = F @ P @ F.T + Q
         xs_prior[k] = x
         Ps_prior[k] = P
@@ -184,9 +174,8 @@ def run_filter_smoother(
             biased = wb_list[k]
             Ph = P[:, IW] + P[:, IB] if biased else P[:, IW].copy()
             s = (Ph[IW] + Ph[IB] if biased else Ph[IW]) + wr_list[k]
-            innov = w - (x[IW] + x[IB] if biased else x[IW])
             gain = Ph / s
-            x += gain * innov
+            x += gain * (w - (x[IW] + x[IB] if biased else x[IW]))
             P = P - gain[:, None] * Ph
         v = v_list[k]
         if v == v:
@@ -196,33 +185,11 @@ def run_filter_smoother(
             P = P - gain[:, None] * Ph
         fx = fx_list[k]
         if fx == fx:
-            R = fix_cov[k]
-            S = P[:2, :2] + R
-            r0, r1 = fx - x[IX], fy_list[k] - x[IY]
-            det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
-            i00, i01, i11 = S[1, 1] / det, -S[0, 1] / det, S[0, 0] / det
-            d2 = r0 * (i00 * r0 + i01 * r1) + r1 * (i01 * r0 + i11 * r1)
-            accept = d2 <= noise.gate_chi2
-            if not accept:
-                if first_reject_t != first_reject_t:  # NaN: the first rejection of a run
-                    first_reject_t = t
-                elif t - first_reject_t > noise.gate_reset_s:
-                    # The filter, not the receiver, has drifted: widen the position prior by the innovation (as extra
-                    # process noise at this step, so the smoother sees it too) and take the fix.
-                    P[IX, IX] += r0 * r0
-                    P[IY, IY] += r1 * r1
-                    Ps_prior[k] = P
-                    S = P[:2, :2] + R
-                    det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
-                    i00, i01, i11 = S[1, 1] / det, -S[0, 1] / det, S[0, 0] / det
-                    accept = True
-            if accept:
-                PHt = P[:, :2]
-                gain = PHt @ np.array([[i00, i01], [i01, i11]])
-                x += gain @ np.array([r0, r1])
-                P = P - gain @ PHt.T
-                accepted[k] = True
-                first_reject_t = math.nan
+            P, widened, accepted[k], first_reject_t = _fix_update(
+                x, P, fx, fy_list[k], fix_cov[k], t, first_reject_t, noise
+            )
+            if widened is not None:
+                Ps_prior[k] = widened
         x[IYAW] = _wrap(x[IYAW])
         P = 0.5 * (P + P.T)
         xs_post[k] = x
@@ -230,6 +197,56 @@ def run_filter_smoother(
 
     smoothed = rts_smooth(xs_post, Ps_post, xs_prior, Ps_prior, Fs) if smooth else xs_post
     return SmoothedTrack(t_s=np.asarray(meas.t_s, dtype=float), state=smoothed, filtered=xs_post, fix_accepted=accepted)
+
+
+def _process_noise_into(Q: np.ndarray, dt: float, noise: CtrvNoise) -> None:
+    """Fill Q with the process noise of a `dt` step: discretised white-noise acceleration and yaw acceleration (the
+    speed-position coupling neglected), the position walk and the gyro bias walk."""
+    q_al = noise.yaw_accel_std_radps2**2
+    Q[IX, IX] = Q[IY, IY] = noise.position_walk_m_per_sqrt_s**2 * dt
+    Q[IV, IV] = noise.accel_std_mps2**2 * dt
+    Q[IW, IW] = q_al * dt
+    Q[IYAW, IYAW] = q_al * dt**3 / 3.0
+    Q[IYAW, IW] = Q[IW, IYAW] = q_al * dt**2 / 2.0
+    Q[IB, IB] = noise.gyro_bias_walk_radps_per_sqrt_s**2 * dt
+
+
+def _fix_update(
+    x: np.ndarray,
+    P: np.ndarray,
+    fx: float,
+    fy: float,
+    R: np.ndarray,
+    t: float,
+    first_reject_t: float,
+    noise: CtrvNoise,
+) -> tuple[np.ndarray, np.ndarray | None, bool, float]:
+    """The position fix (fx, fy) with covariance R at time t, gated: updates x in place; returns (P after, the prior
+    widened by the innovation when the gate was reset (else None), accepted, the time of the first rejection of the
+    current run of rejections (NaN when none))."""
+    S = P[:2, :2] + R
+    r0, r1 = fx - x[IX], fy - x[IY]
+    det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
+    i00, i01, i11 = S[1, 1] / det, -S[0, 1] / det, S[0, 0] / det
+    d2 = r0 * (i00 * r0 + i01 * r1) + r1 * (i01 * r0 + i11 * r1)
+    widened = None
+    if d2 > noise.gate_chi2:
+        if first_reject_t != first_reject_t:  # NaN: the first rejection of a run
+            return P, widened, False, t
+        if t - first_reject_t <= noise.gate_reset_s:
+            return P, widened, False, first_reject_t
+        # The filter, not the receiver, has drifted: widen the position prior by the innovation (as extra process
+        # noise at this step, so the smoother sees it too) and take the fix.
+        P[IX, IX] += r0 * r0
+        P[IY, IY] += r1 * r1
+        widened = P.copy()
+        S = P[:2, :2] + R
+        det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
+        i00, i01, i11 = S[1, 1] / det, -S[0, 1] / det, S[0, 0] / det
+    PHt = P[:, :2]
+    gain = PHt @ np.array([[i00, i01], [i01, i11]])
+    x += gain @ np.array([r0, r1])
+    return P - gain @ PHt.T, widened, True, math.nan
 
 
 def rts_smooth(
