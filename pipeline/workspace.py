@@ -67,8 +67,6 @@ _TMP_PID = re.compile(r"-(\d+)-[0-9a-f]{8}(?:-|$)")
 DEFAULT_WORKSPACE = Path("drivesim-work")
 LOCKS_DIR = ".locks"
 """Folder of the workspace's lock files, one per artifact being written (`Workspace.lock`)."""
-_MAX_UPSTREAM_DEPTH = 16
-"""How deep the staleness check follows artifact inputs (a chain is a handful of stages; a loop stops here)."""
 _HELD_LOCKS: dict[Path, int] = {}
 """Lock files this process holds, with how many nested `lock` calls hold each (the lock is re-entrant)."""
 
@@ -206,7 +204,12 @@ class Workspace:
         return self._hashes[key]
 
     def staleness(
-        self, name: str, manifest: dict[str, Any] | None = None, *, externals: bool = True, _depth: int = 0
+        self,
+        name: str,
+        manifest: dict[str, Any] | None = None,
+        *,
+        externals: bool = True,
+        _seen: dict[str, Staleness] | None = None,
     ) -> Staleness:
         """Why artifact `name` no longer matches the workspace, and what to rebuild (upstream first).
 
@@ -216,6 +219,10 @@ class Workspace:
         from when that recording is moved away later. The code version is not checked here (`drivesim status` shows
         it): a new drivesim reads the artifacts of an older one.
         """
+        seen = {} if _seen is None else _seen  # each artifact judged once per call; a loop of inputs ends here
+        if name in seen:
+            return seen[name]
+        seen[name] = Staleness()
         manifest = self.read_manifest(name) if manifest is None else manifest
         if manifest is None:
             return Staleness(("manifest missing or unreadable",), (name,))
@@ -227,11 +234,7 @@ class Workspace:
                 if upstream is None:
                     reasons.append(f"input {ref['path']} is missing")
                     continue
-                up = (
-                    self.staleness(ref["path"], upstream, externals=externals, _depth=_depth + 1)
-                    if _depth < _MAX_UPSTREAM_DEPTH
-                    else Staleness()
-                )
+                up = self.staleness(ref["path"], upstream, externals=externals, _seen=seen)
                 if up.reasons:
                     reasons.append(f"input {ref['path']} is stale ({up.reasons[0]})")
                     rebuild += [r for r in up.rebuild if r not in rebuild]
@@ -247,7 +250,8 @@ class Workspace:
         if changed:
             more = f" and {len(changed) - 1} more" if len(changed) > 1 else ""
             reasons.append(f"file {changed[0]}{more} changed since it was written")
-        return Staleness(tuple(reasons), (*rebuild, name) if reasons else ())
+        seen[name] = Staleness(tuple(reasons), (*rebuild, name) if reasons else ())
+        return seen[name]
 
     def refresh_commands(self, rebuild: tuple[str, ...], hints: dict[str, str] | None = None) -> str:
         """The commands that rebuild `rebuild` in order, as one phrase: "`drivesim preprocess`, then `drivesim
