@@ -101,15 +101,7 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
     trace_dir = ctx.inputs["trace"]
     started = time.perf_counter()
     trace = open_trace(trace_dir)
-    has_lidar = "lidar_scans" in trace.info.series
-    has_stereo = trace.info.baseline_m is not None
-    # Checked before the pose fusion so the user learns it at once.
-    if cfg.depth.method == "lidar" and not has_lidar:
-        raise InputError("depth.method=lidar but the trace has no point cloud (no PointCloud2 topic); use auto or mvs")
-    if cfg.depth.method == "stereo" and not has_stereo:
-        raise InputError("depth.method=stereo but the trace has no second camera (frames_right.npy); use auto or mvs")
-    method, why = depth_mod.choose_method(cfg.depth.method, has_lidar, has_stereo)
-    console.print(f"depth method: {method} ({why})")
+    method = _depth_method(cfg, trace)  # before the pose fusion, so that a wrong method is said at once
     depth_cfg = cfg.depth.model_copy(update={"method": method})
     selected = select_frames(trace.frames.shape[0], cfg)
     frame_index = np.arange(trace.frames.shape[0])[selected]
@@ -151,18 +143,7 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
         "T_world_camera": T_world_camera,
     }
     np.savez(ctx.dir / "poses.npz", **poses)
-    origin = {
-        "pose_source": str(fused.source),
-        "origin_lat_deg": _float_or_none(getattr(fused, "origin_lat_deg", None)),
-        "origin_lon_deg": _float_or_none(getattr(fused, "origin_lon_deg", None)),
-        "origin_alt_m": _float_or_none(getattr(fused, "origin_alt_m", None)),
-        "residual_m": _rms_or_none(getattr(fused, "residual_m", None)),
-        "depth_method": method,
-        "max_depth_m": cfg.depth.max_depth_m,
-        "width_px": int(w),
-        "height_px": int(h),
-    }
-    (ctx.dir / "origin.json").write_text(json.dumps(origin, indent=2) + "\n")
+    origin = _write_origin(ctx.dir, fused, method, cfg.depth.max_depth_m, (w, h))
     preview = np.linspace(0, n - 1, min(cfg.preview.frame_count, n)).round().astype(int)
     write_depth_preview(ctx.dir / "depth_preview.png", frames, depth_out, preview, frame_index, cfg.depth.max_depth_m)
     depth_stats = _depth_stats(depth_out, cfg.depth.max_depth_m)
@@ -179,6 +160,38 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
         depth_seconds_per_frame=depth_summary.get("seconds_per_frame"),
         seconds=round(time.perf_counter() - started, 3),
     )
+
+
+def _depth_method(cfg: PreprocessConfig, trace: Any) -> str:
+    """The depth method the config asks for (auto: the best the trace allows), said on the console; a method the
+    trace lacks the sensor for is refused with one line."""
+    has_lidar = "lidar_scans" in trace.info.series
+    has_stereo = trace.info.baseline_m is not None
+    if cfg.depth.method == "lidar" and not has_lidar:
+        raise InputError("depth.method=lidar but the trace has no point cloud (no PointCloud2 topic); use auto or mvs")
+    if cfg.depth.method == "stereo" and not has_stereo:
+        raise InputError("depth.method=stereo but the trace has no second camera (frames_right.npy); use auto or mvs")
+    method, why = depth_mod.choose_method(cfg.depth.method, has_lidar, has_stereo)
+    console.print(f"depth method: {method} ({why})")
+    return method
+
+
+def _write_origin(folder: Path, fused: Any, method: str, max_depth_m: float, size: tuple[int, int]) -> dict[str, Any]:
+    """origin.json: the pose source and its geographic origin, the poses' residual, the depth method and range, the
+    frames' (width, height) `size` in px; returns what it wrote."""
+    origin = {
+        "pose_source": str(fused.source),
+        "origin_lat_deg": _float_or_none(getattr(fused, "origin_lat_deg", None)),
+        "origin_lon_deg": _float_or_none(getattr(fused, "origin_lon_deg", None)),
+        "origin_alt_m": _float_or_none(getattr(fused, "origin_alt_m", None)),
+        "residual_m": _rms_or_none(getattr(fused, "residual_m", None)),
+        "depth_method": method,
+        "max_depth_m": max_depth_m,
+        "width_px": int(size[0]),
+        "height_px": int(size[1]),
+    }
+    (folder / "origin.json").write_text(json.dumps(origin, indent=2) + "\n")
+    return origin
 
 
 def _float_or_none(value: Any) -> float | None:
