@@ -88,15 +88,16 @@ def import_command(
     if up not in AXES or forward not in AXES:
         raise InputError(f"--up and --forward take one of {', '.join(AXES)}")
     ws = workspace()
-    manifest = ws.read_manifest("meshes") or {}
-    base = manifest.get("config") or load_config(MeshesConfig, preset="meshes").model_dump(mode="json")
     if length_m is not None and not 0.5 < length_m <= 25.0:
         raise InputError(f"--length-m {length_m:g} is no vehicle length: give the real length in metres (0.5-25)")
     imp = ImportConfig(path=str(file.absolute()), name=name, up_axis=up, forward_axis=forward, length_m=length_m)
     model = import_vehicle(imp)  # bad input fails here, before the artifact is touched
-    others = [i for i in current_imports(ws) if Path(i["path"]) != file.absolute()]
-    cfg = MeshesConfig.model_validate({**base, "imports": [*others, imp.model_dump(mode="json")]})
-    result = run_meshes(ws, cfg, force=True)
+    with ws.lock("meshes"):  # read, add, rebuild as one: two imports at once never lose one of them
+        manifest = ws.read_manifest("meshes") or {}
+        base = manifest.get("config") or load_config(MeshesConfig, preset="meshes").model_dump(mode="json")
+        others = [i for i in current_imports(ws) if Path(i["path"]) != file.absolute()]
+        cfg = MeshesConfig.model_validate({**base, "imports": [*others, imp.model_dump(mode="json")]})
+        result = run_meshes(ws, cfg, force=True)
     console.print(
         f"imported {model.name}: {model.length_m:.2f} x {model.width_m:.2f} x {model.height_m:.2f} m, "
         f"{sum(m.triangle_count for m in model.full)} / {sum(m.triangle_count for m in model.light)} triangles "
