@@ -67,6 +67,8 @@ _TMP_PID = re.compile(r"-(\d+)-[0-9a-f]{8}(?:-|$)")
 DEFAULT_WORKSPACE = Path("drivesim-work")
 LOCKS_DIR = ".locks"
 """Folder of the workspace's lock files, one per artifact being written (`Workspace.lock`)."""
+_NO_LOCKS = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS)
+"""flock errors of a file system that has no locks."""
 _HELD_LOCKS: dict[Path, int] = {}
 """Lock files this process holds, with how many nested `lock` calls hold each (the lock is re-entrant)."""
 
@@ -319,17 +321,16 @@ class Workspace:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
+            if _flock(fd):
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f"pid {os.getpid()}: drivesim {' '.join(sys.argv[1:])[:200]}\n".encode(), 0)
+            else:
                 holder = os.pread(fd, 400, 0).decode(errors="replace").strip() or "another process"
                 raise ArtifactBusyError(
                     f"another drivesim ({_printable(holder)}) is writing the {name} artifact of this workspace; "
                     "wait for it to finish (or stop it), or write elsewhere (--workspace, or eval's --name)",
                     self.artifact_dir(name),
-                ) from None
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"pid {os.getpid()}: drivesim {' '.join(sys.argv[1:])[:200]}\n".encode(), 0)
+                )
             _HELD_LOCKS[path] = 1
             try:
                 yield
@@ -502,6 +503,19 @@ def manifest_is_valid(manifest: Any) -> bool:
         isinstance(manifest.get(k, default), t)
         for k, t, default in (("summary", dict, {}), ("key", str, ""), ("stage", str, ""), ("artifact", str, ""))
     )
+
+
+def _flock(fd: int) -> bool:
+    """Take an exclusive lock on the open file `fd` without waiting: False when another process holds it. On a file
+    system without locks (some network mounts) the writer goes on unguarded, as before locks existed."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as e:
+        if e.errno in (errno.EWOULDBLOCK, errno.EAGAIN):
+            return False
+        if e.errno not in _NO_LOCKS:
+            raise
+    return True
 
 
 def _record_mtimes(path: Path, mtimes: dict[str, int], manifest: dict[str, Any]) -> None:
