@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -19,8 +20,8 @@ from drivesim.pipeline.progress import progress_bar
 from drivesim.pipeline.stage import BuildContext
 from drivesim.sim.geometry import scale_intrinsics
 from drivesim.sim.world import WORLD_FORMAT_VERSION
-from drivesim.stages.ingest.trace import open_trace
-from drivesim.stages.preprocess.artifact import POSE_ARRAYS, load_preprocessed
+from drivesim.stages.ingest.trace import TraceView, open_trace
+from drivesim.stages.preprocess.artifact import POSE_ARRAYS, Preprocessed, load_preprocessed
 from drivesim.stages.world.birdseye import write_birdseye
 from drivesim.stages.world.config import WorldConfig
 from drivesim.stages.world.pointcloud import fuse_pointcloud, write_ply
@@ -69,32 +70,11 @@ def build_world(ctx: BuildContext) -> WorldSummary:
     frame_index = pre.poses["frame_index"]
     n = pre.frame_count
     src_h, src_w = trace.frames.shape[1:3]
-    if pre.depth_m.shape[1:] != (src_h, src_w):
-        raise InputError(
-            f"depth.npy is {pre.depth_m.shape[2]}x{pre.depth_m.shape[1]} but the trace's frames are {src_w}x{src_h}; "
-            f"run `{PREPROCESS_HINT} --force`",
-            pre_dir,
-        )
-    if frame_index[-1] >= trace.frames.shape[0]:
-        raise InputError(
-            f"refers to trace frame {frame_index[-1]} of {trace.frames.shape[0]}; run `{PREPROCESS_HINT} --force`",
-            pre_dir,
-        )
+    _check_preprocessed(trace, pre, pre_dir)
     w, h = sim_resolution(src_w, src_h, cfg.sim_width_px)
     K_sim = scale_intrinsics(trace.K, w / src_w, h / src_h)
     far_depth_m = float(pre.origin.get("max_depth_m") or np.inf)
-
-    frames_out = open_reserved_memmap(ctx.dir / "frames.npy", np.uint8, (n, h, w, 3))
-    depth_out = open_reserved_memmap(ctx.dir / "depth_m.npy", np.float32, (n, h, w))
-    with progress_bar(f"world frames at {w}x{h}", total=n) as (progress, task):
-        for start in range(0, n, _CHUNK_FRAMES):
-            stop = min(n, start + _CHUNK_FRAMES)
-            frames_out[start:stop] = resize_frames(trace.frames[frame_index[start:stop]], w, h)
-            depth_out[start:stop] = resize_depth(pre.depth_m[start:stop], w, h, cfg.depth_resize)
-            progress.advance(task, stop - start)
-    frames_out.flush()
-    depth_out.flush()
-    del frames_out, depth_out
+    _write_sim_frames(ctx.dir, trace, pre, (w, h), cfg)
 
     camera = {
         "width_px": w,
@@ -160,6 +140,43 @@ def build_world(ctx: BuildContext) -> WorldSummary:
         depth_method=info["depth_method"],
         seconds=round(time.perf_counter() - started, 3),
     )
+
+
+def _check_preprocessed(trace: TraceView, pre: Preprocessed, pre_dir: Path) -> None:
+    """Refuse (one line) preprocessed files that do not fit the trace: depth of another size, or frames it lacks."""
+    src_h, src_w = trace.frames.shape[1:3]
+    frame_index = pre.poses["frame_index"]
+    if pre.depth_m.shape[1:] != (src_h, src_w):
+        raise InputError(
+            f"depth.npy is {pre.depth_m.shape[2]}x{pre.depth_m.shape[1]} but the trace's frames are {src_w}x{src_h}; "
+            f"run `{PREPROCESS_HINT} --force`",
+            pre_dir,
+        )
+    if frame_index[-1] >= trace.frames.shape[0]:
+        raise InputError(
+            f"refers to trace frame {frame_index[-1]} of {trace.frames.shape[0]}; run `{PREPROCESS_HINT} --force`",
+            pre_dir,
+        )
+
+
+def _write_sim_frames(
+    folder: Path, trace: TraceView, pre: Preprocessed, size: tuple[int, int], cfg: WorldConfig
+) -> None:
+    """frames.npy and depth_m.npy: the preprocessed frames and their depth at the simulator's (width, height)
+    `size`, a chunk of frames at a time."""
+    w, h = size
+    n = pre.frame_count
+    frame_index = pre.poses["frame_index"]
+    frames_out = open_reserved_memmap(folder / "frames.npy", np.uint8, (n, h, w, 3))
+    depth_out = open_reserved_memmap(folder / "depth_m.npy", np.float32, (n, h, w))
+    with progress_bar(f"world frames at {w}x{h}", total=n) as (progress, task):
+        for start in range(0, n, _CHUNK_FRAMES):
+            stop = min(n, start + _CHUNK_FRAMES)
+            frames_out[start:stop] = resize_frames(trace.frames[frame_index[start:stop]], w, h)
+            depth_out[start:stop] = resize_depth(pre.depth_m[start:stop], w, h, cfg.depth_resize)
+            progress.advance(task, stop - start)
+    frames_out.flush()
+    depth_out.flush()
 
 
 class _FrameLookup:
