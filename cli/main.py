@@ -168,6 +168,7 @@ def main() -> None:
     from pydantic import ValidationError
 
     from drivesim.pipeline.config import validation_line
+    from drivesim.sim.world_checks import WorldError
 
     for signum in STOP_SIGNALS:
         if signal.getsignal(signum) is signal.SIG_DFL:  # not under nohup (SIGHUP ignored) or a caller's handler
@@ -188,6 +189,9 @@ def main() -> None:
         _stop(e)
     except ValidationError as e:
         _print_error(validation_line(e))
+        sys.exit(2)
+    except WorldError as e:  # a damaged world met outside the stages that say so themselves (`drivesim sim ...`)
+        _print_error(str(e))
         sys.exit(2)
     except OSError as e:
         _print_error(_os_error_line(e))
