@@ -29,11 +29,15 @@ def fingerprint_external(path: Path) -> str:
 
     Hashing a 1-hour bag would take longer than ingesting it, so a file is identified by its size and the
     sha256 of its first and last MiB; a folder by the sorted fingerprints of its files.
+    A FIFO, socket or device, given or inside the folder, is refused (InputError) before anything opens it.
     """
     path = Path(path)
     refuse_special_file(path, "a recording file or folder")
     if path.is_dir():
-        parts = [(str(p.relative_to(path)), fingerprint_external(p)) for p in sorted(path.rglob("*")) if p.is_file()]
+        entries = sorted(path.rglob("*"))
+        for p in entries:
+            refuse_special_file(p, "a recording whose files are regular files")
+        parts = [(str(p.relative_to(path)), fingerprint_external(p)) for p in entries if p.is_file()]
         return sha256_json(parts)
     size = path.stat().st_size
     h = hashlib.sha256(str(size).encode())

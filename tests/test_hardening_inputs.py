@@ -247,7 +247,10 @@ def no_hang():
     signal.signal(signal.SIGALRM, previous)
 
 
-@pytest.mark.parametrize("kind", ["fifo recording", "fifo config", "/dev/zero recording", "/dev/null workspace"])
+@pytest.mark.parametrize(
+    "kind",
+    ["fifo recording", "fifo in a recording folder", "fifo config", "/dev/zero recording", "/dev/null workspace"],
+)
 def test_non_regular_files_are_refused_with_one_line(tmp_path, monkeypatch, capsys, no_hang, kind) -> None:
     """A FIFO would block the first read forever, /dev/zero is a device, /dev/null is not a folder: each is one
     line (exit 2) naming it, nothing is created, and nothing waits (the test would hang)."""
@@ -257,6 +260,12 @@ def test_non_regular_files_are_refused_with_one_line(tmp_path, monkeypatch, caps
     if kind == "fifo recording":
         code, err = _ingest_cli(ws, str(fifo), monkeypatch, capsys)
         expect = "is a FIFO (named pipe), not a regular file or folder"
+    elif kind == "fifo in a recording folder":
+        folder = tmp_path / "frames"
+        folder.mkdir()
+        os.mkfifo(folder / "0001.png")
+        code, err = _ingest_cli(ws, str(folder), monkeypatch, capsys)
+        expect = "0001.png: is a FIFO (named pipe), not a regular file or folder"
     elif kind == "fifo config":
         code, err = _cli(ws, "train", "lane", "--config", str(fifo), monkeypatch=monkeypatch, capsys=capsys)
         expect = "is a FIFO (named pipe), not a regular file; --config takes a YAML file"
