@@ -10,7 +10,9 @@ import cv2
 import numpy as np
 import yaml
 
+from drivesim.pipeline.config import load_yaml_text
 from drivesim.pipeline.errors import InputError
+from drivesim.pipeline.input_paths import refuse_special_file
 from drivesim.sim.geometry import intrinsics_from_hfov, scale_intrinsics
 from drivesim.stages.ingest.images import CameraModel
 
@@ -44,10 +46,11 @@ def read_camera_file(path: Path, video_size: tuple[int, int]) -> CameraModel:
 
     :raises InputError: unreadable file, no 3x3 camera matrix, or a different aspect ratio.
     """
+    refuse_special_file(path, "a calibration YAML file")
     try:
         text = path.read_text()
         opencv = text.lstrip().startswith("%YAML") or "!!opencv-matrix" in text  # cv2.FileStorage's own YAML
-        values = _opencv_yaml(path) if opencv else yaml.safe_load(text)
+        values = _opencv_yaml(path) if opencv else load_yaml_text(text)  # nesting limited, duplicate keys refused
     except (OSError, UnicodeDecodeError, yaml.YAMLError, cv2.error) as e:
         raise InputError(f"unreadable camera calibration file ({type(e).__name__})", path) from e
     if not isinstance(values, dict):
