@@ -203,23 +203,13 @@ def run_fidelity(
     drive = render_drive(seed, n_frames, width_px, height_px, report("render drive", n_frames))
     estimates: dict[str, np.ndarray] = {}
     seconds: dict[str, float] = {}
-    mvs_summary: dict[str, Any] = {}
+    summaries: dict[str, dict[str, Any]] = {}
     for name, cfg in (("plane", plane_cfg), ("mvs", mvs_cfg)):
         out = np.empty(drive.depth_m.shape, np.float32)
-        summary = estimate_depth(
-            drive.rgb,
-            drive.K,
-            drive.T_world_camera,
-            drive.T_vehicle_camera,
-            None,
-            cfg,
-            out,
-            report(f"depth {name}", n_frames),
-        )
+        args = (drive.rgb, drive.K, drive.T_world_camera, drive.T_vehicle_camera, None, cfg, out)
+        summaries[name] = estimate_depth(*args, report(f"depth {name}", n_frames))
         estimates[name] = out
-        seconds[name] = summary["seconds"]
-        if name == "mvs":
-            mvs_summary = summary
+        seconds[name] = summaries[name]["seconds"]
     estimates["ground_truth"] = drive.depth_m
 
     # Frames with every matching neighbour (the ends of a short drive lack some).
@@ -230,15 +220,40 @@ def run_fidelity(
         name: depth_metrics(estimates[name][evaluated], drive.depth_m[evaluated], mvs_cfg.max_depth_m)
         for name in ("plane", "mvs")
     }
-
     view_frames = sorted(
         {evaluated[int(k)] for k in np.linspace(0, len(evaluated) - 1, min(n_view_frames, len(evaluated)))}
     )
+    figure_frame = view_frames[len(view_frames) // 2]
+    step = report("novel views", len(view_frames) * len(offsets))
+    views, figure_row = _view_metrics(drive, estimates, view_frames, offsets, figure_frame, step)
+    if figure_path is not None and figure_row:
+        save_figure(figure_path, figure_row, {k: v[figure_frame] for k, v in estimates.items()}, mvs_cfg.max_depth_m)
+    return FidelityResult(
+        seed=seed,
+        frames=n_frames,
+        width_px=width_px,
+        height_px=height_px,
+        evaluated_frames=evaluated,
+        depth=depth,
+        views=views,
+        depth_seconds=seconds,
+        mvs_summary=summaries["mvs"],
+    )
+
+
+def _view_metrics(
+    drive: SyntheticDrive,
+    estimates: dict[str, np.ndarray],
+    view_frames: list[int],
+    offsets: tuple[ViewOffset, ...],
+    figure_frame: int,
+    step: Callable[[int], None],
+) -> tuple[list[dict[str, Any]], dict[str, np.ndarray]]:
+    """Novel views of `view_frames` at each offset, warped with each depth source and scored against the world's
+    render there: (per offset and source the mean PSNR, SSIM and filled fraction, the figure's row of views)."""
     sums: dict[tuple[str, str], list[dict[str, float]]] = {}
     figure_row: dict[str, np.ndarray] = {}
-    figure_frame = view_frames[len(view_frames) // 2]
-    total = len(view_frames) * len(offsets)
-    step = report("novel views", total)
+    height_px, width_px = drive.depth_m.shape[1:3]
     for i in view_frames:
         for offset in offsets:
             T_target_vehicle = drive.T_world_vehicle[i] @ pose_2d(0.0, offset.lateral_m, np.deg2rad(offset.yaw_deg))
@@ -259,19 +274,7 @@ def run_fidelity(
         }
         for (off, source), rows in sums.items()
     ]
-    if figure_path is not None and figure_row:
-        save_figure(figure_path, figure_row, {k: v[figure_frame] for k, v in estimates.items()}, mvs_cfg.max_depth_m)
-    return FidelityResult(
-        seed=seed,
-        frames=n_frames,
-        width_px=width_px,
-        height_px=height_px,
-        evaluated_frames=evaluated,
-        depth=depth,
-        views=views,
-        depth_seconds=seconds,
-        mvs_summary=mvs_summary,
-    )
+    return views, figure_row
 
 
 def colour_depth(depth_m: np.ndarray, max_depth_m: float, near_m: float = 2.0) -> np.ndarray:
