@@ -245,69 +245,22 @@ def train_in_folder(
     rollout under way; calling this again on the same folder continues from the last checkpoint.
     """
     torch.set_num_threads(cfg.learner_threads)
-    # Resumed runs draw new training episodes (the envs' seed moves with the steps done).
     last = run_dir / CHECKPOINTS / LAST_CHECKPOINT
-    done_steps = 0
-    if last.is_file():
-        done_steps = int(read_checkpoint(last).get("num_timesteps", 0))
-    try:
-        kind = "ray" if cfg.envs.backend == "ray" else cfg.envs.vec_env
-        timed = TimedVecEnv(source.make_vec(cfg.envs.count, kind, cfg.seed + done_steps, address=cfg.envs.address))
-    except (ValueError, FileNotFoundError) as e:  # the envs' one-line errors (short world, missing meshes, ...)
-        raise DrivesimError(f"cannot make the {cfg.task} env: {str(e).splitlines()[0]}") from e
-    labelled = ExpertLabels(timed, cfg.steps_per_env()) if cfg.imitation.epochs > 0 else None
-    placed = LanePositionLabels(labelled or timed, cfg.steps_per_env()) if cfg.lane_aux.epochs > 0 else None
-    venv = VecNormalize(
-        placed or labelled or timed, norm_obs=False, norm_reward=cfg.ppo.normalize_reward, gamma=cfg.ppo.gamma
-    )
+    done_steps = int(read_checkpoint(last).get("num_timesteps", 0)) if last.is_file() else 0
+    timed, labelled, placed, venv = _training_envs(cfg, source, done_steps)
     run_dir.mkdir(parents=True, exist_ok=True)
     evaluator = None
     try:
         probe = source.make_env("eval")
         env_config = source.resolved_env_config(probe)
         max_curvature = source.max_curvature_1pm(probe)
-        if cfg.eval.every_steps > 0 and cfg.eval.episodes > 0:
-            kind = "dummy" if cfg.envs.vec_env == "subproc" else cfg.envs.vec_env
-            evaluator = PeriodicEvaluator(
-                lambda: source.make_vec(cfg.eval.episodes, kind, cfg.eval.seed, mode="eval"), cfg.eval.seed
-            )
+        evaluator = _periodic_evaluator(cfg, source)
         probe.close()
         write_run_config(run_dir, cfg, source, env_config, probe.observation_space.shape)
         model = build_model(cfg, venv)
         model.set_logger(configure(str(run_dir / "tb"), ["tensorboard"]))
-        if labelled is not None:
-            model.update_hooks.append(
-                ImitationRegularizer(model, labelled, cfg.imitation.epochs, cfg.imitation.learning_rate, cfg.seed)
-            )
-        if placed is not None:
-            scales = (float(env_config["max_lateral_m"]), float(env_config["max_rotation_rad"]))
-            model.update_hooks.append(
-                LanePositionAux(model, placed, cfg.lane_aux.epochs, cfg.lane_aux.learning_rate, scales, cfg.seed)
-            )
-        state = RunState()
-        figures: dict[str, float] = {}
-        if last.is_file():
-            checkpoint = _restore(model, last, venv)
-            state = RunState(
-                wall_s=float(checkpoint.get("wall_s", 0.0)),
-                episodes=int(checkpoint.get("episodes", 0)),
-                rows=read_progress(run_dir / PROGRESS_CSV, up_to_steps=model.num_timesteps),
-            )
-            report(f"resuming {run_dir.name} at {model.num_timesteps} env steps")
-        elif cfg.warm_start.method == "expert":
-            warm_path = run_dir / CHECKPOINTS / WARM_START_CHECKPOINT
-            if warm_path.is_file():
-                _restore(model, warm_path, venv)
-                report("warm start: restored from the run's warm-start checkpoint")
-            else:
-                start = time.perf_counter()
-                figures = warm_start(model, venv, cfg.warm_start, cfg.seed, report)
-                state.wall_s = time.perf_counter() - start
-                torch_save_atomic(
-                    warm_path,
-                    {"policy": model.policy.driving_net_state(), "wall_s": state.wall_s, **return_stats(venv)},
-                )
-            model.num_timesteps = 0
+        _add_update_phases(model, cfg, labelled, placed, env_config)
+        state, figures = _starting_state(model, run_dir, cfg, venv, report)
         best = BestPolicy.load(run_dir / CHECKPOINTS / BEST_CHECKPOINT) if evaluator is not None else None
         callback = TrainingCallback(
             run_dir,
@@ -340,24 +293,8 @@ def train_in_folder(
             write_progress(run_dir / PROGRESS_CSV, state.rows)
             if best is not None:
                 best.offer(state.rows[-1], int(model.num_timesteps), callback.policy_checkpoint)
-        chosen = {"policy": model.policy.driving_net_state(), **return_stats(venv)}
-        policy_steps = int(model.num_timesteps)
-        if cfg.eval.keep_best and best is not None and best.success_rate is not None:
-            chosen, policy_steps = best.weights(), best.steps
-            report(
-                f"policy: the weights of step {best.steps} (best evaluation: success {best.success_rate:.0%}, "
-                f"return {best.return_mean:.1f}); the last update's are in checkpoints/{LAST_CHECKPOINT}"
-            )
-        statistics = {k: chosen[k] for k in ("return_mean", "return_var", "return_count") if k in chosen}
-        write_policy_files(
-            run_dir,
-            cfg.task,
-            tuple(venv.observation_space.shape),
-            model.policy.arch,
-            chosen["policy"],
-            max_curvature,
-            reward_normalization={"enabled": cfg.ppo.normalize_reward, "gamma": cfg.ppo.gamma, **statistics},
-        )
+        kept_best = best if cfg.eval.keep_best and best is not None and best.success_rate is not None else None
+        policy_steps = _write_chosen_policy(run_dir, cfg, model, venv, kept_best, max_curvature, report)
         if state.rows:
             plot_curves(state.rows, run_dir / CURVES_PNG, f"{cfg.task}: {run_dir.name}")
         return TrainOutcome(
@@ -370,13 +307,123 @@ def train_in_folder(
             last_row=state.rows[-1] if state.rows else {},
             warm_start=figures,
             policy_steps=policy_steps,
-            policy_eval=(
-                {"success_rate": best.success_rate, "return_mean": best.return_mean}
-                if cfg.eval.keep_best and best is not None and best.success_rate is not None
-                else {}
-            ),
+            policy_eval={"success_rate": kept_best.success_rate, "return_mean": kept_best.return_mean}
+            if kept_best is not None
+            else {},
         )
     finally:
         venv.close()
         if evaluator is not None:
             evaluator.close()
+
+
+def _periodic_evaluator(cfg: TrainConfig, source: EnvSource) -> PeriodicEvaluator | None:
+    """The held-back evaluation the config asks for during training (its own envs, in this process), or None."""
+    if cfg.eval.every_steps <= 0 or cfg.eval.episodes <= 0:
+        return None
+    kind = "dummy" if cfg.envs.vec_env == "subproc" else cfg.envs.vec_env
+    return PeriodicEvaluator(
+        lambda: source.make_vec(cfg.eval.episodes, kind, cfg.eval.seed, mode="eval"), cfg.eval.seed
+    )
+
+
+def _training_envs(
+    cfg: TrainConfig, source: EnvSource, done_steps: int
+) -> tuple[TimedVecEnv, ExpertLabels | None, LanePositionLabels | None, VecNormalize]:
+    """The training envs, timed, with the labels the update phases read, under reward normalization: (timed,
+    expert labels or None, lane-position labels or None, the outermost wrapper). A resumed run draws new episodes
+    (the envs' seed moves with the steps done)."""
+    try:
+        kind = "ray" if cfg.envs.backend == "ray" else cfg.envs.vec_env
+        timed = TimedVecEnv(source.make_vec(cfg.envs.count, kind, cfg.seed + done_steps, address=cfg.envs.address))
+    except (ValueError, FileNotFoundError) as e:  # the envs' one-line errors (short world, missing meshes, ...)
+        raise DrivesimError(f"cannot make the {cfg.task} env: {str(e).splitlines()[0]}") from e
+    labelled = ExpertLabels(timed, cfg.steps_per_env()) if cfg.imitation.epochs > 0 else None
+    placed = LanePositionLabels(labelled or timed, cfg.steps_per_env()) if cfg.lane_aux.epochs > 0 else None
+    venv = VecNormalize(
+        placed or labelled or timed, norm_obs=False, norm_reward=cfg.ppo.normalize_reward, gamma=cfg.ppo.gamma
+    )
+    return timed, labelled, placed, venv
+
+
+def _add_update_phases(
+    model: ChunkedRecurrentPPO,
+    cfg: TrainConfig,
+    labelled: ExpertLabels | None,
+    placed: LanePositionLabels | None,
+    env_config: dict[str, Any],
+) -> None:
+    """The phases after each PPO update the config asks for: the imitation regularizer, the encoder's lane target."""
+    if labelled is not None:
+        model.update_hooks.append(
+            ImitationRegularizer(model, labelled, cfg.imitation.epochs, cfg.imitation.learning_rate, cfg.seed)
+        )
+    if placed is not None:
+        scales = (float(env_config["max_lateral_m"]), float(env_config["max_rotation_rad"]))
+        model.update_hooks.append(
+            LanePositionAux(model, placed, cfg.lane_aux.epochs, cfg.lane_aux.learning_rate, scales, cfg.seed)
+        )
+
+
+def _starting_state(
+    model: ChunkedRecurrentPPO, run_dir: Path, cfg: TrainConfig, venv: VecNormalize, report: Callable[[str], None]
+) -> tuple[RunState, dict[str, float]]:
+    """Where training starts: the last checkpoint of a resumed run, else the expert warm start (made, or restored
+    from the run's warm-start checkpoint) when asked for, else fresh weights; (the run's state, warm-start figures)."""
+    last = run_dir / CHECKPOINTS / LAST_CHECKPOINT
+    state = RunState()
+    figures: dict[str, float] = {}
+    if last.is_file():
+        checkpoint = _restore(model, last, venv)
+        state = RunState(
+            wall_s=float(checkpoint.get("wall_s", 0.0)),
+            episodes=int(checkpoint.get("episodes", 0)),
+            rows=read_progress(run_dir / PROGRESS_CSV, up_to_steps=model.num_timesteps),
+        )
+        report(f"resuming {run_dir.name} at {model.num_timesteps} env steps")
+    elif cfg.warm_start.method == "expert":
+        warm_path = run_dir / CHECKPOINTS / WARM_START_CHECKPOINT
+        if warm_path.is_file():
+            _restore(model, warm_path, venv)
+            report("warm start: restored from the run's warm-start checkpoint")
+        else:
+            start = time.perf_counter()
+            figures = warm_start(model, venv, cfg.warm_start, cfg.seed, report)
+            state.wall_s = time.perf_counter() - start
+            torch_save_atomic(
+                warm_path, {"policy": model.policy.driving_net_state(), "wall_s": state.wall_s, **return_stats(venv)}
+            )
+        model.num_timesteps = 0
+    return state, figures
+
+
+def _write_chosen_policy(
+    run_dir: Path,
+    cfg: TrainConfig,
+    model: ChunkedRecurrentPPO,
+    venv: VecNormalize,
+    best: BestPolicy | None,
+    max_curvature: float,
+    report: Callable[[str], None],
+) -> int:
+    """The run's policy files with the last update's weights, or `best`'s (the best held-back evaluation) when
+    given; returns the env steps of the weights written."""
+    chosen = {"policy": model.policy.driving_net_state(), **return_stats(venv)}
+    policy_steps = int(model.num_timesteps)
+    if best is not None:
+        chosen, policy_steps = best.weights(), best.steps
+        report(
+            f"policy: the weights of step {best.steps} (best evaluation: success {best.success_rate:.0%}, "
+            f"return {best.return_mean:.1f}); the last update's are in checkpoints/{LAST_CHECKPOINT}"
+        )
+    statistics = {k: chosen[k] for k in ("return_mean", "return_var", "return_count") if k in chosen}
+    write_policy_files(
+        run_dir,
+        cfg.task,
+        tuple(venv.observation_space.shape),
+        model.policy.arch,
+        chosen["policy"],
+        max_curvature,
+        reward_normalization={"enabled": cfg.ppo.normalize_reward, "gamma": cfg.ppo.gamma, **statistics},
+    )
+    return policy_steps
