@@ -216,35 +216,11 @@ def _html(
     esc = html.escape
     meta_keys = ("task", "policy", "episodes", "seed", "world", "meshes", "created_utc")
     meta = "".join(f"<tr><th>{esc(k)}</th><td>{esc(str(data.get(k, '')))}</td></tr>" for k in meta_keys if k in data)
-    rows = []
-    for key, label, pattern in TABLE_ROWS:
-        garage, outdoor = PAPER_TABLE_I[key]
-        rows.append(
-            f"<tr><td>{label}</td><td>{_fmt(agg[key], pattern)}</td>"
-            f"<td>{pattern.format(garage)}</td><td>{pattern.format(outdoor)}</td></tr>"
-        )
-    extra = []
-    for key, label in (
-        ("success", "success rate"),
-        ("min_clearance_no_collision_m", "minimum clearance, episodes without a collision only (m)"),
-        ("mean_tracking_error_m", "mean tracking error (m)"),
-    ):
-        if agg[key].n:
-            extra.append(f"<tr><td>{label}</td><td>{_fmt(agg[key])}</td><td>—</td><td>—</td></tr>")
     n = max(len(results), 1)
     counts = data["intervention_causes"]
     causes = "".join(
         f"<tr><td>{label}</td><td>{counts[k]}</td><td>{counts[k] / n:.3f}</td></tr>" for k, label in CAUSE_ROWS
     )
-    level_rows = []
-    for b in levels:
-        cells = "".join(
-            f"<td>{_fmt(i)}<br>{_fmt(d)} m<br><span class=ci>n={i.n}</span></td>"
-            for i, d in zip(b.intervention, b.max_deviation_m, strict=True)
-        )
-        edges = ", ".join(f"{e:.3g}" for e in b.edges)
-        name = esc(plots.FACTOR_LABELS[b.factor])
-        level_rows.append(f"<tr><td>{name}<br><span class=ci>quartiles {edges}</span></td>{cells}</tr>")
     worst_rows = "".join(
         f"<tr><td>{r.metrics.seed}</td><td>{_winnable(r)}</td><td>{'yes' if r.metrics.intervention else 'no'}</td>"
         f"<td>{_causes(r)}</td><td>{_number(r.metrics.pass_shortfall_m)}</td>"
@@ -269,7 +245,7 @@ def _html(
 <table class=meta>{meta}{_trained_on_html(data.get("trained_on"))}</table>{extra_html}
 <h2>Metrics beside the paper's Table I</h2>
 <table><tr><th>metric</th><th>this evaluation [95 % CI]</th><th>paper, garage</th><th>paper, outdoor</th></tr>
-{"".join(rows)}{"".join(extra)}</table>
+{_table_i_rows(agg)}</table>
 {f"<p class=ci>{esc(data['geometry_note'])}</p>" if data.get("geometry_note") else ""}
 <p class=ci>Intervention: polygon overlap &gt; 0, off lane or over-rotation. Minimum clearance: mean over all
 episodes (a collision counts 0) of the smallest distance between the two footprints. Maximum deviation / yaw: mean
@@ -281,7 +257,7 @@ resamples). Definitions: <code>drivesim.stages.evaluate.metrics</code>.</p>
 <p class=ci>An episode may have more than one cause.</p>
 {_scenario_html(data["scenarios"])}{_starts_html(data["starts"])}
 <h2>Breakdown by trial difficulty</h2>
-<table><tr><th>factor</th>{level_head}</tr>{"".join(level_rows)}</table>
+<table><tr><th>factor</th>{level_head}</tr>{_level_rows(levels)}</table>
 <p class=ci>Each cell: intervention rate, mean maximum deviation, episodes. Levels are the quartiles of the factor over
 these episodes (initial lateral difference: the smallest is the most challenging).</p>
 <h2>Figures</h2>
@@ -297,6 +273,40 @@ aggregates in <code>metrics.json</code>.</p>
 {recordings_html(out_dir, results) if out_dir else ""}
 </body></html>
 """
+
+
+def _table_i_rows(agg: dict[str, Estimate]) -> str:
+    """The rows of the metrics beside the paper's Table I, then the metrics the paper has no figure for (those
+    this evaluation measured)."""
+    rows = []
+    for key, label, pattern in TABLE_ROWS:
+        garage, outdoor = PAPER_TABLE_I[key]
+        rows.append(
+            f"<tr><td>{label}</td><td>{_fmt(agg[key], pattern)}</td>"
+            f"<td>{pattern.format(garage)}</td><td>{pattern.format(outdoor)}</td></tr>"
+        )
+    for key, label in (
+        ("success", "success rate"),
+        ("min_clearance_no_collision_m", "minimum clearance, episodes without a collision only (m)"),
+        ("mean_tracking_error_m", "mean tracking error (m)"),
+    ):
+        if agg[key].n:
+            rows.append(f"<tr><td>{label}</td><td>{_fmt(agg[key])}</td><td>—</td><td>—</td></tr>")
+    return "".join(rows)
+
+
+def _level_rows(levels: Sequence[Any]) -> str:
+    """The breakdown's rows: per factor, each quartile's intervention rate, mean maximum deviation and episodes."""
+    rows = []
+    for b in levels:
+        cells = "".join(
+            f"<td>{_fmt(i)}<br>{_fmt(d)} m<br><span class=ci>n={i.n}</span></td>"
+            for i, d in zip(b.intervention, b.max_deviation_m, strict=True)
+        )
+        edges = ", ".join(f"{e:.3g}" for e in b.edges)
+        name = html.escape(plots.FACTOR_LABELS[b.factor])
+        rows.append(f"<tr><td>{name}<br><span class=ci>quartiles {edges}</span></td>{cells}</tr>")
+    return "".join(rows)
 
 
 def _ci_cell(e: dict[str, Any]) -> str:
