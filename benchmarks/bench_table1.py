@@ -1,0 +1,248 @@
+"""Table I on every real drive with a camera and on the demo world: the chain as a user runs it, then the same seeds
+for random, straight, expert, the warm start alone and the final policy.
+
+    .venv/bin/python benchmarks/bench_table1.py                                   # every drive, the real budgets
+    .venv/bin/python benchmarks/bench_table1.py --drives kitti_odometry_00 --budget-scale 0.002 --episodes 8 \
+        --zero-shot-episodes 4 --town -1 --out-dir /tmp/table1-smoke              # a smoke run (no real figure)
+
+For each drive, in a fresh workspace: `drivesim run REC` with no flags (the recording preset; the demo world is
+`drivesim run` without a recording), its wall time; then `drivesim eval` of each row's policy on the drive's own
+world, seeds 0 to N-1 for every row. Reported, not targets: each final policy zero-shot on the other real drives'
+worlds (leave-one-out) and on an unseen procedural town. `--budget-scale` < 1 shrinks the training budgets by --set
+(then the chain is no longer the user's); 1 adds no flag. Writes table1.json and table1.md (machine, load, date) into
+`--out-dir` (default benchmarks/results).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from _lib.report import write_markdown
+
+from drivesim.bench.machine import machine_line
+from drivesim.stages.evaluate.summary import RESULT_COLUMNS
+
+REPO = Path(__file__).resolve().parents[1]
+REAL = REPO.parent / "shared" / "data" / "real"
+DRIVES: dict[str, Path | None] = {
+    "kitti_raw_0001": REAL / "kitti_raw" / "2011_09_26" / "2011_09_26_drive_0001_sync",
+    "kitti_odometry_06": REAL / "kitti_odometry_straight",
+    "kitti_odometry_00": REAL / "kitti_odometry_00_first200",
+    "kitti_odometry_07": REAL / "kitti_odometry_07_first160",
+    "demo": None,  # the embedded demo drive: `drivesim run` without a recording
+}
+SCENARIO_ROWS = (
+    "passing on the left",
+    "passing on the right",
+    "front car nearly static (< 0.5 m/s)",
+    "front car moving",
+)
+"""The report's scenario rows (`stages.evaluate.metrics.scenario_table`) the second table shows, in its order."""
+ROWS = ("random", "straight", "expert", "warm start", "final policy")
+UNSEEN_TOWN = 101
+FULL = {"total_steps": 1_000_000, "time_limit_s": 2400.0, "buffer_steps": 8192, "warm_steps": 8192, "warm_rounds": 8}
+
+
+def drivesim(ws: Path, *args: str, timeout_s: float | None = None) -> tuple[subprocess.CompletedProcess[str], float]:
+    """`drivesim --workspace ws ARGS` in a subprocess; (its result, wall time in s)."""
+    began = time.perf_counter()
+    done = subprocess.run(
+        [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        env={**os.environ, "COLUMNS": "250"},
+        check=False,
+    )
+    return done, time.perf_counter() - began
+
+
+def budget_overrides(scale: float) -> list[str]:
+    """--set arguments that shrink the recording preset's budgets by `scale` (none at 1)."""
+    if scale >= 1.0:
+        return []
+    buffer = max(128, int(FULL["buffer_steps"] * scale) // 64 * 64)
+    sets = {
+        "train.total_steps": max(buffer, int(FULL["total_steps"] * scale)),
+        "train.time_limit_s": max(60.0, FULL["time_limit_s"] * scale),
+        "train.ppo.buffer_steps": buffer,
+        "train.ppo.minibatch_steps": min(512, buffer // 2),
+        "train.warm_start.iterations": max(1, round(FULL["warm_rounds"] * scale)),
+        "train.warm_start.steps_per_iteration": max(128, int(FULL["warm_steps"] * scale)),
+        "train.eval.every_steps": 0,
+        "eval.episodes": max(4, int(1000 * scale)),
+        "eval.baseline_episodes": max(2, int(200 * scale)),
+    }
+    return [a for key, value in sets.items() for a in ("--set", f"{key}={value}")]
+
+
+def _one_line(done: subprocess.CompletedProcess[str]) -> str:
+    lines = (done.stderr.strip() or done.stdout.strip() or f"exit {done.returncode}").splitlines()
+    return lines[-1][:300]
+
+
+def run_chain(name: str, recording: Path | None, ws: Path, scale: float) -> dict[str, Any]:
+    """The chain as a user runs it on one drive: its wall time, its run folder, or the one line it failed with."""
+    args = ["run", *([] if recording is None else [str(recording)]), *budget_overrides(scale)]
+    done, wall_s = drivesim(ws, *args)
+    entry: dict[str, Any] = {"drive": name, "recording": None if recording is None else str(recording)}
+    entry.update(command="drivesim run" + ("" if recording is None else " REC") + (" (scaled)" if scale < 1 else ""))
+    entry["chain_wall_s"] = round(wall_s, 1)
+    if done.returncode != 0:
+        return {**entry, "error": _one_line(done)}
+    runs = sorted((ws / "runs").glob("overtake-*"))
+    entry["run"] = str(runs[-1]) if runs else None
+    entry["stages"] = [line.strip() for line in done.stdout.splitlines() if ": done in " in line]
+    return entry
+
+
+def evaluate(ws: Path, policy: str, name: str, episodes: int, world: Path | None = None) -> dict[str, Any]:
+    """`drivesim eval` of one policy (seeds 0..episodes-1, no baselines): its metrics.json figures or its error."""
+    args = ["eval", "--policy", policy, "--episodes", str(episodes), "--name", name, "--record", "none"]
+    args += ["--set", "baseline_episodes=0"] + ([] if world is None else ["--world", str(world)])
+    done, wall_s = drivesim(ws, *args)
+    if done.returncode != 0:
+        return {"error": _one_line(done), "eval_wall_s": round(wall_s, 1)}
+    data = json.loads((ws / "eval" / name / "metrics.json").read_text())
+    figures = {key: data["aggregate"][key] for key, _ in RESULT_COLUMNS}
+    scenarios = {row["scenario"]: row["success"] for row in data.get("scenarios") or []}
+    return {"episodes": data["episodes"], **figures, "scenarios": scenarios, "eval_wall_s": round(wall_s, 1)}
+
+
+def row_policies(run: str) -> dict[str, str]:
+    """Each row's policy for `drivesim eval --policy`."""
+    warm = str(Path(run) / "checkpoints" / "warm_start.pt")
+    return {"random": "random", "straight": "straight", "expert": "expert", "warm start": warm, "final policy": run}
+
+
+def _cell(estimate: dict[str, Any] | None, interval: bool = False) -> str:
+    if not estimate or estimate.get("value") is None:
+        return "n/a"
+    text = f"{estimate['value']:.3f}"
+    return text + (f" [{estimate['ci_low']:.3f}, {estimate['ci_high']:.3f}]" if interval else "")
+
+
+def markdown(result: dict[str, Any]) -> list[str]:
+    """table1.md's lines."""
+    heads = " | ".join(h for _, h in RESULT_COLUMNS)
+    lines = [
+        "# Table I on real drives: `drivesim run REC` as a user runs it, then the same seeds for every row",
+        "",
+        f"Machine: {result['machine']}. Date: {result['date']}. Code: {result['commit']}. Budget scale "
+        f"{result['budget_scale']} ({'the preset as shipped' if result['budget_scale'] >= 1 else 'NOT the user run'}); "
+        f"{result['episodes']} episodes per row. `python benchmarks/bench_table1.py` redoes it.",
+        "",
+        f"| drive | row | episodes | {heads} |",
+        "|---|---|---:|" + "---:|" * len(RESULT_COLUMNS),
+    ]
+    for drive in result["drives"]:
+        if "error" in drive:
+            lines.append(f"| {drive['drive']} | chain failed: {drive['error']} | | " + "| " * len(RESULT_COLUMNS))
+            continue
+        for row in ROWS:
+            r = drive["rows"].get(row, {})
+            if "error" in r:
+                lines.append(f"| {drive['drive']} | {row}: {r['error']} | | " + "| " * len(RESULT_COLUMNS))
+                continue
+            cells = " | ".join(_cell(r.get(k), k == "intervention") for k, _ in RESULT_COLUMNS)
+            lines.append(f"| {drive['drive']} | {row} | {r.get('episodes', '')} | {cells} |")
+    lines += ["", "Reported only (not targets): the chain's wall time; the final policy zero-shot elsewhere.", ""]
+    lines += [
+        "| drive | chain wall time | zero-shot: other real drives (success / intervention) | "
+        f"unseen town {result.get('town')} (success / intervention) | pass-left / right, static / dynamic success |",
+        "|---|---:|---|---|---|",
+    ]
+    for drive in result["drives"]:
+        wall = f"{drive['chain_wall_s'] / 60:.1f} min"
+        zero = "; ".join(
+            f"{other}: {_cell(r.get('success'))} / {_cell(r.get('intervention'))}"
+            if "error" not in r
+            else f"{other}: {r['error']}"
+            for other, r in drive.get("zero_shot", {}).items()
+        )
+        town = drive.get("unseen_town") or {}
+        town_text = "n/a"
+        if town and "error" not in town:
+            town_text = f"{_cell(town['success'])} / {_cell(town['intervention'])}"
+        scen = (drive.get("rows", {}).get("final policy") or {}).get("scenarios") or {}
+        split = " / ".join(_cell(scen.get(k)) for k in SCENARIO_ROWS)
+        lines.append(f"| {drive['drive']} | {wall} | {zero or 'n/a'} | {town_text} | {split} |")
+    return lines + [""]
+
+
+def _git_commit() -> str:
+    done = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    return done.stdout.strip() or "unknown"
+
+
+def main() -> None:
+    """Run the chains, the rows' evaluations and the zero-shot columns; write table1.json and table1.md."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--drives", default=",".join(DRIVES), help=f"comma-separated, of {', '.join(DRIVES)}")
+    parser.add_argument("--budget-scale", type=float, default=1.0, help="shrink the training budgets (1: as shipped)")
+    parser.add_argument("--episodes", type=int, default=1000, help="episodes of each row, same seeds")
+    parser.add_argument("--zero-shot-episodes", type=int, default=200, help="episodes per zero-shot world")
+    parser.add_argument("--town", type=int, default=UNSEEN_TOWN, help="unseen town seed (-1: no town column)")
+    parser.add_argument("--work", type=Path, default=None, help="where the workspaces go (default: a temporary one)")
+    parser.add_argument("--out-dir", type=Path, default=REPO / "benchmarks" / "results")
+    args = parser.parse_args()
+    names = [n.strip() for n in args.drives.split(",") if n.strip()]
+    unknown = [n for n in names if n not in DRIVES]
+    if unknown:
+        sys.exit(f"unknown drive(s) {', '.join(unknown)}; choose from {', '.join(DRIVES)}")
+    work = args.work or Path(os.environ.get("TMPDIR", "/tmp")) / f"table1-{os.getpid()}"
+    result: dict[str, Any] = {
+        "machine": machine_line(),
+        "date": f"{datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
+        "commit": _git_commit(),
+        "budget_scale": args.budget_scale,
+        "episodes": args.episodes,
+        "drives": [],
+    }
+    for name in names:
+        recording = DRIVES[name]
+        if recording is not None and not recording.exists():
+            result["drives"].append({"drive": name, "chain_wall_s": 0.0, "error": f"no such recording {recording}"})
+            continue
+        print(f"{name}: drivesim run ...", flush=True)
+        entry = run_chain(name, recording, work / name, args.budget_scale)
+        if "error" not in entry and entry.get("run"):
+            entry["rows"] = {
+                row: evaluate(work / name, policy, f"table1-{row.replace(' ', '-')}", args.episodes)
+                for row, policy in row_policies(entry["run"]).items()
+            }
+        print(f"{name}: chain {entry['chain_wall_s'] / 60:.1f} min {entry.get('error', '')}", flush=True)
+        result["drives"].append(entry)
+    trained = [d for d in result["drives"] if "error" not in d and d.get("run")]
+    real_worlds = {d["drive"]: work / d["drive"] / "world" for d in trained if d["drive"] != "demo"}
+    town_ws = work / "towns"
+    build_town = trained and args.town >= 0
+    town_done, _ = drivesim(town_ws, "towns", "build", str(args.town)) if build_town else (None, 0.0)
+    town_world = town_ws / "towns" / f"seed{args.town}" / "world"
+    result["town"] = args.town if build_town else None
+    for drive in trained:
+        ws = work / drive["drive"]
+        drive["zero_shot"] = {
+            other: evaluate(ws, drive["run"], f"table1-zero-shot-{other}", args.zero_shot_episodes, world)
+            for other, world in real_worlds.items()
+            if other != drive["drive"]
+        }
+        if town_done is not None and town_done.returncode == 0:
+            drive["unseen_town"] = evaluate(ws, drive["run"], "table1-town", args.zero_shot_episodes, town_world)
+        elif town_done is not None:
+            drive["unseen_town"] = {"error": _one_line(town_done)}
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    (args.out_dir / "table1.json").write_text(json.dumps(result, indent=2) + "\n")
+    write_markdown(args.out_dir / "table1.md", markdown(result))
+
+
+if __name__ == "__main__":
+    main()
