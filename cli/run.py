@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -20,6 +20,18 @@ from drivesim.cli.video_options import (
     VideoStartOption,
     video_overrides,
 )
+
+if TYPE_CHECKING:
+    from drivesim.chain.run import ChainRun
+
+TrustEntryPointOption = Annotated[
+    bool,
+    typer.Option(
+        "--trust-entry-point",
+        help="Let eval.env_entry_point name your own gymnasium.Env class; its module is imported, so its code "
+        "runs: only for code you trust. Without it only drivesim's own env classes are accepted.",
+    ),
+]
 
 
 def run_command(
@@ -61,14 +73,7 @@ def run_command(
     start_s: StartOption = None,
     end_s: EndOption = None,
     fps: FpsOption = None,
-    trust_entry_point: Annotated[
-        bool,
-        typer.Option(
-            "--trust-entry-point",
-            help="Let eval.env_entry_point name your own gymnasium.Env class; its module is imported, so its code "
-            "runs: only for code you trust. Without it only drivesim's own env classes are accepted.",
-        ),
-    ] = False,
+    trust_entry_point: TrustEntryPointOption = False,
 ) -> None:
     """Run every stage in order: (synth,) ingest, preprocess, build-world, meshes, train, eval, export.
 
@@ -95,6 +100,11 @@ def run_command(
     result = run_chain(
         workspace(), recording, overrides, force=force, on_stage=on_stage, trust_entry_point=trust_entry_point
     )
+    _print_chain_result(result)
+
+
+def _print_chain_result(result: ChainRun) -> None:
+    """The chain's wall time, the evaluation's Table I rows and training worlds, the report's and policy's paths."""
     from drivesim.cli.result import print_result
 
     total_s = sum(s.wall_s for s in result.stages)
