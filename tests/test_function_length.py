@@ -53,8 +53,8 @@ def test_no_product_function_is_over_the_limit() -> None:
 
 
 def test_the_count_sees_methods_and_nested_functions() -> None:
-    body = "\n".join(f"    x{i} = {i}" for i in range(80))
-    source = f"class A:\n    def m(self):\n{body.replace('    ', '        ')}\n\ndef f():\n    def g():\n{body.replace('    ', '        ')}\n"
+    body = "\n".join(f"        x{i} = {i}" for i in range(80))
+    source = f"class A:\n    def m(self):\n{body}\n\ndef f():\n    def g():\n{body}\n"
     assert long_functions(source) == [("A.m", 81), ("f", 82), ("f.g", 81)]
     assert long_functions("def short():\n    return 1\n") == []
 
