@@ -135,6 +135,16 @@ def test_drivesim_run_refuses_an_untrusted_entry_point_before_its_first_stage(tm
     assert not ws.exists() and not (canary / "imported").exists()
 
 
+def test_a_module_named_in_env_id_is_never_imported(tmp_path, monkeypatch, capsys, canary):
+    """gymnasium.make("module:Name-v0") imports `module` first: such an env_id is one line, nothing imported."""
+    world = fake_world(tmp_path / "world")
+    args = ["eval", "--policy", "expert", "--world", str(world), "--set", "env_id=canary_mod:X-v0"]
+    code, err = _cli(tmp_path / "ws", *args, monkeypatch=monkeypatch, capsys=capsys)
+    lines = _error_lines(err)
+    assert code == 2 and len(lines) == 1 and "env_id" in lines[0] and "no ':'" in lines[0], err
+    assert not (canary / "imported").exists() and not (tmp_path / "ws").exists()
+
+
 @pytest.mark.parametrize(
     ("entry_point", "says"),
     [

@@ -70,6 +70,14 @@ class EvalConfig(StageConfig):
             raise ValueError(f"{value!r}: use failures, all, none or a number of episodes")
         return int(text) if text.isdigit() else text
 
+    @field_validator("env_id")
+    @classmethod
+    def _env_id_form(cls, value: str | None) -> str | None:
+        """A gymnasium id alone (`module:Name-v0` would make gymnasium import `module`)."""
+        from drivesim.stages.evaluate.entry_point import check_env_id
+
+        return None if value is None else check_env_id(value)
+
     @field_validator("env_entry_point")
     @classmethod
     def _entry_point_form(cls, value: str | None) -> str | None:

@@ -31,6 +31,17 @@ def parse_entry_point(text: str) -> tuple[str, str]:
     return module, attribute
 
 
+def check_env_id(env_id: str) -> str:
+    """`env_id` when it names a gymnasium id alone; a one-line ValueError for `module:Name-v0`, which gymnasium.make
+    would import `module` for (running its code) before looking the id up."""
+    if ":" in str(env_id):
+        raise ValueError(
+            f"{env_id!r}: a gymnasium id has no ':' (gymnasium would import the module before it); give the id "
+            "alone, and your env's class as env_entry_point"
+        )
+    return env_id
+
+
 def env_class(entry_point: str, trusted: bool) -> type:
     """The `gymnasium.Env` subclass `entry_point` names (ConfigError, one line, otherwise).
 
