@@ -166,10 +166,11 @@ def test_geometry_note_names_what_differs_from_the_papers_setup() -> None:
     note = geometry_note("overtake", {})
     assert note.startswith("Our task's geometry where it differs from the paper's: ") and "\n" not in note
     assert "6-15 m ahead" not in note  # the paper's range: not a difference
-    assert "1-2 m from the lane centre, heading along the road (paper: 1-2 m from the ego" in note
-    assert "above 0 % overlap (paper 5 %)" in note and "passed 6 m ahead" in note
+    assert "the front car 1-2 m from the lane centre, heading along the road (paper: 1-2 m from the ego" in note
+    assert "a training collision at any overlap (paper 5 %)" in note and "passed 6 m ahead" in note
     farther = geometry_note("overtake", {"front_distance_m": [8.0, 20.0], "front_side": "left"})
-    assert "the front car 8-20 m ahead (paper 6-15 m)" in farther and "on the left" in farther
+    assert "the front car 8-20 m ahead (paper 6-15 m), 1-2 m from the lane centre, on the left" in farther
+    assert "above 5 % overlap" not in geometry_note("overtake", {"collision_overlap_train": 0.05})
     assert geometry_note("lane", {}) == ""
 
 

@@ -82,23 +82,21 @@ def geometry_note(task: str, env_overrides: dict[str, Any]) -> str:
     c = spec.config_with(env_overrides)
     near, far = c.front_distance_m
     low, high = c.front_lateral_m
-    parts = []
-    if (near, far) != PAPER_SETUP["front_distance_m"]:
-        parts.append(f"the front car {near:g}-{far:g} m ahead (paper 6-15 m)")
+    ahead = "" if (near, far) == PAPER_SETUP["front_distance_m"] else f"{near:g}-{far:g} m ahead (paper 6-15 m), "
     side = "" if c.front_side == "either" else f", on the {c.front_side}"
+    parts = [
+        f"the front car {ahead}{low:g}-{high:g} m from the lane centre{side}, heading along the road (paper: 1-2 m "
+        "from the ego, a random heading)"
+    ]
+    overlap = c.collision_overlap_train
+    if overlap != PAPER_SETUP["collision_overlap_train"]:
+        at = "at any overlap" if overlap == 0 else f"above {100 * overlap:g} % overlap"
+        parts.append(f"a training collision {at} (paper 5 %)")
     parts.append(
-        f"{low:g}-{high:g} m from the lane centre{side}, heading along the road (paper: 1-2 m from the ego, a "
-        "random heading)"
-    )
-    parts.append(
-        f"moving at {c.other_speed_mps[0]:g}-{c.other_speed_mps[1]:g} m/s, the ego at "
-        f"{c.ego_speed_mps[0]:g}-{c.ego_speed_mps[1]:g} m/s"
-    )
-    if c.collision_overlap_train != PAPER_SETUP["collision_overlap_train"]:
-        parts.append(f"a training collision above {100 * c.collision_overlap_train:g} % overlap (paper 5 %)")
-    parts.append(
-        f"passed {c.pass_distance_m:g} m ahead and back within {c.return_lateral_m:g} m of the centre, off lane beyond "
-        f"{c.max_lateral_m:g} m, the ego {c.ego_length_m:g} x {c.ego_width_m:g} m (the paper gives none of these)"
+        f"not given by the paper: the front car at {c.other_speed_mps[0]:g}-{c.other_speed_mps[1]:g} m/s, the ego "
+        f"at {c.ego_speed_mps[0]:g}-{c.ego_speed_mps[1]:g} m/s and {c.ego_length_m:g} x {c.ego_width_m:g} m, "
+        f"passed {c.pass_distance_m:g} m ahead and back within {c.return_lateral_m:g} m of the centre, off lane "
+        f"beyond {c.max_lateral_m:g} m"
     )
     return "Our task's geometry where it differs from the paper's: " + "; ".join(parts) + "."
 
