@@ -388,6 +388,16 @@ def test_repeated_identical_messages_are_kept_once(tmp_path) -> None:
     assert out["t_ns"].tolist() == [0, 10, 20] and out["x"].tolist() == [0.0, 1.0, 2.0]
 
 
+def test_gps_fixes_stamped_in_whole_seconds_keep_the_first_of_each_stamp() -> None:
+    """A receiver that stamps 5 Hz fixes in whole seconds: the fusion gets one fix per stamp, nothing is refused."""
+    from drivesim.stages.ingest.stamps import ordered_series
+
+    t = np.repeat(np.arange(4, dtype=np.int64) * 10**9, 5)
+    lat = 49.0 + np.arange(20) * 1e-5
+    out = ordered_series({"t_ns": t, "lat_deg": lat}, "gps")
+    assert out["t_ns"].tolist() == [0, 10**9, 2 * 10**9, 3 * 10**9] and out["lat_deg"].tolist() == lat[::5].tolist()
+
+
 def test_pose_stream_that_never_overlaps_the_camera_is_refused(tmp_path) -> None:
     """Odometry stamped 1000 s after the camera: refused (it was a 0.0 m world), naming both time spans."""
     from drivesim.pipeline.errors import InputError

@@ -6,10 +6,12 @@ sorting hides a broken clock: shuffled stamps reorder the positions into a zig-z
 and turns at every sample. So for those streams:
 - stamps that go back in time in the recording's own order are sorted when they are a few (at most
   MAX_BROKEN_FRACTION of the samples: jitter, interleaving) and refused when they are more;
-- samples sharing a stamp keep one: identical repeats (a message recorded twice) silently, different values at one
-  instant (a clock that did not advance) are refused past the same fraction, the first kept below it.
-Rate streams (IMU, speed) are sorted and de-duplicated (the first kept) without a refusal: their order does not
-move the path.
+- samples sharing a stamp keep one: identical repeats (a message recorded twice) silently; for poses that are
+  interpolated as they are (odometry, ground truth, /tf), different values at one instant (a clock that did not
+  advance) are refused past the same fraction, the first kept below it.
+GPS fixes sharing a stamp keep the first without a refusal (receivers that stamp in whole seconds do this, and the
+fusion weighs each fix by its covariance); rate streams (IMU, speed) are sorted and keep the first of a stamp without
+a refusal: their order does not move the path.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ MAX_BROKEN_FRACTION = 0.01
 """Share of a position stream's samples whose stamps may go back in time or repeat with other values."""
 POSITION_STREAMS = ("gps", "odometry", "ground_truth", "/tf vehicle poses")
 """Streams whose samples are places, so their order is the path's shape."""
+POSE_STREAMS = ("odometry", "ground_truth", "/tf vehicle poses")
+"""Position streams whose samples become the path as they are, so one instant must have one pose."""
 
 
 def _too_many(count: int, total: int) -> bool:
@@ -32,8 +36,8 @@ def ordered_series(arrays: dict[str, np.ndarray], stream: str) -> dict[str, np.n
     """The columns of one series (t_ns among them) sorted by time with one sample per stamp.
 
     :param stream: its name ("odometry", "gps", ...), which says whether it is a position stream.
-    :raises InputError: a position stream whose stamps go back in time, or repeat with other values, at more than
-        MAX_BROKEN_FRACTION of its samples.
+    :raises InputError: a position stream whose stamps go back in time, or a pose stream (POSE_STREAMS) whose stamps
+        repeat with other values, at more than MAX_BROKEN_FRACTION of its samples.
     """
     t_ns = np.asarray(arrays["t_ns"], dtype=np.int64)
     n = len(t_ns)
@@ -53,7 +57,7 @@ def ordered_series(arrays: dict[str, np.ndarray], stream: str) -> dict[str, np.n
     if not len(repeat):
         return arrays
     conflicting = [i for i in repeat if not _same_row(arrays, i - 1, i)]
-    if positional and _too_many(len(conflicting), n):
+    if stream in POSE_STREAMS and _too_many(len(conflicting), n):
         raise InputError(
             f"{len(conflicting)} of {n} {stream} samples share their stamp with another of different values "
             f"(first at sample {int(conflicting[0]) + 1}): a clock that does not advance cannot time a drive; fix "
