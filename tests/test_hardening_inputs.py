@@ -16,27 +16,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from cli_helpers import run_main
 from test_preprocess_stage_fakes import install_fake_poses, make_trace
 
-from drivesim.cli.main import main
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.preprocess import stage as preprocess_stage
 from drivesim.stages.preprocess.config import PreprocessConfig
-
-
-def _cli(ws: Path, *args: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> tuple[int, str]:
-    """Run `drivesim --workspace ws ARGS` through `main` (the error boundary); returns (exit code, stderr)."""
-    previous = signal.getsignal(signal.SIGTERM)
-    monkeypatch.setattr(sys, "argv", ["drivesim", "--workspace", str(ws), *args])
-    capsys.readouterr()
-    code = 0
-    try:
-        main()
-    except SystemExit as e:
-        code = 0 if e.code is None else int(e.code)
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-    return code, capsys.readouterr().err
 
 
 def _error_lines(err: str) -> list[str]:
@@ -68,7 +53,7 @@ def test_full_disk_under_a_memmap_is_one_line_and_keeps_nothing(tmp_path, monkey
         preprocess_stage.run_preprocess(ws, PreprocessConfig.model_validate({"depth": {"method": "plane"}}))
     _disk_full(monkeypatch)
     args = [stage, "--set", "depth.method=plane"] if stage == "preprocess" else [stage]
-    code, err = _cli(ws.root, *args, monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(ws.root, *args, monkeypatch=monkeypatch, capsys=capsys)
     lines = _error_lines(err)
     assert code == 1 and len(lines) == 1 and "disk full" in lines[0] and str(ws.root) in lines[0], err
     artifact = "preprocessed" if stage == "preprocess" else "world"
@@ -199,7 +184,7 @@ def test_deeply_nested_manifest_is_a_damaged_artifact_not_a_recursion_error(tmp_
     make_trace(ws)
     (ws.artifact_dir("trace") / "manifest.json").write_text("[" * 5000 + "]" * 5000)
     assert ws.read_manifest("trace") is None and ws.manifest_unreadable("trace")
-    code, err = _cli(ws.root, "preprocess", monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(ws.root, "preprocess", monkeypatch=monkeypatch, capsys=capsys)
     lines = _error_lines(err)
     assert code == 2 and len(lines) == 1 and "manifest.json is unreadable" in lines[0], err
 
@@ -210,7 +195,9 @@ def test_deeply_nested_manifest_is_a_damaged_artifact_not_a_recursion_error(tmp_
 def test_deeply_nested_config_is_one_line(tmp_path, monkeypatch, capsys, text) -> None:
     path = tmp_path / "deep.yaml"
     path.write_text(text)
-    code, err = _cli(tmp_path / "ws", "config", "eval", "--config", str(path), monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(
+        tmp_path / "ws", "config", "eval", "--config", str(path), monkeypatch=monkeypatch, capsys=capsys
+    )
     lines = _error_lines(err)
     assert code == 2 and len(lines) == 1 and "nested more than 32 levels deep" in lines[0], err
     assert len(err.splitlines()) == 1
@@ -230,7 +217,7 @@ def test_json_reader_refuses_nan_and_depth_but_reads_strings_with_brackets() -> 
 
 
 def _ingest_cli(ws: Path, recording: str, monkeypatch, capsys) -> tuple[int, str]:
-    return _cli(ws, "ingest", recording, monkeypatch=monkeypatch, capsys=capsys)
+    return run_main(ws, "ingest", recording, monkeypatch=monkeypatch, capsys=capsys)
 
 
 @pytest.fixture
@@ -267,7 +254,7 @@ def test_non_regular_files_are_refused_with_one_line(tmp_path, monkeypatch, caps
         code, err = _ingest_cli(ws, str(folder), monkeypatch, capsys)
         expect = "0001.png: is a FIFO (named pipe), not a regular file or folder"
     elif kind == "fifo config":
-        code, err = _cli(ws, "train", "lane", "--config", str(fifo), monkeypatch=monkeypatch, capsys=capsys)
+        code, err = run_main(ws, "train", "lane", "--config", str(fifo), monkeypatch=monkeypatch, capsys=capsys)
         expect = "is a FIFO (named pipe), not a regular file; --config takes a YAML file"
     elif kind == "/dev/zero recording":
         code, err = _ingest_cli(ws, "/dev/zero", monkeypatch, capsys)
@@ -480,7 +467,7 @@ def test_absurd_image_sizes_are_refused_with_one_line(tmp_path, monkeypatch, cap
     rng = np.random.default_rng(0)
     for i in range(5):
         cv2.imwrite(str(folder / f"{i:03d}.png"), rng.integers(0, 255, (height, width, 3), dtype=np.uint8))
-    code, err = _cli(
+    code, err = run_main(
         tmp_path / "ws",
         "ingest",
         str(folder),
@@ -531,7 +518,7 @@ def test_damaged_world_through_eval_is_one_line_and_exit_2(built_world, tmp_path
     _set_camera("K", [[0, 0, 0], [0, 0, 0], [0, 0, 0]])(world)
     (world / "manifest.json").unlink()  # a world made by hand or by another tool: no hashes to catch the edit
     args = ["eval", "--world", str(world), "--policy", "expert", "--task", "lane", "--episodes", "1"]
-    code, err = _cli(tmp_path / "ws", *args, monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(tmp_path / "ws", *args, monkeypatch=monkeypatch, capsys=capsys)
     lines = _error_lines(err)
     assert code == 2 and len(lines) == 1 and "camera.json: K has no positive focal lengths" in lines[0], err
     assert not (tmp_path / "ws" / "eval" / "lane-expert").exists()
@@ -544,7 +531,7 @@ def test_an_os_error_with_only_a_text_prints_the_text(tmp_path, monkeypatch, cap
         raise OSError("cannot map world/frames.npy")
 
     monkeypatch.setattr(status_cli, "status_report", fail)
-    code, err = _cli(tmp_path / "ws", "status", monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(tmp_path / "ws", "status", monkeypatch=monkeypatch, capsys=capsys)
     assert code == 1 and _error_lines(err) == ["error: cannot map world/frames.npy (OSError)"], err
 
 
@@ -561,3 +548,20 @@ def test_decoder_messages_stay_out_of_the_terminal(tmp_path) -> None:
     assert "Corrupt JPEG" not in done.stderr + done.stdout
     assert "Corrupt JPEG data" in (ws / "logs" / "ingest-decoders.log").read_text()
     assert "left out 2 damaged camera frame(s)" in done.stdout
+
+
+def test_a_damaged_jpeg_in_an_image_folder_is_refused_naming_it(tmp_path, monkeypatch, capsys) -> None:
+    """An image folder's frames are SfM's input, so one that decodes with "Corrupt JPEG data" refuses the folder
+    (as an unreadable one does), naming the file, instead of feeding grey blocks to SfM."""
+    from recordings import textured_image
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(12):
+        ok, jpeg = cv2.imencode(".jpg", textured_image(160, 100, i))
+        (folder / f"{i:03d}.jpg").write_bytes(bytes(_damaged_jpeg(jpeg) if i == 4 else jpeg))
+    args = ["ingest", str(folder), "--fps", "10", "--camera-height-m", "1.5"]
+    code, err = run_main(tmp_path / "ws", *args, monkeypatch=monkeypatch, capsys=capsys)
+    lines = _error_lines(err)
+    assert code == 2 and len(lines) == 1, err
+    assert "004.jpg: unreadable image file: the image decoder reported damaged data" in lines[0]
