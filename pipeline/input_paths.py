@@ -10,7 +10,8 @@ from drivesim.pipeline.errors import InputError
 
 
 def special_kind(path: Path) -> str | None:
-    """"a FIFO (named pipe)", "a socket", "a device" for such a path; None for a regular file, a folder or nothing."""
+    """What a FIFO, socket or device path is ("a FIFO (named pipe)", "a socket", "a device"); None for a regular
+    file, a folder or nothing."""
     try:
         mode = Path(path).stat().st_mode
     except OSError:
