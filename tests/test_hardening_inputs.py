@@ -60,6 +60,44 @@ def test_full_disk_under_a_memmap_is_one_line_and_keeps_nothing(tmp_path, monkey
     assert not list(ws.root.glob(".tmp-*")) and not ws.artifact_dir(artifact).exists()
 
 
+_PREPROCESS_WITH_FAKE_POSES = """
+import sys
+import pytest
+from test_preprocess_stage_fakes import install_fake_poses
+install_fake_poses(pytest.MonkeyPatch())
+sys.argv = ["drivesim", "--workspace", sys.argv[1], "preprocess", "--set", "depth.method=plane"]
+from drivesim.cli.main import main
+main()
+"""
+
+
+def test_preprocess_on_a_really_full_disk_says_so_instead_of_dying_of_sigbus(tmp_path) -> None:
+    """On a real 400 KB tmpfs (where the machine lets the test mount one) the trace fits and the depth memmap does
+    not: before, the kernel killed preprocess with SIGBUS (exit 135, no message, .tmp-* left); now it is one line."""
+    import subprocess
+
+    small = tmp_path / "small"
+    small.mkdir()
+    if sys.platform != "linux" or os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("mounting a small tmpfs needs root on Linux")
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=400k", "tmpfs", str(small)], capture_output=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.decode().strip()}")
+    try:
+        ws = Workspace(small / "ws")
+        make_trace(ws)
+        script = tmp_path / "preprocess.py"
+        script.write_text(_PREPROCESS_WITH_FAKE_POSES)
+        paths = [str(Path(__file__).parent), *filter(None, [os.environ.get("PYTHONPATH")])]
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
+        done = subprocess.run([sys.executable, str(script), str(ws.root)], capture_output=True, text=True, env=env)
+        errors = [line for line in done.stderr.splitlines() if line.startswith("error:")]
+        assert done.returncode == 1 and len(errors) == 1 and "disk full" in errors[0], (done.returncode, done.stderr)
+        assert not list(ws.root.glob(".tmp-*")) and not ws.artifact_dir("preprocessed").exists()
+    finally:
+        subprocess.run(["umount", str(small)], check=False)
+
+
 def test_reserved_memmap_falls_back_to_zeros_where_the_file_system_cannot_allocate(tmp_path, monkeypatch) -> None:
     """Where posix_fallocate is unsupported the space is still claimed, by writing zeros through the file."""
     from drivesim.pipeline.npy_files import open_reserved_memmap
