@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 # ../shared beside the checkout (tests skip, saying so, where it is absent).
 REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
@@ -28,3 +29,22 @@ def interruptible() -> None:
     background (`cmd &` without job control) ignores SIGINT in it, and an ignored signal stays ignored across exec,
     so the child would never see the test's SIGINT."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def run_main(ws: Path, *args: str, monkeypatch: Any, capsys: Any) -> tuple[int, str]:
+    """Run `drivesim --workspace ws ARGS` through `main` in this process (the CLI's error boundary, as a user meets
+    it); returns (exit code, stderr). The signal handlers `main` installs are put back."""
+    from drivesim.cli.main import main
+
+    previous = {signum: signal.getsignal(signum) for signum in (signal.SIGTERM, signal.SIGHUP)}
+    monkeypatch.setattr(sys, "argv", ["drivesim", "--workspace", str(ws), *args])
+    capsys.readouterr()
+    code = 0
+    try:
+        main()
+    except SystemExit as e:
+        code = 0 if e.code is None else int(e.code)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    return code, capsys.readouterr().err

@@ -21,6 +21,7 @@ from pathlib import Path
 import psutil
 import pytest
 import torch
+from cli_helpers import run_main
 from eval_fakes import FAKE, fake_world, register_fake_envs
 from test_eval_stage import _make_run
 from test_train import small_config
@@ -28,7 +29,6 @@ from test_train import small_config
 from drivesim.chain.registry import CHAIN
 from drivesim.chain.run import RUNNERS
 from drivesim.chain.walk import Walk
-from drivesim.cli.main import main
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ArtifactConflictError, DrivesimError, MissingArtifactError
 from drivesim.pipeline.status import status_report
@@ -168,21 +168,6 @@ def test_terminated_training_stops_its_worker_processes_and_says_how_to_resume(t
 # ---------------------------------------------------------------- the CLI's error boundary, in this process
 
 
-def _cli(ws: Path, *args: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> tuple[int, str]:
-    """Run `drivesim --workspace ws ARGS` through `main` (the error boundary); returns (exit code, stderr)."""
-    previous = signal.getsignal(signal.SIGTERM)
-    monkeypatch.setattr(sys, "argv", ["drivesim", "--workspace", str(ws), *args])
-    capsys.readouterr()
-    code = 0
-    try:
-        main()
-    except SystemExit as e:
-        code = 0 if e.code is None else int(e.code)
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-    return code, capsys.readouterr().err
-
-
 BAD_SETTINGS = [
     (["train", "lane", "--set", "learner_threads=0"], "learner_threads"),
     (["train", "lane", "--set", "policy.input_pool=0"], "policy.input_pool"),
@@ -205,7 +190,7 @@ BAD_SETTINGS = [
 
 @pytest.mark.parametrize(("args", "key"), BAD_SETTINGS, ids=[" ".join(a[1:]) for a, _ in BAD_SETTINGS])
 def test_bad_settings_are_one_line_and_exit_2(tmp_path, monkeypatch, capsys, args, key) -> None:
-    code, err = _cli(tmp_path / "ws", *args, monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(tmp_path / "ws", *args, monkeypatch=monkeypatch, capsys=capsys)
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and lines[0].startswith("error:") and key in lines[0], err
     assert not (tmp_path / "ws").exists()  # nothing created, not even the workspace
@@ -217,13 +202,13 @@ def test_bad_config_files_are_one_line(tmp_path, monkeypatch, capsys) -> None:
     binary = tmp_path / "weights.yaml"
     binary.write_bytes(bytes(range(256)))
     for path, expect in ((duplicate, "duplicate key 'episodes'"), (binary, "binary"), (tmp_path, "is a folder")):
-        code, err = _cli(
+        code, err = run_main(
             tmp_path / "ws", "config", "eval", "--config", str(path), monkeypatch=monkeypatch, capsys=capsys
         )
         assert code == 2 and len(err.strip().splitlines()) == 1 and expect in err, err
     run_preset = tmp_path / "run.yaml"
     run_preset.write_text("train:\n  total_steps: 4096\neval:\n  episodes: 5\ntrain:\n  seed: 1\n")
-    code, err = _cli(tmp_path / "ws", "run", "--config", str(run_preset), monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(tmp_path / "ws", "run", "--config", str(run_preset), monkeypatch=monkeypatch, capsys=capsys)
     assert code == 2 and "duplicate" in err and "Traceback" not in err
 
 
@@ -241,7 +226,7 @@ def test_os_errors_are_one_clear_line(tmp_path, monkeypatch, capsys, error, expe
         raise error
 
     monkeypatch.setattr(status_cli, "status_report", fail)
-    code, err = _cli(tmp_path / "ws", "status", monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(tmp_path / "ws", "status", monkeypatch=monkeypatch, capsys=capsys)
     lines = err.strip().splitlines()
     assert code == 1 and len(lines) == 1 and expect in lines[0], err
     where = str(tmp_path / "ws") if error.errno == errno.ENOSPC else "/data/ws/world/frames.npy"
@@ -276,7 +261,7 @@ def test_full_disk_names_the_folder_and_keeps_nothing(tmp_path, monkeypatch, cap
         sets = [a for key, value in FAKE.items() for a in ("--set", f"{key}={value}")]
         args = ["eval", "--world", str(world), *sets, "--trust-entry-point", "--episodes", "60", "--workers", "1"]
         args += ["--policy", "expert"]
-        code, err = _cli(ws, *args, monkeypatch=monkeypatch, capsys=capsys)
+        code, err = run_main(ws, *args, monkeypatch=monkeypatch, capsys=capsys)
         lines = [line for line in err.strip().splitlines() if not line.startswith("eval")]
         assert code == 1 and len(lines) == 1, err
         assert "disk full" in lines[0] and str(ws) in lines[0] and "are free there now" in lines[0], err
@@ -298,9 +283,9 @@ def test_damaged_manifest_is_stale_and_the_next_stage_says_rebuild(tmp_path, tex
     assert row["state"] == "stale" and "manifest unreadable" in row["reasons"][0]
     with pytest.raises(MissingArtifactError, match="unreadable.*rebuild it with `drivesim build-world`"):
         ws.require("world", "drivesim build-world")
-    code, err = _cli(ws.root, "status", monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(ws.root, "status", monkeypatch=monkeypatch, capsys=capsys)
     assert code == 0 and not err
-    code, err = _cli(ws.root, "train", "lane", monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(ws.root, "train", "lane", monkeypatch=monkeypatch, capsys=capsys)
     assert code == 2 and "rebuild it" in err and len(err.strip().splitlines()) == 1
 
 
@@ -325,7 +310,7 @@ def test_resume_of_a_refused_checkpoint_is_one_line(tmp_path, monkeypatch, capsy
     cfg = small_config(512)
     (run / "config.json").write_text(json.dumps({"train": cfg.model_dump(mode="json"), "worlds": []}))
     torch.save({"num_timesteps": 256, "policy": Evil()}, run / "checkpoints" / "last.pt")
-    code, err = _cli(tmp_path / "ws", "train", "--resume", str(run), monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(tmp_path / "ws", "train", "--resume", str(run), monkeypatch=monkeypatch, capsys=capsys)
     assert code == 2 and "cannot read the checkpoint" in err and len(err.strip().splitlines()) == 1, err
     assert not marker.exists() and (run / "checkpoints" / "last.pt").is_file()
 

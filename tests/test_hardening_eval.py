@@ -8,15 +8,14 @@ what the user would see: one line and exit code 2, nothing imported or called, n
 from __future__ import annotations
 
 import json
-import signal
 import sys
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from cli_helpers import run_main
 from eval_fakes import FAKE, fake_world, pass_record, register_fake_envs
 
-from drivesim.cli.main import main
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError, DrivesimError
 from drivesim.pipeline.workspace import Workspace
@@ -48,21 +47,6 @@ def canary(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     monkeypatch.syspath_prepend(str(folder))
     monkeypatch.delitem(sys.modules, "canary_mod", raising=False)
     return folder
-
-
-def _cli(ws: Path, *args: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> tuple[int, str]:
-    """`drivesim --workspace ws ARGS` through `main` (the CLI's error boundary); returns (exit code, stderr)."""
-    previous = signal.getsignal(signal.SIGTERM)
-    monkeypatch.setattr(sys, "argv", ["drivesim", "--workspace", str(ws), *args])
-    capsys.readouterr()
-    code = 0
-    try:
-        main()
-    except SystemExit as e:
-        code = 0 if e.code is None else int(e.code)
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-    return code, capsys.readouterr().err
 
 
 def _eval_args(world: Path, entry_point: str, env_id: str = "evil/X-v0") -> list[str]:
@@ -99,7 +83,7 @@ def test_os_system_as_entry_point_is_refused_and_never_called(tmp_path, monkeypa
     monkeypatch.setattr(os, "system", lambda *a, **k: calls.append((a, k)) or 0)
     world = fake_world(tmp_path / "world")
     ws = tmp_path / "ws"
-    code, err = _cli(ws, *_eval_args(world, "os:system"), monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(ws, *_eval_args(world, "os:system"), monkeypatch=monkeypatch, capsys=capsys)
     lines = _error_lines(err)
     assert code == 2 and len(lines) == 1, err
     assert "env_entry_point 'os:system'" in lines[0] and "--trust-entry-point" in lines[0]
@@ -109,12 +93,12 @@ def test_os_system_as_entry_point_is_refused_and_never_called(tmp_path, monkeypa
 def test_an_untrusted_entry_points_module_is_never_imported(tmp_path, monkeypatch, capsys, canary):
     """From --set and from a --config file: refused before the module is imported (importing runs its code)."""
     world = fake_world(tmp_path / "world")
-    code, err = _cli(tmp_path / "ws", *_eval_args(world, "canary_mod:run"), monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(tmp_path / "ws", *_eval_args(world, "canary_mod:run"), monkeypatch=monkeypatch, capsys=capsys)
     assert code == 2 and len(_error_lines(err)) == 1 and "--trust-entry-point" in err, err
     config = tmp_path / "evil.yaml"
     config.write_text("env_id: evil/Y-v0\nenv_entry_point: canary_mod:run\n")
     args = ["eval", "--policy", "expert", "--world", str(world), "--episodes", "2", "--config", str(config)]
-    code, err = _cli(tmp_path / "ws", *args, monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(tmp_path / "ws", *args, monkeypatch=monkeypatch, capsys=capsys)
     assert code == 2 and len(_error_lines(err)) == 1 and "--trust-entry-point" in err, err
     assert not (canary / "imported").exists() and not (canary / "called").exists()
     assert "canary_mod" not in sys.modules
@@ -129,7 +113,7 @@ def test_drivesim_run_refuses_an_untrusted_entry_point_before_its_first_stage(tm
     config = tmp_path / "evil.yaml"
     config.write_text("eval:\n  env_id: evil/X-v0\n  env_entry_point: canary_mod:run\n")
     ws = tmp_path / "ws"
-    code, err = _cli(ws, "run", "--config", str(config), monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(ws, "run", "--config", str(config), monkeypatch=monkeypatch, capsys=capsys)
     lines = _error_lines(err)
     assert code == 2 and len(lines) == 1 and "--trust-entry-point" in lines[0], err
     assert not ws.exists() and not (canary / "imported").exists()
@@ -139,7 +123,7 @@ def test_a_module_named_in_env_id_is_never_imported(tmp_path, monkeypatch, capsy
     """gymnasium.make("module:Name-v0") imports `module` first: such an env_id is one line, nothing imported."""
     world = fake_world(tmp_path / "world")
     args = ["eval", "--policy", "expert", "--world", str(world), "--set", "env_id=canary_mod:X-v0"]
-    code, err = _cli(tmp_path / "ws", *args, monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(tmp_path / "ws", *args, monkeypatch=monkeypatch, capsys=capsys)
     lines = _error_lines(err)
     assert code == 2 and len(lines) == 1 and "env_id" in lines[0] and "no ':'" in lines[0], err
     assert not (canary / "imported").exists() and not (tmp_path / "ws").exists()
@@ -159,7 +143,7 @@ def test_wrong_entry_points_are_one_line_even_when_trusted(tmp_path, monkeypatch
     """With --trust-entry-point a wrong value is still one line and exit 2 (no traceback), and nothing is called."""
     world = fake_world(tmp_path / "world")
     args = [*_eval_args(world, entry_point), "--trust-entry-point"]
-    code, err = _cli(tmp_path / "ws", *args, monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(tmp_path / "ws", *args, monkeypatch=monkeypatch, capsys=capsys)
     lines = _error_lines(err)
     assert code == 2 and len(lines) == 1 and says in lines[0], err
     assert "Traceback" not in err and not (canary / "called").exists()
@@ -172,7 +156,7 @@ def test_a_trusted_env_class_of_ones_own_is_evaluated(tmp_path, monkeypatch, cap
     ws = tmp_path / "ws"
     args = [*_eval_args(world, FAKE["env_entry_point"], env_id="mine/FakeOvertake-v0"), "--trust-entry-point"]
     args += ["--record", "none", "--name", "mine"]
-    code, err = _cli(ws, *args, monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(ws, *args, monkeypatch=monkeypatch, capsys=capsys)
     assert code == 0, err
     metrics = json.loads((ws / "eval" / "mine" / "metrics.json").read_text())
     assert metrics["aggregate"]["intervention"]["n"] == 2
@@ -276,7 +260,7 @@ def test_eval_of_an_edited_onnx_policy_is_one_line_and_writes_nothing(exported_o
     world = fake_world(tmp_path / "world")
     ws = tmp_path / "ws"
     args = [*_eval_args(world, FAKE["env_entry_point"], env_id=FAKE["env_id"]), "--policy", str(edited)]
-    code, err = _cli(ws, *args, monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(ws, *args, monkeypatch=monkeypatch, capsys=capsys)
     lines = _error_lines(err)
     assert code == 2 and len(lines) == 1 and "digest" in lines[0] and str(edited) in lines[0], err
     assert not (ws / "eval" / "overtake-edited").exists()

@@ -21,12 +21,12 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
+from cli_helpers import run_main
 from eval_fakes import FAKE, fake_world, register_fake_envs
 from test_hardening import _assert_all_end, _env, _eval_command, _wait_for_episodes
 from test_train import small_config
 
 from drivesim.chain.registry import CHAIN
-from drivesim.cli.main import main
 from drivesim.pipeline.errors import ArtifactBusyError, StaleArtifactError
 from drivesim.pipeline.status import status_report
 from drivesim.pipeline.workspace import Workspace
@@ -34,22 +34,6 @@ from drivesim.stages.train import run as train_run
 
 TESTS_DIR = Path(__file__).parent
 FAKE_SETS = [a for key, value in FAKE.items() for a in ("--set", f"{key}={value}")]
-
-
-def _cli(ws: Path, *args: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> tuple[int, str]:
-    """Run `drivesim --workspace ws ARGS` through `main` (the error boundary); returns (exit code, stderr)."""
-    previous = {signum: signal.getsignal(signum) for signum in (signal.SIGTERM, signal.SIGHUP)}
-    monkeypatch.setattr(sys, "argv", ["drivesim", "--workspace", str(ws), *args])
-    capsys.readouterr()
-    code = 0
-    try:
-        main()
-    except SystemExit as e:
-        code = 0 if e.code is None else int(e.code)
-    finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
-    return code, capsys.readouterr().err
 
 
 def _error_lines(err: str) -> list[str]:
@@ -102,7 +86,7 @@ def test_a_stale_world_is_refused_with_the_commands_that_refresh_it(tmp_path, mo
     register_fake_envs()
     ws = _chain_workspace(tmp_path)
     eval_args = ["eval", *FAKE_SETS, "--policy", "expert", "--episodes", "2", "--workers", "1"]
-    code, err = _cli(ws.root, *eval_args, "--name", "before", monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(ws.root, *eval_args, "--name", "before", monkeypatch=monkeypatch, capsys=capsys)
     assert code == 0, err
     assert _rows(ws)["build-world"]["state"] == "fresh"
 
@@ -114,7 +98,7 @@ def test_a_stale_world_is_refused_with_the_commands_that_refresh_it(tmp_path, mo
     assert world["reasons"][-1] == "refresh: `drivesim preprocess`, then `drivesim build-world`", world
     refresh = "refresh it with `drivesim preprocess`, then `drivesim build-world`"
     for args in ([*eval_args, "--name", "after"], ["train", "lane", "--total-steps", "256"]):
-        code, err = _cli(ws.root, *args, monkeypatch=monkeypatch, capsys=capsys)
+        code, err = run_main(ws.root, *args, monkeypatch=monkeypatch, capsys=capsys)
         lines = _error_lines(err)
         assert code == 2 and len(lines) == 1, err
         assert "the world artifact is stale (input preprocessed is stale (input trace changed))" in lines[0], err
@@ -124,7 +108,7 @@ def test_a_stale_world_is_refused_with_the_commands_that_refresh_it(tmp_path, mo
         ws.require("world", "drivesim build-world")
 
     explicit = [*eval_args, "--world", str(ws.artifact_dir("world")), "--name", "explicit"]
-    code, err = _cli(ws.root, *explicit, monkeypatch=monkeypatch, capsys=capsys)
+    code, err = run_main(ws.root, *explicit, monkeypatch=monkeypatch, capsys=capsys)
     assert code == 0, err
     assert (ws.root / "eval" / "explicit" / "manifest.json").is_file()
 
@@ -160,7 +144,7 @@ def test_a_world_file_changed_after_the_build_is_found_by_status_readers_and_the
 
     eval_args = ["eval", *FAKE_SETS, "--policy", "expert", "--episodes", "2", "--workers", "1"]
     for extra in ([], ["--world", str(ws.artifact_dir("world"))]):
-        code, err = _cli(ws.root, *eval_args, *extra, monkeypatch=monkeypatch, capsys=capsys)
+        code, err = run_main(ws.root, *eval_args, *extra, monkeypatch=monkeypatch, capsys=capsys)
         lines = _error_lines(err)
         assert code == 2 and len(lines) == 1, err
         assert "frames.npy changed" in lines[0] and "`drivesim build-world`" in lines[0], err
@@ -225,7 +209,7 @@ def test_a_second_writer_of_an_artifact_stops_with_one_line_until_the_first_ends
     try:
         with pytest.raises(ArtifactBusyError, match=f"pid {holder.pid}"), ws.lock("world"):
             pass
-        code, err = _cli(ws.root, "build-world", "--force", monkeypatch=monkeypatch, capsys=capsys)
+        code, err = run_main(ws.root, "build-world", "--force", monkeypatch=monkeypatch, capsys=capsys)
         lines = _error_lines(err)
         assert code == 2 and len(lines) == 1 and "is writing the world artifact" in lines[0], err
         assert not list(ws.root.glob(".tmp-*"))
