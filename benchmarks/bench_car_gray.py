@@ -21,6 +21,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from _lib.report import write_markdown
 
 from drivesim.bench.machine import machine_line
 
@@ -121,9 +122,7 @@ def main() -> None:
             f"{r['spread_mean']:.1f} | {r['spread_max']:.0f} |"
         )
     report = "\n".join(lines) + "\n"
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(report)
-    print(report)
+    write_markdown(args.output, [report])
     print(f"wrote {args.output}")
 
 

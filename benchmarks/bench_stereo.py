@@ -15,6 +15,8 @@ import subprocess
 from datetime import UTC, datetime
 from pathlib import Path
 
+from _lib.report import write_markdown
+
 from drivesim.bench.machine import machine_line
 
 HERE = Path(__file__).resolve().parent
@@ -85,9 +87,7 @@ def main() -> None:
                 f"- {r.name}: {r.psnr_all_filled_db:.2f} dB all (holes filled) vs {r.psnr_db:.2f} dB over filled "
                 f"pixels, {gap:.2f} dB apart: {'met' if gap <= 1.0 else 'NOT met'} (holes black: {r.psnr_all_db:.2f})\n"
             )
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(report)
-    print(report)
+    write_markdown(args.output, [report])
     print(f"wrote {args.output}")
 
 

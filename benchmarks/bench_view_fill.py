@@ -29,6 +29,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
+from _lib.report import write_markdown
 
 from drivesim.bench.machine import machine_line
 
@@ -254,9 +255,7 @@ def main() -> None:
     after = os.getloadavg()
     load = f"before `{before}`; 1/5/15-min load average after {after[0]:.2f} / {after[1]:.2f} / {after[2]:.2f}"
     report = markdown(coverage, speed, args, load)
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(report)
-    print(report)
+    write_markdown(args.output, [report])
     print(f"wrote {args.output}")
 
 
