@@ -32,6 +32,7 @@ import torch
 from torch.nn.functional import avg_pool2d, interpolate
 
 from drivesim.sim import fill_kernel
+from drivesim.sim.cpu_threads import parallel_slot
 from drivesim.sim.warp import forward_warp
 
 __all__ = [
@@ -212,10 +213,11 @@ def inpaint_holes(rgb: np.ndarray, hole: np.ndarray, threads: int = 1) -> int:
     whole side wedge. A view that is all hole stays as it is (black)."""
     count = int(np.count_nonzero(hole))
     if 0 < count < hole.size:
-        if threads > 1:
-            fill_kernel.pull_push_fill_bands_(rgb, hole, count, threads)
-        else:
-            fill_kernel.pull_push_fill_(rgb, hole, count)
+        with parallel_slot(threads) as granted:
+            if granted > 1:
+                fill_kernel.pull_push_fill_bands_(rgb, hole, count, granted)
+            else:
+                fill_kernel.pull_push_fill_(rgb, hole, count)
     return count
 
 

@@ -31,6 +31,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from drivesim.sim.cpu_threads import parallel_slot
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.shading import Lighting, dot3, normalize3, shade_blinn_phong
 
@@ -445,10 +446,11 @@ class Rasterizer:
             K_inv, _lighting_table(lighting, T.shape[0]), np.asarray(view_of_camera, dtype=np.int64), rgb, depth_m,
             front, gray,
         )  # fmt: skip
-        if threads > 1:
-            raster_kernel.draw_untextured_into_bands(int(threads), *inputs)
-        else:
-            raster_kernel.draw_untextured_into(*inputs)
+        with parallel_slot(int(threads)) as granted:
+            if granted > 1:
+                raster_kernel.draw_untextured_into_bands(granted, *inputs)
+            else:
+                raster_kernel.draw_untextured_into(*inputs)
 
     def _intrinsics_of(self, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(fx, fy, cx, cy) float64 and K^-1 float32 of intrinsics K, kept for the last K (a view draws with one)."""

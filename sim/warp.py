@@ -32,6 +32,8 @@ import numpy as np
 import torch
 from torch.nn.functional import pad
 
+from drivesim.sim.cpu_threads import parallel_slot
+
 __all__ = ["KernelWarp", "WarpResult", "forward_warp", "rendered_region"]
 
 _INF_BITS = 0x7F800000  # float32 +inf
@@ -432,7 +434,8 @@ class KernelWarp:
         plus the hole-filling margin). :param roi: (x0, y0, w, h) the region returned. :param fill_holes: fill cracks.
     :param partial: whether the rendered region is smaller than the destination image (then a source window).
     :param bands: horizontal bands the region is cut into, warped at the same time in numba's threads (1: one warp
-        in the calling thread); the pixels are the same (`_band_regions`).
+        in the calling thread); the pixels are the same (`_band_regions`). A call may still warp it whole, in the
+        calling thread (its `threads`).
     """
 
     def __init__(
@@ -455,27 +458,37 @@ class KernelWarp:
         self.partial = partial
         self.rays = _rays(H, W, torch.from_numpy(self.K_src)).numpy()
         self._band_rendered, self._band_roi = _band_regions(self.rendered, self.roi, self.radius, bands)
-        if len(self._band_roi) > 1:  # each band's source window is narrower than the whole region's
-            self.partial = True
-        self._window_rays = [
+        regions = [self.rendered.tolist(), *self._band_rendered.tolist()]
+        rays = [
             _window_rays(self.K_src.tobytes(), self.K_dst.tobytes(), (H, W), (ex0, ey0, ex0 + ew, ey0 + eh))
-            for ex0, ey0, ew, eh in self._band_rendered.tolist()
+            for ex0, ey0, ew, eh in regions
         ]
+        self._whole_rays, self._band_rays = rays[:1], rays[1:]
         self._whole = np.array([0, 0, W, H], dtype=np.int64)
 
     def __call__(
-        self, rgb: np.ndarray, depth_m: np.ndarray, min_depth_m: float, T_dst_src: np.ndarray
+        self, rgb: np.ndarray, depth_m: np.ndarray, min_depth_m: float, T_dst_src: np.ndarray, threads: int = 0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One frame (rgb (H, W, 3), depth_m (H, W) float32, its smallest finite depth) warped to pose T_dst_src
-        (4, 4): the region's (rgb (h, w, 3), depth (h, w) float32 +inf where empty, valid (h, w) bool) arrays."""
+        (4, 4): the region's (rgb (h, w, 3), depth (h, w) float32 +inf where empty, valid (h, w) bool) arrays.
+        `threads` 1: warped whole in the calling thread; else (0: all bands) its bands at once in numba's threads."""
+        with parallel_slot(len(self._band_roi) if threads == 0 else threads) as granted:
+            return self._warp(rgb, depth_m, min_depth_m, T_dst_src, banded=granted > 1 and len(self._band_roi) > 1)
+
+    def _warp(
+        self, rgb: np.ndarray, depth_m: np.ndarray, min_depth_m: float, T_dst_src: np.ndarray, banded: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`__call__`'s warp, of the bands at the same time or of the whole region in the calling thread."""
         from drivesim.sim import warp_kernel  # numba compiles (or loads its cache) on first import
 
         H, W = self.src_size
         T = np.asarray(T_dst_src, dtype=np.float64).reshape(1, 4, 4)
-        windows = np.empty((len(self._window_rays), 4), dtype=np.int64)
-        for b, window_rays in enumerate(self._window_rays):
+        window_list = self._band_rays if banded else self._whole_rays
+        partial = self.partial or banded  # each band's source window is narrower than the whole region's
+        windows = np.empty((len(window_list), 4), dtype=np.int64)
+        for b, window_rays in enumerate(window_list):
             windows[b] = self._whole
-            if self.partial:  # only the source pixels that can land in the region: a rectangle of the source frame
+            if partial:  # only the source pixels that can land in the region: a rectangle of the source frame
                 found = warp_kernel.source_window(float(min_depth_m), *window_rays, self.K_src, T, W, H)
                 windows[b] = self._whole if found[0] < 0 else found
         # q = K_dst (R P + t finite): finite points move with the camera, points at infinity only turn.
@@ -486,7 +499,7 @@ class KernelWarp:
         depth_out = np.empty((h, w), dtype=np.float32)
         valid = np.empty((h, w), dtype=bool)
         arrays = (self.rays, depth_m.reshape(H * W), rgb.reshape(H * W, 3), _NEAR_M, M, c)
-        if len(windows) == 1:
+        if not banded:
             warp_kernel.warp_region(
                 *arrays, windows[0], W, self.rendered, self.roi, self.radius, rgb_out, depth_out, valid
             )  # fmt: skip

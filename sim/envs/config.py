@@ -102,8 +102,8 @@ class EnvConfig(BaseModel):
     """torch device the views are rendered on: "cpu", or "cuda" (all the views of a world one process steps are
     rendered in one batch)."""
     render_threads: int = Field(1, ge=1, le=16)
-    """On the CPU, threads each view's warp is split over (the same pixels); 1 where envs already keep every core
-    busy."""
+    """On the CPU, most threads each view's warp is split over (the same pixels), fewer while other processes hold
+    the cores; 1 where envs already keep every core busy."""
     augment: bool = True
     """Episode-level photometric augmentation in training (never in evaluation)."""
     gamma: tuple[float, float] = (0.8, 1.25)
