@@ -227,3 +227,30 @@ def test_drivesim_run_chooses_the_preset(tmp_path: Path, monkeypatch, args: list
     done = CliRunner().invoke(app, ["--workspace", str(tmp_path / "ws"), *args])
     assert done.exit_code == 0, done.output
     assert seen["overrides"] == chain_run.load_run_preset(preset)
+
+
+def test_drivesim_run_ends_with_the_table_the_worlds_and_one_report_line(tmp_path: Path, monkeypatch) -> None:
+    from typer.testing import CliRunner
+
+    from drivesim.chain import run as chain_run
+    from drivesim.chain.walk import StageRun
+    from drivesim.cli.main import app
+
+    register_fake_envs()
+    world = fake_world(tmp_path / "drive_a")
+    run = _run_with_warm_start(tmp_path, world)
+    cfg = EvalConfig(world=str(world), policy=str(run), episodes=3, baseline_episodes=2, workers=1, **FAKE)
+    evaluated = run_eval(Workspace(tmp_path / "ws"), cfg, trust_entry_point=True)
+    stages = [StageRun("train", run, False, 1.0), StageRun("eval", evaluated.path, False, 2.0)]
+    monkeypatch.setattr(chain_run, "gpu_available", lambda: False)
+    monkeypatch.setattr(
+        chain_run, "run_chain", lambda *a, **k: chain_run.ChainRun(stages, report_html=evaluated.path / "report.html")
+    )
+    done = CliRunner().invoke(app, ["--workspace", str(tmp_path / "ws"), "run", str(tmp_path / "rec.bag")])
+    assert done.exit_code == 0, done.output
+    rows = {line.split("│")[1].strip(): line for line in done.output.splitlines() if line.count("│") > 5}
+    assert {"overtake-1 (all episodes)", "expert", "warm start", "paper, outdoor"} <= set(rows), done.output
+    assert "trained on: drive_a" in done.output
+    assert [line for line in done.output.splitlines() if line.startswith("report: ")] == [
+        f"report: {evaluated.path / 'report.html'}"
+    ]
