@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from drivesim.pipeline.errors import DrivesimError
+from drivesim.policy.lstm_state import LstmState
 
 INPUT_NAMES = ("image_u8", "h", "c", "episode_start")
 OUTPUT_NAMES = ("action", "h_out", "c_out")
@@ -77,7 +78,7 @@ def _check_digest(model: Any, meta: dict[str, Any], path: Path) -> None:
         )
 
 
-class OnnxPolicy:
+class OnnxPolicy(LstmState):
     """A `drivesim export onnx` graph on onnxruntime: `initial_state(n)` and `predict(...)` as `LoadedPolicy`.
 
     :param path: the .onnx file.
@@ -116,11 +117,6 @@ class OnnxPolicy:
         self.hidden_size = int(self.metadata["hidden_size"])
         self.config_hash = str(self.metadata.get("config_hash", ""))
         self.env_config: dict = dict(self.metadata.get("env_config") or {})
-
-    def initial_state(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """Zero LSTM state (h, c) for n episodes, each (layers, n, hidden) float32."""
-        shape = (self.lstm_layers, n, self.hidden_size)
-        return np.zeros(shape, np.float32), np.zeros(shape, np.float32)
 
     def predict(
         self, obs: np.ndarray, state: Any, episode_start: np.ndarray, deterministic: bool = True

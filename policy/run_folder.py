@@ -32,6 +32,7 @@ import numpy as np
 from drivesim.pipeline.errors import DrivesimError
 from drivesim.pipeline.hashing import sha256_file
 from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
+from drivesim.policy.lstm_state import LstmState
 
 POLICY_JSON = "policy.json"
 POLICY_WEIGHTS = "policy.pt"
@@ -58,7 +59,7 @@ def _read_json(path: Path, what: str) -> dict[str, Any]:
 
 
 @dataclass
-class LoadedPolicy:
+class LoadedPolicy(LstmState):
     """A trained policy ready to act: `predict` steps N episodes at once, with explicit LSTM state.
 
     :param run_dir: the run folder.
@@ -87,11 +88,6 @@ class LoadedPolicy:
     def hidden_size(self) -> int:
         """LSTM cells per layer."""
         return int(self.net.hidden_size)
-
-    def initial_state(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """Zero LSTM state (h, c) for n episodes, each (layers, n, hidden) float32."""
-        shape = (self.lstm_layers, n, self.hidden_size)
-        return np.zeros(shape, np.float32), np.zeros(shape, np.float32)
 
     def predict(
         self, obs: np.ndarray, state: Any, episode_start: np.ndarray, deterministic: bool = True
