@@ -59,17 +59,8 @@ def test_run_walks_the_chain_then_skips_it(tmp_path: Path) -> None:
     tiny = tmp_path / "tiny.yaml"
     tiny.write_text(yaml.safe_dump(TINY))
     ws = tmp_path / "ws"
-    done = drivesim(
-        ws,
-        "run",
-        "--preset",
-        "demo",
-        "--config",
-        str(tiny),
-        "--set",
-        "preprocess.depth.method=plane",
-        "--trust-entry-point",
-    )
+    args = ["run", "--preset", "demo", "--config", str(tiny), "--set", "preprocess.depth.method=plane"]
+    done = drivesim(ws, *args, "--trust-entry-point")
     assert done.returncode == 0, done.stderr[-2000:]
     out = done.stdout
     for stage in ["synth", *names]:
@@ -84,17 +75,7 @@ def test_run_walks_the_chain_then_skips_it(tmp_path: Path) -> None:
     check = json.loads((ws / "export" / "check.json").read_text())
     assert check["max_abs_diff"] <= 1e-4 and Path(check["run"]).parent == ws / "runs"
 
-    again = drivesim(
-        ws,
-        "run",
-        "--preset",
-        "demo",
-        "--config",
-        str(tiny),
-        "--set",
-        "preprocess.depth.method=plane",
-        "--trust-entry-point",
-    )
+    again = drivesim(ws, *args, "--trust-entry-point")
     assert again.returncode == 0, again.stderr[-2000:]
     for stage in ["synth", *names]:
         assert f"{stage}: fresh, skipped" in again.stdout, again.stdout
