@@ -20,6 +20,11 @@ from drivesim.stages.preprocess.config import DepthConfig
 
 bench_app = typer.Typer(no_args_is_help=True)
 
+MarkdownOption = Annotated[
+    Path | None, typer.Option("--markdown", help="Also write the results as a markdown report to this file.")
+]
+JsonOption = Annotated[bool, typer.Option("--json", help="Print the results as JSON instead of tables.")]
+
 if TYPE_CHECKING:  # the fidelity module imports torch: only when the command runs
     from drivesim.bench.fidelity import FidelityResult
 
@@ -82,7 +87,7 @@ def fidelity_markdown(result: FidelityResult, command: str) -> str:
 
 @bench_app.command("fidelity")
 def fidelity_command(
-    as_json: Annotated[bool, typer.Option("--json", help="Print the results as JSON instead of tables.")] = False,
+    as_json: JsonOption = False,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the synthetic world.")] = 0,
     frames: Annotated[int, typer.Option("--frames", help="Frames in the synthetic drive (10 Hz).", min=2)] = 24,
     width_px: Annotated[int, typer.Option("--width", help="Image width (pixels).", min=32)] = 320,
@@ -93,9 +98,7 @@ def fidelity_command(
     figure: Annotated[
         Path | None, typer.Option("--figure", help="Side-by-side PNG (default <workspace>/bench/fidelity.png).")
     ] = None,
-    markdown: Annotated[
-        Path | None, typer.Option("--markdown", help="Also write the results as a markdown report to this file.")
-    ] = None,
+    markdown: MarkdownOption = None,
     config: ConfigOption = None,
     set_: set_option("method=mvs") = None,
 ) -> None:
@@ -142,7 +145,7 @@ def fidelity_command(
 
 @bench_app.command("sim")
 def sim_command(
-    as_json: Annotated[bool, typer.Option("--json", help="Print the results as JSON instead of tables.")] = False,
+    as_json: JsonOption = False,
     world: Annotated[
         Path | None, typer.Option("--world", help="World folder (default: the workspace's world/).")
     ] = None,
@@ -150,9 +153,7 @@ def sim_command(
     tasks: Annotated[
         str, typer.Option("--tasks", help="Comma-separated tasks (overtake:eval: episodes that end at the pass).")
     ] = "lane,follow,overtake,overtake:eval",
-    markdown: Annotated[
-        Path | None, typer.Option("--markdown", help="Also write the results as a markdown report to this file.")
-    ] = None,
+    markdown: MarkdownOption = None,
 ) -> None:
     """Simulator speed: env steps/s per task (one process, one env per core, batched envs) at the default
     observation, ms per step split into dynamics, association, warp, car raster, harmonization and rewards, and
@@ -204,9 +205,7 @@ def car_fidelity_command(
     figure: Annotated[
         Path | None, typer.Option("--figure", help="Side-by-side PNG (default <workspace>/bench/car_fidelity.png).")
     ] = None,
-    markdown: Annotated[
-        Path | None, typer.Option("--markdown", help="Also write the results as a markdown report to this file.")
-    ] = None,
+    markdown: MarkdownOption = None,
 ) -> None:
     """Inserted-car fidelity against ground truth on the synthetic world (lighting and harmonization off and on, at
     lateral offsets 0, 0.5, 1 m) and view synthesis on real frames (a recorded frame warped to a later frame's pose,
@@ -249,9 +248,7 @@ def stereo_command(
     figure: Annotated[
         Path | None, typer.Option("--figure", help="Worst-frame PNG (default <workspace>/bench/stereo_worst.png).")
     ] = None,
-    markdown: Annotated[
-        Path | None, typer.Option("--markdown", help="Also write the results as a markdown report to this file.")
-    ] = None,
+    markdown: MarkdownOption = None,
     config: ConfigOption = None,
     set_: set_option("method=mvs") = None,
 ) -> None:
