@@ -34,6 +34,12 @@ def interruptible() -> None:
 def run_main(ws: Path, *args: str, monkeypatch: Any, capsys: Any) -> tuple[int, str]:
     """Run `drivesim --workspace ws ARGS` through `main` in this process (the CLI's error boundary, as a user meets
     it); returns (exit code, stderr). The signal handlers `main` installs are put back."""
+    code, _, err = run_main_captured(ws, *args, monkeypatch=monkeypatch, capsys=capsys)
+    return code, err
+
+
+def run_main_captured(ws: Path, *args: str, monkeypatch: Any, capsys: Any) -> tuple[int, str, str]:
+    """`run_main`, returning (exit code, stdout, stderr)."""
     from drivesim.cli.main import main
 
     previous = {signum: signal.getsignal(signum) for signum in (signal.SIGTERM, signal.SIGHUP)}
@@ -47,4 +53,5 @@ def run_main(ws: Path, *args: str, monkeypatch: Any, capsys: Any) -> tuple[int, 
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    return code, capsys.readouterr().err
+    out, err = capsys.readouterr()
+    return code, out, err

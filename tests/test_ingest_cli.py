@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
-from cli_helpers import REAL_DATA, interruptible
+from cli_helpers import REAL_DATA, interruptible, run_main_captured
 from recordings import (
     START_NS,
     Msg,
@@ -21,22 +21,13 @@ from recordings import (
     write_recording,
 )
 
-from drivesim.cli.main import main
-
 REAL = REAL_DATA
 HUSKY = REAL / "husky_gps_imu_odom.bag"
 
 
 def _run(monkeypatch, capsys, ws: Path, *args: str) -> tuple[int, str, str]:
     """Run `drivesim --workspace ws ARGS` in-process; (exit code, stdout, stderr)."""
-    monkeypatch.setattr(sys, "argv", ["drivesim", "--workspace", str(ws), *args])
-    code = 0
-    try:
-        main()
-    except SystemExit as e:
-        code = int(e.code or 0)
-    out, err = capsys.readouterr()
-    return code, out, err
+    return run_main_captured(ws, *args, monkeypatch=monkeypatch, capsys=capsys)
 
 
 def _assert_refused(code: int, err: str, ws: Path, *fragments: str) -> None:

@@ -9,15 +9,14 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from cli_helpers import run_main_captured
 from gopro_mp4 import add_gopro_gps, gpmf_payload
 
-from drivesim.cli.main import main
 from drivesim.sim.geometry import R_VEHICLE_OPTICAL
 
 WIDTH, HEIGHT, HFOV_DEG = 320, 240, 90.0
@@ -113,15 +112,8 @@ def write_gpx(path: Path, centres: np.ndarray, start: dt.datetime, lat0: float =
 
 
 def _run(monkeypatch, capsys, ws: Path, *args: str) -> tuple[int, str, str]:
-    """`drivesim --workspace ws ARGS` in-process; (exit code, stdout, stderr)."""
-    monkeypatch.setattr(sys, "argv", ["drivesim", "--workspace", str(ws), *args])
-    code = 0
-    try:
-        main()
-    except SystemExit as e:
-        code = int(e.code or 0)
-    out, err = capsys.readouterr()
-    return code, out, err
+    """Run `drivesim --workspace ws ARGS` in-process; (exit code, stdout, stderr)."""
+    return run_main_captured(ws, *args, monkeypatch=monkeypatch, capsys=capsys)
 
 
 def _assert_refused(code: int, err: str, ws: Path, *fragments: str) -> None:
