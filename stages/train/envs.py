@@ -63,32 +63,17 @@ class EnvSource:
             venv = RayVecEnv([self.env_fn(mode) for _ in range(count)], address=address)
             venv.seed(seed)
             return venv
-        if kind == "batched" and not self.cost_free and self.processes > 1 and count > 1:
-            from drivesim.sim.envs.parallel import ProcessBatchedVecEnv
-
-            return ProcessBatchedVecEnv(
-                self.task,
-                count,
-                self._world_arg(),
-                None if self.meshes is None else str(self.meshes),
-                mode,
-                self.env_config(),
-                seed,
-                workers=self.processes,
-                worker_threads=self.worker_threads,
-            )
         if kind == "batched" and not self.cost_free:
+            batch = (self.task, count, self._world_arg(), None if self.meshes is None else str(self.meshes), mode)
+            if self.processes > 1 and count > 1:
+                from drivesim.sim.envs.parallel import ProcessBatchedVecEnv
+
+                return ProcessBatchedVecEnv(
+                    *batch, self.env_config(), seed, workers=self.processes, worker_threads=self.worker_threads
+                )
             from drivesim.sim.envs.vector import BatchedVecEnv
 
-            venv: VecEnv = BatchedVecEnv(
-                self.task,
-                count,
-                self._world_arg(),
-                None if self.meshes is None else str(self.meshes),
-                mode,
-                self.env_config(),
-                seed,
-            )
+            venv: VecEnv = BatchedVecEnv(*batch, self.env_config(), seed)
             return venv
         if kind == "subproc" and count > 1:
             venv = SubprocVecEnv([self.env_fn(mode) for _ in range(count)], start_method="forkserver")
