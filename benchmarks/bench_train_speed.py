@@ -1,34 +1,42 @@
-"""Env steps per second of `learn()`: where the learner's time goes, and the real overtake env end to end.
+"""Env steps per second of `drivesim train`: the preset's whole training loop, with the bare PPO loop beside it.
 
-Part 1, the learner alone, on the cost-free env (3x64x160 uint8 images, 2 envs; issue 9 "Speed is a feature"):
-sb3-contrib's default CnnLstmPolicy, then one change at a time up to drivesim's policy (small CNN, one shared LSTM,
-fused recurrent pass, fixed-length chunks, thread settings), and plain PPO with the same CNN as the ceiling.
-Part 2 (with --world), the real overtake env through `drivesim.stages.train.run.build_model` with the preset's
-settings: end to end, split into simulator / rest of the rollout / optimization, 4 epochs and the paper's 10.
+With --world, two rows on that world. The preset: `drivesim train TASK --world W --total-steps N` run as a user types
+it, in a fresh workspace (the preset's env wrappers, VecNormalize, the imitation passes after each update, the
+periodic evaluations and every checkpoint), its rate read from the run's own progress.csv and from the command's wall
+time; the towns are left out (`--set towns=[]`: building one takes many minutes) and the evaluation is scaled to the
+budget (`--eval-every`, `--eval-episodes`). The bare PPO loop: the same preset's model (`build_model`) learning on the
+same envs, nothing else.
+With --learner, the learner alone on the cost-free env (3x64x160 uint8 images, 2 envs): sb3-contrib's default
+CnnLstmPolicy, then one change at a time up to drivesim's policy, and plain PPO with the same CNN as the ceiling.
 
-    .venv/bin/python benchmarks/bench_train_speed.py                       # part 1, 4096 steps per variant
-    .venv/bin/python benchmarks/bench_train_speed.py --world /tmp/ws-demo/world --steps 8192
+    .venv/bin/python benchmarks/bench_train_speed.py --world /tmp/ws-demo/world --steps 16384
+    .venv/bin/python benchmarks/bench_train_speed.py --learner
 
-Writes benchmarks/results/train_speed.md (with the load average: the machine may be shared).
+Writes benchmarks/results/train_speed.md and train_speed.json (with the load average: the machine may be shared).
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import os
-import platform
+import subprocess
+import sys
+import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
+from _lib.report import write_markdown
 from sb3_contrib import RecurrentPPO
 from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
 from stable_baselines3 import PPO
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
+from drivesim.bench.machine import machine_line
 from drivesim.policy.net import encoder_macs
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
@@ -36,8 +44,8 @@ from drivesim.stages.train.recurrent import ChunkedRecurrentPPO, TimedVecEnv
 from drivesim.stages.train.sb3_policy import DrivingLstmPolicy, EncoderExtractor
 
 RESULTS = Path(__file__).parent / "results" / "train_speed.md"
-LEARNER = "The learner alone (cost-free env)"
-REAL = "End to end with the real simulator (overtake)"
+PROGRESS_KEYS = ("steps", "wall_s", "steps_per_s_run", "time_rollout_s", "time_optimization_s", "time_imitation_s",
+                 "time_simulator_s", "eval_success_rate", "eval_return_mean")  # fmt: skip
 SHAPE = (3, 64, 160)
 SMALL_CNN = {"conv_layers": [[16, 5, 2], [32, 3, 2], [64, 3, 1]], "features_dim": 128, "input_pool": 2}
 FULL_RES_CNN = {"conv_layers": [[16, 5, 3], [32, 3, 2], [64, 3, 2]], "features_dim": 128, "input_pool": 1}
@@ -241,39 +249,44 @@ def learner_variants(steps: int, epochs: int, include_slow: bool) -> list[Row]:
     return rows
 
 
-def real_env_rows(world: Path, steps: int, envs: int) -> list[Row]:
+def train_stage_row(world: Path, task: str, steps: int, eval_every: int, eval_episodes: int) -> dict[str, Any]:
+    """`drivesim train` in a fresh workspace for `steps` env steps; its last progress.csv row and its wall time."""
+    with tempfile.TemporaryDirectory(prefix="bench-train-speed-") as tmp:
+        command = [
+            sys.executable, "-m", "drivesim.cli.main", "--workspace", tmp, "train", task, "--world", str(world),
+            "--total-steps", str(steps), "--set", "towns=[]", "--set", f"eval.every_steps={eval_every}",
+            "--set", f"eval.episodes={eval_episodes}",
+        ]  # fmt: skip
+        began = time.perf_counter()
+        done = subprocess.run(command, capture_output=True, text=True, check=False)
+        wall_s = time.perf_counter() - began
+        if done.returncode != 0:
+            sys.exit(f"drivesim train failed (exit {done.returncode}):\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}")
+        progress = next(Path(tmp, "runs").glob("*/progress.csv"))
+        rows = list(csv.DictReader(progress.open()))
+    last = {k: float(v) for k, v in rows[-1].items() if k in PROGRESS_KEYS and v}
+    print(
+        f"drivesim train: {last['steps']:.0f} steps, {last['steps_per_s_run']} env steps/s, {wall_s:.0f} s", flush=True
+    )
+    return {"command": "drivesim " + " ".join(command[3:]).replace(tmp, "WS"), "updates": len(rows), "command_wall_s": wall_s,
+            "last_progress_row": last}  # fmt: skip
+
+
+def bare_loop_row(world: Path, task: str, steps: int) -> Row:
+    """The preset's model learning `steps` env steps on the preset's envs: no VecNormalize, imitation, evaluation or
+    checkpoint."""
     from drivesim.pipeline.config import load_config
     from drivesim.stages.train.envs import EnvSource
     from drivesim.stages.train.run import build_model
 
-    rows = []
-    # Batched envs in the learner's process (`envs` of them, then 8), 8 split over 2 worker processes that step in
-    # parallel (the learner with its 2 torch threads throughout, then with 1 while it collects the rollout), the
-    # same with the paper's 10 epochs, and SB3's one process per env as the alternative.
-    variants = ((4, "batched", envs, 1, None), (4, "batched", 8, 1, None), (4, "batched", 8, 2, None),
-                (4, "batched", 8, 2, 1), (10, "batched", 8, 2, 1), (4, "subproc", 2, 1, None))  # fmt: skip
-    for epochs, vec_env, count, processes, rollout_threads in variants:
-        overrides = [f"ppo.epochs={epochs}", f"envs.count={count}", f"envs.vec_env={vec_env}",
-                     f"envs.processes={processes}", f"ppo.buffer_steps={steps}"]  # fmt: skip
-        if rollout_threads is not None:
-            overrides.append(f"rollout_threads={rollout_threads}")
-        cfg = load_config(TrainConfig, preset="train/overtake", overrides=overrides)
-        source = EnvSource(task="overtake", worlds=[world], processes=cfg.envs.processes)
-        venv = source.make_vec(cfg.envs.count, cfg.envs.vec_env, seed=0)
-        where = f"{processes} worker processes" if processes > 1 else "in the learner's process"
-        if rollout_threads is not None:
-            where += f", {rollout_threads} learner thread during rollouts"
-        rows.append(
-            measure(
-                f"overtake, real simulator ({cfg.envs.vec_env}, {count} envs"
-                f"{', ' + where if vec_env == 'batched' else ''}), {epochs} epochs, buffer {cfg.ppo.buffer_steps}",
-                lambda env, cfg=cfg: build_model(cfg, env),
-                steps,
-                venv,
-                threads=cfg.learner_threads,
-            )
-        )
-    return rows
+    cfg = load_config(TrainConfig, preset=f"train/{task}", overrides=["towns=[]"])
+    source = EnvSource(task=task, worlds=[world], processes=cfg.envs.processes)
+    venv = source.make_vec(cfg.envs.count, cfg.envs.vec_env, seed=0)
+    name = (
+        f"bare PPO loop ({cfg.envs.vec_env}, {cfg.envs.count} envs, {cfg.ppo.epochs} epochs, "
+        f"buffer {cfg.ppo.buffer_steps})"
+    )
+    return measure(name, lambda env: build_model(cfg, env), steps, venv, threads=cfg.learner_threads)
 
 
 def _table(rows: list[Row]) -> list[str]:
@@ -289,71 +302,92 @@ def _table(rows: list[Row]) -> list[str]:
     return lines
 
 
-def _sections() -> dict[str, str]:
-    """The result file's two sections (learner alone, real simulator) as last written."""
-    if not RESULTS.is_file():
-        return {}
-    parts = RESULTS.read_text().split("\n## ")
-    return {p.split("\n", 1)[0]: "## " + p for p in parts[1:]}
+def _preset_lines(train: dict[str, Any], bare: Row, args: argparse.Namespace) -> list[str]:
+    """The section of the preset's loop and the bare loop."""
+    last = train["last_progress_row"]
+    return [
+        f"## `drivesim train {args.task}` against the bare PPO loop",
+        "",
+        f"World: `{args.world}`. Reproduce: `python benchmarks/bench_train_speed.py --world WORLD --task {args.task} "
+        f"--steps {args.steps} --bare-steps {args.bare_steps} --eval-every {args.eval_every} "
+        f"--eval-episodes {args.eval_episodes}`. The preset's towns left out, its evaluation cut to "
+        f"{args.eval_episodes} episodes every {args.eval_every} env steps (the preset: 100 every 40960).",
+        "",
+        "| what | env steps | env steps/s | rollout [s] | of which simulator [s] | optimization [s] | imitation [s] |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+        f"| the preset: `drivesim train`, its progress.csv ({train['updates']} updates; the last update's "
+        f"evaluation and checkpoint not counted) | {last['steps']:.0f} | {last['steps_per_s_run']:.0f} | "
+        f"{last.get('time_rollout_s', 0):.1f} | {last.get('time_simulator_s', 0):.1f} | "
+        f"{last.get('time_optimization_s', 0):.1f} | {last.get('time_imitation_s', 0):.1f} |",
+        f"| the preset: `drivesim train`, the whole command (start-up, every evaluation and checkpoint, the run's "
+        f"files) | {last['steps']:.0f} | {last['steps'] / train['command_wall_s']:.0f} | | | | |",
+        f"| {bare.name} | {args.bare_steps} | {bare.steps_per_s:.0f} | {bare.rollout_s:.1f} | {bare.simulator_s:.1f} "
+        f"| {bare.optimization_s:.1f} | 0 |",
+        "",
+    ]
 
 
-def write_results(
-    learner: list[Row], real: list[Row], args: argparse.Namespace, load: tuple[float, float, float]
-) -> None:
-    """Rewrite the sections measured now; keep the other one as it was."""
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    when = (
-        f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {platform.node()} "
-        f"({os.cpu_count()} cores), torch {torch.__version__}; load average before: {load[0]:.2f} / {load[1]:.2f} "
-        f"/ {load[2]:.2f} (1/5/15 min)."
-    )
-    sections = _sections()
+def write_results(learner: list[Row], train: dict[str, Any] | None, bare: Row | None, args: argparse.Namespace,
+                  load_before: tuple[float, float, float]) -> None:  # fmt: skip
+    """Write the sections measured now (the markdown and its raw figures)."""
+    load_after = os.getloadavg()
+    lines = [
+        "# Training speed: env steps per second of `drivesim train`",
+        "",
+        f"Machine: {machine_line()}, torch {torch.__version__}. Date: "
+        f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. Load average before: {load_before[0]:.2f} / "
+        f"{load_before[1]:.2f} / {load_before[2]:.2f}, after: {load_after[0]:.2f} / {load_after[1]:.2f} / "
+        f"{load_after[2]:.2f} (1/5/15 min): the machine was shared, so these are lower than on a quiet one.",
+        "",
+    ]
+    if train is not None and bare is not None:
+        lines += _preset_lines(train, bare, args)
     if learner:
-        sections[LEARNER] = "\n".join(
-            [
-                f"## {LEARNER}",
-                "",
-                when + f" Cost-free env, 2 envs, {args.steps} steps, rollout 1024 steps per env, "
-                f"minibatch 512, {args.epochs} epochs. `python benchmarks/bench_train_speed.py` redoes it.",
-                "",
-                *_table(learner),
-                "",
-            ]
-        )
-    if real:
-        sections[REAL] = "\n".join(
-            [
-                f"## {REAL}",
-                "",
-                when + f" The overtake preset on {args.world}, "
-                f"{args.real_steps} env steps per run, the buffer cut to that. `python benchmarks/bench_train_speed.py "
-                "--only-real --world WORLD` redoes it.",
-                "",
-                *_table(real),
-                "",
-            ]
-        )
-    text = "# Training speed: env steps per second of `learn()`\n\n" + "\n".join(
-        sections[k] for k in (LEARNER, REAL) if k in sections
-    )
-    RESULTS.write_text(text.rstrip() + "\n")
-    print(f"wrote {RESULTS}")
+        lines += [
+            "## The learner alone (cost-free env)",
+            "",
+            f"Cost-free env, 2 envs, {args.learner_steps} steps, rollout 1024 steps per env, minibatch 512, "
+            f"{args.epochs} epochs. `python benchmarks/bench_train_speed.py --learner` redoes it.",
+            "",
+            *_table(learner),
+            "",
+        ]
+    raw = {
+        "load_average_before_after_1_5_15_min": [load_before, load_after],
+        "torch": torch.__version__,
+        "world": str(args.world) if args.world else None,
+        "task": args.task,
+        "train_stage": train,
+        "bare_loop": asdict(bare) | {"steps": args.bare_steps} if bare is not None else None,
+        "learner_alone": [asdict(r) for r in learner],
+    }
+    write_markdown(RESULTS, lines, raw)
 
 
 def main() -> None:
+    """Measure what the flags ask for and write the results."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=int, default=4096, help="env steps per variant")
+    parser.add_argument("--world", type=Path, default=None, help="a world folder: the preset's loop and the bare one")
+    parser.add_argument("--task", default="overtake", help="the task whose preset is timed")
+    parser.add_argument("--steps", type=int, default=16384, help="env steps of the `drivesim train` run")
+    parser.add_argument("--bare-steps", type=int, default=8192, help="env steps of the bare PPO loop")
+    parser.add_argument("--eval-every", type=int, default=8192, help="evaluation period of the train run [env steps]")
+    parser.add_argument("--eval-episodes", type=int, default=8, help="episodes per evaluation of the train run")
+    parser.add_argument("--learner", action="store_true", help="also the learner alone on the cost-free env")
+    parser.add_argument("--learner-steps", type=int, default=4096, help="env steps per learner variant")
     parser.add_argument("--epochs", type=int, default=4, help="PPO epochs of the learner variants")
     parser.add_argument("--skip-slow", action="store_true", help="skip sb3-contrib's default policy variants")
-    parser.add_argument("--world", type=Path, default=None, help="a world folder: also the real overtake env")
-    parser.add_argument("--real-steps", type=int, default=8192, help="env steps of each real-env run")
-    parser.add_argument("--envs", type=int, default=4, help="envs of the real-env runs")
-    parser.add_argument("--only-real", action="store_true", help="only the real-env runs")
     args = parser.parse_args()
+    if args.world is None and not args.learner:
+        parser.error("nothing to measure: give --world WORLD (the preset's loop) and/or --learner")
     load = os.getloadavg()
-    learner = [] if args.only_real else learner_variants(args.steps, args.epochs, not args.skip_slow)
-    real = [] if args.world is None else real_env_rows(args.world, args.real_steps, args.envs)
-    write_results(learner, real, args, load)
+    train = bare = None
+    if args.world is not None:
+        args.world = args.world.absolute()
+        train = train_stage_row(args.world, args.task, args.steps, args.eval_every, args.eval_episodes)
+        bare = bare_loop_row(args.world, args.task, args.bare_steps)
+    learner = learner_variants(args.learner_steps, args.epochs, not args.skip_slow) if args.learner else []
+    write_results(learner, train, bare, args, load)
 
 
 if __name__ == "__main__":

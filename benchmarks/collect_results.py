@@ -68,9 +68,9 @@ SECTIONS: tuple[Section, ...] = (
     Section(
         "train_speed",
         "Training speed",
-        "env steps/s of `learn()`",
+        "env steps/s of `drivesim train` (the preset's whole loop) and of the bare PPO loop",
         "python benchmarks/bench_train_speed.py --world W",
-        ("train_speed.md",),
+        ("train_speed.md", "train_speed.json"),
     ),
     Section(
         "gpu",
