@@ -81,7 +81,14 @@ def main() -> None:
         "stops at the preset's `total_steps` or its 15-min training time limit, whichever comes first.",
         "",
     ]
-    write_markdown(RESULTS, lines)
+    raw = {
+        "measured": {"date_utc": f"{when:%Y-%m-%d %H:%M}", "machine": machine},
+        "source": source,
+        "stages": [{"stage": stage, "wall_s": s} for stage, s in times],
+        "total_s": total_s,
+        "budget_min": BUDGET_MIN,
+    }
+    write_markdown(RESULTS, lines, raw)
 
 
 if __name__ == "__main__":

@@ -159,7 +159,28 @@ def main() -> None:
         "expert here is the privileged controller that sees the true state, a reference for the env.",
         "",
     ]
-    write_markdown(RESULTS, lines)
+    raw = {
+        "command": cmd,
+        "world": str(world),
+        "task": args.task,
+        "load_average_start_end": [load_start, load_end],
+        "same_metrics_every_worker_count": same if len(comparable) > 1 else None,
+        "runs": [
+            {
+                "policy": _policy_name(r["policy"]),
+                "workers": r["workers"],
+                "episodes": r["episodes"],
+                "wall_s": r["wall_s"],
+                "episodes_per_min_loop": r["summary"].episodes_per_min,
+                "episodes_per_min_end_to_end": 60 * r["episodes"] / r["wall_s"],
+                "aggregate": r["metrics"]["aggregate"],
+                "intervention_causes": r["metrics"]["intervention_causes"],
+            }
+            for r in runs + others
+        ],
+        "paper_table_i": PAPER_TABLE_I,
+    }
+    write_markdown(RESULTS, lines, raw)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import subprocess
 import sys
 import tempfile
@@ -201,9 +200,7 @@ def main() -> None:
         if args.before:
             data["before_ref"] = args.before
             data["before"] = measure_before(module_at(args.before), world, tmp, args.episodes_timed)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "eval_startup.json").write_text(json.dumps(data, indent=2) + "\n")
-    write_markdown(RESULTS / "eval_startup.md", report(data))
+    write_markdown(RESULTS / "eval_startup.md", report(data), data)
 
 
 if __name__ == "__main__":

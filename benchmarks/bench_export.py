@@ -54,7 +54,11 @@ def main() -> None:
         f"| export and checks | {s.export_s:.1f} s |",
         "",
     ]
-    write_markdown(RESULTS, lines)
+    raw = {"run": str(run), "task": s.task, "budget_ms": BUDGET_MS} | {
+        k: getattr(s, k)
+        for k in ("max_abs_diff", "max_rel_diff_state", "latency_median_ms", "latency_p99_ms", "size_bytes", "export_s")
+    }
+    write_markdown(RESULTS, lines, raw)
 
 
 if __name__ == "__main__":

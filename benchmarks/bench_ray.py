@@ -148,7 +148,38 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-ray-") as tmp:
         world = args.world.absolute() if args.world else build_demo_world(Path(tmp) / "ws")
         measured = measure(args, world, Path(tmp))
-    write_markdown(args.out, report(args, measured))
+    write_markdown(args.out, report(args, measured), raw_figures(args, measured))
+
+
+def raw_figures(args: argparse.Namespace, m: Measured) -> dict:
+    """The figures the report shows, unrounded, for the JSON beside it."""
+    backends = [
+        {
+            "backend": t.backend,
+            "workers": t.workers,
+            "episodes": len(t.arrivals_s),
+            "first_episode_s": t.first_episode_s,
+            "wall_s": t.wall_s,
+            "episodes_per_min_end_to_end": t.per_min_end_to_end,
+            "episodes_per_min_steady": t.per_min_steady,
+        }
+        for t in (m.local, m.on_ray)
+    ]
+    return {
+        "world": str(m.world),
+        "address": args.address,
+        "nodes": m.nodes,
+        "load_average_start_end": [m.load_start, m.load_end],
+        "backends": backends,
+        "ray_start_s": m.ray_start_s,
+        "same_episode_files": m.same_files,
+        "bytes_sent_per_episode": m.bytes_sent,
+        "bytes_file_per_episode": m.bytes_file,
+        "driver_s_per_episode": m.driver_s,
+        "steps_per_episode": m.steps,
+        "cores_per_node": args.cores_per_node,
+        "bandwidth_gbps": args.bandwidth_gbps,
+    }
 
 
 def measure(args: argparse.Namespace, world: Path, tmp: Path) -> Measured:

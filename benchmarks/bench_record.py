@@ -28,6 +28,7 @@ import tempfile
 import time
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 from _lib.report import write_markdown
 
@@ -151,8 +152,11 @@ def bench_policy(world: Path, policy: str, env: dict, episodes: int, workers: in
     }
 
 
-def bench_world(world_arg: str, episodes: int, workers: int, repeats: int, tmp: Path) -> list[str]:
-    """Both policies on one world ("small" = the tests' small world); the markdown section of that world."""
+def bench_world(
+    world_arg: str, episodes: int, workers: int, repeats: int, tmp: Path
+) -> tuple[list[str], dict[str, Any]]:
+    """Both policies on one world ("small" = the tests' small world); the markdown section of that world and its
+    raw figures."""
     if world_arg == "small":
         sys.path.insert(0, str(TESTS))
         from sim_worlds import SMALL_VIEW, write_test_world
@@ -204,7 +208,8 @@ def bench_world(world_arg: str, episodes: int, workers: int, repeats: int, tmp: 
         "in the median).",
         "",
     ]
-    return lines
+    raw = {"world": title, "episodes": episodes, "load_average_start_end": [load_start, load_end], "policies": rows}
+    return lines, raw
 
 
 def main() -> None:
@@ -223,10 +228,13 @@ def main() -> None:
     worlds = args.world or ["small"]
     counts = [int(v) for v in args.episodes.split(",")]
     counts = counts * len(worlds) if len(counts) == 1 else counts
-    sections = []
+    sections: list[str] = []
+    raw: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="bench-record-world-") as tmp:
         for world, episodes in zip(worlds, counts, strict=True):
-            sections += bench_world(world, episodes, args.workers, args.repeats, Path(tmp))
+            lines, figures = bench_world(world, episodes, args.workers, args.repeats, Path(tmp))
+            sections += lines
+            raw.append(figures)
     cmd = f"python benchmarks/bench_record.py --episodes {args.episodes} --workers {args.workers}"
     cmd += f" --repeats {args.repeats}" + "".join(f" --world {w}" for w in args.world or [])
     lines = [
@@ -245,7 +253,7 @@ def main() -> None:
         "",
         *sections,
     ]
-    write_markdown(RESULTS, lines)
+    write_markdown(RESULTS, lines, {"command": cmd, "worlds": raw})
 
 
 if __name__ == "__main__":

@@ -110,7 +110,9 @@ def main() -> None:
         "in-process; the CLI adds about 2 s of imports.",
         "",
     ]
-    write_markdown(RESULTS, lines)
+    world = {k: v for k, v in w.items() if k != "world"} | {"road_length_m": w["world"].road.length_m}
+    raw = {"command": cmd, "load_average_start": load, "world": world, "frames": f, "demo": d}
+    write_markdown(RESULTS, lines, raw)
 
 
 if __name__ == "__main__":
