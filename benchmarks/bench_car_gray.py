@@ -122,7 +122,14 @@ def main() -> None:
             f"{r['spread_mean']:.1f} | {r['spread_max']:.0f} |"
         )
     report = "\n".join(lines) + "\n"
-    write_markdown(args.output, [report])
+    raw = {
+        "frames": args.frames,
+        "seed": args.seed,
+        "load_before": before,
+        "load_after_1_5_15_min": after,
+        "rows": rows,
+    }
+    write_markdown(args.output, [report], raw)
     print(f"wrote {args.output}")
 
 

@@ -22,6 +22,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
+from _lib.report import write_markdown
 
 from drivesim.bench.machine import machine_line
 
@@ -97,9 +98,13 @@ def main() -> None:
             f"| {view} | {version} | {min(medians):.2f} ({', '.join(f'{m:.2f}' for m in medians)}) | "
             f"{1e3 / min(medians):.0f} | {100 * share:.0f} % | {parts} |"
         )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    raw = {
+        "command_arguments": sys.argv[1:],
+        "world": str(args.world),
+        "load_average_start_end": [load_before, os.getloadavg()[0]],
+        "runs": [{"view": view, "version": version, "rounds": results} for (view, version), results in runs.items()],
+    }
+    write_markdown(args.out, [*lines, ""], raw)
 
 
 if __name__ == "__main__":

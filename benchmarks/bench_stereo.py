@@ -87,7 +87,8 @@ def main() -> None:
                 f"- {r.name}: {r.psnr_all_filled_db:.2f} dB all (holes filled) vs {r.psnr_db:.2f} dB over filled "
                 f"pixels, {gap:.2f} dB apart: {'met' if gap <= 1.0 else 'NOT met'} (holes black: {r.psnr_all_db:.2f})\n"
             )
-    write_markdown(args.output, [report])
+    raw = {"command": command, "load_before": load_before, "load_after_1_5_15_min": load_after}
+    write_markdown(args.output, [report], raw | result.to_json())
     print(f"wrote {args.output}")
 
 

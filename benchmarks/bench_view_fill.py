@@ -255,7 +255,8 @@ def main() -> None:
     after = os.getloadavg()
     load = f"before `{before}`; 1/5/15-min load average after {after[0]:.2f} / {after[1]:.2f} / {after[2]:.2f}"
     report = markdown(coverage, speed, args, load)
-    write_markdown(args.output, [report])
+    raw = {"command_arguments": _command_arguments(args), "load": load, "coverage": coverage, "speed": speed}
+    write_markdown(args.output, [report], raw)
     print(f"wrote {args.output}")
 
 
