@@ -286,6 +286,12 @@ FAKE = {"env_id": "drivesim-test/FakeOvertake-v0", "env_entry_point": "eval_fake
 """The eval config keys that evaluate in the fake overtake env instead of a drivesim world."""
 
 
+def fake_env_args(world: Path) -> list[str]:
+    """`drivesim eval` arguments that evaluate on `world` in the fake overtake env (`FAKE`), trusted."""
+    sets = [a for key in ("env_id", "env_entry_point") for a in ("--set", f"{key}={FAKE[key]}")]
+    return ["--world", str(world), *sets, "--trust-entry-point"]
+
+
 def fake_world(folder: Path, frames: int = 200) -> Path:
     """A folder with just the reference path the fake env reads (path.npz: a gentle curve, 1 m per frame)."""
     folder.mkdir(parents=True, exist_ok=True)

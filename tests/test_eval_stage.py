@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from eval_fakes import FAKE, fake_world, register_fake_envs
+from eval_fakes import FAKE, fake_env_args, fake_world, register_fake_envs
 
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.evaluate import rollout
@@ -126,22 +126,10 @@ def _run_cli(ws: Path, *args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
-def _fake_args(world: Path) -> list[str]:
-    return [
-        "--world",
-        str(world),
-        "--set",
-        f"env_id={FAKE['env_id']}",
-        "--set",
-        f"env_entry_point={FAKE['env_entry_point']}",
-        "--trust-entry-point",
-    ]
-
-
 @pytest.mark.parametrize("case", ["missing_run", "unfinished_run", "other_task_run", "short_world", "not_a_world"])
 def test_bad_input_is_one_line_and_no_report(tmp_path, case):
     world = fake_world(tmp_path / "world")
-    args = _fake_args(world) + ["--episodes", "3", "--workers", "1"]
+    args = fake_env_args(world) + ["--episodes", "3", "--workers", "1"]
     expect = {
         "missing_run": "no such run folder",
         "unfinished_run": "unfinished",
@@ -160,11 +148,11 @@ def test_bad_input_is_one_line_and_no_report(tmp_path, case):
         args += ["--policy", str(_make_run(tmp_path / "runs" / "follow-1", "follow"))]
     elif case == "short_world":
         short = fake_world(tmp_path / "world-too-short", frames=10)
-        args = _fake_args(short) + ["--episodes", "3", "--workers", "1", "--policy", "expert"]
+        args = fake_env_args(short) + ["--episodes", "3", "--workers", "1", "--policy", "expert"]
     else:
         empty = tmp_path / "empty"
         empty.mkdir()
-        args = _fake_args(empty) + ["--episodes", "3", "--workers", "1", "--policy", "expert"]
+        args = fake_env_args(empty) + ["--episodes", "3", "--workers", "1", "--policy", "expert"]
     result = _run_cli(tmp_path / "ws", *args)
     assert result.returncode == 2, result.stdout + result.stderr
     lines = [line for line in result.stderr.splitlines() if line.strip()]
@@ -188,7 +176,7 @@ def test_onnx_with_wrong_inputs_is_one_line(tmp_path):
     )
     path = tmp_path / "wrong.onnx"
     onnx.save(helper.make_model(graph), path)
-    result = _run_cli(tmp_path / "ws", *_fake_args(fake_world(tmp_path / "world")), "--policy", str(path))
+    result = _run_cli(tmp_path / "ws", *fake_env_args(fake_world(tmp_path / "world")), "--policy", str(path))
     assert result.returncode == 2, result.stdout + result.stderr
     assert len([line for line in result.stderr.splitlines() if line.strip()]) == 1
     assert not (tmp_path / "ws" / "eval" / "overtake-wrong").exists()
@@ -200,9 +188,8 @@ def test_report_renders_with_its_images_in_headless_chromium(tmp_path):
     if chromium is None:
         pytest.skip("chromium is not installed (scripts/setup.sh installs it: apt-get install chromium)")
     world = fake_world(tmp_path / "world")
-    result = _run_cli(
-        tmp_path / "ws", *_fake_args(world), "--episodes", "30", "--workers", "2", "--video", "2", "--policy", "expert"
-    )
+    args = [*fake_env_args(world), "--episodes", "30", "--workers", "2", "--video", "2", "--policy", "expert"]
+    result = _run_cli(tmp_path / "ws", *args)
     assert result.returncode == 0, result.stdout + result.stderr
     folder = tmp_path / "ws" / "eval" / "overtake-expert"
     report = (folder / "report.html").read_text()
@@ -331,7 +318,7 @@ def test_onnx_policy_gives_the_torch_policy_metrics(tmp_path):
     for key in ("intervention", "success", "max_deviation_m", "max_yaw_rad", "min_clearance_no_collision_m"):
         assert b[key]["value"] == pytest.approx(a[key]["value"], abs=1e-4), key
     # An ONNX policy of another task is refused like a run folder.
-    result = _run_cli(tmp_path / "ws2", *_fake_args(world), "--task", "follow", "--policy", str(onnx_path))
+    result = _run_cli(tmp_path / "ws2", *fake_env_args(world), "--task", "follow", "--policy", str(onnx_path))
     assert result.returncode == 2 and "trained on overtake, not follow" in result.stderr
 
 

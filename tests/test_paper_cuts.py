@@ -104,19 +104,11 @@ def test_a_folder_that_is_no_recording_lists_every_kind_drivesim_reads(tmp_path:
 
 
 def test_eval_without_a_trained_run_refuses_instead_of_evaluating_the_expert(tmp_path: Path) -> None:
-    from eval_fakes import FAKE, fake_world
+    from eval_fakes import fake_env_args, fake_world
 
     ws = tmp_path / "ws"
     world = fake_world(tmp_path / "my-drive" / "world")
-    fake_env = [
-        "--world",
-        str(world),
-        "--set",
-        f"env_id={FAKE['env_id']}",
-        "--set",
-        f"env_entry_point={FAKE['env_entry_point']}",
-    ]
-    fake_env.append("--trust-entry-point")
+    fake_env = fake_env_args(world)
     done = drivesim(ws, "eval", "--episodes", "3", "--workers", "1", *fake_env)
     assert done.returncode == 2, done.stdout + done.stderr
     lines = done.stderr.strip().splitlines()
