@@ -24,6 +24,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
+from _lib.report import update_json, write_markdown
 
 from drivesim.bench.machine import machine_line
 
@@ -86,8 +87,9 @@ def _real_workspace(recording: Path, root: Path) -> Path:
     return ws
 
 
-def _real_section(methods: tuple[str, ...], overrides: list[str]) -> list[str]:
-    """Every real drive x method: forward views (frame i warped to frame i + k), the stereo snippet's lateral view."""
+def _real_section(methods: tuple[str, ...], overrides: list[str]) -> tuple[list[str], dict]:
+    """Every real drive x method: forward views (frame i warped to frame i + k), the stereo snippet's lateral view;
+    the markdown section and its raw figures."""
     from drivesim.bench.fidelity import forward_view_rows, load_real_drive, real_depths
     from drivesim.bench.stereo import REFERENCE, run_stereo_bench
     from drivesim.pipeline.config import load_config
@@ -129,14 +131,20 @@ def _real_section(methods: tuple[str, ...], overrides: list[str]) -> list[str]:
         sec_text = "" if sec is None else f"{sec:.2f}"
         lines.append(f"| {drive} | {view} | {method} | {m['psnr_db']:.2f} | {m['ssim']:.3f} | "
                      f"{m['filled_fraction']:.3f} | {sec_text} |")  # fmt: skip
-    return lines
+    keys = ("drive", "view", "depth", "metrics", "seconds_per_frame")
+    return lines, {
+        "load_before": uptime,
+        "overrides": overrides,
+        "rows": [dict(zip(keys, r, strict=True)) for r in rows],
+    }
 
 
 def _write_real(output: Path, methods: tuple[str, ...], overrides: list[str]) -> None:
-    section = _real_section(methods, overrides)
+    section, raw = _real_section(methods, overrides)
     old = output.read_text() if output.is_file() else "# Per-frame depth: speed, memory, accuracy\n"
     kept = old.split(REAL_SECTION)[0].rstrip() + "\n\n"
     output.write_text(kept + "\n".join(section) + "\n")
+    update_json(output.with_suffix(".json"), "real_drives", raw)
     print("\n".join(section))
     print(f"wrote {output}")
 
@@ -220,9 +228,11 @@ def main() -> None:
         "Aims: plane under 1 min and mvs under 15 min per 1000 frames; mvs AbsRel at most 0.10.",
         "",
     ]
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text("\n".join(lines))
-    print(f"wrote {args.output}")
+    keys = ("method", "seconds_per_1000_frames", "peak_rss_mb", "metrics", "summary")
+    raw = {"command": command, "load_average_start": load_1min, "rows": [dict(zip(keys, r, strict=True)) for r in rows]}
+    args.output.with_suffix(".json").unlink(missing_ok=True)  # the real drives' part is rewritten with the file
+    write_markdown(args.output, lines)
+    update_json(args.output.with_suffix(".json"), "synthetic", raw)
 
 
 if __name__ == "__main__":

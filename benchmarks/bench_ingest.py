@@ -30,6 +30,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from _lib.paths import use_folder
+from _lib.report import write_markdown
 
 from drivesim.bench.machine import machine_line
 
@@ -265,9 +266,9 @@ def main() -> None:
         "",
         f"Load average (1, 5, 15 min) at the end of the run: {', '.join(f'{x:.1f}' for x in os.getloadavg())}.",
     ]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    keys = ("camera", "resize", "frames", "recording_mb", "bare", "ingest")
+    raw = {"quick": args.quick, "rows": [dict(zip(keys, r, strict=True)) for r in rows]}
+    write_markdown(args.out, [*lines, ""], raw)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _lib.report import write_markdown
 
 from drivesim.sim import geometry as g
 from drivesim.sim.raster import Rasterizer
@@ -81,9 +82,8 @@ def main() -> None:
             f"| {r['light_triangles']} | {r['light_build_ms']:.1f} | {r['light_raster_ms']:.2f} "
             f"| {r['full_pixels']} / {r['light_pixels']} |"
         )
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    raw = {"quick": args.quick, "repetitions": reps, "view_px": [VIEW_W, VIEW_H], "torch": torch.__version__}
+    write_markdown(RESULTS, [*lines, ""], raw | {"rows": rows})
 
 
 if __name__ == "__main__":

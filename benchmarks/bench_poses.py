@@ -13,6 +13,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
+from _lib.report import write_markdown
 
 from drivesim.bench.machine import machine_line
 from drivesim.stages.preprocess.poses import PoseConfig, enu_transformer, fuse_gps_imu
@@ -64,7 +65,7 @@ def main() -> None:
     args = parser.parse_args()
     duration_s = 300.0 if args.quick else 3600.0
     series, frame_ns, x_true, y_true = simulate(duration_s)
-    rows = []
+    rows, raw_rows = [], []
     for smoothing in (True, False):
         cfg = PoseConfig(smoothing=smoothing)
         fuse_gps_imu(series, frame_ns[:100], cfg)  # warm-up (imports, pyproj)
@@ -79,8 +80,13 @@ def main() -> None:
             f"{np.percentile(err, 99):.3f} |"
         )
         print(rows[-1])
+        raw_rows.append({"method": "EKF + RTS" if smoothing else "EKF only", "drive_s": duration_s,
+                         "imu_samples": len(series.imu.t_ns), "gps_fixes": len(series.gps.t_ns),
+                         "frames": len(frame_ns), "seconds": seconds, "rms_error_m": float(np.sqrt(np.mean(err**2))),
+                         "p99_error_m": float(np.percentile(err, 99))})  # fmt: skip
     command = "python benchmarks/bench_poses.py" + (" --quick" if args.quick else "")
-    text = "\n".join(
+    write_markdown(
+        RESULTS,
         [
             "## Poses: GPS + IMU + speed fusion (CTRV EKF + RTS smoother)",
             "",
@@ -93,11 +99,9 @@ def main() -> None:
             "|---|---|---|---|---|---|---|---|",
             *rows,
             "",
-        ]
+        ],
+        {"command": command, "rows": raw_rows},
     )
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(text)
-    print(f"wrote {RESULTS}")
 
 
 if __name__ == "__main__":

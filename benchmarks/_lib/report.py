@@ -37,3 +37,12 @@ def write_markdown(path: Path, lines: list[str], raw: dict[str, Any] | None = No
     print(text)
     if raw is not None:
         write_json(path.with_suffix(".json"), raw)
+
+
+def update_json(path: Path, key: str, raw: dict[str, Any]) -> None:
+    """Set `key` of the JSON object in `path` (created when absent) to `raw` with its "measured" entry (date, machine,
+    load), keeping the other keys: the raw figures of one section of a report written in parts."""
+    data = json.loads(path.read_text()) if path.is_file() else {}
+    data[key] = raw if "measured" in raw else {"measured": measured_now(), **raw}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1, default=str) + "\n")
