@@ -30,6 +30,8 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
+from _lib.report import write_markdown
+
 from drivesim.bench.machine import machine_line
 
 REPO = Path(__file__).resolve().parents[1]
@@ -174,9 +176,7 @@ def write_results(rows: list[dict], resolution: str, quick: bool) -> None:
             f"| {r['s_per_1000']:.0f} | {max(r['fixed_s'], 0.0):.1f} | {depth} | {r['rss_mb']:.0f} |"
         )
     lines.append("")
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_markdown(RESULTS, lines, {"command": command, "trace_resolution": resolution, "rows": rows})
 
 
 if __name__ == "__main__":

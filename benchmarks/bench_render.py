@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from _lib.paths import use_folder
+from _lib.report import table_records, write_markdown
 
 from drivesim.bench.machine import machine_line
 from drivesim.sim import geometry as g
@@ -235,7 +236,12 @@ def main() -> None:
     bench_warp(rows, runs)
     gl_info = ctx.info["GL_RENDERER"] if ctx is not None else "unavailable"
     command = "python benchmarks/bench_render.py" + (" --quick" if args.quick else "")
-    text = "\n".join(
+    header = (
+        "| what | scene | triangles | output (HxW) | torch median ms | torch p90 ms | torch CPU ms "
+        "| OpenGL median ms | OpenGL p90 ms | OpenGL CPU ms |"
+    )
+    write_markdown(
+        args.output,
         [
             "## Rendering (rasterizer and forward warp)",
             "",
@@ -246,8 +252,7 @@ def main() -> None:
             "CPU ms: median CPU time of the process (all threads: llvmpipe uses several), which other load on a shared "
             "machine inflates much less than wall time.",
             "",
-            "| what | scene | triangles | output (HxW) | torch median ms | torch p90 ms | torch CPU ms "
-            "| OpenGL median ms | OpenGL p90 ms | OpenGL CPU ms |",
+            header,
             "|---|---|---:|---|---:|---:|---:|---:|---:|---:|",
             *rows,
             "",
@@ -256,11 +261,16 @@ def main() -> None:
             "colours come from the per-frame cache (several agents or steps warping the same recorded frame); "
             "'new source frame': computed in the call.",
             "",
-        ]
+        ],
+        {
+            "command": command,
+            "threads": args.threads,
+            "runs": runs,
+            "opengl": gl_info,
+            "torch": torch.__version__,
+            "rows": table_records(header, rows),
+        },  # fmt: skip
     )
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(text)
-    print(f"wrote {args.output}")
 
 
 if __name__ == "__main__":

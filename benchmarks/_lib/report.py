@@ -46,3 +46,10 @@ def update_json(path: Path, key: str, raw: dict[str, Any]) -> None:
     data[key] = raw if "measured" in raw else {"measured": measured_now(), **raw}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=1, default=str) + "\n")
+
+
+def table_records(header: str, rows: list[str]) -> list[dict[str, str]]:
+    """The markdown table rows a script just formatted, as records keyed by the header's cells (the figures as the
+    table shows them), for a script whose measuring code formats its rows directly."""
+    names = [cell.strip() for cell in header.strip().strip("|").split("|")]
+    return [dict(zip(names, (cell.strip() for cell in row.strip().strip("|").split("|")), strict=True)) for row in rows]
