@@ -3,7 +3,6 @@ known exactly: a flat ground plane in front of a camera 1.6 m high, and a wall 4
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +12,7 @@ import torch
 from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert, pose_2d
 from drivesim.sim.harmonize import OnnxHarmonizer, StatisticalHarmonizer
 from drivesim.sim.mesh import Material, Mesh
+from drivesim.sim.vehicle_library import VehicleModel
 from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer, fit_roi
 from drivesim.sim.world import World
 
@@ -38,20 +38,9 @@ def _box(length_m: float, width_m: float, height_m: float, rgb: tuple[float, flo
     return Mesh(v, np.array(faces, dtype=np.int64), material=Material(diffuse_rgb=rgb, specular_rgb=(0, 0, 0)))
 
 
-@dataclass
-class BoxModel:
-    """Stands in for a vehicle_library.VehicleModel."""
-
-    name: str
-    length_m: float
-    width_m: float
-    height_m: float
-    full: list[Mesh]
-    light: list[Mesh]
-
-
-def box_model(rgb: tuple[float, float, float] = (0.5, 0.25, 0.1), size=(4.0, 1.8, 1.5)) -> BoxModel:
-    return BoxModel("box", *size, [_box(*size, rgb)], [_box(*size, rgb)])
+def box_model(rgb: tuple[float, float, float] = (0.5, 0.25, 0.1), size=(4.0, 1.8, 1.5)) -> VehicleModel:
+    """A one-box vehicle of colour `rgb`, never repainted."""
+    return VehicleModel("box", *size, [_box(*size, rgb)], [_box(*size, rgb)], paint_group=None)
 
 
 def make_world(tmp: Path, rgb_scale=(1.0, 1.0, 1.0), near_wall_left_m: float | None = None, n: int = 4) -> World:
@@ -90,7 +79,7 @@ def render_one(vs: ViewSynthesizer, cars, frame=0, x=None, y=0.0, yaw=0.0):
     return vs.render(np.array([frame]), np.array([x]), np.array([y]), np.array([yaw]), [cars])
 
 
-def projected_bbox(vs: ViewSynthesizer, model: BoxModel, T_vehicle_car: np.ndarray) -> tuple[float, ...]:
+def projected_bbox(vs: ViewSynthesizer, model: VehicleModel, T_vehicle_car: np.ndarray) -> tuple[float, ...]:
     """Pixel bounding box (u0, v0, u1, v1) of the car's 8 box corners projected into the view."""
     L, Wd, H = model.length_m, model.width_m, model.height_m
     corners = np.array([[x, y, z, 1.0] for x in (-L / 2, L / 2) for y in (-Wd / 2, Wd / 2) for z in (0.0, H)])
