@@ -9,14 +9,16 @@ and the same views without a car. Timed per `render` call, views returned to
 the host as numpy arrays (what an env hands the policy). The CPU row is the per-view path that the envs use on CPU,
 one torch thread, on the same machine.
 
-Part 2, env steps/s of `learn()` for overtake with the train preset (its 8192-step buffer, 4 epochs, imitation 2
-passes), no warm start: the views rendered on the GPU (`envs.config.render_device`) and PPO on the GPU (`device`),
-for several numbers of batched envs, and the preset's CPU layout (8 envs, 2 learner threads) on the same machine.
+Part 2, env steps/s of the bare PPO loop (`build_model(...).learn()`) for overtake with the train preset's 8192-step
+buffer and 4 epochs; the preset's imitation passes, VecNormalize, evaluations and checkpoints are not attached
+(`bench_train_speed.py` times `drivesim train` with them): the views rendered on the GPU
+(`envs.config.render_device`) and PPO on the GPU (`device`), for several numbers of batched envs, and the preset's
+CPU layout (8 envs, 2 learner threads) on the same machine.
 
     python benchmarks/bench_gpu.py --world WORLD            # on a machine with a CUDA device
     python benchmarks/bench_gpu.py --world WORLD --device cpu --quick   # the mechanics, anywhere
 
-Writes the markdown table to benchmarks/results/gpu.md (or --out).
+Writes the markdown table to benchmarks/results/gpu.md (or --out) and its raw figures to gpu.json.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from _lib.report import write_markdown
 
 from drivesim.bench.sim_steps import make_env
 from drivesim.sim.view import CarPlacement, ViewSynthesizer
@@ -224,9 +227,7 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(markdown(render, [], args))  # kept if the training rows break
     train = [] if args.skip_train else train_rows(args.world, args.device, args.envs, args.updates)
-    args.out.write_text(markdown(render, train, args))
-    args.out.with_suffix(".json").write_text(json.dumps({"render": render, "train": train}, indent=1))
-    print(args.out.read_text())
+    write_markdown(args.out, [markdown(render, train, args)], {"render": render, "train": train})
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from _lib.report import write_markdown
 from bench_video_sfm import make_video
 
 from drivesim.bench.machine import machine_line
@@ -130,8 +131,7 @@ def main() -> None:
             "",
         ]
     )
-    RESULTS.write_text(text)
-    print(text)
+    write_markdown(RESULTS, [text], {"chain_wall_s": wall_s, "peak_memory_gb": peak_gb, "note": args.note} | f)
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from _lib.report import table_records, update_json, write_markdown
 from scipy.spatial.transform import Rotation
 
 from drivesim.bench.machine import machine_line
@@ -220,8 +221,15 @@ def timing() -> None:
     kept = [p for p in RESULTS.read_text().split("\n\n") if not p.startswith(TIMING_HEAD)] if RESULTS.is_file() else []
     RESULTS.write_text("\n\n".join([*[p.strip("\n") for p in kept if p.strip()], line]) + "\n")
     print(line)
+    raw = {"load_average_before_after": [load_before, os.getloadavg()[0]], "frames": n_frames, "sfm_s": sfm_s}
+    raw |= {"sfm_parts_s": parts, "ingest_wall_s": wall_s, "ingest_cpu_s": cpu_s, "peak_rss_gb": peak_child_rss_gb()}
+    update_json(RESULTS.with_suffix(".json"), "timing", raw)
 
 
+TABLE_HEADER = (
+    "| input | frames registered | path (m) | true path (m) | length error | RMSE after similarity (m, % of path) | "
+    "HFOV (deg; true 81.4 on KITTI raw) | SfM wall s (per frame) | ingest wall s | ingest CPU s (per frame / 2) |"
+)
 ROW_KINDS = {
     "height": "video + `--camera-height-m 1.65`",
     "gpx": "video + GPX of the OXTS fixes",
@@ -280,9 +288,10 @@ def main() -> None:
             rows.append(_row(ROW_KINDS[kind], m, wall_s, cpu_s, _sfm_seconds(output), output))
             print(rows[-1], flush=True)
     command = "python benchmarks/bench_video_sfm.py" + (f" --only {args.only}" if args.only else "")
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(_report(rows, command, load_before))
-    print(f"wrote {RESULTS}")
+    RESULTS.with_suffix(".json").unlink(missing_ok=True)  # the timing paragraph is rewritten with the file
+    write_markdown(RESULTS, [_report(rows, command, load_before)])
+    raw = {"command": command, "load_average_before": load_before, "peak_child_rss_gb": peak_child_rss_gb()}
+    update_json(RESULTS.with_suffix(".json"), "ingests", raw | {"rows": table_records(TABLE_HEADER, rows)})
 
 
 def _report(rows: list[str], command: str, load_before: float) -> str:
@@ -310,9 +319,7 @@ def _report(rows: list[str], command: str, load_before: float) -> str:
             "between CPU / 2 (both threads busy) and CPU s per frame. "
             f"Peak memory of the ingest processes: {peak_child_rss_gb():.2f} GB.",
             "",
-            "| input | frames registered | path (m) | true path (m) | length error | RMSE after similarity (m, "
-            "% of path) | HFOV (deg; true 81.4 on KITTI raw) | SfM wall s (per frame) | ingest wall s | ingest CPU s "
-            "(per frame / 2) |",
+            TABLE_HEADER,
             "|---|---|---|---|---|---|---|---|---|---|",
             *rows,
             "",

@@ -26,6 +26,8 @@ import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
 
+from _lib.report import write_markdown
+
 from drivesim.bench.machine import machine_line
 from drivesim.bench.sim_steps import make_env, time_env_steps
 
@@ -132,14 +134,11 @@ def main() -> None:
         for n, v, o, r, ot, rt, d, rd in rows
     ]
     lines += ["", "The target (issue 21) is 40x per step at 200x320, with the other car drawn at every counted step."]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines) + "\n")
     keys = ("dyn_ms", "sens_ms", "dyn_plus_sens_ms")
     vista_raw = {k: {m: v[m] for m in keys} for k, v in vista.items() if k.startswith("others_")}
     raw = {"vista": vista_raw, "ours_full_camera": ours_full, "ours_full_camera_threads": ours_threads,
            "ours_default": ours_default}  # fmt: skip
-    args.out.with_suffix(".json").write_text(json.dumps(raw, indent=1))
-    print("\n".join(lines))
+    write_markdown(args.out, [*lines, ""], raw)
 
 
 if __name__ == "__main__":
