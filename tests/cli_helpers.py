@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -10,6 +11,9 @@ from typing import Any
 
 # ../shared beside the checkout (tests skip, saying so, where it is absent).
 REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+
+
+TESTS_DIR = Path(__file__).resolve().parent
 
 
 def drivesim_ok(ws: Path, *args: str, timeout_s: float = 300) -> subprocess.CompletedProcess[str]:
@@ -22,6 +26,19 @@ def drivesim_ok(ws: Path, *args: str, timeout_s: float = 300) -> subprocess.Comp
     )
     assert result.returncode == 0, f"drivesim {' '.join(args)} failed:\n{result.stdout}\n{result.stderr}"
     return result
+
+
+def drivesim_with_fakes(ws: Path, *args: str, timeout_s: float = 600, **env: str) -> subprocess.CompletedProcess[str]:
+    """Run `drivesim --workspace ws ARGS...` in a subprocess that can import the tests' fake envs (tests/ on its
+    PYTHONPATH), with `env` added to its environment; returns the finished process, whatever its exit code."""
+    path = os.pathsep.join([str(TESTS_DIR), os.environ.get("PYTHONPATH", "")])
+    return subprocess.run(
+        [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        env={**os.environ, "PYTHONPATH": path, **env},
+    )
 
 
 def interruptible() -> None:

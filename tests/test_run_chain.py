@@ -3,19 +3,16 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
+from cli_helpers import drivesim_with_fakes
 
 from drivesim.chain.run import load_run_preset
 from drivesim.pipeline.errors import ConfigError
-
-TESTS = Path(__file__).parent
 
 # A tiny chain: an 8-s synthetic drive, a few hundred training steps on the cost-free env (the simulator's envs
 # are tested by their owners), eval on the fake overtake env of the eval tests, export with its checks.
@@ -39,14 +36,7 @@ TINY = {
 
 
 def drivesim(ws: Path, *args: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}
-    return subprocess.run(
-        [sys.executable, "-m", "drivesim.cli.main", "-w", str(ws), *args],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env=env,
-    )
+    return drivesim_with_fakes(ws, *args)
 
 
 @pytest.mark.slow

@@ -6,14 +6,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import drivesim_with_fakes
 from eval_fakes import FAKE, fake_world, pass_record, register_fake_envs
 from test_eval_stage import _make_run
 
@@ -24,7 +23,6 @@ from drivesim.stages.evaluate.report import geometry_note, worst_episodes
 from drivesim.stages.evaluate.stage import run_eval
 from drivesim.stages.evaluate.summary import RESULT_COLUMNS, result_table
 
-TESTS_DIR = Path(__file__).parent
 NUMBER = r"(\d+\.\d{3})"
 
 
@@ -46,14 +44,7 @@ def _run_with_warm_start(tmp_path: Path, world: Path) -> Path:
 
 
 def _cli(ws: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "PYTHONPATH": str(TESTS_DIR), "OMP_NUM_THREADS": "1"}
-    return subprocess.run(
-        [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env=env,
-    )
+    return drivesim_with_fakes(ws, *args, timeout_s=300, OMP_NUM_THREADS="1")
 
 
 def test_eval_of_a_run_shows_the_expert_and_the_warm_start_on_the_same_seeds(tmp_path: Path) -> None:
