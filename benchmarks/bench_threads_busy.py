@@ -2,10 +2,11 @@
 
 Each measurement runs in its own process (numba's threading layer is chosen once per process): overtake evaluation
 episodes (expert actions) timed until `--steps` steps drew the other car in the ego's view (`bench/sim_steps.py`),
-then `--steps` lane training steps. Three settings: one thread; two threads as the views use them (each call takes a
-second thread only while a core is free, `sim/cpu_threads.py`); and two threads on every call (`exact_threads`) in
-numba's workqueue layer, and in its OpenMP layer (the view's threading before that governor). Each runs twice: on the
-machine as it is, and with a second process spinning on one core (pinned to it where affinity can be set).
+then `--steps` lane training steps. Four settings: one thread; two threads as the views use them (each call takes a
+second thread only while a core is free and where that has run faster, `sim/cpu_threads.py`); and two threads on
+every call (`exact_threads`) in numba's workqueue layer, and in its OpenMP layer (the view's threading before that
+governor). Each runs twice: on the machine as it is, and with a second process spinning on one core (pinned to it
+where affinity can be set).
 
     .venv/bin/python benchmarks/bench_threads_busy.py --world /tmp/ws-demo/world
 
@@ -34,11 +35,12 @@ from drivesim.bench.sim_steps import make_env, time_env_steps
 from drivesim.sim import cpu_threads, view
 world, steps, threads, exact = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1"
 granted = []
-def counting(requested):
-    n = cpu_threads.usable_threads(requested)
-    granted.append(n)
-    return n
-view.usable_threads = counting
+@contextlib.contextmanager
+def counting(requested, site):
+    with cpu_threads.governed_threads(requested, site) as n:
+        granted.append(n)
+        yield n
+view.governed_threads = counting
 cpu_threads.usable_threads(2)  # the first sample of the CPU counters (env set-up lasts longer than a re-check)
 out = {}
 with cpu_threads.exact_threads() if exact else contextlib.nullcontext():
@@ -106,7 +108,8 @@ def markdown(result: dict) -> str:
         f"- machine: {result['machine']}",
         f"- world: `{result['world']}`; {result['steps']} car-drawn overtake steps (evaluation episodes, expert "
         f"actions) and {result['steps']} lane steps per setting, each setting in its own process",
-        "- settings: 1 thread; 2 threads as the views use them (a second thread only while a core is free, "
+        "- settings: 1 thread; 2 threads as the views use them (a second thread only while a core is free and where "
+        "it has run faster, "
         "`sim/cpu_threads.py`, numba's workqueue layer); 2 threads on every call in the workqueue layer; 2 threads on "
         "every call in numba's OpenMP layer (the view's threading before that governor)",
         f"- command: `{result['command']}`",

@@ -10,7 +10,9 @@ numba's threading layer is set to `workqueue` unless the user chose one (`NUMBA_
 sleep between calls, where the OpenMP layer's spin on a core for milliseconds after each call, taking it from the
 calling thread and from other processes on a busy machine; it also keeps numba's pool apart from torch's OpenMP one.
 The workqueue layer does not take concurrent launches, so `parallel_slot` admits one parallel call at a time and
-sends the others to the serial kernels.
+sends the others to the serial kernels. A free core is still no promise that threads pay off at a small view (a pool
+thread's wake-up can cost more than its share of the work): `governed_threads` also times both kinds of call at each
+view call site and keeps to the faster (`PayOff`).
 """
 
 from __future__ import annotations
@@ -121,6 +123,53 @@ def exact_threads() -> Iterator[None]:
         yield
     finally:
         _forced = before
+
+
+class PayOff:
+    """Whether a call site's kernels have run faster on threads than on one, from the durations of both kinds of call
+    (a moving average each): the faster kind is chosen, the other still timed once every `EXPLORE_EVERY` calls."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[bool, float] = {}  # parallel? -> average seconds per call
+        self.calls = 0
+
+    def parallel(self) -> bool:
+        """Whether the next call should run on threads."""
+        self.calls += 1
+        if False not in self.seconds:
+            return False
+        if True not in self.seconds:
+            return True
+        faster = self.seconds[True] < self.seconds[False]
+        return faster != (self.calls % EXPLORE_EVERY == 0)
+
+    def record(self, parallel: bool, seconds: float) -> None:
+        """Add one call's duration to its kind's average."""
+        last = self.seconds.get(parallel)
+        self.seconds[parallel] = seconds if last is None else last + AVERAGE_WEIGHT * (seconds - last)
+
+
+EXPLORE_EVERY = 32
+"""A call site whose kernels run faster one way still times the other way once in this many calls."""
+AVERAGE_WEIGHT = 0.2
+"""Weight of a new duration in its kind's moving average."""
+_PAYOFF: dict[str, PayOff] = {}
+
+
+@contextmanager
+def governed_threads(requested: int, site: str) -> Iterator[int]:
+    """The thread count a view's kernel call at call site `site` should use (1: the serial kernels): at most the
+    free cores (`usable_threads`), and 1 where the site's calls have run faster on one thread (`PayOff`, unless
+    `exact_threads`). The call's duration is recorded."""
+    threads = usable_threads(requested)
+    if threads <= 1 or _forced is not None:
+        yield threads
+        return
+    payoff = _PAYOFF.setdefault(site, PayOff())
+    parallel = payoff.parallel()
+    start = time.perf_counter()
+    yield threads if parallel else 1
+    payoff.record(parallel, time.perf_counter() - start)
 
 
 @contextmanager

@@ -45,7 +45,7 @@ import pydantic
 import torch
 
 from drivesim.sim import raster_kernel
-from drivesim.sim.cpu_threads import usable_threads
+from drivesim.sim.cpu_threads import governed_threads
 from drivesim.sim.fill import FillStats, fill_wedges_from_neighbours, inpaint_holes, pull_push_fill, widen_frame
 from drivesim.sim.geometry import invert, scale_intrinsics
 from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer
@@ -129,7 +129,7 @@ class ViewConfig(pydantic.BaseModel):
     """CPU threads one view's warp, inpainting and car shading are split over at most (1: none): the view is cut into
     that many horizontal bands, warped, crack-filled and gathered at the same time in numba's threads, and the
     inpainting's and the car's rows are shared out likewise, with the same pixels as one thread. Each call uses only
-    the cores other processes leave free (`sim/cpu_threads.py`): one thread, the serial kernels, while none is. For
+    the cores other processes leave free, and one thread where that has run faster (`sim/cpu_threads.py`). For
     a single env whose step latency matters, e.g. against VISTA, whose renderer (llvmpipe) uses every core; training
     already keeps every core busy with envs, so the presets leave it at 1."""
     source_downsample: bool = True
@@ -488,10 +488,10 @@ class ViewSynthesizer:
         rgb_np, depth_np = rgb.numpy(), depth.numpy()
         car_mask = np.zeros(depth_np.shape, dtype=bool)
         gray = bool(self.monochrome)  # a gray camera's world: the car in gray too, in the same pass
-        threads = usable_threads(self.config.render_threads)  # 1 while no core is free
-        self.rasterizer.draw_into(
-            scenes, poses, self.K_view, lights, rgb_np, depth_np, car_mask, viewers, gray, threads
-        )
+        with governed_threads(self.config.render_threads, "car") as threads:  # 1 while no core is free
+            self.rasterizer.draw_into(
+                scenes, poses, self.K_view, lights, rgb_np, depth_np, car_mask, viewers, gray, threads
+            )
         return rgb_np, car_mask
 
     def _insert_cpu(
@@ -695,10 +695,10 @@ class ViewSynthesizer:
         rgb, depth, _ = self._frame(frame)
         T_dst_src = T_camera_world @ self._T_world_camera[frame]
         if self._kernel_warp is not None:
-            threads = usable_threads(self.config.render_threads)
-            rgb_np, depth_np, valid = self._kernel_warp(
-                rgb.numpy(), depth.numpy(), self._min_depth[frame], T_dst_src, threads
-            )  # fmt: skip
+            with governed_threads(self.config.render_threads, "warp") as threads:
+                rgb_np, depth_np, valid = self._kernel_warp(
+                    rgb.numpy(), depth.numpy(), self._min_depth[frame], T_dst_src, threads
+                )  # fmt: skip
         else:
             warped = _warp(rgb, depth, self.K_src, T_dst_src, self.K_view, self.config)
             rgb_np, depth_np = warped.rgb.cpu().numpy().copy(), warped.depth_m.cpu().numpy().copy()
@@ -735,7 +735,8 @@ class ViewSynthesizer:
             rgb, depth, valid, self.config.fill_frames, neighbour_warp
         )
         if self.config.inpaint:
-            stats.inpainted_px = inpaint_holes(rgb, ~valid & ~filled, usable_threads(self.config.render_threads))
+            with governed_threads(self.config.render_threads, "inpaint") as threads:
+                stats.inpainted_px = inpaint_holes(rgb, ~valid & ~filled, threads)
         self.fill_stats.add(stats)
 
     def _contact_shadows(self, rgb: torch.Tensor, depth: torch.Tensor, shadows: list[tuple]) -> torch.Tensor:

@@ -15,7 +15,7 @@ from sim_worlds import SMALL_VIEW, write_test_world
 
 import drivesim.sim.envs  # noqa: F401  (registers the envs)
 from drivesim.sim import cpu_threads, fill_kernel, raster_kernel, warp_kernel
-from drivesim.sim.cpu_threads import FreeCores, busy_seconds, exact_threads, parallel_slot
+from drivesim.sim.cpu_threads import FreeCores, PayOff, busy_seconds, exact_threads, parallel_slot
 
 
 class FakeMachine:
@@ -91,6 +91,22 @@ def test_busy_seconds_counts_this_process_cpu_time() -> None:
     own_s = time.process_time() - own_before
     # The kernel's counters tick at 1/100 s: this process's spin is inside the busy time of its CPUs.
     assert busy_seconds(cpus) - busy_before >= own_s - 0.03 > 0
+
+
+def test_payoff_keeps_to_the_faster_kind_and_still_times_the_other() -> None:
+    payoff = PayOff()
+    assert payoff.parallel() is False, "one serial call first"
+    payoff.record(False, 1.0e-3)
+    assert payoff.parallel() is True, "then one parallel call"
+    payoff.record(True, 3.0e-3)  # threads slower: a busy or small view
+    choices = []
+    for _ in range(3 * cpu_threads.EXPLORE_EVERY):
+        choices.append(payoff.parallel())
+        payoff.record(choices[-1], 3.0e-3 if choices[-1] else 1.0e-3)
+    assert sum(choices) == 3, "threads timed once every EXPLORE_EVERY calls, else one thread"
+    for _ in range(30):  # the cores free up and the threads now pay off
+        payoff.record(True, 0.5e-3)
+    assert payoff.parallel() is True
 
 
 def test_one_parallel_launch_at_a_time() -> None:
