@@ -64,6 +64,13 @@ SECTIONS: tuple[Section, ...] = (
         "python benchmarks/bench_car_step.py --before DIR",
         ("car_step.md",),
     ),
+    Section(
+        "threads_busy",
+        "Render threads on a busy machine",
+        "`render_threads` 1 vs 2 with and without a busy core",
+        "python benchmarks/bench_threads_busy.py --world W",
+        ("threads_busy.md", "threads_busy.json"),
+    ),
     Section("demo", "The demo run", "`make demo` wall time per stage", "python benchmarks/bench_demo.py", ("demo.md",)),
     Section(
         "train_speed",
