@@ -71,3 +71,14 @@ def write_test_world(root: Path, length_m: float = 200.0, spacing_m: float = 1.0
     }  # fmt: skip
     (root / "world.json").write_text(json.dumps(info))
     return root
+
+
+def straight_path(x_m: np.ndarray, T_world_vehicle: np.ndarray, T_vehicle_camera: np.ndarray, dt_ns: int) -> dict:
+    """A world's path arrays for a straight drive along +x at 10 m/s: frame k at `x_m[k]`, `dt_ns` apart."""
+    n = len(x_m)
+    return {
+        "x_m": x_m, "y_m": np.zeros(n), "z_m": np.zeros(n), "yaw_rad": np.zeros(n), "speed_mps": np.full(n, 10.0),
+        "curvature_1pm": np.zeros(n), "arc_length_m": x_m.copy(), "t_ns": np.arange(n) * dt_ns,
+        "frame_index": np.arange(n), "T_world_vehicle": T_world_vehicle,
+        "T_world_camera": T_world_vehicle @ T_vehicle_camera,
+    }  # fmt: skip

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from sim_worlds import straight_path
 
 from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert, pose_2d
 from drivesim.sim.harmonize import OnnxHarmonizer, StatisticalHarmonizer
@@ -63,11 +64,7 @@ def make_world(tmp: Path, rgb_scale=(1.0, 1.0, 1.0), near_wall_left_m: float | N
         frames[:, :, : W_PX // 2] = (20, 200, 20)
     x = 2.0 * np.arange(n)
     T_wv = np.stack([pose_2d(xi, 0.0, 0.0) for xi in x])
-    path = {
-        "x_m": x, "y_m": np.zeros(n), "z_m": np.zeros(n), "yaw_rad": np.zeros(n), "speed_mps": np.full(n, 10.0),
-        "curvature_1pm": np.zeros(n), "arc_length_m": x.copy(), "t_ns": np.arange(n) * 200_000_000,
-        "frame_index": np.arange(n), "T_world_vehicle": T_wv, "T_world_camera": T_wv @ T_vc,
-    }  # fmt: skip
+    path = straight_path(x, T_wv, T_vc, 200_000_000)
     return World(
         root=tmp, frames=frames, depth_m=depths, K=K, T_vehicle_camera=T_vc, width_px=W_PX, height_px=H_PX,
         camera_height_m=CAMERA_HEIGHT_M, path=path, road_width_m=8.0, lane_width_m=3.5, info={"format": 1},

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sim_worlds import straight_path
 
 from drivesim.sim.fill import fill_wedges_from_neighbours, hole_box, inpaint_holes, side_wedges, widen_frame
 from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert, pose_2d
@@ -61,11 +62,7 @@ def make_world(tmp: Path, n: int = 8, gray: bool = False) -> World:
     frames = np.stack([v[0] for v in views])
     if gray:
         frames = np.repeat(frames.mean(axis=-1, keepdims=True).astype(np.uint8), 3, axis=-1)
-    path = {
-        "x_m": x, "y_m": np.zeros(n), "z_m": np.zeros(n), "yaw_rad": np.zeros(n), "speed_mps": np.full(n, 10.0),
-        "curvature_1pm": np.zeros(n), "arc_length_m": x.copy(), "t_ns": np.arange(n) * 100_000_000,
-        "frame_index": np.arange(n), "T_world_vehicle": T_wv, "T_world_camera": T_wv @ T_VC,
-    }  # fmt: skip
+    path = straight_path(x, T_wv, T_VC, 100_000_000)
     return World(
         root=tmp, frames=frames, depth_m=np.stack([v[1] for v in views]), K=K, T_vehicle_camera=T_VC, width_px=W_PX,
         height_px=H_PX, camera_height_m=CAMERA_HEIGHT_M, path=path, road_width_m=8.0, lane_width_m=3.5,
