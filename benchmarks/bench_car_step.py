@@ -2,7 +2,7 @@
 
 Each round runs one subprocess per code version, alternating (so both see the same machine state); a version is a
 folder holding a `drivesim` package tree (e.g. a copy of the repository's code folders made before the change,
-`--before /tmp/before`, with /tmp/before/drivesim/{sim,diagnostics,...}) put first on PYTHONPATH, or this checkout.
+`--before /tmp/before`, with /tmp/before/drivesim/{sim,bench,...}) put first on PYTHONPATH, or this checkout.
 Each subprocess times overtake evaluation episodes (expert actions, one thread) until `--steps` steps drew the other car
 in the ego's view (`bench/sim_steps.py`) and reports the median ms of those steps and their mean ms per part.
 
