@@ -76,66 +76,50 @@ class ViewConfig(pydantic.BaseModel):
     model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
 
     roi_px: tuple[int, int, int, int] = (0, 72, 320, 128)
-    """(x0, y0, w, h) region of the world's simulation image (px of the 320 x 200 grid) the policy sees; the default
-    is the road ahead (full width, from a little above the horizon down to the bottom). In a world whose image is
-    smaller (a KITTI world is 320 x 96) the region is shrunk about its bottom centre, keeping its aspect ratio, until
-    it fits (`ViewSynthesizer.roi_px` is the region used)."""
+    """(x0, y0, w, h) region of the world's image the policy sees (px of a 320 x 200 image); shrunk about its bottom
+    centre to fit a smaller world image."""
     out_width_px: int = pydantic.Field(160, gt=0)
     """Width of the policy's image (px); the region of interest is scaled to it."""
     out_height_px: int = pydantic.Field(64, gt=0)
     """Height of the policy's image (px)."""
     lighting: bool = True
-    """Light inserted cars with the scene's mean colour (ambient) and a directional light from the viewpoint; off:
-    cars are drawn with their unlit base colour."""
+    """Light inserted cars with the scene's mean colour and a directional light; off: their unlit base colour."""
     harmonization: bool = True
     """Harmonize inserted cars toward their surroundings (the harmonizer; statistical by default)."""
     directional_gain: float = pydantic.Field(0.8, ge=0.0)
     """Directional light colour as a multiple of the scene's mean colour (unitless)."""
     light_elevation_deg: float = pydantic.Field(0.0, ge=0.0, le=90.0)
-    """Where the directional light comes from: 0 = the viewpoint at infinity (the paper); larger angles tilt it up
-    towards overhead (90), as a high sun would light the roof and bonnet rather than the car's back."""
+    """Elevation of the directional light (deg): 0 = from the viewpoint, 90 = from overhead."""
     full_detail_min_px: float = pydantic.Field(80.0, ge=0.0)
-    """A car whose projected size (largest dimension, px of the policy's image) reaches this is drawn with the full
-    mesh; smaller ones with the light mesh."""
+    """Projected car size (largest dimension, px of the policy's image) from which the full mesh is drawn instead of
+    the light one."""
     max_car_distance_m: float = pydantic.Field(120.0, gt=0.0)
     """Cars farther than this from the camera (m, along the optical axis) are not drawn."""
     fill_holes: bool = True
     """Fill 1-2 px cracks of the warp (never larger disocclusions)."""
     fill_frames: tuple[int, ...] = ()
-    """Neighbouring recorded frames (index offsets from the view's own frame) warped into the side wedges the view's
-    own frame (and its margins, `source_margin`) leaves empty, in this order, merged by depth, at every view; () =
-    none (the default). Each is warped only into a wedge's bounding box, while it stays open (`sim/fill.py`). Over the
-    margins, (-1, 1, -2) adds 2-10 % of recorded data at the task's largest offsets (mostly disocclusions that reach
-    an image side) but costs 3.0x the black-hole warp per follow step where the default costs 1.5x
-    (benchmarks/results/view_fill.md, view_fill_speed.md)."""
+    """Neighbouring recorded frames (index offsets) warped into the side wedges the view's own frame leaves empty, in
+    this order, at every view; () = none."""
     source_margin: float = pydantic.Field(0.25, ge=0.0, le=1.0)
-    """Margins added to the left and right of every recorded frame (each a fraction of the frame's width), filled once,
-    when the frame is prepared, from the neighbouring frames `margin_frames` (`sim/fill.py`, `widen_frame`): a view
-    that looks past the camera's sides (off the recorded path) then warps recorded data there instead of leaving a
-    wedge to inpaint. 0: no margins."""
+    """Margin added left and right of every recorded frame, filled once from `margin_frames` (fraction of the
+    frame's width; 0: none)."""
     margin_frames: tuple[int, ...] = (-1, -2, -3, 1)
-    """Neighbouring recorded frames (index offsets) that fill the margins, in this order: each fills only what the ones
-    before it left (the nearer in time, the smaller the pose change its depth errors are warped over); the frames
-    behind first, as from farther back the camera saw more to the sides."""
+    """Neighbouring recorded frames (index offsets) that fill the margins, in this order; each fills only what the
+    ones before it left."""
     inpaint: bool = True
     """Inpaint (a pull-push fill) what no frame saw, so the policy never sees black; off: such pixels stay black."""
     contact_shadow: float = pydantic.Field(0.6, ge=0.0, le=1.0)
-    """Darkening of the ground under an inserted car (fraction of the ground's colour removed under its footprint,
-    fading to none 0.5 m outside it); 0 = no shadow."""
+    """Darkening of the ground under an inserted car (fraction of its colour removed, fading out 0.5 m outside the
+    footprint); 0 = no shadow."""
     monochrome: bool | None = None
-    """Whether the camera is monochrome: inserted cars are then drawn and harmonized in gray (luminance). None:
-    detected from the world's frames (every sampled frame has equal R, G and B, as KITTI's gray cameras give)."""
+    """Whether the camera is monochrome (inserted cars drawn in gray); None: detected from the world's frames (equal
+    R, G and B)."""
     render_threads: int = pydantic.Field(1, ge=1, le=16)
-    """CPU threads one view's warp, inpainting and car shading are split over at most (1: none): the view is cut into
-    that many horizontal bands, warped, crack-filled and gathered at the same time in numba's threads, and the
-    inpainting's and the car's rows are shared out likewise, with the same pixels as one thread. Each call uses only
-    the cores other processes leave free, and one thread where that has run faster (`sim/cpu_threads.py`). For
-    a single env whose step latency matters, e.g. against VISTA, whose renderer (llvmpipe) uses every core; training
-    already keeps every core busy with envs, so the presets leave it at 1."""
+    """Most CPU threads one view's warp, inpainting and car shading are split over (1: one thread); fewer when other
+    processes keep the cores busy."""
     source_downsample: bool = True
-    """Warp from recorded frames reduced by the integer factor closest to (not above) roi / out, colour area-averaged
-    and depth min-pooled (the nearest surface wins): about that factor squared fewer points to warp, at the policy's
-    resolution anyway. Off: warp the frames at the world's resolution."""
+    """Warp from recorded frames reduced by the integer factor nearest (not above) roi / out size (colour averaged,
+    nearest depth kept); off: at the world's resolution."""
 
     @pydantic.field_validator("roi_px")
     @classmethod

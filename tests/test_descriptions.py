@@ -118,3 +118,29 @@ def test_no_code_comment_in_the_product_carries_a_date() -> None:
         for path in sorted((REPO / package).rglob("*.py")):
             found += [f"{path.relative_to(REPO)}:{line}: {text}" for line, text in dated_comments(path.read_text())]
     assert not found, "dated comments (say what and why, not when):\n" + "\n".join(found)
+
+
+def view_config_fields() -> list[tuple[str, str]]:
+    """(field, docstring) of every field of sim/view.py's ViewConfig, read from its source (`drivesim config` shows
+    these under the env's view)."""
+    import ast
+
+    tree = ast.parse((REPO / "sim" / "view.py").read_text())
+    view = next(n for n in ast.walk(tree) if isinstance(n, ast.ClassDef) and n.name == "ViewConfig")
+    fields = []
+    for before, node in zip(view.body, view.body[1:], strict=False):
+        if isinstance(before, ast.AnnAssign) and isinstance(before.target, ast.Name):
+            text = node.value.value if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant) else ""
+            fields.append((before.target.id, " ".join(str(text).split())))
+    return fields
+
+
+def test_every_view_config_field_has_a_short_description() -> None:
+    from drivesim.sim.view import ViewConfig
+
+    fields = view_config_fields()
+    assert {name for name, _ in fields} == set(ViewConfig.model_fields)
+    missing = [name for name, text in fields if not text]
+    too_long = [f"ViewConfig.{name} ({len(text)} chars)" for name, text in fields if len(text) > MAX_DESCRIPTION_CHARS]
+    assert not missing, f"ViewConfig fields without a description: {missing}"
+    assert not too_long, f"ViewConfig descriptions over {MAX_DESCRIPTION_CHARS} characters: {too_long}"
