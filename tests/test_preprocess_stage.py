@@ -24,7 +24,7 @@ from test_preprocess_stage_fakes import (
 )
 
 from drivesim.pipeline.config import load_config
-from drivesim.pipeline.errors import ConfigError, InputError, MissingArtifactError
+from drivesim.pipeline.errors import ConfigError, InputError, MissingArtifactError, StaleArtifactError
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.preprocess import run as run_module
 from drivesim.stages.preprocess import stage
@@ -141,7 +141,8 @@ def test_a_failure_mid_depth_leaves_no_artifact(ws: Workspace, monkeypatch) -> N
 def test_truncated_trace_is_one_clear_error(ws: Workspace, monkeypatch) -> None:
     install_fake_poses(monkeypatch)
     (ws.artifact_dir("trace") / "frame_times_ns.npy").unlink()
-    with pytest.raises(InputError, match="frame_times_ns.npy"):
+    # A file of the trace removed after ingest makes the trace stale: refused before preprocess reads it.
+    with pytest.raises(StaleArtifactError, match=r"frame_times_ns\.npy.*drivesim ingest"):
         stage.run_preprocess(ws, PreprocessConfig())
     assert ws.read_manifest("preprocessed") is None
 
