@@ -9,7 +9,7 @@ stages.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -105,6 +105,17 @@ def to_plain(msg: Any) -> Any:
     return msg
 
 
+def _write_rosbags(
+    writer: Any, messages: Iterable[Msg], typestore: Typestore, serialize: Callable[[Any, str], bytes]
+) -> None:
+    """Write messages through a rosbags writer (ROS1 or rosbag2), one connection per topic."""
+    conns: dict[str, Any] = {}
+    for m in messages:
+        if m.topic not in conns:
+            conns[m.topic] = writer.add_connection(m.topic, m.msgtype, typestore=typestore)
+        writer.write(conns[m.topic], m.t_ns, serialize(build_msg(typestore, m.msgtype, m.values), m.msgtype))
+
+
 def write_recording(path: Path, fmt: str, messages: Iterable[Msg], mcap_compression: str = "zstd") -> Path:
     """Write messages (in the order given) as a ROS1 bag, a rosbag2 folder (sqlite3 or mcap) or a plain .mcap file.
 
@@ -115,24 +126,14 @@ def write_recording(path: Path, fmt: str, messages: Iterable[Msg], mcap_compress
         from rosbags.rosbag1 import Writer
 
         with Writer(path) as writer:
-            conns: dict[str, Any] = {}
-            for m in messages:
-                if m.topic not in conns:
-                    conns[m.topic] = writer.add_connection(m.topic, m.msgtype, typestore=TS_ROS1)
-                obj = build_msg(TS_ROS1, m.msgtype, m.values)
-                writer.write(conns[m.topic], m.t_ns, TS_ROS1.serialize_ros1(obj, m.msgtype))
+            _write_rosbags(writer, messages, TS_ROS1, TS_ROS1.serialize_ros1)
         return path
     if fmt in ("rosbag2_sqlite3", "rosbag2_mcap"):
         from rosbags.rosbag2 import StoragePlugin, Writer
 
         plugin = StoragePlugin.SQLITE3 if fmt == "rosbag2_sqlite3" else StoragePlugin.MCAP
         with Writer(path, version=9, storage_plugin=plugin) as writer:
-            conns = {}
-            for m in messages:
-                if m.topic not in conns:
-                    conns[m.topic] = writer.add_connection(m.topic, m.msgtype, typestore=TS_ROS2)
-                obj = build_msg(TS_ROS2, m.msgtype, m.values)
-                writer.write(conns[m.topic], m.t_ns, TS_ROS2.serialize_cdr(obj, m.msgtype))
+            _write_rosbags(writer, messages, TS_ROS2, TS_ROS2.serialize_cdr)
         return path
     if fmt == "mcap":
         from mcap.writer import CompressionType
