@@ -155,9 +155,11 @@ def sim_command(
     ] = "lane,follow,overtake,overtake:eval",
     markdown: MarkdownOption = None,
 ) -> None:
-    """Simulator speed: env steps/s per task (one process, one env per core, batched envs) at the default
-    observation, ms per step split into dynamics, association, warp, car raster, harmonization and rewards, and
-    the view synthesizer alone."""
+    """Simulator speed: env steps/s per task and ms per step by part.
+
+    One process, one env per core and batched envs at the default observation; ms per step split into dynamics,
+    association, warp, car raster, harmonization and rewards; and the view synthesizer alone.
+    """
     from drivesim.bench.sim_speed import TASKS, run_sim_speed, sim_speed_markdown
 
     world_path = world if world is not None else workspace().root / "world"
@@ -207,9 +209,11 @@ def car_fidelity_command(
     ] = None,
     markdown: MarkdownOption = None,
 ) -> None:
-    """Inserted-car fidelity against ground truth on the synthetic world (lighting and harmonization off and on, at
-    lateral offsets 0, 0.5, 1 m) and view synthesis on real frames (a recorded frame warped to a later frame's pose,
-    per depth method)."""
+    """Inserted-car fidelity and view synthesis against ground truth.
+
+    The synthetic world with lighting and harmonization off and on, at lateral offsets 0, 0.5, 1 m; and real frames:
+    a recorded frame warped to a later frame's pose, per depth method.
+    """
     worlds: dict[str, Path] = {}
     for item in real_world or []:
         method, sep, folder = item.partition("=")
@@ -252,7 +256,7 @@ def stereo_command(
     config: ConfigOption = None,
     set_: set_option("method=mvs") = None,
 ) -> None:
-    """Real lateral views: each left frame warped with its depth into the right camera, against the real right image.
+    """Real lateral views: left frames warped into the right camera, against the real right image.
 
     Rows: identity (left as right), each depth method on the left frames alone, each --world's stored depth, and
     SGBM depth from the true pair (a reference that sees the answer). PSNR and SSIM over filled pixels, the filled

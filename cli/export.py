@@ -25,11 +25,12 @@ def export_onnx_command(
     set_: set_option("check_steps=100") = None,
     force: ForceOption = False,
 ) -> None:
-    """Write export/policy.onnx: uint8 image, LSTM state (h, c) and episode start in; steering and new state out.
+    """Write export/policy.onnx and check it against torch with onnxruntime.
 
-    Preprocessing is inside the graph; metadata holds the input shape, region of interest, action scale, LSTM sizes
-    and the training config's hash. The export is checked with onnx.checker and against torch over a 200-step
-    rollout with a reset (export/check.json; it fails above 1e-4), and timed on one thread.
+    Inputs: uint8 image, LSTM state (h, c) and episode start; outputs: steering and the new state. Preprocessing is
+    inside the graph; metadata holds the input shape, region of interest, action scale, LSTM sizes and the training
+    config's hash. The export is checked with onnx.checker and against torch over a 200-step rollout with a reset
+    (export/check.json; it fails above 1e-4), and timed on one thread.
     """
     # Imported here so `drivesim --help` stays fast.
     from drivesim.stages.export.config import ExportConfig

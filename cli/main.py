@@ -81,9 +81,8 @@ app.command("synth", help="Render a procedural drive with ground truth and write
 app.add_typer(towns.towns_app, name="towns", help="Procedural towns to train on, in <workspace>/towns/seed<N>/world.")
 app.command(
     "train",
-    help=f"Train a driving policy with PPO, a CNN and an LSTM (tasks: {', '.join(TASK_NAMES)}) into "
-    "runs/<task>-<time>/; "
-    "Ctrl-C keeps everything up to the last update and --resume RUN continues it.",
+    help="Train a driving policy (PPO, CNN + LSTM) into runs/<task>-<time>/.\n\n"
+    f"Tasks: {', '.join(TASK_NAMES)}. Ctrl-C keeps everything up to the last update and --resume RUN continues it.",
 )(train.train_command)
 app.command("eval", help="Offline closed-loop evaluation: metrics, plots, report.")(eval_cmd.eval_command)
 app.add_typer(export.export_app, name="export", help="Export the policy as ONNX, checked with onnxruntime.")

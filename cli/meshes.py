@@ -39,8 +39,11 @@ def build_command(
     set_: set_option("count=12") = None,
     force: ForceOption = False,
 ) -> None:
-    """Build <workspace>/meshes/: procedural sedans, hatchbacks, SUVs, vans and pickups (closed meshes, body /
-    windows / wheels / lights, full and light detail) plus the meshes imported before, as .ply + materials.json."""
+    """Build <workspace>/meshes/: procedural vehicles plus the meshes imported before.
+
+    Sedans, hatchbacks, SUVs, vans and pickups (closed meshes, body / windows / wheels / lights, full and light
+    detail), as .ply + materials.json.
+    """
     from drivesim.stages.meshes.config import ImportConfig, MeshesConfig
     from drivesim.stages.meshes.stage import current_imports, run_meshes
 
@@ -78,8 +81,11 @@ def import_command(
         str | None, typer.Option("--name", help="Name in the library (default: the file's stem).", show_default=False)
     ] = None,
 ) -> None:
-    """Add a user's car to <workspace>/meshes/: turned into the vehicle frame (x forward, z up, origin at the
-    footprint centre on the ground) at its real size; the library is rebuilt atomically with it."""
+    """Add a user's car to <workspace>/meshes/ at its real size.
+
+    The mesh is turned into the vehicle frame (x forward, z up, origin at the footprint centre on the ground); the
+    library is rebuilt atomically with it.
+    """
     from drivesim.pipeline.errors import InputError
     from drivesim.stages.meshes.config import ImportConfig, MeshesConfig
     from drivesim.stages.meshes.import_mesh import import_vehicle
@@ -116,8 +122,10 @@ def preview_command(
     ] = None,
     detail: Annotated[str, typer.Option("--detail", help="Level of detail to draw: full or light.")] = "full",
 ) -> None:
-    """Render a lit contact sheet of the workspace's vehicle library (or of the procedural default when the
-    workspace has none) with the simulator's rasterizer."""
+    """Render a lit contact sheet of the workspace's vehicle library.
+
+    The procedural default when the workspace has none; drawn with the simulator's rasterizer.
+    """
     from drivesim.pipeline.errors import InputError
     from drivesim.sim.vehicle_library import VehicleLibrary
     from drivesim.stages.meshes.preview import contact_sheet

@@ -34,9 +34,11 @@ def render_command(
         ),
     ] = False,
 ) -> None:
-    """Drive one episode and write what the ego camera saw (full sim image, the car inserted) at 10 Hz as an MP4, a
-    PNG strip of the frames while the ego passes the other car, and a bird's-eye plot of both trajectories with the
-    vehicle footprints."""
+    """Drive one episode: the ego camera's view as an MP4, a PNG strip and a bird's-eye plot.
+
+    The MP4 is the full sim image with the car inserted, at 10 Hz; the strip, the frames while the ego passes the other
+    car; the plot, both trajectories with the vehicle footprints.
+    """
     from drivesim.pipeline.errors import DrivesimError
     from drivesim.sim.envs.render_episode import render_episode
 

@@ -30,12 +30,12 @@ def build_command(
     set_: set_option("stages.preprocess.depth.method=plane") = None,
     force: ForceOption = False,
 ) -> None:
-    """Build each town's world at <workspace>/towns/seed<N>/world: synth -> ingest -> preprocess -> build-world.
+    """Build each town's world at <workspace>/towns/seed<N>/world.
 
-    A town that is fresh (same settings) is skipped, stage by stage; Ctrl-C keeps the stages done and writes nothing
-    half: the same command continues. `drivesim train` uses these towns when its config's `towns` key names them.
-    Towns 8 and 9 are tree-lined (rows of trees beside the road; `per_town` in configs/towns.yaml), the others
-    mostly built up.
+    synth -> ingest -> preprocess -> build-world. A town that is fresh (same settings) is skipped, stage by stage;
+    Ctrl-C keeps the stages done and writes nothing half: the same command continues. `drivesim train` uses these
+    towns when its config's `towns` key names them. Towns 8 and 9 are tree-lined (rows of trees beside the road;
+    `per_town` in configs/towns.yaml), the others mostly built up.
     """
     from drivesim.chain.towns import PRESET, TownsConfig, TownStage, build_towns, check_seeds
 

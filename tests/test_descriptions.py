@@ -144,3 +144,26 @@ def test_every_view_config_field_has_a_short_description() -> None:
     too_long = [f"ViewConfig.{name} ({len(text)} chars)" for name, text in fields if len(text) > MAX_DESCRIPTION_CHARS]
     assert not missing, f"ViewConfig fields without a description: {missing}"
     assert not too_long, f"ViewConfig descriptions over {MAX_DESCRIPTION_CHARS} characters: {too_long}"
+
+
+def command_summaries() -> list[tuple[str, str]]:
+    """(command, first paragraph of its help: the summary `drivesim --help` lists) of every drivesim command."""
+    from drivesim.cli.main import app
+
+    summaries = []
+    stack: list[tuple[str, click.Command]] = [("drivesim", typer.main.get_command(app))]
+    while stack:
+        path, command = stack.pop()
+        if path != "drivesim":  # the app's own help heads `drivesim --help`; it is in no command list
+            summaries.append((path, " ".join((command.help or "").split("\n\n")[0].split())))
+        stack += [(f"{path} {name}", sub) for name, sub in getattr(command, "commands", {}).items()]
+    return summaries
+
+
+def test_every_command_summary_is_one_short_line() -> None:
+    summaries = dict(command_summaries())
+    assert {"drivesim towns build", "drivesim export onnx", "drivesim bench stereo", "drivesim train"} <= set(summaries)
+    too_long = [f"{name} ({len(text)} chars)" for name, text in summaries.items() if len(text) > 100]
+    missing = [name for name, text in summaries.items() if not text]
+    assert not too_long, f"command summaries over 100 characters (put the details in a second paragraph): {too_long}"
+    assert not missing, f"commands without a help text: {missing}"
