@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from drivesim.pipeline.config import StageConfig, load_config
+from drivesim.pipeline.config import StageConfig, load_config, preset_path
 from drivesim.pipeline.errors import ConfigError, InputError
 from drivesim.pipeline.stage import StageResult, StageSpec, run_stage
 from drivesim.pipeline.workspace import Workspace
@@ -66,11 +66,22 @@ def deep_merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def task_preset(preset: str | None, overrides: dict[str, Any]) -> str | None:
+    """The stage's preset for the task the run preset names: `train/lane` for `train: {task: lane}`, where the stage's
+    own preset is one of a folder of per-task presets (`train/overtake`) and that task has one; else `preset`."""
+    task = overrides.get("task")
+    if preset is None or "/" not in preset or not isinstance(task, str):
+        return preset
+    candidate = f"{preset.rsplit('/', 1)[0]}/{task}"
+    return candidate if preset_path(candidate).is_file() else preset
+
+
 def stage_config(model: type[StageConfig], preset: str | None, overrides: dict[str, Any], stage: str) -> StageConfig:
-    """The stage's config: its defaults, its own preset, then the run preset's overrides for it."""
+    """The stage's config: its defaults, its own preset (the named task's, see `task_preset`), then the run preset's
+    overrides for it."""
     from pydantic import ValidationError
 
-    cfg = load_config(model, preset=preset)
+    cfg = load_config(model, preset=task_preset(preset, overrides))
     if not overrides:
         return cfg
     try:

@@ -185,3 +185,21 @@ def test_no_code_outside_the_task_modules_and_the_registry_asks_which_task_it_ru
                 if _COMPARED.search(line):
                     found.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()}")
     assert not found, "task names compared outside the tasks (give the task class a hook):\n" + "\n".join(found)
+
+
+def test_a_run_preset_naming_a_task_starts_from_that_tasks_train_preset() -> None:
+    """`drivesim run --preset lane` trains lane from `train/lane` (its budgets and LaneEnv's settings), not from the
+    chain's default `train/overtake` preset."""
+    import yaml
+
+    from drivesim.chain.walk import stage_config, task_preset
+    from drivesim.pipeline.config import preset_path
+    from drivesim.stages.train.config import TrainConfig
+
+    assert task_preset("train/overtake", {"task": "lane"}) == "train/lane"
+    assert task_preset("train/overtake", {}) == "train/overtake"
+    run_train = yaml.safe_load(preset_path("run/lane").read_text())["train"]
+    cfg = stage_config(TrainConfig, "train/overtake", run_train, "train")
+    assert cfg.task == "lane" and cfg.towns == []
+    assert cfg.envs.config.pitch_jitter_deg == 3.0  # LaneEnv.default_config()'s, not restated by the run preset
+    assert "pitch_jitter_deg" not in run_train["envs"]["config"]
