@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 from sim_worlds import SMALL_VIEW, write_test_world
-from stable_baselines3.common.vec_env import DummyVecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 import drivesim.sim.envs  # noqa: F401  (registers the envs)
 from drivesim.sim.dynamics import BicycleState
@@ -173,6 +173,19 @@ def test_expert_passes_the_front_car(world_dir: Path) -> None:
     assert successes >= 24
 
 
+def _assert_same_steps(a: VecEnv, b: VecEnv, actions: np.ndarray, steps: int = 5) -> None:
+    """Both vector envs step to the same observations, rewards, dones, states and terminal observations."""
+    for _ in range(steps):  # 5 steps cross a 4-step time limit: automatic reset with terminal_observation
+        obs_a, rew_a, done_a, info_a = a.step(actions)
+        obs_b, rew_b, done_b, info_b = b.step(actions)
+        assert np.array_equal(obs_a, obs_b) and np.allclose(rew_a, rew_b) and np.array_equal(done_a, done_b)
+        for ia, ib in zip(info_a, info_b, strict=True):
+            assert ia["state"] == pytest.approx(ib["state"], nan_ok=True)
+            assert ("terminal_observation" in ia) == ("terminal_observation" in ib)
+            if "terminal_observation" in ib:
+                assert np.array_equal(ia["terminal_observation"], ib["terminal_observation"])
+
+
 def test_batched_vec_env_equals_single_envs(world_dir: Path) -> None:
     config = {**SMALL_VIEW, "episode_steps": 4}
     batched = BatchedVecEnv("overtake", 2, str(world_dir), None, "train", config, seed=7)
@@ -180,14 +193,7 @@ def test_batched_vec_env_equals_single_envs(world_dir: Path) -> None:
     single.seed(7)
     assert np.array_equal(batched.reset(), single.reset())
     actions = np.array([[0.2], [-0.4]], np.float32)
-    for _ in range(5):  # crosses the time limit: automatic reset with terminal_observation
-        obs_b, rew_b, done_b, info_b = batched.step(actions)
-        obs_s, rew_s, done_s, info_s = single.step(actions)
-        assert np.array_equal(obs_b, obs_s) and np.allclose(rew_b, rew_s) and np.array_equal(done_b, done_s)
-        for ib, is_ in zip(info_b, info_s, strict=True):
-            assert ib["state"] == pytest.approx(is_["state"], nan_ok=True)
-            if "terminal_observation" in is_:
-                assert np.array_equal(ib["terminal_observation"], is_["terminal_observation"])
+    _assert_same_steps(batched, single, actions)
     assert batched.expert_actions().shape == (2, 1)
 
 
@@ -201,13 +207,7 @@ def test_process_batched_vec_env_equals_one_batched_env(world_dir: Path) -> None
         assert split.num_envs == 3 and split.observation_space == one.observation_space
         assert np.array_equal(split.reset(), one.reset())
         actions = np.array([[0.2], [-0.4], [0.0]], np.float32)
-        for _ in range(5):  # crosses the time limit: automatic reset with terminal_observation
-            obs_a, rew_a, done_a, info_a = split.step(actions)
-            obs_b, rew_b, done_b, info_b = one.step(actions)
-            assert np.array_equal(obs_a, obs_b) and np.allclose(rew_a, rew_b) and np.array_equal(done_a, done_b)
-            for ia, ib in zip(info_a, info_b, strict=True):
-                assert ia["state"] == pytest.approx(ib["state"], nan_ok=True)
-                assert ("terminal_observation" in ia) == ("terminal_observation" in ib)
+        _assert_same_steps(split, one, actions)
         assert np.array_equal(split.expert_actions(), one.expert_actions())
         assert split.get_attr("task") == ["overtake"] * 3
     finally:
