@@ -45,6 +45,17 @@ SetOption = set_option("KEY=VALUE")
 ForceOption = Annotated[bool, typer.Option("--force", help="Redo the stage even when its artifact is fresh.")]
 
 
+def said_fresh(result: Any, name: str, path: Path | None = None, plural: bool = False) -> bool:
+    """True, after one line saying so, when the stage skipped its artifact `name` as fresh (`path`: the file to name,
+    default the artifact's folder)."""
+    if not result.skipped:
+        return False
+    verb, pronoun = ("are", "them") if plural else ("is", "it")
+    shown = path if path is not None else result.path
+    console.print(f"{name} {verb} fresh, nothing to do ({shown}); --force redoes {pronoun}", soft_wrap=True)
+    return True
+
+
 def workspace() -> Workspace:
     """The workspace chosen with `--workspace` (default ./drivesim-work); one line (exit 2) when that path is a
     file, a FIFO or a device rather than a folder."""

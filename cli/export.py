@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli.common import ConfigOption, ForceOption, console, set_option, workspace
+from drivesim.cli.common import ConfigOption, ForceOption, console, said_fresh, set_option, workspace
 from drivesim.pipeline.config import load_config
 
 export_app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
@@ -43,8 +43,7 @@ def export_onnx_command(
     result = run_export(workspace(), cfg, force=force)
     s = result.summary
     onnx_path = result.path / "policy.onnx"
-    if result.skipped:
-        console.print(f"export is fresh, nothing to do ({onnx_path}); --force redoes it", soft_wrap=True)
+    if said_fresh(result, "export", onnx_path):
         return
     for note in result.notes:
         console.print(note, highlight=False, soft_wrap=True)

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from drivesim.cli.common import ConfigOption, ForceOption, console, set_option, workspace
+from drivesim.cli.common import ConfigOption, ForceOption, console, said_fresh, set_option, workspace
 from drivesim.pipeline.config import load_config
 
 meshes_app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
@@ -16,10 +16,9 @@ AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
 
 
 def _print_result(result) -> None:
-    s = result.summary
-    if result.skipped:
-        console.print(f"meshes are fresh, nothing to do ({result.path}); --force redoes them", soft_wrap=True)
+    if said_fresh(result, "meshes", plural=True):
         return
+    s = result.summary
     console.print(
         f"[green]meshes[/] {s.model_count} vehicles ({s.imported_count} imported), "
         f"{s.full_triangles_mean:.0f} / {s.light_triangles_mean:.0f} triangles full / light on average "

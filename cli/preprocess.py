@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from drivesim.cli.common import ConfigOption, ForceOption, console, set_option, workspace
+from drivesim.cli.common import ConfigOption, ForceOption, console, said_fresh, set_option, workspace
 from drivesim.pipeline.config import load_config
 
 
@@ -17,10 +17,9 @@ def preprocess_command(
 
     cfg = load_config(PreprocessConfig, preset="preprocess", config_file=config, overrides=set_)
     result = run_preprocess(workspace(), cfg, force=force)
-    s = result.summary
-    if result.skipped:
-        console.print(f"preprocessed is fresh, nothing to do ({result.path}); --force redoes it", soft_wrap=True)
+    if said_fresh(result, "preprocessed"):
         return
+    s = result.summary
     depth = f"median {s.depth_median_m} m" if s.depth_median_m is not None else "no near depth"
     residual = f", residual {s.residual_m} m" if s.residual_m is not None else ""
     console.print(

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from drivesim.cli.common import ConfigOption, ForceOption, console, set_option, workspace
+from drivesim.cli.common import ConfigOption, ForceOption, console, said_fresh, set_option, workspace
 from drivesim.pipeline.config import load_config
 
 
@@ -16,10 +16,9 @@ def build_world_command(
 
     cfg = load_config(WorldConfig, preset="world", config_file=config, overrides=set_)
     result = run_build_world(workspace(), cfg, force=force)
-    s = result.summary
-    if result.skipped:
-        console.print(f"world is fresh, nothing to do ({result.path}); --force redoes it", soft_wrap=True)
+    if said_fresh(result, "world"):
         return
+    s = result.summary
     console.print(
         f"[green]world[/] {s.frame_count} frames at {s.sim_width_px}x{s.sim_height_px}, "
         f"{s.path_length_m:.1f} m of path, curvature {s.curvature_min_1pm:+.4f}..{s.curvature_max_1pm:+.4f} "
