@@ -87,14 +87,20 @@ def image_size(where: Path, key: str, value: Any) -> int:
     return value
 
 
+def _finite_matrix(where: Path, key: str, value: Any, size: int) -> np.ndarray:
+    """`value` as a finite size x size float matrix; WorldError naming `key` otherwise."""
+    try:
+        M = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as e:
+        raise WorldError(f"{where}: {key} is not a {size}x{size} matrix of numbers; rebuild the world") from e
+    if M.shape != (size, size) or not np.all(np.isfinite(M)):
+        raise WorldError(f"{where}: {key} is not a finite {size}x{size} matrix; rebuild the world")
+    return M
+
+
 def intrinsics(where: Path, value: Any) -> np.ndarray:
     """K as a 3x3 pinhole matrix: finite, positive focal lengths, last row 0 0 1 (so it is invertible)."""
-    try:
-        K = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as e:
-        raise WorldError(f"{where}: K is not a 3x3 matrix of numbers; rebuild the world") from e
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-        raise WorldError(f"{where}: K is not a finite 3x3 matrix; rebuild the world")
+    K = _finite_matrix(where, "K", value, 3)
     if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]):
         raise WorldError(f"{where}: K has no positive focal lengths or no last row 0 0 1; rebuild the world")
     return K
@@ -102,12 +108,7 @@ def intrinsics(where: Path, value: Any) -> np.ndarray:
 
 def rigid_transform(where: Path, key: str, value: Any) -> np.ndarray:
     """A 4x4 rigid transform: finite, orthonormal rotation with det +1, last row 0 0 0 1."""
-    try:
-        T = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as e:
-        raise WorldError(f"{where}: {key} is not a 4x4 matrix of numbers; rebuild the world") from e
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise WorldError(f"{where}: {key} is not a finite 4x4 matrix; rebuild the world")
+    T = _finite_matrix(where, key, value, 4)
     R = T[:3, :3]
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
         raise WorldError(f"{where}: {key} is not a rigid transform; rebuild the world")
