@@ -79,18 +79,26 @@ def test_every_config_field_has_a_short_description() -> None:
     assert not too_long, f"config descriptions over {MAX_DESCRIPTION_CHARS} characters: {too_long}"
 
 
-def option_helps() -> list[tuple[str, str]]:
-    """(command option, help) of every option and argument of every drivesim command."""
+def cli_commands() -> list[tuple[str, click.Command]]:
+    """(command path, click command) of drivesim itself and every command and group under it."""
     from drivesim.cli.main import app
 
-    helps = []
+    commands = []
     stack: list[tuple[str, click.Command]] = [("drivesim", typer.main.get_command(app))]
     while stack:
         path, command = stack.pop()
-        for param in command.params:
-            helps.append((f"{path} {param.name}", getattr(param, "help", None) or ""))
+        commands.append((path, command))
         stack += [(f"{path} {name}", sub) for name, sub in getattr(command, "commands", {}).items()]
-    return helps
+    return commands
+
+
+def option_helps() -> list[tuple[str, str]]:
+    """(command option, help) of every option and argument of every drivesim command."""
+    return [
+        (f"{path} {param.name}", getattr(param, "help", None) or "")
+        for path, command in cli_commands()
+        for param in command.params
+    ]
 
 
 def test_every_cli_option_help_is_short() -> None:
@@ -148,16 +156,11 @@ def test_every_view_config_field_has_a_short_description() -> None:
 
 def command_summaries() -> list[tuple[str, str]]:
     """(command, first paragraph of its help: the summary `drivesim --help` lists) of every drivesim command."""
-    from drivesim.cli.main import app
-
-    summaries = []
-    stack: list[tuple[str, click.Command]] = [("drivesim", typer.main.get_command(app))]
-    while stack:
-        path, command = stack.pop()
-        if path != "drivesim":  # the app's own help heads `drivesim --help`; it is in no command list
-            summaries.append((path, " ".join((command.help or "").split("\n\n")[0].split())))
-        stack += [(f"{path} {name}", sub) for name, sub in getattr(command, "commands", {}).items()]
-    return summaries
+    return [
+        (path, " ".join((command.help or "").split("\n\n")[0].split()))
+        for path, command in cli_commands()
+        if path != "drivesim"  # the app's own help heads `drivesim --help`; it is in no command list
+    ]
 
 
 def test_every_command_summary_is_one_short_line() -> None:
