@@ -25,7 +25,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "transfer"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "_lib"))  # the studies' shared helpers (study.py)
 from bench_transfer import machine  # noqa: E402  (the same machine line as the transfer tables)
+from study import add_result_arguments, add_settings_argument  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 CLEAR_STEER = 0.5  # the expert's |action| above which it is swerving to pass
@@ -107,14 +109,11 @@ def main() -> None:
     parser.add_argument("--policy", action="append", required=True, help="a run folder or RUN/checkpoints/NAME.pt")
     parser.add_argument("--world", action="append", required=True, help="LABEL=WORLD_FOLDER")
     parser.add_argument("--episodes", type=int, default=200, help="starts per world (seeds 0 .. N-1)")
-    parser.add_argument("--name", required=True, help="name of the result (first_action_<name>.json)")
-    parser.add_argument("--notes", default="", help="a paragraph printed under the table")
-    parser.add_argument(
+    add_result_arguments(parser, "first_action")
+    add_settings_argument(
+        parser,
         "--env-set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="an env config value over every policy's own, e.g. min_path_length_m=60 (the same starts for policies "
+        "an env config value over every policy's own, e.g. min_path_length_m=60 (the same starts for policies "
         "trained with different values)",
     )
     args = parser.parse_args()

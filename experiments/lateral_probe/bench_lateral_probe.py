@@ -34,8 +34,10 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recovery"))  # the recovery study's world labels
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "_lib"))  # the studies' shared helpers (study.py)
 from bench_recovery import label  # noqa: E402  (a short name for a world path: the folder above `world`)
 from lateral_probe import VIEW_PARTS  # noqa: E402
+from study import add_result_arguments, add_settings_argument, save_result  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 TEST_VIEWS = 1500
@@ -150,13 +152,11 @@ def main() -> None:
         help="read a trained policy's own encoder (frozen; a linear readout fitted) in its run's view, instead of "
         "fitting a fresh one",
     )
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env config (repeatable)")
-    parser.add_argument(
+    add_settings_argument(parser, "--set", "env config (repeatable)")
+    add_settings_argument(
+        parser,
         "--policy-set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="the fitted encoder's architecture, as train's policy.KEY (e.g. input_pool=1; repeatable)",
+        "the fitted encoder's architecture, as train's policy.KEY (e.g. input_pool=1; repeatable)",
     )
     parser.add_argument(
         "--blank",
@@ -170,8 +170,7 @@ def main() -> None:
     parser.add_argument("--offset-m", type=float, default=2.5, help="largest offset to either side, m")
     parser.add_argument("--yaw-rad", type=float, default=0.2, help="largest heading error to either side, rad")
     parser.add_argument("--seed", type=int, default=0, help="seed of the views and of the fit")
-    parser.add_argument("--name", required=True, help="name of the result (lateral_probe_<name>.json)")
-    parser.add_argument("--notes", default="", help="a paragraph printed under the table")
+    add_result_arguments(parser, "lateral_probe")
     args = parser.parse_args()
     import torch
     from lateral_probe import blank_view_part, fit_probe, fit_readout, render_views, score_probe
@@ -217,9 +216,7 @@ def main() -> None:
         **{k: getattr(args, k) for k in ("views_per_world", "epochs", "offset_m", "yaw_rad", "seed", "blank", "notes")},
         "rows": rows,
     }
-    (RESULTS / f"lateral_probe_{args.name}.json").write_text(json.dumps(result, indent=1))
-    write_markdown()
-    print(f"wrote {RESULTS / f'lateral_probe_{args.name}.json'} and {RESULTS / 'lateral_probe.md'}")
+    save_result(RESULTS, "lateral_probe", result, write_markdown)
 
 
 if __name__ == "__main__":

@@ -21,12 +21,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "_lib"))  # the studies' shared helpers (study.py)
+from study import add_result_arguments, save_result  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 OUT_OF_VIEW_LATERAL_M = (30.0, 31.0)
@@ -142,8 +146,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=50, help="episodes per policy and world (seeds 0..N-1)")
     parser.add_argument("--offset-m", type=float, default=2.0, help="largest start offset to either side, m")
     parser.add_argument("--steps", type=int, default=40, help="steps to drive (10 per second)")
-    parser.add_argument("--name", required=True, help="name of the result (recovery_<name>.json)")
-    parser.add_argument("--notes", default="", help="a paragraph printed under the table")
+    add_result_arguments(parser, "recovery")
     args = parser.parse_args()
     warnings.filterwarnings("ignore", module="gymnasium")  # stepping on after the env's success is intended here
     import torch
@@ -164,9 +167,7 @@ def main() -> None:
         **{k: getattr(args, k) for k in ("episodes", "offset_m", "steps", "notes")},
         "rows": rows,
     }
-    (RESULTS / f"recovery_{args.name}.json").write_text(json.dumps(result, indent=1))
-    write_markdown()
-    print(f"wrote {RESULTS / f'recovery_{args.name}.json'} and {RESULTS / 'recovery.md'}")
+    save_result(RESULTS, "recovery", result, write_markdown)
 
 
 if __name__ == "__main__":

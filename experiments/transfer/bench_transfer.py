@@ -36,6 +36,9 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "_lib"))  # the studies' shared helpers (study.py)
+from study import add_result_arguments, add_settings_argument  # noqa: E402
+
 RESULTS = Path(__file__).parent / "results"
 DRIVESIM = Path(sys.executable).parent / "drivesim"
 POLICIES = ("random", "straight", "expert", "warm start", "final", "best")
@@ -423,20 +426,17 @@ def main() -> None:
     parser.add_argument("--unseen", type=Path, action="append", default=[], help="an unseen synthetic world")
     parser.add_argument("--real", type=Path, action="append", default=[], help="an unseen real world")
     parser.add_argument("--episodes", type=int, default=1000, help="episodes per world and policy")
-    parser.add_argument("--name", required=True, help="name of the result (transfer_<name>.json)")
+    add_result_arguments(parser, "transfer")
     parser.add_argument("--policies", nargs="*", default=list(POLICIES), choices=POLICIES)
     parser.add_argument("--groups", nargs="*", default=list(GROUPS), choices=GROUPS, help="world groups to evaluate")
     parser.add_argument("--workspace", type=Path, default=None, help="scratch workspace for the evaluations")
-    parser.add_argument("--notes", default="", help="a paragraph printed under the table")
     parser.add_argument("--curve", action="store_true", help="evaluate every checkpoint on the unseen worlds too")
     parser.add_argument("--curve-episodes", type=int, default=100, help="episodes per world and checkpoint")
     parser.add_argument("--target", type=float, default=0.9, help="the unseen success whose time is reported")
-    parser.add_argument(
+    add_settings_argument(
+        parser,
         "--eval-set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="passed to every `drivesim eval` as --set, e.g. env.min_path_length_m=40 so that a 60 m real drive is "
+        "passed to every `drivesim eval` as --set, e.g. env.min_path_length_m=40 so that a 60 m real drive is "
         "accepted as the run accepted it in training (random and expert take the task's preset otherwise)",
     )
     args = parser.parse_args()
