@@ -15,13 +15,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from drivesim.bench.fidelity import image_metrics, render_drive
+from drivesim.bench.machine import report_header
 from drivesim.sim.geometry import invert, pose_2d, yaw_of
 from drivesim.sim.vehicle_library import VehicleLibrary
 from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer
@@ -175,11 +175,7 @@ def run_car_fidelity(real_worlds: dict[str, Path], figure: Path, frames: int = 3
 def car_fidelity_markdown(result: CarFidelityResult, machine: str, command: str) -> str:
     """The results as markdown."""
     lines = [
-        "# Inserted-car fidelity and real-frame view synthesis",
-        "",
-        f"- machine: {machine}",
-        f"- date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
-        f"- command: `{command}`",
+        *report_header("Inserted-car fidelity and real-frame view synthesis", machine, command),
         "",
         f"## (a) Synthetic world: simulator view vs true render with the car {CAR_AHEAD_M:.0f} m ahead",
         "",

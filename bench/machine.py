@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import platform
+from datetime import UTC, datetime
 from pathlib import Path
 
 
@@ -39,3 +40,14 @@ def machine_line() -> str:
     gpu = gpu_name()
     load = f", load average {os.getloadavg()[0]:.1f}" if hasattr(os, "getloadavg") else ""
     return f"{usable_cores()}-core CPU ({cpu_model()}), {f'GPU {gpu}' if gpu else 'no GPU'}, {platform.machine()}{load}"
+
+
+def report_header(title: str, machine: str, command: str | None = None, date: str | None = None) -> list[str]:
+    """A bench report's first lines: `# title`, then the machine, the date (default: now, UTC) and the command."""
+    lines = [f"# {title}", "", f"- machine: {machine}", f"- date: {date or now_utc()}"]
+    return lines if command is None else [*lines, f"- command: `{command}`"]
+
+
+def now_utc() -> str:
+    """The current time as a report writes it, e.g. "2026-11-27 23:15 UTC"."""
+    return datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")

@@ -10,12 +10,11 @@ from __future__ import annotations
 import multiprocessing
 import time
 from dataclasses import asdict, dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
-from drivesim.bench.machine import machine_line, usable_cores
+from drivesim.bench.machine import machine_line, report_header, usable_cores
 from drivesim.bench.sim_steps import make_env, recording_car_drawn, time_env_steps
 from drivesim.sim.envs.registry import TASK_NAMES
 
@@ -198,10 +197,7 @@ def _task_has_other(task: str) -> bool:
 def sim_speed_markdown(result: SimSpeedResult, command: str) -> str:
     """The results as a markdown report."""
     lines = [
-        "# Simulator speed",
-        "",
-        f"- machine: {result.machine}",
-        f"- date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
+        *report_header("Simulator speed", result.machine),
         f"- world: `{result.world}`, {result.steps} expert steps per measurement, default observation; step times "
         "exclude resets",
         f"- command: `{command}`",

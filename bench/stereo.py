@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from drivesim.bench.fidelity import colour_depth, image_metrics
+from drivesim.bench.machine import report_header
 from drivesim.pipeline.errors import InputError
 from drivesim.sim.fill import WideFrame, fill_wedges_from_neighbours, inpaint_holes, widen_frame
 from drivesim.sim.geometry import camera_mount, invert, scale_intrinsics
@@ -423,11 +424,9 @@ def _fill_sentence(result: StereoResult) -> str:
 def stereo_markdown(result: StereoResult, machine: str, command: str, date: str) -> str:
     """The result as a markdown report."""
     lines = [
-        "# Real lateral views: left frame warped into the right camera of a stereo pair",
-        "",
-        f"- machine: {machine}",
-        f"- date: {date}",
-        f"- command: `{command}`",
+        *report_header(
+            "Real lateral views: left frame warped into the right camera of a stereo pair", machine, command, date
+        ),
         f"- data: `{result.folder}`, frames {result.frames[0]}-{result.frames[-1]} ({len(result.frames)}); depth at "
         f"{result.working_size_px[0]}x{result.working_size_px[1]}, measured at {result.eval_size_px[0]}x"
         f"{result.eval_size_px[1]}; baseline {result.baseline_m:.3f} m (right camera to the right)",

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.table import Table
 
-from drivesim.bench.machine import machine_line
+from drivesim.bench.machine import machine_line, now_utc, report_header
 from drivesim.cli.common import ConfigOption, console, set_option, workspace
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError
@@ -61,11 +60,7 @@ def fidelity_markdown(result: FidelityResult, command: str) -> str:
     from drivesim.bench.fidelity import DEPTH_SOURCES
 
     lines = [
-        "# Depth and view-synthesis fidelity against ground truth",
-        "",
-        f"- machine: {machine_line()}",
-        f"- date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}",
-        f"- command: `{command}`",
+        *report_header("Depth and view-synthesis fidelity against ground truth", machine_line(), command),
         f"- synthetic drive: seed {result.seed}, {result.frames} frames at {result.width_px}x{result.height_px}; depth "
         f"over frames {result.evaluated_frames[0]}-{result.evaluated_frames[-1]} (all neighbours present); views "
         "synthesized from the recorded frame with its depth by forward warp (paper eq. 2), compared with the "
@@ -281,7 +276,7 @@ def stereo_command(
         )  # fmt: skip
     command = f"drivesim bench stereo {folder} --methods {','.join(chosen)}"
     command += "".join(f" --world {w}" for w in world or []) + "".join(f" --set {o}" for o in set_ or [])
-    report = stereo_markdown(result, machine_line(), command, datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"))
+    report = stereo_markdown(result, machine_line(), command, now_utc())
     if markdown is not None:
         markdown.parent.mkdir(parents=True, exist_ok=True)
         markdown.write_text(report)
