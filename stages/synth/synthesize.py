@@ -9,6 +9,7 @@ Output files (written as hidden temporaries and moved into place only when compl
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import time
@@ -16,7 +17,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 import cv2
 import numpy as np
@@ -227,35 +228,35 @@ def _record_drive(
     return dict(writer.counts), render_s, thumbs
 
 
+def _timed_events(
+    t_s: Any, ns: Callable[[float], int], topic: str, message: Callable[[int, int], Any]
+) -> list[tuple[int, str, Callable[[], Any]]]:
+    """(log time ns, topic, message factory) of one sensor's messages; `message(i, t_ns)` builds message i."""
+    return [(t_ns, topic, functools.partial(message, i, t_ns)) for i, t_ns in enumerate(ns(float(t)) for t in t_s)]
+
+
 def _sensor_events(cfg: SynthConfig, gps: dict, imu: dict, wheel: dict, ns: Callable[[float], int]) -> list:
     """(log time ns, topic, message factory) of every GPS, IMU and wheel message, in time order."""
     gyro_var = cfg.sensors.imu.gyro_noise_radps**2
     accel_var = cfg.sensors.imu.accel_noise_mps2**2
-    events = []
-    for i, t in enumerate(gps["t_s"]):
-        t_ns = ns(float(t))
-        events.append(
-            (
-                t_ns,
-                "/gps/fix",
-                lambda i=i, t_ns=t_ns: rec.navsat_msg(
-                    gps["lat_deg"][i], gps["lon_deg"][i], gps["alt_m"][i], gps["covariance_m2"][i], t_ns
-                ),
-            )
-        )
-    for i, t in enumerate(imu["t_s"]):
-        t_ns = ns(float(t))
-        events.append(
-            (
-                t_ns,
-                "/imu/data",
-                lambda i=i, t_ns=t_ns: rec.imu_msg(
-                    imu["angular_velocity_radps"][i], imu["linear_acceleration_mps2"][i], gyro_var, accel_var, t_ns
-                ),
-            )
-        )
-    for i, t in enumerate(wheel["t_s"]):
-        t_ns = ns(float(t))
-        events.append((t_ns, "/vehicle/twist", lambda i=i, t_ns=t_ns: rec.twist_msg(wheel["speed_mps"][i], t_ns)))
+    events = [
+        *_timed_events(
+            gps["t_s"],
+            ns,
+            "/gps/fix",
+            lambda i, t_ns: rec.navsat_msg(
+                gps["lat_deg"][i], gps["lon_deg"][i], gps["alt_m"][i], gps["covariance_m2"][i], t_ns
+            ),
+        ),
+        *_timed_events(
+            imu["t_s"],
+            ns,
+            "/imu/data",
+            lambda i, t_ns: rec.imu_msg(
+                imu["angular_velocity_radps"][i], imu["linear_acceleration_mps2"][i], gyro_var, accel_var, t_ns
+            ),
+        ),
+        *_timed_events(wheel["t_s"], ns, "/vehicle/twist", lambda i, t_ns: rec.twist_msg(wheel["speed_mps"][i], t_ns)),
+    ]
     events.sort(key=lambda ev: ev[0])  # stable: equal stamps keep GPS, IMU, wheel order
     return events
