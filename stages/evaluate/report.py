@@ -8,7 +8,7 @@ import csv
 import html
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -314,16 +314,20 @@ def _ci_cell(e: dict[str, Any]) -> str:
     return f"{e['value']:.3f} <span class=ci>[{e['ci_low']:.3f}, {e['ci_high']:.3f}]</span>"
 
 
+def _rows_html(rows: Sequence[dict[str, Any]], label: str, cells: Sequence[Callable[[dict[str, Any]], str]]) -> str:
+    """HTML table rows: each row's `label` (escaped), its episodes, then one cell per function of `cells`."""
+    return "".join(
+        f"<tr><td>{html.escape(r[label])}</td><td>{r['episodes']}</td>{''.join(f'<td>{c(r)}</td>' for c in cells)}</tr>"
+        for r in rows
+    )
+
+
 def _scenario_html(rows: Sequence[dict[str, Any]]) -> str:
     """The scenario table (the paper's Table II, offline) as HTML; empty without another car."""
     if not rows:
         return ""
 
-    body = "".join(
-        f"<tr><td>{html.escape(r['scenario'])}</td><td>{r['episodes']}</td><td>{_ci_cell(r['success'])}</td>"
-        f"<td>{_ci_cell(r['intervention'])}</td></tr>"
-        for r in rows
-    )
+    body = _rows_html(rows, "scenario", [lambda r: _ci_cell(r["success"]), lambda r: _ci_cell(r["intervention"])])
     return (
         "<h2>Scenarios (the paper's Table II, offline)</h2>"
         "<table><tr><th>scenario</th><th>episodes</th><th>success [95 % CI]</th><th>intervention [95 % CI]</th>"
@@ -337,11 +341,8 @@ def _starts_html(rows: Sequence[dict[str, Any]]) -> str:
     if not rows:
         return ""
 
-    body = "".join(
-        f"<tr><td>{html.escape(r['starts'])}</td><td>{r['episodes']}</td><td>{r['share']:.3f}</td>"
-        f"<td>{_ci_cell(r['success'])}</td><td>{_ci_cell(r['intervention'])}</td><td>{_ci_cell(r['collision'])}</td></tr>"
-        for r in rows
-    )
+    rates = [lambda r, k=k: _ci_cell(r[k]) for k in ("success", "intervention", "collision")]
+    body = _rows_html(rows, "starts", [lambda r: f"{r['share']:.3f}", *rates])
     return (
         "<h2>Starts that can be won</h2><table><tr><th>starts</th><th>episodes</th><th>share</th>"
         "<th>success [95 % CI]</th><th>intervention [95 % CI]</th><th>collision [95 % CI]</th></tr>"
