@@ -148,11 +148,8 @@ def run_episodes_ray(
 ) -> RayEvalOutcome:
     """Run every seed whose episode file is not in `folder` yet on Ray actors; the driver writes each file.
 
-    :param env_factory: builds the env (once per actor).
-    :param policy_spec: the policy (loaded once per actor).
-    :param task: the task name recorded with each episode.
-    :param seeds: every seed of the evaluation.
-    :param folder: where `<seed>.json` files go (and are found when resuming).
+    The other arguments as `rollout.run_episodes`, an actor in a worker's place (it builds the env and loads the
+    policy once).
     :param address: the Ray cluster ("auto", host:port); None starts Ray on this machine.
     :param workers: actors to start; None = one per CPU of the cluster.
     :param on_episode: called in this process after each episode is written (progress display).
