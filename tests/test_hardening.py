@@ -169,18 +169,23 @@ def test_terminated_training_stops_its_worker_processes_and_says_how_to_resume(t
 
 
 BAD_SETTINGS = [
-    (["train", "lane", "--set", "learner_threads=0"], "learner_threads"),
-    (["train", "lane", "--set", "policy.input_pool=0"], "policy.input_pool"),
-    (["train", "lane", "--set", "ppo.epochs=0"], "ppo.epochs"),
-    (["train", "lane", "--set", "policy.conv_layers=[[16,5,2],[0,3,2]]"], "policy.conv_layers"),
-    (["train", "lane", "--set", "policy.features_dim=2000000"], "parameters"),
+    *[
+        (["train", "lane", "--set", setting], key)
+        for setting, key in [
+            ("learner_threads=0", "learner_threads"),
+            ("policy.input_pool=0", "policy.input_pool"),
+            ("ppo.epochs=0", "ppo.epochs"),
+            ("policy.conv_layers=[[16,5,2],[0,3,2]]", "policy.conv_layers"),
+            ("policy.features_dim=2000000", "parameters"),
+            ("eval.episodes=-5", "eval.episodes"),
+            ("time_limit_s=-1", "time_limit_s"),
+            ("ppo.gamma=2", "ppo.gamma"),
+            ("ppo.buffer_steps=-256", "ppo.buffer_steps"),
+            ("ppo.learning_rate=.nan", "finite"),
+        ]
+    ],
     (["train", "lane", "--total-steps", "0"], "total_steps"),
     (["train", "lane", "--total-steps", "-5"], "total_steps"),
-    (["train", "lane", "--set", "eval.episodes=-5"], "eval.episodes"),
-    (["train", "lane", "--set", "time_limit_s=-1"], "time_limit_s"),
-    (["train", "lane", "--set", "ppo.gamma=2"], "ppo.gamma"),
-    (["train", "lane", "--set", "ppo.buffer_steps=-256"], "ppo.buffer_steps"),
-    (["train", "lane", "--set", "ppo.learning_rate=.nan"], "finite"),
     (["eval", "--workers", "0"], "workers"),
     (["eval", "--episodes", "-5"], "episodes"),
     (["export", "onnx", "--set", "opset=0"], "opset"),
