@@ -8,17 +8,7 @@ from typing import Annotated
 import typer
 
 from drivesim.cli.common import ConfigOption, ForceOption, console, set_option, workspace
-from drivesim.cli.video_options import (
-    CalibrationOption,
-    CameraHeightOption,
-    EndOption,
-    FpsOption,
-    GpsOption,
-    HfovOption,
-    StartOption,
-    VideoStartOption,
-    video_overrides,
-)
+from drivesim.cli.video_options import NO_VIDEO, VideoOptions, with_video_options
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError, InputError
 from drivesim.stages.ingest.config import TOPIC_ROLES, IngestConfig
@@ -49,6 +39,7 @@ TopicOption = Annotated[
 ]
 
 
+@with_video_options
 def ingest_command(
     path: Annotated[
         Path,
@@ -58,23 +49,14 @@ def ingest_command(
         ),
     ],
     topic: TopicOption = None,
-    camera_height_m: CameraHeightOption = None,
-    hfov_deg: HfovOption = None,
-    calibration: CalibrationOption = None,
-    gps: GpsOption = None,
-    video_start_utc: VideoStartOption = None,
-    start_s: StartOption = None,
-    end_s: EndOption = None,
-    fps: FpsOption = None,
+    video: VideoOptions = NO_VIDEO,
     config: ConfigOption = None,
     set_: set_option("image.width_px=640") = None,
     force: ForceOption = False,
 ) -> None:
     """Read a recording into the trace artifact."""
-    video = video_overrides(camera_height_m, hfov_deg, calibration, gps, video_start_utc, start_s, end_s, fps)
-    cfg = load_config(
-        IngestConfig, preset="ingest", config_file=config, overrides=[*(set_ or []), *topic_overrides(topic), *video]
-    )
+    overrides = [*(set_ or []), *topic_overrides(topic), *video.overrides()]
+    cfg = load_config(IngestConfig, preset="ingest", config_file=config, overrides=overrides)
     if not path.exists():
         raise InputError("no such file or folder", path)
     result = run_ingest(workspace(), path, cfg, force=force)

@@ -9,17 +9,7 @@ import typer
 
 from drivesim.cli.common import console, workspace
 from drivesim.cli.ingest import TopicOption, topic_overrides
-from drivesim.cli.video_options import (
-    CalibrationOption,
-    CameraHeightOption,
-    EndOption,
-    FpsOption,
-    GpsOption,
-    HfovOption,
-    StartOption,
-    VideoStartOption,
-    video_overrides,
-)
+from drivesim.cli.video_options import NO_VIDEO, VideoOptions, with_video_options
 
 if TYPE_CHECKING:
     from drivesim.chain.run import ChainRun
@@ -34,6 +24,7 @@ TrustEntryPointOption = Annotated[
 ]
 
 
+@with_video_options
 def run_command(
     recording: Annotated[
         Path | None,
@@ -65,14 +56,7 @@ def run_command(
     ] = None,
     force: Annotated[bool, typer.Option("--force", help="Redo every stage even when its artifact is fresh.")] = False,
     topic: TopicOption = None,
-    camera_height_m: CameraHeightOption = None,
-    hfov_deg: HfovOption = None,
-    calibration: CalibrationOption = None,
-    gps: GpsOption = None,
-    video_start_utc: VideoStartOption = None,
-    start_s: StartOption = None,
-    end_s: EndOption = None,
-    fps: FpsOption = None,
+    video: VideoOptions = NO_VIDEO,
     trust_entry_point: TrustEntryPointOption = False,
 ) -> None:
     """Run every stage in order: (synth,) ingest, preprocess, build-world, meshes, train, eval, export.
@@ -85,11 +69,9 @@ def run_command(
     # Imported here so `drivesim --help` stays fast.
     from drivesim.chain.run import StageRun, choose_run_preset, load_run_preset, run_chain
 
-    video = video_overrides(
-        camera_height_m, hfov_deg, calibration, gps, video_start_utc, start_s, end_s, fps, prefix="ingest."
-    )
     topics = [f"ingest.{o}" for o in topic_overrides(topic)]
-    overrides = load_run_preset(choose_run_preset(preset), config, [*(set_ or []), *topics, *video])
+    overrides = [*(set_ or []), *topics, *video.overrides(prefix="ingest.")]
+    overrides = load_run_preset(choose_run_preset(preset), config, overrides)
 
     def on_stage(done: StageRun) -> None:
         state = "[dim]fresh, skipped[/]" if done.skipped else f"[green]done[/] in {done.wall_s:.1f} s"
