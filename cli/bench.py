@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.table import Table
@@ -18,6 +18,12 @@ from drivesim.pipeline.progress import progress_bar
 from drivesim.stages.preprocess.config import DepthConfig
 
 bench_app = typer.Typer(no_args_is_help=True)
+
+
+def figure_option(what: str, file_name: str) -> Any:
+    """The `--figure PATH` option of a bench command: its `what` PNG, by default <workspace>/bench/<file_name>."""
+    return Annotated[Path | None, typer.Option("--figure", help=f"{what} PNG (default <workspace>/bench/{file_name}).")]
+
 
 MarkdownOption = Annotated[
     Path | None, typer.Option("--markdown", help="Also write the results as a markdown report to this file.")
@@ -90,9 +96,7 @@ def fidelity_command(
     view_frames: Annotated[
         int, typer.Option("--view-frames", help="Frames whose novel views are rendered.", min=1)
     ] = 4,
-    figure: Annotated[
-        Path | None, typer.Option("--figure", help="Side-by-side PNG (default <workspace>/bench/fidelity.png).")
-    ] = None,
+    figure: figure_option("Side-by-side", "fidelity.png") = None,
     markdown: MarkdownOption = None,
     config: ConfigOption = None,
     set_: set_option("method=mvs") = None,
@@ -199,9 +203,7 @@ def car_fidelity_command(
     ] = None,
     frames: Annotated[int, typer.Option("--frames", help="Synthetic frames evaluated.", min=1)] = 3,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the synthetic world and the car.")] = 0,
-    figure: Annotated[
-        Path | None, typer.Option("--figure", help="Side-by-side PNG (default <workspace>/bench/car_fidelity.png).")
-    ] = None,
+    figure: figure_option("Side-by-side", "car_fidelity.png") = None,
     markdown: MarkdownOption = None,
 ) -> None:
     """Inserted-car fidelity and view synthesis against ground truth.
@@ -244,9 +246,7 @@ def stereo_command(
         str, typer.Option("--methods", help="Comma-separated depth methods run on the left frames alone.")
     ] = "plane,mvs",
     as_json: Annotated[bool, typer.Option("--json", help="Print the results as JSON instead of a report.")] = False,
-    figure: Annotated[
-        Path | None, typer.Option("--figure", help="Worst-frame PNG (default <workspace>/bench/stereo_worst.png).")
-    ] = None,
+    figure: figure_option("Worst-frame", "stereo_worst.png") = None,
     markdown: MarkdownOption = None,
     config: ConfigOption = None,
     set_: set_option("method=mvs") = None,
