@@ -67,6 +67,18 @@ def workspace() -> Workspace:
     return Workspace(root)
 
 
+def backend_option(local: str, ray: str, more: str = "") -> Any:
+    """The `--backend local|ray` option of a command, its help saying what `local` and `ray` run (`more` after it)."""
+    return Annotated[
+        str | None,
+        typer.Option(
+            "--backend",
+            help=f"local: {local} (default); ray: {ray} (needs `pip install 'drivesim\\[ray]'`).{more}",
+            show_default=False,
+        ),
+    ]
+
+
 AddressOption = Annotated[
     str | None,
     typer.Option(

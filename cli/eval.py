@@ -8,7 +8,16 @@ from typing import Annotated, Any
 
 import typer
 
-from drivesim.cli.common import AddressOption, ConfigOption, ForceOption, choose_backend, console, set_option, workspace
+from drivesim.cli.common import (
+    AddressOption,
+    ConfigOption,
+    ForceOption,
+    backend_option,
+    choose_backend,
+    console,
+    set_option,
+    workspace,
+)
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError
 from drivesim.sim.envs.registry import TASK_NAMES
@@ -42,15 +51,11 @@ WorkersOption = Annotated[
         show_default=False,
     ),
 ]
-BackendOption = Annotated[
-    str | None,
-    typer.Option(
-        "--backend",
-        help="local: worker processes on this machine (default); ray: Ray actors over a cluster's workers, "
-        "one world loaded per actor (needs `pip install 'drivesim\\[ray]'`). Same seeds, same numbers.",
-        show_default=False,
-    ),
-]
+BackendOption = backend_option(
+    "worker processes on this machine",
+    "Ray actors over a cluster's workers, one world loaded per actor",
+    " Same seeds, same numbers.",
+)
 SeedOption = Annotated[
     int | None, typer.Option("--seed", help="Seed of episode 0; episode i uses seed + i.", show_default=False)
 ]

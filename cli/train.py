@@ -7,7 +7,15 @@ from typing import Annotated, Any
 
 import typer
 
-from drivesim.cli.common import AddressOption, ConfigOption, choose_backend, console, set_option, workspace
+from drivesim.cli.common import (
+    AddressOption,
+    ConfigOption,
+    backend_option,
+    choose_backend,
+    console,
+    set_option,
+    workspace,
+)
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import ConfigError
 from drivesim.sim.envs.registry import TASK_NAMES, task_help
@@ -30,15 +38,10 @@ TotalStepsOption = Annotated[
     int | None, typer.Option("--total-steps", help="Env steps to train for (overrides the preset).")
 ]
 EnvsOption = Annotated[int | None, typer.Option("--envs", help="Episodes simulated at once.")]
-BackendOption = Annotated[
-    str | None,
-    typer.Option(
-        "--backend",
-        help="local: the envs run on this machine (default); ray: each env in a Ray actor spread over a "
-        "cluster, so --envs may exceed this machine's cores (needs `pip install 'drivesim\\[ray]'`).",
-        show_default=False,
-    ),
-]
+BackendOption = backend_option(
+    "the envs run on this machine",
+    "each env in a Ray actor spread over a cluster, so --envs may exceed this machine's cores",
+)
 ResumeOption = Annotated[
     Path | None,
     typer.Option("--resume", help="Continue an unfinished run folder (runs/<task>-<time>, or just its name)."),
