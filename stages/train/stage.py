@@ -10,8 +10,8 @@ finished files, write manifest.json and move the folder into place. `run_trainin
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
-from contextlib import suppress
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, suppress
 from dataclasses import replace
 from pathlib import Path
 
@@ -210,17 +210,24 @@ def run_training(
     for upstream in spec.requires:  # a missing world is one line before the header names a run folder
         ws.require(upstream, spec.upstream_hints.get(upstream, f"drivesim {upstream}"))
     run_dir = resume if resume is not None else new_run_dir(ws.root, cfg.task)  # created: no other run takes it
+    # One process trains a run folder at a time (`--resume` twice is refused by the lock).
+    with _empty_run_removed_on_failure(run_dir, new=resume is None), ws.lock(f"runs/{run_dir.name}"):
+        if on_start is not None:
+            on_start(run_dir)
+        return run_stage(
+            ws, spec, cfg, force=True, external=external, artifact=f"runs/{run_dir.name}", work_dir=run_dir
+        )
+
+
+@contextmanager
+def _empty_run_removed_on_failure(run_dir: Path, new: bool) -> Iterator[None]:
+    """Remove the new run folder `run_dir` again when the run stops before writing anything into it."""
     try:
-        with ws.lock(f"runs/{run_dir.name}"):  # one process trains a run folder at a time (`--resume` twice)
-            if on_start is not None:
-                on_start(run_dir)
-            return run_stage(
-                ws, spec, cfg, force=True, external=external, artifact=f"runs/{run_dir.name}", work_dir=run_dir
-            )
+        yield
     except BaseException:
-        if resume is None:
+        if new:
             with suppress(OSError):
-                run_dir.rmdir()  # a new run that stopped before writing anything leaves no empty folder
+                run_dir.rmdir()  # only an empty folder: what a run wrote is kept
         raise
 
 
@@ -248,4 +255,7 @@ def assemble_ensemble(ws: Workspace, cfg: TrainConfig, members: list[Path]) -> S
     run_dir = new_run_dir(ws.root, cfg.task)
     external = {f"{_MEMBER_PREFIX}{k:02d}": Path(m).absolute() for k, m in enumerate(members)}
     spec = replace(SPEC, requires=())
-    return run_stage(ws, spec, cfg, force=True, external=external, artifact=f"runs/{run_dir.name}", work_dir=run_dir)
+    with _empty_run_removed_on_failure(run_dir, new=True):
+        return run_stage(
+            ws, spec, cfg, force=True, external=external, artifact=f"runs/{run_dir.name}", work_dir=run_dir
+        )
