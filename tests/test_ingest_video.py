@@ -418,8 +418,9 @@ def test_a_frame_registered_off_its_neighbours_is_dropped() -> None:
 
 
 def test_lane_run_preset_trains_like_the_lane_preset_on_the_recording_alone() -> None:
-    """`drivesim run VIDEO --preset lane` (the issue's video-to-policy run): configs/train/lane.yaml's training on
-    top of the chain's train preset, stopped after 15 min, no procedural towns, 100 lane evaluation episodes."""
+    """`drivesim run VIDEO --preset lane` (a video-to-policy run): configs/train/lane.yaml's training (the run
+    preset names the task, so train starts from that task's preset), stopped after 15 min, no procedural towns, 100
+    lane evaluation episodes."""
     from drivesim.chain.registry import stage_by_name
     from drivesim.chain.run import load_run_preset
     from drivesim.chain.walk import stage_config
