@@ -50,6 +50,11 @@ __all__ = [
 _EMPTY_KEY = torch.iinfo(torch.int64).max
 # Keys from here up carry an infinite depth: pairs outside their triangle get one, so nothing masks their keys.
 _UNCOVERED_KEY = 0x7F800000 << 32
+
+OCCLUDER_MIN_GAP = 0.12
+"""How much nearer than an inserted car (fraction of the car's depth) the warped world must be to cover it. The world's
+depth near a car is mostly the road it stands on, whose estimated depth (pooled to the view's pixels) comes out up to
+about a tenth nearer than the car's lowest rows: without this gap that road is drawn through the car's body."""
 _LOW32 = 0xFFFFFFFF
 # (triangle, pixel) pairs evaluated per chunk: bounds the working memory (about 100 bytes per pair) to ~100 MB.
 _PAIRS_PER_CHUNK = 1 << 20
@@ -1081,14 +1086,15 @@ def composite(
     rgb: torch.Tensor, depth_m: torch.Tensor, render: RenderResult
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Rendered meshes (vehicles) inserted into a view (a warped frame) with a per-pixel depth test, so occlusion
-    works both ways (DESIGN §4 step 4).
+    works both ways (DESIGN §4 step 4): the view covers a mesh only where it is nearer by more than
+    OCCLUDER_MIN_GAP of the mesh's depth.
 
     :param rgb: (B, H, W, 3) uint8 or float [0, 1] view. :param depth_m: (B, H, W) its depth (+inf: sky or empty).
     :param render: the same cameras' RenderResult.
     :returns: composited rgb (dtype of `rgb`), depth (B, H, W), and the (B, H, W) bool mask of pixels where the
         rendered meshes are in front (for harmonization and the collision reward).
     """
-    front = render.depth_m < depth_m
+    front = torch.isfinite(render.depth_m) & (render.depth_m * (1.0 - OCCLUDER_MIN_GAP) <= depth_m)
     mesh_rgb = render.rgb
     if rgb.dtype == torch.uint8:
         mesh_rgb = (mesh_rgb * 255.0 + 0.5).to(torch.uint8)
@@ -1108,3 +1114,13 @@ def render_meshes(
 ) -> RenderResult:
     """One-shot convenience: build a Rasterizer and render (use a Rasterizer to benefit from packing caches)."""
     return Rasterizer(width_px, height_px, device).render(meshes, T_camera_world, K, lighting, background_rgb)
+
+
+def through_body_count(car_depth_m: np.ndarray, world_depth_m: np.ndarray, car_shown: np.ndarray) -> int:
+    """Background pixels drawn through a car body: pixels where the car's own depth buffer car_depth_m (..., H, W)
+    (+inf where no car) has the car and the world's depth world_depth_m there is not nearer by more than
+    OCCLUDER_MIN_GAP of the car's depth (the car stands in front of it), yet the output shows the world
+    (car_shown False)."""
+    car = np.isfinite(car_depth_m)
+    world_behind = car_depth_m * (1.0 - OCCLUDER_MIN_GAP) <= world_depth_m
+    return int(np.count_nonzero(car & world_behind & ~np.asarray(car_shown, dtype=bool)))

@@ -14,6 +14,17 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from drivesim.sim.raster import OCCLUDER_MIN_GAP
+
+_CAR_VISIBLE_FRACTION = np.float32(1.0 - OCCLUDER_MIN_GAP)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def car_in_front(car_depth_m: float, world_depth_m: float) -> bool:
+    """Whether an inserted car at car_depth_m (finite) shows over the world at world_depth_m: unless the world is
+    nearer by more than `raster.OCCLUDER_MIN_GAP` of the car's depth (+inf, sky or a hole, never covers it)."""
+    return car_depth_m * _CAR_VISIBLE_FRACTION <= world_depth_m
+
 
 @njit(cache=True, nogil=True)
 def depth_test(
@@ -542,9 +553,9 @@ def _row_bands(regions: np.ndarray, bands: int) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def _shade_rows(band: np.ndarray, target: tuple, scene: tuple) -> None:
-    """Shade and composite the pixels of band (camera, first row, last row + 1) whose z-buffer entry is nearer than
-    the view's depth. `target`: (regions, layout, z, winner, view_of_camera, rgb, depth, front, gray) as in
-    `draw_untextured_into` (layout as `depth_test_regions`); `scene`: `_shade_pixel`'s tables (kept, source,
+    """Shade and composite the pixels of band (camera, first row, last row + 1) whose z-buffer entry is in front of
+    the view's depth (`car_in_front`). `target`: (regions, layout, z, winner, view_of_camera, rgb, depth, front,
+    gray) as in `draw_untextured_into` (layout as `depth_test_regions`); `scene`: `_shade_pixel`'s tables (kept, source,
     attributes, material, R_cam_world, K_inv, lights)."""
     regions, layout, z, winner, view_of_camera, rgb, depth, front, gray = target
     kept, source, attributes, material, R_cam_world, K_inv, lights = scene[:7]
@@ -554,7 +565,7 @@ def _shade_rows(band: np.ndarray, target: tuple, scene: tuple) -> None:
         for x in range(regions[cam, 0], regions[cam, 2] + 1):
             p = layout[cam, 0] + (y - layout[cam, 2]) * layout[cam, 3] + (x - layout[cam, 1])
             t = winner[p]
-            if t < 0 or not z[p] < depth[v, y, x]:
+            if t < 0 or not car_in_front(z[p], depth[v, y, x]):
                 continue
             r, g, b, _, _, _ = _shade_pixel(
                 x, y, cam, t, kept, source, attributes, material, R_cam_world, K_inv, lights
@@ -568,14 +579,14 @@ def composite_uint8(
     rgb: np.ndarray, depth: np.ndarray, car_rgb: np.ndarray, car_depth: np.ndarray, front: np.ndarray, gray: bool
 ) -> None:
     """`raster.composite` for one uint8 view, in place: where the drawn car (car_rgb (h, w, 3) float [0, 1],
-    car_depth (h, w)) is nearer than the view's depth (h, w), its colour replaces the view's (rgb (h, w, 3) uint8);
-    front (h, w) bool receives where. With `gray` (a gray camera's world) the car's pixels take their luma in all
-    three channels, with OpenCV's RGB2GRAY arithmetic to the grey level (15-bit fixed point; checked against
-    cv2.cvtColor on every 8-bit colour in tests/test_raster.py)."""
+    car_depth (h, w), +inf where none) is in front of the view's depth (h, w) (`car_in_front`), its colour replaces
+    the view's (rgb (h, w, 3) uint8); front (h, w) bool receives where. With `gray` (a gray camera's world) the car's
+    pixels take their luma in all three channels, with OpenCV's RGB2GRAY arithmetic to the grey level (15-bit fixed
+    point; checked against cv2.cvtColor on every 8-bit colour in tests/test_raster.py)."""
     h, w = depth.shape
     for y in range(h):
         for x in range(w):
-            nearer = car_depth[y, x] < depth[y, x]
+            nearer = car_depth[y, x] < np.inf and car_in_front(car_depth[y, x], depth[y, x])
             front[y, x] = nearer
             if not nearer:
                 continue

@@ -233,7 +233,7 @@ def test_drawing_into_views_equals_render_then_composite(gray, threads):
     rng = np.random.default_rng(3)
     views = rng.integers(0, 256, size=(4, H, W, 3), dtype=np.uint8)
     depth = np.full((4, H, W), np.inf, np.float32)
-    depth[:, :, 120:200] = 7.5  # a wall across the middle, in front of the far part of the first car
+    depth[:, :, 120:200] = 6.5  # a wall across the middle, in front of the first car
     view_of_camera = np.array([2, 0, 3])
     rasterizer = Rasterizer(W, H, cull_back_faces=True)
     drawn = rasterizer.render(scenes, T, K, lighting=lights)

@@ -234,7 +234,8 @@ def test_inpainting_continues_the_border_colours():
 def test_contact_shadow_darkens_the_ground_beside_the_car_only(tmp_path):
     """The ground just beside an inserted car is darker than without the shadow; 2 m away it is unchanged."""
     world = make_world(tmp_path)
-    car = [CarPlacement(BoxModel(), 12.0, 0.0, 0.0)]
+    # 10 m ahead: near enough that the shadow's 0.5 m beyond the car's rear covers a row of the 80 x 30 view
+    car = [CarPlacement(BoxModel(), 10.0, 0.0, 0.0)]
     flags = {**SMALL, "harmonization": False}
     with_shadow = render(ViewSynthesizer(world, ViewConfig(**flags)), 2, 0.0, cars=car)
     without = render(ViewSynthesizer(world, ViewConfig(**flags, contact_shadow=0.0)), 2, 0.0, cars=car)
