@@ -203,3 +203,24 @@ def test_a_run_preset_naming_a_task_starts_from_that_tasks_train_preset() -> Non
     assert cfg.task == "lane" and cfg.towns == []
     assert cfg.envs.config.pitch_jitter_deg == 3.0  # LaneEnv.default_config()'s, not restated by the run preset
     assert "pitch_jitter_deg" not in run_train["envs"]["config"]
+
+
+def test_eval_hands_the_env_a_typed_config_with_the_users_keys(world_dir: Path) -> None:
+    """`drivesim eval --set env.max_lateral_m=2.0`: the env gets an `EnvConfig` (the task's settings with the user's
+    key on top), not a dict re-validated in the env; a user's own env (`env_entry_point`) keeps plain keys."""
+    from drivesim.stages.evaluate.stage import _factory
+
+    cfg = load_config(EvalConfig, preset="eval", overrides=["task=overtake", "env.max_lateral_m=2.0"])
+    factory = _factory(cfg, world_dir, None, trusted=False)
+    config = factory.kwargs["config"]
+    assert isinstance(config, EnvConfig) and config.max_lateral_m == 2.0
+    assert config.weight_collision == task_spec("overtake").config_with().weight_collision  # the task's own value
+    env = factory()
+    try:
+        assert env.unwrapped.config == config
+    finally:
+        env.close()
+    own = load_config(
+        EvalConfig, overrides=["env_id=mine/X-v0", "env_entry_point=drivesim.sim.envs.lane:LaneEnv", "env.dt_s=0.2"]
+    )
+    assert _factory(own, world_dir, None, trusted=True).kwargs["config"] == {"dt_s": 0.2}

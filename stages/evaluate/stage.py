@@ -138,7 +138,8 @@ def _open_and_check(cfg: EvalConfig, factory: Any, policy_spec: Any, world: Path
             )
         env_config = dict(getattr(policy, "env_config", {}) or {})
         if env_config:  # the policy's own env settings (its view), then the user's overrides
-            factory = replace(factory, kwargs={**factory.kwargs, "config": {**env_config, **cfg.env_overrides()}})
+            config = _env_config(cfg, {**env_config, **cfg.env_overrides()})
+            factory = replace(factory, kwargs={**factory.kwargs, "config": config})
     env = _make_env(factory, world)
     try:
         _check_first_action(env, policy or _load_policy(policy_spec, env), policy_spec, cfg.seed)
@@ -247,13 +248,30 @@ def _env_id(cfg: EvalConfig) -> str:
     return cfg.env_id or task_spec(cfg.task).env_id
 
 
+def _env_config(cfg: EvalConfig, values: dict[str, Any]) -> Any:
+    """The env config handed to the env: for a drivesim task's env an `EnvConfig` (the task's settings with `values`
+    on top, validated here and kept typed to the env); for a user's own env (`env_entry_point`) the plain keys."""
+    from pydantic import ValidationError
+
+    from drivesim.sim.envs.registry import task_spec
+
+    spec = task_spec(cfg.task)
+    if cfg.env_entry_point is not None or _env_id(cfg) != spec.env_id:
+        return values
+    try:
+        return spec.config_with(values)
+    except ValidationError as e:  # a run's saved env config that this version refuses
+        first = e.errors()[0]
+        raise ConfigError(f"env.{'.'.join(map(str, first['loc']))}: {first['msg']}") from e
+
+
 def _factory(cfg: EvalConfig, world: Path, meshes: Path | None, trusted: bool) -> Any:
     from drivesim.stages.evaluate.rollout import EnvFactory
 
     return EnvFactory(
         env_id=_env_id(cfg),
         kwargs={"world": str(world), "meshes": None if meshes is None else str(meshes), "mode": "eval"}
-        | ({"config": cfg.start_env_config()} if cfg.start_env_config() else {}),
+        | ({"config": _env_config(cfg, cfg.start_env_config())} if cfg.start_env_config() else {}),
         entry_point=cfg.env_entry_point,
         trusted=trusted,
     )
@@ -412,7 +430,7 @@ def _table_extras(
             {"world": world_label(w), "path": str(w)}
             for w in sorted(trained, key=lambda w: (w.parent.parent.name == "towns", str(w)))  # its own world first
         ],
-        "geometry_note": geometry_note(cfg.task, job.factory.kwargs.get("config") or {}),
+        "geometry_note": geometry_note(cfg.task, _as_dict(job.factory.kwargs.get("config"))),
     }
 
 
@@ -577,3 +595,8 @@ def run_eval(
         if not result.skipped:
             shutil.rmtree(ws.root / EVAL_DIR / f"{PARTIAL_PREFIX}{plan.name}", ignore_errors=True)
     return result
+
+
+def _as_dict(config: Any) -> dict[str, Any]:
+    """An env config as its keys (an `EnvConfig`'s dump, a user env's dict, {} for none)."""
+    return config.model_dump() if hasattr(config, "model_dump") else dict(config or {})
