@@ -51,10 +51,6 @@ _EMPTY_KEY = torch.iinfo(torch.int64).max
 # Keys from here up carry an infinite depth: pairs outside their triangle get one, so nothing masks their keys.
 _UNCOVERED_KEY = 0x7F800000 << 32
 
-OCCLUDER_MIN_GAP = 0.12
-"""How much nearer than an inserted car (fraction of the car's depth) the warped world must be to cover it. The world's
-depth near a car is mostly the road it stands on, whose estimated depth (pooled to the view's pixels) comes out up to
-about a tenth nearer than the car's lowest rows: without this gap that road is drawn through the car's body."""
 _LOW32 = 0xFFFFFFFF
 # (triangle, pixel) pairs evaluated per chunk: bounds the working memory (about 100 bytes per pair) to ~100 MB.
 _PAIRS_PER_CHUNK = 1 << 20
@@ -1087,13 +1083,15 @@ def composite(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Rendered meshes (vehicles) inserted into a view (a warped frame) with a per-pixel depth test, so occlusion
     works both ways (DESIGN §4 step 4): the view covers a mesh only where it is nearer by more than
-    OCCLUDER_MIN_GAP of the mesh's depth.
+    `raster_kernel.OCCLUDER_MIN_GAP` of the mesh's depth.
 
     :param rgb: (B, H, W, 3) uint8 or float [0, 1] view. :param depth_m: (B, H, W) its depth (+inf: sky or empty).
     :param render: the same cameras' RenderResult.
     :returns: composited rgb (dtype of `rgb`), depth (B, H, W), and the (B, H, W) bool mask of pixels where the
         rendered meshes are in front (for harmonization and the collision reward).
     """
+    from drivesim.sim.raster_kernel import OCCLUDER_MIN_GAP
+
     front = torch.isfinite(render.depth_m) & (render.depth_m * (1.0 - OCCLUDER_MIN_GAP) <= depth_m)
     mesh_rgb = render.rgb
     if rgb.dtype == torch.uint8:
@@ -1119,8 +1117,10 @@ def render_meshes(
 def through_body_count(car_depth_m: np.ndarray, world_depth_m: np.ndarray, car_shown: np.ndarray) -> int:
     """Background pixels drawn through a car body: pixels where the car's own depth buffer car_depth_m (..., H, W)
     (+inf where no car) has the car and the world's depth world_depth_m there is not nearer by more than
-    OCCLUDER_MIN_GAP of the car's depth (the car stands in front of it), yet the output shows the world
+    `raster_kernel.OCCLUDER_MIN_GAP` of the car's depth (the car stands in front of it), yet the output shows the world
     (car_shown False)."""
+    from drivesim.sim.raster_kernel import OCCLUDER_MIN_GAP
+
     car = np.isfinite(car_depth_m)
     world_behind = car_depth_m * (1.0 - OCCLUDER_MIN_GAP) <= world_depth_m
     return int(np.count_nonzero(car & world_behind & ~np.asarray(car_shown, dtype=bool)))

@@ -14,7 +14,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from drivesim.sim.raster import OCCLUDER_MIN_GAP
+OCCLUDER_MIN_GAP = 0.12
+"""How much nearer than an inserted car (fraction of the car's depth) the warped world must be to cover it. The world's
+depth near a car is mostly the road it stands on, whose estimated depth (pooled to the view's pixels) comes out up to
+about a tenth nearer than the car's lowest rows: without this gap that road is drawn through the car's body."""
 
 _CAR_VISIBLE_FRACTION = np.float32(1.0 - OCCLUDER_MIN_GAP)
 
@@ -22,7 +25,7 @@ _CAR_VISIBLE_FRACTION = np.float32(1.0 - OCCLUDER_MIN_GAP)
 @njit(cache=True, nogil=True, inline="always")
 def car_in_front(car_depth_m: float, world_depth_m: float) -> bool:
     """Whether an inserted car at car_depth_m (finite) shows over the world at world_depth_m: unless the world is
-    nearer by more than `raster.OCCLUDER_MIN_GAP` of the car's depth (+inf, sky or a hole, never covers it)."""
+    nearer by more than OCCLUDER_MIN_GAP of the car's depth (+inf, sky or a hole, never covers it)."""
     return car_depth_m * _CAR_VISIBLE_FRACTION <= world_depth_m
 
 

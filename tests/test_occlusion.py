@@ -9,7 +9,8 @@ import torch
 from gl_reference import car_meshes
 
 from drivesim.sim import geometry as g
-from drivesim.sim.raster import OCCLUDER_MIN_GAP, Rasterizer, RenderResult, composite, pack_meshes, through_body_count
+from drivesim.sim.raster import Rasterizer, RenderResult, composite, pack_meshes, through_body_count
+from drivesim.sim.raster_kernel import OCCLUDER_MIN_GAP
 
 H, W = 96, 160
 K = g.intrinsics_from_hfov(W, H, np.deg2rad(70.0))

@@ -20,29 +20,36 @@ def render_episode(
     seed: int,
     mcap: bool = False,
     env_config: dict[str, Any] | None = None,
+    size_px: tuple[int, int] | None = None,
+    policy: Any = None,
 ) -> dict[str, Any]:
-    """Drive one episode of `task` with the expert at the world's full image size; write the MP4, the strip and the
-    bird's-eye plot, and with `mcap` the episode for Foxglove as `episode.mcap` (sim/episode_mcap.py).
+    """Drive one episode of `task` with the expert or `policy`; write the whole camera image as the MP4, the strip
+    and the bird's-eye plot, and with `mcap` the episode for Foxglove as `episode.mcap` (sim/episode_mcap.py).
 
-    :param env_config: env keys over the task's own settings (`default_config()`); the view is always the whole
-        image.
+    :param env_config: env keys over the task's own settings (`default_config()`); a policy's own training env
+        config (its view) belongs here.
+    :param size_px: (width, height) of the written frames; default: the recording's (`recording_size_px`).
+    :param policy: who drives: None, the privileged expert; else an object with `initial_state(n)` and
+        `predict(obs, state, episode_start, deterministic)` (a run's `LoadedPolicy`, an `OnnxPolicy`) that sees its
+        own observation while the written frames show the whole image.
     """
     from drivesim.sim.envs.registry import task_spec
     from drivesim.sim.episode_mcap import EpisodeCapture, Road, write_episode_mcap
     from drivesim.sim.world import World
 
     w = World.load(world)
-    config = {
-        **(env_config or {}),
-        "roi_px": (0, 0, w.width_px, w.height_px),
-        "observation_width_px": w.width_px,
-        "observation_height_px": w.height_px,
-    }
+    width_px, height_px = size_px or recording_size_px(world, w.width_px, w.height_px)
+    if width_px < 16 or height_px < 16:
+        raise ValueError(f"size {width_px}x{height_px}: frames must be at least 16x16 pixels")
+    full_image = {"roi_px": (0, 0, w.width_px, w.height_px)}
+    display = {**full_image, "observation_width_px": width_px, "observation_height_px": height_px}
+    config = {**(env_config or {}), **(display if policy is None else {})}
     env = task_spec(task).env_class()(
         world=w, meshes=None if meshes is None else str(meshes), mode="eval", config=config
     )
+    viewer = None if policy is None else _display_renderer(env, w, width_px, height_px)
     capture = EpisodeCapture(seed, task) if mcap else None
-    frames, states, info = _drive(env, seed, capture)
+    frames, states, info = _drive(env, seed, capture, policy, viewer)
     outcome = "success" if info["success"] else ",".join(k for k, v in info["termination"].items() if v)
     out.mkdir(parents=True, exist_ok=True)
     _write_video(frames, out / "episode.mp4")
@@ -50,6 +57,7 @@ def render_episode(
     _plot_birdseye(w.path, states, env._episode, f"{task}, seed {seed}: {outcome}", out / "birdseye.png")
     clearance = min(s["clearance_m"] for s in states)
     summary = {"task": task, "seed": seed, "steps": len(states) - 1, "outcome": outcome, "min_clearance_m": clearance}
+    summary["size_px"] = [int(width_px), int(height_px)]
     (out / "summary.json").write_text(json.dumps({**summary, "min_clearance_m": _finite(clearance)}))
     if capture is not None:
         road = Road.from_world(world, env.config.max_lateral_m)
@@ -57,19 +65,55 @@ def render_episode(
     return summary
 
 
-def _drive(env: Any, seed: int, capture: Any) -> tuple[list[np.ndarray], list[dict], dict]:
-    """The expert's episode: (h, w, 3) frames, info["state"] per step, the last info."""
+def recording_size_px(world: Path, width_px: int, height_px: int) -> tuple[int, int]:
+    """The recording's image size (camera.json's source_width_px, source_height_px) of the world folder `world`;
+    (width_px, height_px), the world's own, where camera.json does not say it."""
+    camera = json.loads((Path(world) / "camera.json").read_text())
+    source = camera.get("source_width_px"), camera.get("source_height_px")
+    if all(isinstance(v, int) and v > 0 for v in source):
+        return int(source[0]), int(source[1])
+    return width_px, height_px
+
+
+def _display_renderer(env: Any, world: Any, width_px: int, height_px: int) -> Any:
+    """A view synthesizer of the world's whole image at width_px x height_px, with the env's render settings."""
+    from drivesim.sim.simulator import make_view_synthesizer
+
+    c = env.config
+    roi = (0, 0, world.width_px, world.height_px)
+    return make_view_synthesizer(
+        world, roi, width_px, height_px, device=c.render_device, render_threads=c.render_threads
+    )
+
+
+def _drive(env: Any, seed: int, capture: Any, policy: Any, viewer: Any) -> tuple[list[np.ndarray], list[dict], dict]:
+    """One episode, the expert's or `policy`'s: (h, w, 3) frames (the env's observation, or `viewer`'s render of
+    the ego's view when a policy drives), info["state"] per step, the last info."""
+    from drivesim.sim.simulator import render_requests
+
+    def frame(obs: np.ndarray) -> np.ndarray:
+        if viewer is None:
+            return np.ascontiguousarray(obs.transpose(1, 2, 0))
+        return render_requests(viewer, [env.view_request()], {})[0]
+
     obs, info = env.reset(seed=seed)
-    frames, states = [np.ascontiguousarray(obs.transpose(1, 2, 0))], [info["state"]]
+    frames, states = [frame(obs)], [info["state"]]
     if capture is not None:
-        capture.add(obs, info, 0.0)
+        capture.add(np.ascontiguousarray(frames[-1].transpose(2, 0, 1)), info, 0.0)
+    state = None if policy is None else policy.initial_state(1)
+    episode_start = np.ones(1, dtype=bool)
     while True:
-        action = env.expert_action()
+        if policy is None:
+            action = env.expert_action()
+        else:
+            action, state = policy.predict(obs[None], state, episode_start, deterministic=True)
+            action = np.asarray(action, dtype=np.float32).reshape(-1)
+            episode_start = np.zeros(1, dtype=bool)
         obs, _, terminated, truncated, info = env.step(action)
-        if capture is not None:
-            capture.add(obs, info, float(action[0]))
-        frames.append(np.ascontiguousarray(obs.transpose(1, 2, 0)))
+        frames.append(frame(obs))
         states.append(info["state"])
+        if capture is not None:
+            capture.add(np.ascontiguousarray(frames[-1].transpose(2, 0, 1)), info, float(action[0]))
         if terminated or truncated:
             return frames, states, info
 
