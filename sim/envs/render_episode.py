@@ -119,12 +119,15 @@ def _drive(env: Any, seed: int, capture: Any, policy: Any, viewer: Any) -> tuple
 
 
 def _write_video(frames: list[np.ndarray], path: Path) -> None:
+    """The frames as a 10 Hz MP4; an odd width or height gets one more column or row, a copy of the last (the codec
+    takes even sizes only and would drop it)."""
     import cv2
 
     h, w = frames[0].shape[:2]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10, (w, h))
+    pad = ((0, h % 2), (0, w % 2), (0, 0))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10, (w + w % 2, h + h % 2))
     for f in frames:
-        writer.write(cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2BGR))
+        writer.write(cv2.cvtColor(np.pad(f, pad, mode="edge") if h % 2 or w % 2 else f, cv2.COLOR_RGB2BGR))
     writer.release()
 
 
