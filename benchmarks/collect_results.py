@@ -71,7 +71,13 @@ SECTIONS: tuple[Section, ...] = (
         "python benchmarks/bench_threads_busy.py --world W",
         ("threads_busy.md", "threads_busy.json"),
     ),
-    Section("demo", "The demo run", "`make demo` wall time per stage", "python benchmarks/bench_demo.py", ("demo.md",)),
+    Section(
+        "demo",
+        "The demo run",
+        "`make demo` wall time per stage",
+        "python benchmarks/bench_demo.py",
+        ("demo.md", "demo.json"),
+    ),
     Section(
         "train_speed",
         "Training speed",
