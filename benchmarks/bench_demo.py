@@ -10,6 +10,7 @@ benchmarks/results/demo.md.
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import subprocess
 import sys
@@ -55,10 +56,12 @@ def main() -> None:
         # The run happened when the log was last written; the load now says nothing about it.
         when = datetime.fromtimestamp(args.stdout.stat().st_mtime, UTC)
         machine = machine_line().rsplit(", load average", 1)[0]
+        load = None
     else:
         with tempfile.TemporaryDirectory(prefix="bench-demo-") as tmp:
             output, source = run_demo(Path(tmp)), "`python benchmarks/bench_demo.py`"
         when, machine = datetime.now(UTC), machine_line()
+        load = [round(x, 2) for x in os.getloadavg()]
     times = stage_times(output)
     if not times:
         sys.exit("no stage lines ('<stage>: done in X s') in the output: was it `drivesim run`?")
@@ -82,7 +85,8 @@ def main() -> None:
         "",
     ]
     raw = {
-        "measured": {"date_utc": f"{when:%Y-%m-%d %H:%M}", "machine": machine},
+        "measured": {"date_utc": f"{when:%Y-%m-%d %H:%M}", "machine": machine, "load_average_1_5_15_min": load}
+        | ({} if load else {"load_note": "not recorded: read from an earlier run's printed output"}),
         "source": source,
         "stages": [{"stage": stage, "wall_s": s} for stage, s in times],
         "total_s": total_s,

@@ -143,4 +143,4 @@ def test_each_json_holds_when_where_and_at_what_load(collector: ModuleType) -> N
             measured = data.get("measured") or {}
             assert measured.get("date_utc", "").startswith(collector.measured(md.read_text()).date), name
             assert "CPU" in measured.get("machine", "") or "GPU" in measured.get("machine", ""), name
-            assert measured.get("load_average_1_5_15_min"), name
+            assert measured.get("load_average_1_5_15_min") or measured.get("load_note"), name
