@@ -1,0 +1,91 @@
+"""The realism test's mechanics: the hand-marked boxes, the crops, the inserted car's place and the C2ST itself."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from drivesim.bench import car_realism as cr
+
+ROOT = Path(__file__).resolve().parents[1]
+BOXES = ROOT / "benchmarks" / "data" / "real_car_boxes.json"
+REAL = ROOT.parent / "shared" / "data" / "real"
+FRAME_SIZES = {"0001": (1242, 375), "06": (1226, 370), "00": (1241, 376), "07": (1226, 370)}  # (w, h) px
+FRAME_COUNTS = {"0001": 108, "06": 51, "00": 200, "07": 160}
+
+
+def test_boxes_file_has_cars_on_several_drives_inside_their_frames():
+    boxes = cr.load_boxes(BOXES)
+    assert len(boxes) >= 25
+    assert len({b.drive for b in boxes}) >= 3
+    for b in boxes:
+        w, h = FRAME_SIZES[b.drive]
+        x0, y0, x1, y1 = b.box
+        assert 0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h, b
+        assert y1 - y0 >= 10, f"{b}: too small to judge"
+        assert 0 <= b.frame < FRAME_COUNTS[b.drive], b
+    assert {b.motion for b in boxes} == {"parked", "moving"}
+
+
+def test_boxes_file_with_a_bad_entry_is_refused(tmp_path):
+    bad = tmp_path / "boxes.json"
+    bad.write_text(json.dumps({"boxes": [{"drive": "0001", "frame": 0, "box": [10, 10, 5, 20], "motion": "parked"}]}))
+    with pytest.raises(ValueError, match="box 0 is empty"):
+        cr.load_boxes(bad)
+
+
+def test_crop_is_the_box_widened_and_resized_to_one_gray_size():
+    image = np.zeros((100, 200, 3), dtype=np.uint8)
+    image[40:60, 50:90] = 200  # a bright 40 x 20 box
+    patch = cr.crop(image, (50, 40, 90, 60), margin=0.0)
+    assert patch.shape == (cr.CROP_SIZE_PX[1], cr.CROP_SIZE_PX[0]) and patch.dtype == np.uint8
+    assert patch.min() == 200
+    widened = cr.crop(image, (50, 40, 90, 60), margin=0.25)  # the 25 % margins are dark
+    assert widened[0].max() == 0 and widened[:, 0].max() == 0 and widened[20, 32] == 200
+    with pytest.raises(ValueError, match="outside"):
+        cr.crop(image, (300, 10, 350, 40))
+
+
+def test_c2st_is_near_chance_on_one_distribution_and_near_certain_on_two():
+    rng = np.random.default_rng(1)
+    same = rng.normal(size=(120, 40))
+    labels = np.r_[np.zeros(60), np.ones(60)]
+    chance, low, high = cr.accuracy_interval(cr.c2st(same, labels))
+    assert 0.35 <= chance <= 0.65 and low < 0.5 < high
+    apart = same + labels[:, None] * 1.5
+    assert cr.accuracy_interval(cr.c2st(apart, labels))[0] >= 0.97
+
+
+def test_c2st_on_hog_tells_bright_boxes_from_striped_ones():
+    rng = np.random.default_rng(2)
+    h, w = cr.CROP_SIZE_PX[1], cr.CROP_SIZE_PX[0]
+    plain = [np.clip(rng.normal(120, 10, (h, w)), 0, 255).astype(np.uint8) for _ in range(20)]
+    striped = []
+    for _ in range(20):
+        image = np.clip(rng.normal(120, 10, (h, w)), 0, 255).astype(np.uint8)
+        image[:, ::6] = 30
+        striped.append(image)
+    features = cr.hog_features(np.stack(plain + striped))
+    assert cr.accuracy_interval(cr.c2st(features, np.r_[np.zeros(20), np.ones(20)]))[0] >= 0.95
+
+
+@pytest.mark.skipif(not (REAL / "kitti_raw").is_dir(), reason="the real drives are not beside the checkout")
+def test_inserted_car_lands_on_the_real_box_at_every_level():
+    box = (311, 178, 399, 227)  # the first parked car of KITTI raw 0001, frame 0
+    frame = cr.load_frame(REAL, "0001", 0)
+    K = cr.drive_intrinsics(REAL, "0001")
+    model = cr.library_car(0)
+    for level in cr.LEVELS:
+        image, (x0, y0, x1, y1) = cr.insert_car(frame, K, box, model, level)
+        assert image.shape == frame.shape
+        assert abs(y1 - box[3]) <= 6, (level, y1)  # stands on the box's bottom row
+        assert abs(0.5 * (x0 + x1) - 0.5 * (box[0] + box[2])) <= 0.25 * (box[2] - box[0]), level
+        assert 0.5 <= (y1 - y0) / (box[3] - box[1]) <= 1.5, level
+        changed = np.any(image != frame, axis=-1)
+        assert changed[y0:y1, x0:x1].mean() > 0.5 and not changed[:100].any(), level
+        gray = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_RGB2GRAY)
+        assert np.array_equal(image[y0:y1, x0:x1, 0], gray), level  # a gray camera's car is gray
