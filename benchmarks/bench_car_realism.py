@@ -90,6 +90,13 @@ def _cell(acc: tuple[float, float, float]) -> str:
     return f"{100 * acc[0]:.0f} % [{100 * acc[1]:.0f}, {100 * acc[2]:.0f}]"
 
 
+def _interval(value: tuple[float, float, float] | int) -> dict[str, float] | int:
+    """An (accuracy, low, high) triple as a record (counts as they are)."""
+    if isinstance(value, int):
+        return value
+    return {"accuracy": round(value[0], 4), "low_95": round(value[1], 4), "high_95": round(value[2], 4)}
+
+
 def report(args: argparse.Namespace, boxes: list[cr.CarBox], results: dict, seconds: float, load: str) -> None:
     """Write the markdown table and the raw JSON."""
     drives = [d for d in cr.DRIVES if any(b.drive == d for b in boxes)]
@@ -134,7 +141,10 @@ def report(args: argparse.Namespace, boxes: list[cr.CarBox], results: dict, seco
         "boxes_per_drive": counts,
         "seed": args.seed,
         "seconds": round(seconds, 1),
-        "accuracy": {level: {k: v for k, v in r.items()} for level, r in results.items()},
+        "accuracy": {level: {k: _interval(v) for k, v in r.items()} for level, r in results.items()},
+        "boxes_file": str(args.boxes.relative_to(HERE.parent))
+        if args.boxes.is_relative_to(HERE.parent)
+        else str(args.boxes),
     }
     write_markdown(args.out, lines, raw)
 

@@ -221,6 +221,13 @@ SECTIONS: tuple[Section, ...] = (
         "python benchmarks/bench_car_gray.py",
         ("car_gray.md", "car_gray.json"),
     ),
+    Section(
+        "car_realism",
+        "Inserted cars against real cars (C2ST)",
+        "a classifier telling the recording's own cars from inserted ones, per drive and level",
+        "python benchmarks/bench_car_realism.py",
+        ("car_realism.md", "car_realism.json", "car_realism.png"),
+    ),
 )
 # Files under results/ that are no benchmark's section, and why.
 NOT_SECTIONS: dict[str, str] = {"targets.md": "the issue targets table, linked from the summary"}
