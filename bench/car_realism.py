@@ -102,10 +102,17 @@ def ground_distance_m(K: np.ndarray, bottom_row_px: float, height_px: float) -> 
     return float(K[1, 1]) * 1.5 / max(height_px, 1.0)
 
 
-def crop(image: np.ndarray, box: tuple[int, int, int, int], margin: float = CROP_MARGIN) -> np.ndarray:
+def crop(
+    image: np.ndarray, box: tuple[int, int, int, int], margin: float = CROP_MARGIN, width_px: int | None = None
+) -> np.ndarray:
     """The box of `image` widened by `margin` of its size on each side (clipped to the image), as a gray
-    `CROP_SIZE_PX` uint8 crop."""
+    `CROP_SIZE_PX` uint8 crop; with `width_px`, cut from the image first reduced to that width (a world's
+    resolution)."""
     x0, y0, x1, y1 = box
+    if width_px is not None and width_px < image.shape[1]:
+        scale = width_px / image.shape[1]
+        image = cv2.resize(image, (width_px, max(1, round(image.shape[0] * scale))), interpolation=cv2.INTER_AREA)
+        x0, y0, x1, y1 = (v * scale for v in box)
     dx, dy = margin * (x1 - x0), margin * (y1 - y0)
     h, w = image.shape[:2]
     x0, x1 = max(0, int(round(x0 - dx))), min(w, int(round(x1 + dx)))

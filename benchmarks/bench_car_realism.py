@@ -34,21 +34,27 @@ LEVEL_NAMES = {
     "shadow": "+ contact shadow",
     "harmonization": "+ harmonization (today's default)",
 }
+WORLD_WIDTH_PX = 320  # build-world's default sim_width_px
+RESOLUTIONS = {"recording": None, "world": WORLD_WIDTH_PX}
+"""Where crops are cut: the recorded frames as they are, or reduced to a world's width."""
 GRID_PER_DRIVE = 3
 GRID_SCALE = 2
 
 
-def crops_of(boxes: list[cr.CarBox], real_root: Path, seed: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """(n, h, w) real crops and, per level, the (n, h, w) crops of the car inserted at each box."""
+def crops_of(
+    boxes: list[cr.CarBox], real_root: Path, seed: int, width_px: int | None
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """(n, h, w) real crops and, per level, the (n, h, w) crops of the car inserted at each box; cut from the frames
+    reduced to `width_px` (None: at the recording's resolution)."""
     real, inserted = [], {level: [] for level in cr.LEVELS}
     for i, b in enumerate(boxes):
         frame = cr.load_frame(real_root, b.drive, b.frame)
         K = cr.drive_intrinsics(real_root, b.drive)
-        real.append(cr.crop(frame, b.box))
+        real.append(cr.crop(frame, b.box, width_px=width_px))
         model = cr.library_car(i, seed)
         for level in cr.LEVELS:
             image, box = cr.insert_car(frame, K, b.box, model, level)
-            inserted[level].append(cr.crop(image, box))
+            inserted[level].append(cr.crop(image, box, width_px=width_px))
     return np.stack(real), {level: np.stack(c) for level, c in inserted.items()}
 
 
@@ -97,11 +103,8 @@ def _interval(value: tuple[float, float, float] | int) -> dict[str, float] | int
     return {"accuracy": round(value[0], 4), "low_95": round(value[1], 4), "high_95": round(value[2], 4)}
 
 
-def report(args: argparse.Namespace, boxes: list[cr.CarBox], results: dict, seconds: float, load: str) -> None:
-    """Write the markdown table and the raw JSON."""
-    drives = [d for d in cr.DRIVES if any(b.drive == d for b in boxes)]
-    counts = {d: sum(b.drive == d for b in boxes) for d in drives}
-    when = measured_now()
+def _table(results: dict, drives: list[str], counts: dict[str, int]) -> list[str]:
+    """The markdown table of one resolution's results: a row per level, then the real-vs-real control."""
     header = "| level | all drives | " + " | ".join(f"{d} ({counts[d]})" for d in drives) + " |"
     rows = [
         f"| {LEVEL_NAMES[level]} | {_cell(results[level]['all'])} | "
@@ -109,7 +112,21 @@ def report(args: argparse.Namespace, boxes: list[cr.CarBox], results: dict, seco
         + " |"
         for level in cr.LEVELS
     ]
-    control = results["control"]["all"]
+    control = results["control"]
+    return [
+        header,
+        "|" + "---|" * (2 + len(drives)),
+        *rows,
+        f"| control: real vs real (random halves of the {control['n_crops']} real crops) | {_cell(control['all'])} |"
+        + " |" * len(drives),
+    ]
+
+
+def report(args: argparse.Namespace, boxes: list[cr.CarBox], results: dict, seconds: float, load: str) -> None:
+    """Write the markdown tables (one per resolution) and the raw JSON."""
+    drives = [d for d in cr.DRIVES if any(b.drive == d for b in boxes)]
+    counts = {d: sum(b.drive == d for b in boxes) for d in drives}
+    when = measured_now()
     lines = [
         "# Inserted cars against the recording's own cars (C2ST)",
         "",
@@ -126,25 +143,31 @@ def report(args: argparse.Namespace, boxes: list[cr.CarBox], results: dict, seco
         "crops; 50 % = indistinguishable. Drive columns: the same predictions counted over that drive's crops "
         "(boxes in brackets). Levels add one part each; the last is what the simulator draws today.",
         "",
-        header,
-        "|" + "---|" * (2 + len(drives)),
-        *rows,
-        f"| control: real vs real (random halves of the {len(boxes)} real crops) | {_cell(control)} |"
-        + " |" * len(drives),
+        "At the recording's resolution (about 1240 x 375):",
+        "",
+        *_table(results["recording"], drives, counts),
+        "",
+        f"At a world's resolution (frames reduced to {WORLD_WIDTH_PX} px wide, `build-world`'s default, before "
+        "cropping):",
+        "",
+        *_table(results["world"], drives, counts),
         "",
         "The inserted car stands on a flat road 1.65 m below the camera, its near end on the box's bottom row, heading "
-        "along the optical axis (the real cars are seen at their own headings, many from the side). Crops: "
-        "`car_realism.png` (real, then the levels).",
+        "along the optical axis (the real cars are seen at their own headings, many from the side). Crops at the "
+        "recording's resolution: `car_realism.png` (real, then the levels). At a world's resolution the car is drawn "
+        "at the recording's and reduced with the frame (the simulator draws it at the world's directly, with harder "
+        "edges).",
     ]
     raw = {
         "boxes": len(boxes),
         "boxes_per_drive": counts,
         "seed": args.seed,
         "seconds": round(seconds, 1),
-        "accuracy": {level: {k: _interval(v) for k, v in r.items()} for level, r in results.items()},
-        "boxes_file": str(args.boxes.relative_to(HERE.parent))
-        if args.boxes.is_relative_to(HERE.parent)
-        else str(args.boxes),
+        "world_width_px": WORLD_WIDTH_PX,
+        "accuracy": {
+            resolution: {level: {k: _interval(v) for k, v in r.items()} for level, r in per_level.items()}
+            for resolution, per_level in results.items()
+        },
     }
     write_markdown(args.out, lines, raw)
 
@@ -162,13 +185,14 @@ def main() -> int:
             raise FileNotFoundError(f"no real-data folder {args.real}: pass --real")
         load = " / ".join(f"{x:.2f}" for x in os.getloadavg())
         start = time.perf_counter()
-        real, inserted = crops_of(boxes, args.real, args.seed)
+        crops = {name: crops_of(boxes, args.real, args.seed, width) for name, width in RESOLUTIONS.items()}
     except (ValueError, FileNotFoundError, OSError) as err:
         print(f"bench_car_realism: {err}", file=sys.stderr)
         return 2
-    results = measure(real, inserted, np.array([b.drive for b in boxes]), args.seed)
+    drives = np.array([b.drive for b in boxes])
+    results = {name: measure(real, inserted, drives, args.seed) for name, (real, inserted) in crops.items()}
     seconds = time.perf_counter() - start
-    grid_picture(args.out.with_suffix(".png"), boxes, real, inserted)
+    grid_picture(args.out.with_suffix(".png"), boxes, *crops["recording"])
     report(args, boxes, results, seconds, load)
     return 0
 

@@ -46,6 +46,8 @@ def test_crop_is_the_box_widened_and_resized_to_one_gray_size():
     assert patch.min() == 200
     widened = cr.crop(image, (50, 40, 90, 60), margin=0.25)  # the 25 % margins are dark
     assert widened[0].max() == 0 and widened[:, 0].max() == 0 and widened[20, 32] == 200
+    halved = cr.crop(image, (50, 40, 90, 60), margin=0.0, width_px=100)  # the box follows the reduced image
+    assert halved.shape == patch.shape and halved.min() == 200
     with pytest.raises(ValueError, match="outside"):
         cr.crop(image, (300, 10, 350, 40))
 
