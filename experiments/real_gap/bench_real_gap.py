@@ -213,6 +213,9 @@ def summarize_world(episodes: list[dict[str, Any]]) -> dict[str, Any]:
             "success": float(np.mean([e["success"] for e in eps])) if eps else math.nan,
             "max_deviation_m": float(np.mean([e["max_deviation_m"] for e in eps])) if eps else math.nan,
             "ends": {k: sum(e["end"] == k for e in eps) for k in sorted({e["end"] for e in eps})},
+            "share_steps_car_visible": sum(e["steps_car_visible"] for e in eps) / max(sum(e["steps"] for e in eps), 1),
+            "car_pixels_median": med([v for e in eps for v in e["visible"]], "pixels"),
+            "luma_contrast_median": med([v for e in eps for v in e["visible"]], "luma_contrast"),
         }
     names = episodes[0]["action_error"].keys() if episodes else []
     return {
@@ -380,9 +383,24 @@ def _perception_lines(r: dict[str, Any]) -> list[str]:
 def _geometry_lines(r: dict[str, Any]) -> list[str]:
     """How the expert's episodes ended, the camera, the road-side depth and the imitation error, of one result."""
     lines: list[str] = []
-    lines += ["", "How the expert's episodes ended, by the side it passed on", ""]
+    lines += [
+        "",
+        "By the side the expert passed on: how its episodes ended; % steps with the car in view, its median px"
+        " and luma contrast",
+        "",
+    ]
     for w in r["worlds"]:
-        lines.append(f"- {w['label']}: left {w['sides']['left']['ends']}, right {w['sides']['right']['ends']}")
+        parts = []
+        for side in ("left", "right"):
+            s = w["sides"][side]
+            seen = (
+                f"; car in view {_f(100 * s['share_steps_car_visible'], 0)} % of steps, {_f(s['car_pixels_median'], 0)}"
+                f" px, contrast {_f(s['luma_contrast_median'])}"
+                if "share_steps_car_visible" in s
+                else ""
+            )
+            parts.append(f"{side} {s['ends']}{seen}")
+        lines.append(f"- {w['label']}: " + "; ".join(parts))
     lines += [
         "",
         "Camera on the vehicle (y + = left) and the world's lane width",
