@@ -34,9 +34,12 @@ def drivesim(
 
 def make_dry_run(target: str, venv: Path) -> list[str]:
     """The commands `make TARGET` would run with the venv at `venv` (absent, so its set-up is due)."""
+    # Run as a top-level make even under `make test`: no inherited MAKEFLAGS/MAKELEVEL, no directory lines.
+    env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MAKELEVEL", "MFLAGS")}
     done = subprocess.run(
-        ["make", "-n", target, f"VENV={venv}"], cwd=REPO, capture_output=True, text=True, timeout=30, check=True
-    )
+        ["make", "-n", "--no-print-directory", target, f"VENV={venv}"],
+        cwd=REPO, capture_output=True, text=True, timeout=30, check=True, env=env,
+    )  # fmt: skip
     return [line for line in done.stdout.splitlines() if line.strip()]
 
 

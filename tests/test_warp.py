@@ -298,7 +298,8 @@ def test_vehicle_composited_into_warped_roi_with_occlusion():
     K_roi = roi_intrinsics(K, roi)
     rast = Rasterizer(roi[2], roi[3])
     full = Rasterizer(W, H)
-    for x_m, visible in ((12.0, True), (30.0, False)):
+    # Hidden: the car 35 m ahead, its near end well over OCCLUDER_MIN_GAP behind the wall at 25 m.
+    for x_m, visible in ((12.0, True), (35.0, False)):
         car = [m.transformed(g.pose_2d(x_m, 0.0, 0.3)) for m in car_meshes(object_id=7)]
         cars = rast.render(car, T_camera_world, K_roi)
         crop = full.render(car, T_camera_world, K).object_id[:, 60:140, 60:260]
