@@ -268,8 +268,8 @@ def train_stage_row(world: Path, task: str, steps: int, eval_every: int, eval_ep
     print(
         f"drivesim train: {last['steps']:.0f} steps, {last['steps_per_s_run']} env steps/s, {wall_s:.0f} s", flush=True
     )
-    return {"command": "drivesim " + " ".join(command[3:]).replace(tmp, "WS"), "updates": len(rows), "command_wall_s": wall_s,
-            "last_progress_row": last}  # fmt: skip
+    command_line = "drivesim " + " ".join(command[3:]).replace(tmp, "WS")
+    return {"command": command_line, "updates": len(rows), "command_wall_s": wall_s, "last_progress_row": last}
 
 
 def bare_loop_row(world: Path, task: str, steps: int) -> Row:

@@ -23,8 +23,8 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from drivesim.pipeline.config import load_config
 from drivesim.pipeline.workspace import Workspace
-from drivesim.sim.envs.registry import TASK_NAMES
 from drivesim.policy.run_folder import RunError, latest_run, load_policy
+from drivesim.sim.envs.registry import TASK_NAMES
 from drivesim.stages.train.best import BestPolicy
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
