@@ -38,8 +38,8 @@ def run_command(
         str | None,
         typer.Option(
             "--preset",
-            help="Run preset in configs/run/: recording (the default, at most 40 min of training), demo (9.2 min on "
-            "a shared 2-core VM), lane (a lane-keeping policy) or full.",
+            help="Run preset in configs/run/: recording (the default, at most 40 min of training), demo (6.0 min on "
+            "a quiet 2-core VM), lane (a lane-keeping policy) or full.",
             show_default=False,
         ),
     ] = None,

@@ -268,4 +268,4 @@ def test_time_figures_in_help_and_config_are_measurements_with_their_machine() -
 def test_run_help_gives_the_demo_time_its_benchmark_measured(tmp_path: Path) -> None:
     run_help = re.sub(r"[\s│]+", " ", drivesim(tmp_path / "ws", "run", "--help").stdout)
     measured_min = json.loads((REPO / "benchmarks" / "results" / "demo.json").read_text())["total_s"] / 60
-    assert f"demo ({measured_min:.1f} min on a shared 2-core VM)" in run_help, run_help  # the figure of demo.json
+    assert f"demo ({measured_min:.1f} min on a quiet 2-core VM)" in run_help, run_help  # the figure of demo.json
