@@ -245,3 +245,15 @@ def test_drivesim_run_ends_with_the_table_the_worlds_and_one_report_line(tmp_pat
     assert [line for line in done.output.splitlines() if line.startswith("report: ")] == [
         f"report: {evaluated.path / 'report.html'}"
     ]
+
+
+def test_the_policys_same_seeds_row_is_left_out_when_it_is_every_episode(tmp_path: Path) -> None:
+    """With as many baseline episodes as episodes (the demo's 100 and 100), the policy's "same seeds" row would repeat
+    its "all episodes" row: the table shows it once, beside the expert and the warm start."""
+    register_fake_envs()
+    world = fake_world(tmp_path / "drive_a")
+    run = _run_with_warm_start(tmp_path, world)
+    cfg = EvalConfig(world=str(world), policy=str(run), episodes=3, baseline_episodes=3, workers=1, **FAKE)
+    result = run_eval(Workspace(tmp_path / "ws"), cfg, trust_entry_point=True)
+    names = [row.name for row in result_table(result.path).rows]
+    assert names[:3] == ["overtake-1 (all episodes)", "expert", "warm start"]

@@ -109,7 +109,10 @@ def result_table(eval_dir: Path) -> ResultTable | None:
     except (OSError, ValueError, KeyError, TypeError):
         return None
     rows = [_row(f"{data.get('policy', 'policy')} (all episodes)", {"episodes": data.get("episodes"), **aggregate})]
-    rows += [_row(str(row.get("row", "")), row) for row in data.get("baselines") or []]
+    for row in data.get("baselines") or []:
+        if row.get("policy") == data.get("policy") and row.get("episodes") == data.get("episodes"):
+            continue  # the policy on the baselines' seeds is every episode: the row above says it already
+        rows.append(_row(str(row.get("row", "")), row))
     paper = data.get("paper_table_i") or {}
     for place in ("garage", "outdoor"):
         cells = {
