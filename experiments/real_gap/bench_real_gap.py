@@ -23,6 +23,7 @@ import os
 import platform
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -349,34 +350,18 @@ def _perception_lines(r: dict[str, Any]) -> list[str]:
             f"{_f(s['left']['max_deviation_m'], 2)} | {s['right']['episodes']}, {_f(s['right']['success'], 2)}, "
             f"{_f(s['right']['max_deviation_m'], 2)} |"
         )
-    lines += [
-        "",
+    lines += _offset_table(
+        r["worlds"],
         "View quality: % of the policy's view filled from neighbouring frames + inpainted, by ego offset "
         "from the recorded path (m, + = left)",
-        "",
-        "| world | " + " | ".join(f"{o:+.1f}" for o in OFFSETS_M) + " |",
-        "|---|" + "---|" * len(OFFSETS_M),
-    ]
-    for w in r["worlds"]:
-        if w["view_quality"]:
-            q = w["view_quality"]
-            cells = [
-                f"{_f(100 * q[f'{o:+.1f}']['neighbour'])} + {_f(100 * q[f'{o:+.1f}']['inpainted'])}" for o in OFFSETS_M
-            ]
-            lines.append(f"| {w['label']} | " + " | ".join(cells) + " |")
-    lines += [
-        "",
+        lambda q: f"{_f(100 * q['neighbour'])} + {_f(100 * q['inpainted'])}",
+    )
+    lines += _offset_table(
+        r["worlds"],
         "Sharpness at the offset / on the recorded path (mean luminance gradient of the policy's view, same places;"
         " below 1: smeared)",
-        "",
-        "| world | " + " | ".join(f"{o:+.1f}" for o in OFFSETS_M) + " |",
-        "|---|" + "---|" * len(OFFSETS_M),
-    ]
-    for w in r["worlds"]:
-        if w["view_quality"]:
-            q = w["view_quality"]
-            cells = [_f(q[f"{o:+.1f}"]["sharpness_ratio"], 2) for o in OFFSETS_M]
-            lines.append(f"| {w['label']} | " + " | ".join(cells) + " |")
+        lambda q: _f(q["sharpness_ratio"], 2),
+    )
     return lines
 
 
@@ -518,6 +503,17 @@ def main() -> None:
         "worlds": rows,
     }
     save_result(RESULTS, STUDY, result, write_markdown)
+
+
+def _offset_table(worlds: list[dict], title: str, cell: Callable[[dict], str]) -> list[str]:
+    """A markdown table of one view-quality figure per world (rows) and ego offset (columns), under `title`."""
+    lines = ["", title, "", "| world | " + " | ".join(f"{o:+.1f}" for o in OFFSETS_M) + " |"]
+    lines.append("|---|" + "---|" * len(OFFSETS_M))
+    for w in worlds:
+        if w["view_quality"]:
+            cells = [cell(w["view_quality"][f"{o:+.1f}"]) for o in OFFSETS_M]
+            lines.append(f"| {w['label']} | " + " | ".join(cells) + " |")
+    return lines
 
 
 if __name__ == "__main__":
