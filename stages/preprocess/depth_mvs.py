@@ -24,7 +24,7 @@ memory stays bounded whatever the drive's length.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -509,6 +509,38 @@ def temporal_median(
     return (1.0 / np.clip(inv, 1.0 / far_m, None)).astype(np.float32)
 
 
+def mvs_frames(
+    estimator: MvsEstimator, K: np.ndarray, start: int, stop: int
+) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """Finished depth (m) of frames start..stop-1 in order, each as (frame index, depth, label counts of the frame's
+    own estimate); the result of a frame depends only on the drive, not on `start` and `stop`.
+
+    With `mvs.temporal_window` w > 0 the estimates of up to w frames beyond each end are made too (the temporal
+    median of a frame needs them); at most 2 w + 1 estimates are held at once.
+    """
+    n = estimator.frames.shape[0]
+    window = estimator.m.temporal_window
+    far_m = estimator.far_m
+    raw: dict[int, np.ndarray] = {}  # per-frame estimates not yet finished: at most 2 * window + 1
+    counts: dict[int, np.ndarray] = {}
+    first, end = max(0, start - window), min(n, stop + window)
+
+    def finish(i: int) -> tuple[int, np.ndarray, np.ndarray]:
+        near = {j: raw[j] for j in range(i - window, i + window + 1) if j in raw}
+        depth_m = temporal_median(near, i, K, estimator.poses, far_m) if len(near) > 1 else raw[i]
+        return i, depth_m, counts.pop(i)
+
+    for k in range(first, end):
+        raw[k], labels = estimator.frame(k)
+        if start <= k < stop:
+            counts[k] = np.bincount(labels.ravel(), minlength=len(_LABELS))
+        if start <= k - window < stop:
+            yield finish(k - window)
+        raw.pop(k - 2 * window, None)
+    for i in range(max(start, end - window), stop):
+        yield finish(i)
+
+
 def mvs_depth(
     frames: np.ndarray,
     K: np.ndarray,
@@ -523,26 +555,19 @@ def mvs_depth(
     `mvs.temporal_window` frames each side; returns the fusion fractions."""
     estimator = MvsEstimator(frames, K, T_world_camera, T_vehicle_camera, camera_height_m, cfg)
     counts = np.zeros(len(_LABELS), np.int64)
-    n = frames.shape[0]
-    window = cfg.mvs.temporal_window
-    raw: dict[int, np.ndarray] = {}  # per-frame estimates not yet finished: at most 2 * window + 1
-
-    def finish(i: int) -> None:
-        near = {j: raw[j] for j in range(i - window, i + window + 1) if j in raw}
-        out[i] = temporal_median(near, i, K, estimator.poses, cfg.max_depth_m) if len(near) > 1 else raw[i]
+    for i, depth_m, frame_counts in mvs_frames(estimator, K, 0, frames.shape[0]):
+        out[i] = depth_m
+        counts += frame_counts
         if progress is not None:
             progress(1)
+    return fusion_fractions(counts, frames.shape[0], estimator.w, estimator.h)
 
-    for i in range(n):
-        raw[i], labels = estimator.frame(i)
-        counts += np.bincount(labels.ravel(), minlength=len(counts))
-        if i - window >= 0:
-            finish(i - window)
-            raw.pop(i - 2 * window, None)
-    for i in range(max(0, n - window), n):
-        finish(i)
-    total = max(1, n * estimator.h * estimator.w)
+
+def fusion_fractions(counts: np.ndarray, frame_count: int, width_px: int, height_px: int) -> dict[str, Any]:
+    """The matching resolution and the share of matching-resolution pixels each fusion source gave, from the label
+    counts summed over `frame_count` frames."""
+    total = max(1, frame_count * width_px * height_px)
     return {
-        "matching_resolution_px": [estimator.w, estimator.h],
+        "matching_resolution_px": [width_px, height_px],
         **{f"{name}_fraction": round(float(c) / total, 4) for name, c in zip(_LABELS, counts, strict=True)},
     }
