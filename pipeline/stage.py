@@ -17,6 +17,7 @@ Stages whose artifact is one of many (a training run `runs/<task>-<timestamp>/`,
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -78,19 +79,20 @@ class StageResult(Generic[SummaryT]):
     notes: tuple[str, ...] = ()
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class StageSpec(Generic[SummaryT]):
     """A stage's identity and its build function, written once (the chain registry lists these).
 
     :param name: the stage (and CLI command) name, e.g. "build-world".
     :param artifact: the artifact folder it writes, relative to the workspace, e.g. "world".
-    :param command: the command a user types to make the artifact, e.g. "drivesim build-world".
     :param config_model: the stage's pydantic config model.
-    :param preset: the name of its YAML preset in `configs/` (may hold only what differs from the defaults).
     :param summary_model: the typed summary the build returns.
-    :param requires: upstream artifacts the stage reads, in order.
-    :param build: `build(ctx) -> summary`; writes into `ctx.dir` only. Import heavy modules (torch) inside it, so
-        that importing the spec (the chain registry, `--help`) stays fast.
+    :param build: `build(ctx) -> summary`; writes into `ctx.dir` only. Import heavy modules (torch) inside it, or
+        name it with `deferred_build`, so that importing the spec (the chain registry, `--help`) stays fast.
+    :param command: the command a user types to make the artifact; default `drivesim <name>`.
+    :param preset: the name of its YAML preset in `configs/` (may hold only what differs from the defaults);
+        default the stage's name.
+    :param requires: upstream artifacts the stage reads, in order; default none.
     :param collection: the artifact folder holds many artifacts (`runs/<task>-<timestamp>/`, `eval/<name>/`);
         `drivesim status` shows the newest complete one.
     :param upstream_hints: each required artifact -> the command that makes it, for the one-line "run X first"
@@ -99,14 +101,32 @@ class StageSpec(Generic[SummaryT]):
 
     name: str
     artifact: str
-    command: str
     config_model: type[StageConfig]
-    preset: str
     summary_model: type[SummaryT]
-    requires: tuple[str, ...]
     build: Callable[[BuildContext], SummaryT]
+    command: str = ""
+    preset: str = ""
+    requires: tuple[str, ...] = ()
     collection: bool = False
     upstream_hints: Mapping[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.command:
+            object.__setattr__(self, "command", f"drivesim {self.name}")
+        if not self.preset:
+            object.__setattr__(self, "preset", self.name)
+
+
+def deferred_build(target: str) -> Callable[[BuildContext], Any]:
+    """The build function `target` ("module:function"), imported only when the stage runs: importing the spec
+    (the chain registry, `--help`) then leaves the stage's heavy modules (numpy, torch, open3d) unimported."""
+    module_name, _, function_name = target.partition(":")
+
+    def build(ctx: BuildContext) -> Any:
+        return getattr(importlib.import_module(module_name), function_name)(ctx)
+
+    build.__qualname__ = f"deferred_build({target!r})"
+    return build
 
 
 def run_stage(

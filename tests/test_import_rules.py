@@ -59,10 +59,23 @@ def _type_checking_lines(tree: ast.AST) -> set[int]:
     return lines
 
 
+def _is_deferred_build(node: ast.AST) -> bool:
+    """A call `deferred_build("module:function")`: the stage contract imports that module when the stage runs."""
+    return (
+        isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Name)
+        and node.func.id == "deferred_build"
+        and len(node.args) == 1
+        and isinstance(node.args[0], ast.Constant)
+        and isinstance(node.args[0].value, str)
+    )
+
+
 def imported_modules(file: Path, at_run_time: bool = False) -> set[str]:
     """Every `drivesim...` module `file` imports, absolute or relative, at module or function level.
 
-    `from drivesim.stages.x import y` counts as `drivesim.stages.x.y` (y may be a module). With `at_run_time`, the
+    `from drivesim.stages.x import y` counts as `drivesim.stages.x.y` (y may be a module); a stage's
+    `deferred_build("drivesim.stages.x.run:f")` counts as importing `drivesim.stages.x.run`. With `at_run_time`, the
     imports under `if TYPE_CHECKING:` are left out.
     """
     name = _module_name(file)
@@ -83,7 +96,14 @@ def imported_modules(file: Path, at_run_time: bool = False) -> set[str]:
                 module = node.module or ""
             found.add(module)
             found.update(f"{module}.{alias.name}" for alias in node.names)
+        elif _is_deferred_build(node):
+            found.add(node.args[0].value.partition(":")[0])  # type: ignore[attr-defined]
     return {m for m in found if m == "drivesim" or m.startswith("drivesim.")}
+
+
+def test_a_deferred_build_counts_as_an_import() -> None:
+    assert "drivesim.stages.world.build" in imported_modules(REPO / "stages/world/stage.py")
+    assert "drivesim.stages.world.build" in _module_graph()["drivesim.stages.world.stage"]
 
 
 def _files(folder: str) -> list[Path]:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import sys
+import types
 from pathlib import Path
 
 import pytest
@@ -10,6 +12,7 @@ import pytest
 from drivesim.chain.registry import CHAIN
 from drivesim.pipeline.config import StageConfig, describe_config, load_config
 from drivesim.pipeline.errors import ConfigError, MissingArtifactError
+from drivesim.pipeline.stage import BuildContext, StageSpec, StageSummary, deferred_build, run_stage
 from drivesim.pipeline.status import status_report
 from drivesim.pipeline.workspace import Workspace, artifact_key
 
@@ -100,6 +103,35 @@ def test_status_reports_missing_fresh_and_stale(tmp_path: Path) -> None:
     report = {row["stage"]: row for row in status_report(ws, CHAIN)["stages"]}
     assert report["ingest"]["state"] == "stale"
     assert json.loads(json.dumps(status_report(ws, CHAIN)))["format"] == 1
+
+
+class _DemoSummary(StageSummary):
+    width_px: int
+    """The configured width (px)."""
+
+
+def test_a_spec_with_defaults_and_a_deferred_build_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """command and preset default to the stage's name; the build module is imported when the stage runs, not before."""
+    spec = StageSpec(
+        name="demo",
+        artifact="demo-out",
+        config_model=_Demo,
+        summary_model=_DemoSummary,
+        build=deferred_build("drivesim_demo_build:build"),  # no such module yet
+    )
+    assert (spec.command, spec.preset, spec.requires) == ("drivesim demo", "demo", ())
+
+    def build(ctx: BuildContext) -> _DemoSummary:
+        (ctx.dir / "width.txt").write_text(str(ctx.config.image.width_px))  # type: ignore[attr-defined]
+        return _DemoSummary(width_px=ctx.config.image.width_px)  # type: ignore[attr-defined]
+
+    monkeypatch.setitem(sys.modules, "drivesim_demo_build", types.SimpleNamespace(build=build))
+    ws = Workspace(tmp_path / "ws")
+    result = run_stage(ws, spec, _Demo(image=_Image(width_px=320)))
+    assert result.summary == _DemoSummary(width_px=320) and not result.skipped
+    assert (result.path / "width.txt").read_text() == "320"
+    assert ws.read_manifest("demo-out")["command"] == "drivesim demo"  # type: ignore[index]
+    assert run_stage(ws, spec, _Demo(image=_Image(width_px=320))).skipped
 
 
 def test_require_names_the_command_to_run(tmp_path: Path) -> None:

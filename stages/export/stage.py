@@ -141,10 +141,8 @@ SPEC: StageSpec[ExportSummary] = StageSpec(
     artifact=EXPORT_DIR,
     command="drivesim export onnx",
     config_model=ExportConfig,
-    preset="export",
     summary_model=ExportSummary,
-    requires=(),  # the run folder is one of many under runs/: passed as an external input
-    build=_build,
+    build=_build,  # requires no artifact: the run folder is one of many under runs/, passed as an external input
 )
 
 

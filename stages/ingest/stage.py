@@ -60,9 +60,7 @@ SPEC: StageSpec[IngestSummary] = StageSpec(
     artifact="trace",
     command="drivesim ingest PATH",
     config_model=IngestConfig,
-    preset="ingest",
     summary_model=IngestSummary,
-    requires=(),
     build=_build,
 )
 

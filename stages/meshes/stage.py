@@ -7,27 +7,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, run_stage
+from drivesim.pipeline.stage import StageResult, StageSpec, deferred_build, run_stage
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.meshes.config import MeshesConfig
 from drivesim.stages.meshes.summary import MeshesSummary
-
-
-def _build(ctx: BuildContext) -> MeshesSummary:
-    from drivesim.stages.meshes.build import build_meshes  # trimesh: only when it runs
-
-    return build_meshes(ctx)
-
 
 SPEC: StageSpec[MeshesSummary] = StageSpec(
     name="meshes",
     artifact="meshes",
     command="drivesim meshes build",
     config_model=MeshesConfig,
-    preset="meshes",
     summary_model=MeshesSummary,
-    requires=(),
-    build=_build,
+    build=deferred_build("drivesim.stages.meshes.build:build_meshes"),  # trimesh
 )
 
 

@@ -6,28 +6,19 @@ stage runs.
 
 from __future__ import annotations
 
-from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, run_stage
+from drivesim.pipeline.stage import StageResult, StageSpec, deferred_build, run_stage
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.preprocess.config import PreprocessConfig
 from drivesim.stages.preprocess.summary import PreprocessSummary
 
-
-def _build(ctx: BuildContext) -> PreprocessSummary:
-    from drivesim.stages.preprocess.run import build_preprocessed  # numpy, scipy, torch: only when it runs
-
-    return build_preprocessed(ctx)
-
-
 SPEC: StageSpec[PreprocessSummary] = StageSpec(
     name="preprocess",
     artifact="preprocessed",
-    command="drivesim preprocess",
     config_model=PreprocessConfig,
-    preset="preprocess",
     summary_model=PreprocessSummary,
     requires=("trace",),
     upstream_hints={"trace": "drivesim ingest PATH"},
-    build=_build,
+    build=deferred_build("drivesim.stages.preprocess.run:build_preprocessed"),  # numpy, scipy, torch
 )
 
 

@@ -5,28 +5,20 @@ Light to import; the work is in `stages/world/build.py`, imported when the stage
 
 from __future__ import annotations
 
-from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, run_stage
+from drivesim.pipeline.stage import StageResult, StageSpec, deferred_build, run_stage
 from drivesim.pipeline.workspace import Workspace
 from drivesim.stages.world.config import WorldConfig
 from drivesim.stages.world.summary import WorldSummary
 
-
-def _build(ctx: BuildContext) -> WorldSummary:
-    from drivesim.stages.world.build import build_world  # cv2, numpy, open3d: only when it runs
-
-    return build_world(ctx)
-
-
 SPEC: StageSpec[WorldSummary] = StageSpec(
     name="build-world",
     artifact="world",
-    command="drivesim build-world",
     config_model=WorldConfig,
     preset="world",
     summary_model=WorldSummary,
     requires=("trace", "preprocessed"),
     upstream_hints={"trace": "drivesim ingest PATH", "preprocessed": "drivesim preprocess"},
-    build=_build,
+    build=deferred_build("drivesim.stages.world.build:build_world"),  # cv2, numpy, open3d
 )
 
 
