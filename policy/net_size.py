@@ -19,21 +19,12 @@ def _conv_out(size_px: int, kernel: int, stride: int) -> int:
     return (size_px - kernel) // stride + 1
 
 
-def network_size(
-    observation_shape: Sequence[int],
-    conv_layers: Sequence[Sequence[int]],
-    features_dim: int,
-    lstm_hidden_size: int,
-    lstm_layers: int,
-    input_pool: int = 1,
-) -> tuple[int, int]:
-    """(parameters, convolution activations per image) of the DrivingNet with this architecture.
-
-    :raises ValueError: when the convolutions shrink the image to nothing or a size is not positive.
-    """
+def _conv_size(
+    observation_shape: Sequence[int], conv_layers: Sequence[Sequence[int]], input_pool: int
+) -> tuple[int, int, int]:
+    """(parameters, activations per image, output values) of the pooling and convolutions in front of the linear
+    layer; ValueError when they shrink the image to nothing or a size is not positive."""
     channels, height, width = (int(v) for v in observation_shape)
-    if min(channels, height, width, features_dim, lstm_hidden_size, lstm_layers, input_pool) < 1:
-        raise ValueError("every size of the network must be at least 1")
     height, width = height // input_pool, width // input_pool
     params, activations = 0, 0
     in_ch = channels
@@ -49,13 +40,7 @@ def network_size(
             )
         activations += out_ch * height * width
         in_ch = out_ch
-    params += in_ch * height * width * features_dim + features_dim  # the linear layer after the convolutions
-    lstm_in = features_dim
-    for _ in range(lstm_layers):
-        params += 4 * lstm_hidden_size * (lstm_in + lstm_hidden_size + 2)
-        lstm_in = lstm_hidden_size
-    params += 2 * (lstm_hidden_size + 1) + 1  # steering and value heads, log std
-    return params, activations
+    return params, activations, in_ch * height * width
 
 
 def check_network_size(
@@ -66,10 +51,17 @@ def check_network_size(
     lstm_layers: int,
     input_pool: int = 1,
 ) -> int:
-    """The network's parameter count; ValueError (one line) when it is absurdly large or shrinks the image away."""
-    params, activations = network_size(
-        observation_shape, conv_layers, features_dim, lstm_hidden_size, lstm_layers, input_pool
-    )
+    """The parameter count of the DrivingNet with this architecture; ValueError (one line) when it is absurdly large,
+    shrinks the image away or has a size that is not positive."""
+    if min(*(int(v) for v in observation_shape), features_dim, lstm_hidden_size, lstm_layers, input_pool) < 1:
+        raise ValueError("every size of the network must be at least 1")
+    params, activations, conv_out = _conv_size(observation_shape, conv_layers, input_pool)
+    params += conv_out * features_dim + features_dim  # the linear layer after the convolutions
+    lstm_in = features_dim
+    for _ in range(lstm_layers):
+        params += 4 * lstm_hidden_size * (lstm_in + lstm_hidden_size + 2)
+        lstm_in = lstm_hidden_size
+    params += 2 * (lstm_hidden_size + 1) + 1  # steering and value heads, log std
     if params > MAX_PARAMETERS:
         raise ValueError(
             f"the network would have {params / 1e6:,.0f} M parameters ({4 * params / 1e9:,.1f} GB of float32); "
