@@ -2,12 +2,32 @@
 
 from __future__ import annotations
 
-from drivesim.cli.common import ConfigOption, ForceOption, console, said_fresh, set_option, workspace
+from drivesim.cli.common import (
+    AddressOption,
+    ConfigOption,
+    ForceOption,
+    backend_option,
+    choose_backend,
+    console,
+    said_fresh,
+    set_option,
+    workspace,
+)
 from drivesim.pipeline.config import load_config
+
+BackendOption = backend_option(
+    "depth in this process",
+    "camera-only (mvs) depth split over a Ray cluster's workers, chunks of frames as tasks",
+    " The same depth, frame for frame.",
+)
 
 
 def preprocess_command(
-    config: ConfigOption = None, set_: set_option("depth.method=mvs") = None, force: ForceOption = False
+    config: ConfigOption = None,
+    set_: set_option("depth.method=mvs") = None,
+    force: ForceOption = False,
+    backend: BackendOption = None,
+    address: AddressOption = None,
 ) -> None:
     """Fuse poses (GPS + IMU + speed, odometry or visual SfM) and estimate per-frame depth (auto: lidar > stereo >
     mvs; or plane)."""
@@ -16,6 +36,7 @@ def preprocess_command(
     from drivesim.stages.preprocess.stage import run_preprocess
 
     cfg = load_config(PreprocessConfig, preset="preprocess", config_file=config, overrides=set_)
+    choose_backend(backend, address, cfg)
     result = run_preprocess(workspace(), cfg, force=force)
     if said_fresh(result, "preprocessed"):
         return

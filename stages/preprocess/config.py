@@ -206,6 +206,14 @@ class PreprocessConfig(StageConfig):
     """Per-frame depth estimation."""
     preview: PreviewConfig = Field(default_factory=PreviewConfig)
     """The depth preview image."""
+    backend: Literal["local", "ray"] = Field("local", exclude=True)
+    """local: depth in this process; ray: camera-only (mvs) depth split over a Ray cluster's workers, chunks of
+    frames as tasks (`pip install 'drivesim[ray]'`; the other depth methods run in this process). Not part of the
+    artifact's identity (the same depth, frame for frame)."""
+    address: str | None = Field(None, exclude=True)
+    """With backend ray: the cluster, "auto" (started by `ray start` on this machine) or the head's host:port; null =
+    start Ray on this machine for the run. Every node needs drivesim and the workspace at the same path. Not part of
+    the artifact's identity."""
 
     @model_validator(mode="after")
     def _check(self) -> PreprocessConfig:

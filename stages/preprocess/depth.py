@@ -137,6 +137,7 @@ def estimate_depth(
     points_vehicle: Sequence[np.ndarray] | None = None,
     right_frames: np.ndarray | None = None,
     baseline_m: float | None = None,
+    run_method: DepthMethod | None = None,
 ) -> dict[str, Any]:
     """Fill `out` (N, H, W) with per-frame depth (m) of `frames` (N, H, W, 3) by `cfg.method`; returns summary figures.
 
@@ -150,6 +151,7 @@ def estimate_depth(
     :param points_vehicle: for `lidar`, per-frame (M, 3) points in the vehicle frame at the frame's time (m).
     :param right_frames: for `stereo`, the rectified right camera's frames (N, H, W, 3), same K as `frames`.
     :param baseline_m: for `stereo`, how far the right camera sits along the left one's +x axis (m).
+    :param run_method: runs the method instead of `DEPTH_METHODS`' function (`depth_ray`: the same depth on Ray).
     `cfg.method` auto runs `choose_method` on what is given (points, right frames).
     """
     _check_inputs(frames, K, T_world_camera, out)
@@ -169,7 +171,7 @@ def estimate_depth(
     inputs = DepthInputs(
         frames, K, T_world_camera, T_vehicle_camera, camera_height_m, points_vehicle, right_frames, baseline_m
     )
-    extra = DEPTH_METHODS[cfg.method](inputs, cfg, out, progress)
+    extra = (run_method or DEPTH_METHODS[cfg.method])(inputs, cfg, out, progress)
     seconds = time.perf_counter() - start
     n = frames.shape[0]
     far_fraction = float(np.mean([np.mean(out[i] >= cfg.max_depth_m) for i in range(0, n, max(1, n // 20))]))

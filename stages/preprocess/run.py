@@ -104,6 +104,7 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
     method = _depth_method(cfg, trace)  # before the pose fusion, so that a wrong method is said at once
     depth_cfg = cfg.depth.model_copy(update={"method": method})
     selected = select_frames(trace.frames.shape[0], cfg)
+    run_method = _ray_method(cfg, method, trace_dir, selected.indices(trace.frames.shape[0]))
     frame_index = np.arange(trace.frames.shape[0])[selected]
     frames = trace.frames[selected]
     frame_times_ns = trace.frame_times_ns[selected]
@@ -120,7 +121,7 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
 
     depth_out = open_reserved_memmap(ctx.dir / "depth.npy", np.float32, (n, h, w))
     right = trace.info.right_frames() if method == "stereo" else None
-    with progress_bar(f"depth ({method})", total=n) as (progress, task):
+    with progress_bar(f"depth ({method}{', on Ray' if run_method else ''})", total=n) as (progress, task):
         depth_summary = depth_mod.estimate_depth(
             frames,
             K,
@@ -133,6 +134,7 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
             points_vehicle=LidarPerFrame(trace.info, frame_times_ns, T_world_vehicle) if method == "lidar" else None,
             right_frames=right[selected] if right is not None else None,
             baseline_m=trace.info.baseline_m if method == "stereo" else None,
+            run_method=run_method,
         )
     depth_out.flush()
     poses = {
@@ -174,6 +176,23 @@ def _depth_method(cfg: PreprocessConfig, trace: Any) -> str:
     method, why = depth_mod.choose_method(cfg.depth.method, has_lidar, has_stereo)
     console.print(f"depth method: {method} ({why})")
     return method
+
+
+def _ray_method(
+    cfg: PreprocessConfig, method: str, trace_dir: Path, selection: tuple[int, int, int]
+) -> depth_mod.DepthMethod | None:
+    """With backend ray, the depth method that runs mvs on Ray (Ray's import checked now, before the pose fusion);
+    None for the local backend and for a method that runs in this process (said on the console)."""
+    if cfg.backend != "ray":
+        return None
+    if method != "mvs":
+        console.print(f"depth method {method} runs in this process (the Ray backend spreads mvs, the camera-only one)")
+        return None
+    from drivesim.pipeline.ray_cluster import import_ray
+    from drivesim.stages.preprocess.depth_ray import ray_depth_method
+
+    import_ray()
+    return ray_depth_method(trace_dir, selection, cfg.address)
 
 
 def _write_origin(folder: Path, fused: Any, method: str, max_depth_m: float, size: tuple[int, int]) -> dict[str, Any]:
