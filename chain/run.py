@@ -16,7 +16,7 @@ unfinished one that it continues from its last checkpoint; eval and export: the 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -96,8 +96,9 @@ def load_run_preset(name: str | None, config_file: Path | None = None, overrides
     return data
 
 
-def _fresh_run(ws: Workspace, spec: StageSpec, cfg: StageConfig) -> Path | None:
-    """The newest finished run under runs/ made with this train config and the same world, or None."""
+def _fresh_run(ws: Workspace, spec: StageSpec, cfg: StageConfig, recordings: Sequence[Path] = ()) -> Path | None:
+    """The newest finished run under runs/ made with this train config and the same worlds (the workspace's, the
+    further `recordings`' worlds, the towns), or None."""
     from drivesim.chain.towns import is_built, town_world
     from drivesim.policy.run_folder import RUNS_DIR, is_complete_run
     from drivesim.stages.train.stage import training_inputs
@@ -105,7 +106,8 @@ def _fresh_run(ws: Workspace, spec: StageSpec, cfg: StageConfig) -> Path | None:
     towns = [] if cfg.envs.source == "cost_free" else cfg.towns  # type: ignore[attr-defined]
     if not all(is_built(ws, seed) for seed in towns):
         return None
-    inputs, external = training_inputs(ws, cfg, None, [town_world(ws, seed) for seed in towns])  # type: ignore[arg-type]
+    extra = [*recordings, *(town_world(ws, seed) for seed in towns)]
+    inputs, external = training_inputs(ws, cfg, None, extra)  # type: ignore[arg-type]
     refs = {up: ws.artifact_input(up) for up in inputs.requires}
     refs.update({key: ws.external_input(path) for key, path in external.items()})
     config_json = cfg.model_dump(mode="json")
@@ -139,18 +141,20 @@ def _unfinished_run(ws: Workspace, cfg: StageConfig, towns: list[Path]) -> Path 
     return max(found)[1] if found else None
 
 
-def _run_train(walk: Walk, spec: StageSpec, cfg: StageConfig) -> StageResult:
+def _run_train(walk: Walk, spec: StageSpec, cfg: StageConfig, recordings: Sequence[Path] = ()) -> StageResult:
+    """Train on the workspace's world, then the further recordings' worlds (`recordings`), then the towns."""
     from drivesim.chain.towns import training_towns
     from drivesim.stages.train.stage import run_training
 
-    fresh = None if walk.force else _fresh_run(walk.ws, spec, cfg)
+    fresh = None if walk.force else _fresh_run(walk.ws, spec, cfg, recordings)
     if fresh is not None:
         summary = spec.summary_model.model_validate(walk.ws.read_manifest(f"runs/{fresh.name}").get("summary", {}))
         result = StageResult(stage=spec.name, path=fresh, skipped=True, summary=summary)
     else:
-        towns = training_towns(walk.ws, cfg)  # type: ignore[arg-type]
-        unfinished = None if walk.force else _unfinished_run(walk.ws, cfg, towns)
-        result = run_training(walk.ws, cfg, towns=towns, resume=unfinished)  # type: ignore[arg-type]
+        # The further recordings' worlds go to the train stage the way the towns' do: extra worlds after its own.
+        extra = [*recordings, *training_towns(walk.ws, cfg)]  # type: ignore[arg-type]
+        unfinished = None if walk.force else _unfinished_run(walk.ws, cfg, extra)
+        result = run_training(walk.ws, cfg, towns=extra, resume=unfinished)  # type: ignore[arg-type]
     walk.run_dir = result.path
     return result
 
@@ -161,10 +165,17 @@ def _needs_run(walk: Walk, stage: str) -> Path:
     return walk.run_dir
 
 
-def _run_eval(walk: Walk, spec: StageSpec, cfg: StageConfig, trust_entry_point: bool = False) -> StageResult:
+def _run_eval(
+    walk: Walk, spec: StageSpec, cfg: StageConfig, trust_entry_point: bool = False, worlds: Sequence[Path] = ()
+) -> StageResult:
+    """Evaluate the run train made: in the workspace's world, or in every world of `worlds` (a row per world and
+    the pooled figures)."""
     from drivesim.stages.evaluate.stage import run_eval
 
-    cfg = cfg.model_copy(update={"policy": str(_needs_run(walk, "eval"))})
+    update: dict[str, Any] = {"policy": str(_needs_run(walk, "eval"))}
+    if worlds:
+        update["world"] = [str(w) for w in worlds]
+    cfg = cfg.model_copy(update=update)
     # An evaluation the user made in this workspace with other settings (`drivesim eval --episodes 1000`) is kept:
     # the chain's own evaluation goes beside it.
     return run_eval(
@@ -220,6 +231,7 @@ def run_chain(
     force: bool = False,
     on_stage: Callable[[StageRun], None] | None = None,
     trust_entry_point: bool = False,
+    more_recordings: Sequence[Path] = (),
 ) -> ChainRun:
     """Walk the chain registry: synth the demo drive when `recording` is None, then every stage in order.
 
@@ -229,12 +241,56 @@ def run_chain(
     :param force: redo every stage even when fresh.
     :param on_stage: called after each stage (progress for the CLI).
     :param trust_entry_point: let `eval.env_entry_point` name a gymnasium.Env class outside drivesim's envs.
+    :param more_recordings: further recordings to train on beside `recording`, each made into a world of its own
+        (`chain/recordings.py`); the evaluation then reports each recording's world and the pooled figures.
     """
+    from drivesim.chain.recordings import forget_set
     from drivesim.chain.registry import CHAIN
 
     _check_eval_entry_point(overrides, trust_entry_point)
+    if more_recordings:
+        if recording is None:
+            raise ConfigError("several recordings: give the first one too (the demo drive is for a run on none)")
+        return _run_several(ws, [recording, *more_recordings], overrides, force, on_stage, trust_entry_point)
     runners = {**RUNNERS, "eval": functools.partial(_run_eval, trust_entry_point=trust_entry_point)}
     done = walk_chain(ws, recording, overrides, CHAIN, runners, force=force, on_stage=on_stage)
+    forget_set(ws)  # a later `drivesim eval` evaluates in this recording's world alone
+    return _chain_run(done)
+
+
+def _run_several(
+    ws: Workspace,
+    recordings: Sequence[Path],
+    overrides: dict[str, Any],
+    force: bool,
+    on_stage: Callable[[StageRun], None] | None,
+    trust_entry_point: bool,
+) -> ChainRun:
+    """The chain on several recordings: each one's world-making stages (the first in the workspace, the others in
+    `drives/<name>/`), then meshes, train on every world, eval in every world, export, once."""
+    from drivesim.chain.recordings import WORLD_STAGES, build_drive_worlds, plan_drives, write_set
+    from drivesim.chain.registry import CHAIN
+    from drivesim.chain.walk import SYNTH, chain_configs
+
+    chain_configs(CHAIN, overrides)  # a typo in any stage's settings is one line before anything runs
+    drives = plan_drives(ws, recordings)
+    done = build_drive_worlds(drives, overrides, force=force, on_stage=on_stage)
+    write_set(ws, drives)
+    further = [drive.world for drive in drives[1:]]
+    runners = {
+        **RUNNERS,
+        "train": functools.partial(_run_train, recordings=further),
+        "eval": functools.partial(
+            _run_eval, trust_entry_point=trust_entry_point, worlds=[drive.world for drive in drives]
+        ),
+    }
+    rest = tuple(spec for spec in CHAIN if spec.name not in WORLD_STAGES)
+    rest_overrides = {k: v for k, v in overrides.items() if k not in (SYNTH, *WORLD_STAGES)}
+    done += walk_chain(ws, drives[0].recording, rest_overrides, rest, runners, force=force, on_stage=on_stage)
+    return _chain_run(done)
+
+
+def _chain_run(done: list[StageRun]) -> ChainRun:
     return ChainRun(
         stages=done, report_html=_file_of(done, "eval", "report.html"), onnx=_file_of(done, "export", "policy.onnx")
     )

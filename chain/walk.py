@@ -33,6 +33,8 @@ class StageRun:
     :param wall_s: wall time of the stage (s), including the freshness check.
     :param notes: lines for the user from the stage.
     :param summary: the stage's summary as JSON.
+    :param recording: the recording's name in a run on several recordings ("" otherwise, and for the stages that
+        run once for the whole set).
     """
 
     stage: str
@@ -41,6 +43,7 @@ class StageRun:
     wall_s: float
     notes: tuple[str, ...] = ()
     summary: dict[str, Any] = field(default_factory=dict)
+    recording: str = ""
 
 
 @dataclass
@@ -85,7 +88,9 @@ def stage_config(model: type[StageConfig], preset: str | None, overrides: dict[s
     if not overrides:
         return cfg
     try:
-        return model.model_validate(deep_merge(cfg.model_dump(), overrides))
+        # Only the keys the preset set, then the overrides: a key left at its default stays unset, so that a config
+        # that puts the keys a user set over another's (eval's env keys over a run's env config) sees only those.
+        return model.model_validate(deep_merge(cfg.model_dump(exclude_unset=True), overrides))
     except ValidationError as e:
         first = e.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
@@ -136,6 +141,19 @@ def synth_demo(ws: Workspace, overrides: dict[str, Any], force: bool = False) ->
     return StageRun(SYNTH, output, False, time.perf_counter() - began, summary=summary)
 
 
+def chain_configs(chain: tuple[StageSpec, ...], overrides: dict[str, Any]) -> list[StageConfig]:
+    """Every stage's config in order, checked before anything runs: a stage name outside the chain or a typo in the
+    preset is one line.
+
+    :param overrides: stage name -> config overrides (a run preset); `synth` is accepted beside the chain's names.
+    """
+    unknown = sorted(set(overrides) - {SYNTH, *(spec.name for spec in chain)})
+    if unknown:
+        names = ", ".join([SYNTH, *(spec.name for spec in chain)])
+        raise ConfigError(f"run preset: unknown stage(s) {', '.join(unknown)}; stages: {names}")
+    return [stage_config(spec.config_model, spec.preset, overrides.get(spec.name, {}), spec.name) for spec in chain]
+
+
 def walk_chain(
     ws: Workspace,
     recording: Path | None,
@@ -155,10 +173,7 @@ def walk_chain(
     :param force: redo every stage even when fresh.
     :param on_stage: called after each stage (progress for the CLI).
     """
-    unknown = sorted(set(overrides) - {SYNTH, *(spec.name for spec in chain)})
-    if unknown:
-        names = ", ".join([SYNTH, *(spec.name for spec in chain)])
-        raise ConfigError(f"run preset: unknown stage(s) {', '.join(unknown)}; stages: {names}")
+    configs = chain_configs(chain, overrides)
     done: list[StageRun] = []
 
     def record(stage_run: StageRun) -> None:
@@ -166,8 +181,6 @@ def walk_chain(
         if on_stage is not None:
             on_stage(stage_run)
 
-    # Every config first: a typo in the preset is one line before anything runs.
-    configs = [stage_config(spec.config_model, spec.preset, overrides.get(spec.name, {}), spec.name) for spec in chain]
     if recording is None:
         record(synth_demo(ws, overrides.get(SYNTH, {}), force=force))
         recording = done[-1].path

@@ -63,8 +63,9 @@ WorldOption = Annotated[
     list[Path] | None,
     typer.Option(
         "--world",
-        help="World folder (default: the workspace's world/). Repeatable: the same seeds in each world, a row per "
-        "world labelled train or unseen, and the pooled figures.",
+        help="World folder (default: the workspace's world/; after `drivesim run` on several recordings, each "
+        "recording's world). Repeatable: the same seeds in each world, a row per world labelled train or unseen, "
+        "and the pooled figures.",
         show_default=False,
     ),
 ]
@@ -148,6 +149,12 @@ def eval_command(
     if meshes is not None:
         overrides.append(f"meshes={meshes.absolute()}")
     cfg = load_config(EvalConfig, preset="eval", config_file=config, overrides=overrides)
+    if cfg.world is None:  # the workspace's recordings, when its last run was on several
+        from drivesim.chain.recordings import set_worlds
+
+        worlds = set_worlds(ws)
+        if worlds:
+            cfg = cfg.model_copy(update={"world": [str(w) for w in worlds]})
     if workers is not None:
         cfg.workers = workers
     choose_backend(backend, address, cfg)
@@ -165,7 +172,7 @@ def eval_command(
 
 def _print_result(result: Any, cfg: Any) -> None:
     """The evaluation's one-paragraph summary, its report and its recordings."""
-    from drivesim.cli.result import print_result
+    from drivesim.cli.result import print_result, print_worlds
 
     s = result.summary
     report = result.path / "report.html"
@@ -191,7 +198,7 @@ def _print_result(result: Any, cfg: Any) -> None:
         highlight=False,
         soft_wrap=True,
     )
-    _print_worlds(result.path / "metrics.json")
+    print_worlds(result.path / "metrics.json")
     _print_starts(result.path / "metrics.json")
     if not print_result(result.path):  # the Table I rows, the worlds trained on, the report
         console.print(f"report: {report}", highlight=False, soft_wrap=True)
@@ -223,42 +230,3 @@ def _print_starts(metrics_path: Path) -> None:
         highlight=False,
         soft_wrap=True,
     )
-
-
-def _print_worlds(metrics_path: Path) -> None:
-    """With several worlds: the table of metrics.json's `per_world` rows, the pooled rows and the train-unseen gap."""
-    from rich.table import Table
-
-    from drivesim.stages.evaluate.worlds import TABLE_COLUMNS
-
-    try:
-        data = json.loads(metrics_path.read_text())
-    except (OSError, ValueError):
-        return
-    if "per_world" not in data:
-        return
-    known = any(row.get("group") for row in data["per_world"])
-
-    def value(estimate: dict[str, Any]) -> str:
-        return "n/a" if estimate.get("value") is None else f"{estimate['value']:.3f}"
-
-    table = Table(title="per world (same seeds in each)", title_justify="left")
-    table.add_column("world")
-    if known:
-        table.add_column("trained on")
-    for heading in ("episodes", *(h for _, h in TABLE_COLUMNS)):
-        table.add_column(heading, justify="right")
-    rows = [(row["world"], row.get("group") or "", row) for row in data["per_world"]]
-    rows += [(f"{name} worlds, pooled", name, figures) for name, figures in data.get("groups", {}).items()]
-    rows.append(("all worlds, pooled", "", data["pooled"]))
-    for name, group, figures in rows:
-        cells = [str(figures["episodes"]), *(value(figures[k]) for k, _ in TABLE_COLUMNS)]
-        table.add_row(name, *([group] if known else []), *cells)
-    gap = data.get("gap") or {}
-    if gap:
-        cells = [
-            "" if gap.get(k) is None and k not in gap else "n/a" if gap.get(k) is None else f"{gap[k]:+.3f}"
-            for k, _ in TABLE_COLUMNS
-        ]
-        table.add_row("gap: unseen - train", *([""] if known else []), "", *cells)
-    console.print(table)

@@ -26,11 +26,22 @@ TrustEntryPointOption = Annotated[
 
 @with_video_options
 def run_command(
-    recording: Annotated[
-        Path | None,
+    recordings: Annotated[
+        list[Path] | None,
         typer.Argument(
             help="Your recording (.bag, rosbag2 folder, .mcap, KITTI folder, video, image folder with --fps); the "
-            "flags of `drivesim ingest` apply. Default: the embedded demo drive.",
+            "flags of `drivesim ingest` apply. Several: each becomes a world of its own (the first in the workspace, "
+            "the others in drives/<name>/), the policy trains on all, eval reports each and pooled. Default: the "
+            "embedded demo drive.",
+            show_default=False,
+        ),
+    ] = None,
+    recordings_file: Annotated[
+        Path | None,
+        typer.Option(
+            "--recordings-file",
+            help="Text file naming recordings, one path per line (# comments; relative to the file's folder), "
+            "after those given as arguments.",
             show_default=False,
         ),
     ] = None,
@@ -64,34 +75,53 @@ def run_command(
     A stage whose artifact is fresh (same config, same inputs) is skipped, so running it again after a crash or
     Ctrl-C continues where it stopped. Without --preset the recording preset is used (the demo preset only when
     asked for: --preset demo). Ends with the result (the policy's Table I rows beside the expert's, the warm
-    start's and the paper's), the worlds it trained on, and the paths of the HTML report and of the ONNX policy.
+    start's and the paper's; with several recordings a row per recording and the pooled one), the worlds it trained
+    on, and the paths of the HTML report and of the ONNX policy.
     """
     # Imported here so `drivesim --help` stays fast.
+    from drivesim.chain.recordings import expand_recordings
     from drivesim.chain.run import StageRun, choose_run_preset, load_run_preset, run_chain
 
+    given = expand_recordings(recordings or [], recordings_file)
+    if len(given) > 1:
+        _refuse_one_video_options(video)
     topics = [f"ingest.{o}" for o in topic_overrides(topic)]
     overrides = [*(set_ or []), *topics, *video.overrides(prefix="ingest.")]
     overrides = load_run_preset(choose_run_preset(preset), config, overrides)
 
     def on_stage(done: StageRun) -> None:
         state = "[dim]fresh, skipped[/]" if done.skipped else f"[green]done[/] in {done.wall_s:.1f} s"
-        console.print(f"[bold]{done.stage}[/]: {state} -> {done.path}", highlight=False, soft_wrap=True)
+        name = f"{done.recording}: " if done.recording else ""
+        console.print(f"[bold]{name}{done.stage}[/]: {state} -> {done.path}", highlight=False, soft_wrap=True)
         for note in done.notes:
             console.print(f"  [dim]{note}[/]", highlight=False, soft_wrap=True)
 
+    more = {"more_recordings": given[1:]} if len(given) > 1 else {}
+    first = given[0] if given else None
     result = run_chain(
-        workspace(), recording, overrides, force=force, on_stage=on_stage, trust_entry_point=trust_entry_point
+        workspace(), first, overrides, force=force, on_stage=on_stage, trust_entry_point=trust_entry_point, **more
     )
     _print_chain_result(result)
 
 
+def _refuse_one_video_options(video: VideoOptions) -> None:
+    """--gps FILE and --video-start-utc describe one video: with several recordings, one line saying what to do."""
+    from drivesim.pipeline.errors import ConfigError
+
+    if video.gps is not None and video.gps.lower() != "none":
+        raise ConfigError("--gps FILE is one video's track: with several recordings put each track beside its video")
+    if video.video_start_utc is not None:
+        raise ConfigError("--video-start-utc is one video's start: with several recordings run them one by one")
+
+
 def _print_chain_result(result: ChainRun) -> None:
     """The chain's wall time, the evaluation's Table I rows and training worlds, the report's and policy's paths."""
-    from drivesim.cli.result import print_result
+    from drivesim.cli.result import print_result, print_worlds
 
     total_s = sum(s.wall_s for s in result.stages)
     console.print(f"[bold green]chain finished[/] in {total_s / 60:.1f} min", highlight=False)
     if result.report_html is not None:
+        print_worlds(result.report_html.parent / "metrics.json")  # several recordings: a row each and pooled
         print_result(result.report_html.parent, report_line=False)  # the Table I rows and the worlds trained on
         console.print(f"report: {result.report_html}", highlight=False, soft_wrap=True)
     if result.onnx is not None:
