@@ -412,7 +412,7 @@ class Workspace:
         build = ArtifactBuild(dir=tmp)
         try:
             yield build
-            manifest = self._manifest(name, stage, config, inputs, build, command)
+            manifest = _manifest(build, name, stage, config, inputs, command)
             (tmp / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2, default=str) + "\n")
             self._move_into_place(tmp, self.artifact_dir(name))
         except OSError as e:
@@ -431,37 +431,6 @@ class Workspace:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
 
-    def _manifest(
-        self,
-        name: str,
-        stage: str,
-        config: dict[str, Any],
-        inputs: dict[str, InputRef],
-        build: ArtifactBuild,
-        command: str,
-    ) -> dict[str, Any]:
-        outputs = {}
-        for path in sorted(build.dir.rglob("*")):
-            if path.is_file() and path.name != MANIFEST_NAME:
-                rel = str(path.relative_to(build.dir))
-                info = path.stat()
-                outputs[rel] = {"size_bytes": info.st_size, "mtime_ns": info.st_mtime_ns, "sha256": sha256_file(path)}
-        config_hash = sha256_json(config)
-        return {
-            "stage": stage,
-            "artifact": name,
-            "command": command or f"drivesim {stage}",
-            "code_version": code_version(),
-            "config": config,
-            "config_hash": config_hash,
-            "inputs": {k: v.to_json() for k, v in sorted(inputs.items())},
-            "outputs": outputs,
-            "artifact_hash": sha256_json({"outputs": {k: v["sha256"] for k, v in outputs.items()}}),
-            "key": artifact_key(stage, config_hash, inputs),
-            "summary": build.summary,
-            "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        }
-
     @staticmethod
     def _move_into_place(tmp: Path, final: Path) -> None:
         final.parent.mkdir(parents=True, exist_ok=True)
@@ -478,6 +447,34 @@ class Workspace:
             raise DrivesimError(f"could not move the new artifact into place: {e}", final) from e
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+
+
+def _manifest(
+    build: ArtifactBuild, name: str, stage: str, config: dict[str, Any], inputs: dict[str, InputRef], command: str
+) -> dict[str, Any]:
+    """The manifest of the artifact `name` that `build` wrote: what made it (stage, command, code, config, inputs),
+    its files with their sizes and hashes, the key that says when it is fresh, and the stage's summary."""
+    outputs = {}
+    for path in sorted(build.dir.rglob("*")):
+        if path.is_file() and path.name != MANIFEST_NAME:
+            rel = str(path.relative_to(build.dir))
+            info = path.stat()
+            outputs[rel] = {"size_bytes": info.st_size, "mtime_ns": info.st_mtime_ns, "sha256": sha256_file(path)}
+    config_hash = sha256_json(config)
+    return {
+        "stage": stage,
+        "artifact": name,
+        "command": command or f"drivesim {stage}",
+        "code_version": code_version(),
+        "config": config,
+        "config_hash": config_hash,
+        "inputs": {k: v.to_json() for k, v in sorted(inputs.items())},
+        "outputs": outputs,
+        "artifact_hash": sha256_json({"outputs": {k: v["sha256"] for k, v in outputs.items()}}),
+        "key": artifact_key(stage, config_hash, inputs),
+        "summary": build.summary,
+        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
 
 
 def _short(value: Any, width: int = 40) -> str:
