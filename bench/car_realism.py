@@ -4,7 +4,8 @@ The recording's own cars are boxed by hand in frames of the real drives (`benchm
 each box a library car is inserted into the same frame at the same place: standing on the flat road 1.65 m below the
 camera (KITTI's height), its near end on the ground row of the box's bottom edge, its centre column on the box's,
 heading along the optical axis. It is drawn with the simulator's own parts (the rasterizer, the scene's lighting,
-the contact shadow, luma on a gray camera, the statistical harmonizer), switched on one level at a time. Both cars
+the contact shadow, luma on a gray camera, the statistical harmonizer, the camera's look), switched on one level at a
+time. Both cars
 are cropped by their boxes (the inserted one by its drawn mask's box), resized to one size, described by HOG
 features and told apart by an L2-regularized logistic regression under stratified k-fold cross-validation:
 50 % accuracy means the classifier cannot tell them apart, 100 % that it always can.
@@ -21,6 +22,7 @@ import cv2
 import numpy as np
 from skimage.feature import hog
 
+from drivesim.sim.camera_look import apply_camera_look_, look_of_frame
 from drivesim.sim.harmonize import StatisticalHarmonizer
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.raster import Rasterizer, roi_intrinsics
@@ -31,9 +33,10 @@ from drivesim.sim.vehicles import sample_paint
 CAMERA_HEIGHT_M = 1.65  # KITTI's camera 0 above the road
 CROP_SIZE_PX = (64, 40)  # (width, height) every crop is resized to
 CROP_MARGIN = 0.05  # fraction of the box's size added on each side of a crop
-LEVELS = ("mesh", "materials", "lighting", "shadow", "harmonization")
+LEVELS = ("mesh", "materials", "lighting", "shadow", "harmonization", "camera")
 """Rendering levels, each adding one part to the one before: a flat gray mesh, its materials (paint, glass, tyres,
-lights; unlit), the scene's lighting, the contact shadow, harmonization."""
+lights; unlit), the scene's lighting, the contact shadow, harmonization, the camera's look (blended edges, the frame's
+blur and noise)."""
 DRIVES = {
     "0001": ("kitti_raw/2011_09_26/2011_09_26_drive_0001_sync/image_00/data/{:010d}.png", "kitti_raw/2011_09_26"),
     "06": ("kitti_odometry_stereo/image_l/{:06d}.png", "kitti_odometry_stereo"),
@@ -176,6 +179,8 @@ def insert_car(
     region[mask] = (np.repeat(luma, 3, axis=-1)[mask] * 255.0 + 0.5).astype(np.uint8)
     if rank >= LEVELS.index("harmonization"):
         StatisticalHarmonizer().harmonize_view_uint8_(region, mask)
+    if rank >= LEVELS.index("camera"):
+        apply_camera_look_(region, mask, look_of_frame(frame))
     out[y0:y1, x0:x1] = region
     if not mask.any():
         raise ValueError(f"the car inserted at box {box} is not in view")

@@ -1,10 +1,10 @@
 """How real the inserted cars look on the real drives: a classifier two-sample test (C2ST), per drive and per level.
 
 The recording's own cars, boxed by hand (`benchmarks/data/real_car_boxes.json`), against library cars inserted into
-the same frames at the same places (`drivesim.bench.car_realism`), drawn at five levels (a flat gray mesh, + its
-materials, + the scene's lighting, + the contact shadow, + harmonization). A logistic regression on HOG features of
-the gray crops, stratified 5-fold cross-validation repeated 5 times: 50 % = indistinguishable, 100 % = always told
-apart. Per drive: the same out-of-fold predictions, counted over that drive's crops only.
+the same frames at the same places (`drivesim.bench.car_realism`), drawn at six levels (a flat gray mesh, + its
+materials, + the scene's lighting, + the contact shadow, + harmonization, + the camera's look). A logistic regression
+on HOG features of the gray crops, stratified 5-fold cross-validation repeated 5 times: 50 % = indistinguishable,
+100 % = always told apart. Per drive: the same out-of-fold predictions, counted over that drive's crops only.
 
     .venv/bin/python benchmarks/bench_car_realism.py   # writes benchmarks/results/car_realism.{md,json,png}
 """
@@ -32,7 +32,8 @@ LEVEL_NAMES = {
     "materials": "+ materials (unlit)",
     "lighting": "+ lighting",
     "shadow": "+ contact shadow",
-    "harmonization": "+ harmonization (today's default)",
+    "harmonization": "+ harmonization",
+    "camera": "+ camera look (blended edges, the frame's blur and noise; the default)",
 }
 WORLD_WIDTH_PX = 320  # build-world's default sim_width_px
 RESOLUTIONS = {"recording": None, "world": WORLD_WIDTH_PX}

@@ -14,7 +14,9 @@ One `ViewSynthesizer.render` call produces B views:
    mean colour and a directional light from the viewpoint at infinity (`shading.Lighting`), over a soft contact
    shadow darkening the ground under each car (`shading.contact_shadow_`); on a monochrome camera (detected from the
    frames) the cars are drawn in luma;
-4. harmonization of the inserted cars under their mask (`harmonize.py`).
+4. harmonization of the inserted cars under their mask (`harmonize.py`);
+5. the camera's look on the cars (`camera_look.py`): their edges blended with the background, the recorded frames'
+   blur and noise (estimated once from a few of the world's frames).
 
 Speed: recorded frames are turned into torch tensors once and kept in a small cache (so the warp's per-source cache
 hits while an agent stays near a frame), vehicles are packed once per model and level of detail, a view with one car
@@ -45,6 +47,7 @@ import pydantic
 import torch
 
 from drivesim.sim import raster_kernel
+from drivesim.sim.camera_look import CameraLook, apply_camera_look_, look_of_frames
 from drivesim.sim.cpu_threads import governed_threads
 from drivesim.sim.fill import FillStats, fill_wedges_from_neighbours, inpaint_holes, pull_push_fill, widen_frame
 from drivesim.sim.geometry import invert, scale_intrinsics
@@ -111,6 +114,9 @@ class ViewConfig(pydantic.BaseModel):
     contact_shadow: float = pydantic.Field(0.6, ge=0.0, le=1.0)
     """Darkening of the ground under an inserted car (fraction of its colour removed, fading out 0.5 m outside the
     footprint); 0 = no shadow."""
+    camera_look: bool = True
+    """Give inserted cars the camera's look: edges blended with the background, the frames' blur and noise (estimated
+    from the world's frames); off: hard edges, noiseless faces."""
     monochrome: bool | None = None
     """Whether the camera is monochrome (inserted cars drawn in gray); None: detected from the world's frames (equal
     R, G and B)."""
@@ -242,6 +248,12 @@ class ViewSynthesizer:
         self._frustum_normals = self._frustum_planes()
         self._light_direction: tuple[float | None, np.ndarray] = (None, np.zeros(3))  # (elevation deg, unit vector)
         self.monochrome = config.monochrome if config.monochrome is not None else frames_are_monochrome(world.frames)
+        self.camera_look = CameraLook()
+        """The recorded frames' blur (at the view's scale) and noise, given to inserted cars (`camera_look.py`)."""
+        if config.camera_look:
+            self.camera_look = look_of_frames(
+                world.frames, self.source_factor, float(self.K_view[0, 0] / self._K_frame[0, 0])
+            )  # fmt: skip
         self.fill_stats = FillStats()
         """Where the pixels of every view rendered so far came from (own frame, neighbours, inpainting)."""
         self._min_depth: dict[int, float] = {}  # each prepared frame's smallest finite depth (the warp's window)
@@ -450,12 +462,24 @@ class ViewSynthesizer:
                 rgb, car_mask = self._draw_cpu(rgb_out, depth_out, scenes, poses, lights, viewers)
                 timings["raster"] = 1e3 * (time.perf_counter() - start)  # the composite included
                 self._harmonize_cpu(rgb, car_mask, viewers, timings)
+                self._apply_camera_look(rgb, car_mask, viewers, timings)
                 return ViewBatch(rgb=rgb, car_mask=car_mask, timings_ms=timings)
             drawn = self.rasterizer.render(scenes, poses, self.K_view, lighting=lights)
         timings["raster"] = 1e3 * (time.perf_counter() - start)
         insert = self._insert_torch if self.batched or self.device.type != "cpu" else self._insert_cpu
         rgb, car_mask = insert(rgb_out, depth_out, drawn, viewers, timings)
+        self._apply_camera_look(rgb, car_mask, viewers, timings)
         return ViewBatch(rgb=rgb, car_mask=car_mask, timings_ms=timings)
+
+    def _apply_camera_look(self, rgb: np.ndarray, car_mask: np.ndarray, viewers: list[int], timings: dict) -> None:
+        """The camera's look (`ViewConfig.camera_look`) on the composited cars of the uint8 views, in place; its time
+        counts as compositing."""
+        if not self.config.camera_look:
+            return
+        start = time.perf_counter()
+        for b in viewers:
+            apply_camera_look_(rgb[b], car_mask[b], self.camera_look)
+        timings["composite"] += 1e3 * (time.perf_counter() - start)
 
     def _draw_cpu(
         self,

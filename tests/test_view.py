@@ -177,8 +177,8 @@ def test_harmonization_moves_car_statistics_toward_surroundings(tmp_path):
     world = make_world(tmp_path, rgb_scale=(0.6, 0.7, 1.0))
     model = box_model(rgb=(0.9, 0.9, 0.1))
     cars = [CarPlacement(model, 10.0, 0.0, 0.0)]
-    plain = render_one(ViewSynthesizer(world, ViewConfig(harmonization=False)), cars)
-    harmonized = render_one(ViewSynthesizer(world, ViewConfig(harmonization=True)), cars)
+    plain = render_one(ViewSynthesizer(world, ViewConfig(harmonization=False, camera_look=False)), cars)
+    harmonized = render_one(ViewSynthesizer(world, ViewConfig(harmonization=True, camera_look=False)), cars)
     mask = plain.car_mask[0]
     assert (harmonized.car_mask[0] == mask).all()
     assert (harmonized.rgb[0][~mask] == plain.rgb[0][~mask]).all(), "only the car may change"
@@ -272,9 +272,13 @@ def test_onnx_harmonizer_applies_the_graph_under_the_mask(tmp_path, two_inputs):
     # Plugged into the view.
     world = make_world(tmp_path)
     view = render_one(
-        ViewSynthesizer(world, ViewConfig(), harmonizer=harmonizer), [CarPlacement(box_model(), 10, 0, 0)]
+        ViewSynthesizer(world, ViewConfig(camera_look=False), harmonizer=harmonizer),
+        [CarPlacement(box_model(), 10, 0, 0)],
     )
-    plain = render_one(ViewSynthesizer(world, ViewConfig(harmonization=False)), [CarPlacement(box_model(), 10, 0, 0)])
+    plain = render_one(
+        ViewSynthesizer(world, ViewConfig(harmonization=False, camera_look=False)),
+        [CarPlacement(box_model(), 10, 0, 0)],
+    )
     m = view.car_mask[0]
     assert np.abs(view.rgb[0][m].astype(float) - 0.5 * plain.rgb[0][m]).max() <= 1.0
 
