@@ -63,9 +63,8 @@ WorldOption = Annotated[
     list[Path] | None,
     typer.Option(
         "--world",
-        help="World folder (default: the workspace's world/; after `drivesim run` on several recordings, each "
-        "recording's world). Repeatable: the same seeds in each world, a row per world labelled train or unseen, "
-        "and the pooled figures.",
+        help="World folder (default: the workspace's world/, or each recording's after `drivesim run` on several). "
+        "Repeatable: the same seeds in each, a row per world (train or unseen) and the pooled figures.",
         show_default=False,
     ),
 ]

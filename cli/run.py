@@ -29,10 +29,9 @@ def run_command(
     recordings: Annotated[
         list[Path] | None,
         typer.Argument(
-            help="Your recording (.bag, rosbag2 folder, .mcap, KITTI folder, video, image folder with --fps); the "
-            "flags of `drivesim ingest` apply. Several: each becomes a world of its own (the first in the workspace, "
-            "the others in drives/<name>/), the policy trains on all, eval reports each and pooled. Default: the "
-            "embedded demo drive.",
+            help="Your recording(s): .bag, rosbag2 folder, .mcap, KITTI folder, video, image folder (--fps); "
+            "ingest's flags apply. Several: a world each, one policy trained on all (docs/data.md). Default: "
+            "demo drive.",
             show_default=False,
         ),
     ] = None,
