@@ -105,7 +105,8 @@ def test_one_run_trains_on_both_worlds_and_eval_reports_each_and_pooled(several)
     ws, first, _ = several
     (run_dir,) = (ws / "runs").iterdir()
     config = json.loads((run_dir / "config.json").read_text())
-    assert [Path(w).resolve() for w in config["worlds"]] == [(ws / "world").resolve(), (ws / "drives/b/world").resolve()]
+    worlds = [(ws / "world").resolve(), (ws / "drives" / "b" / "world").resolve()]
+    assert [Path(w).resolve() for w in config["worlds"]] == worlds
     summary = json.loads((run_dir / "manifest.json").read_text())["summary"]
     assert len(summary["worlds"]) == 2 and summary["steps"] >= 64
 
@@ -117,7 +118,7 @@ def test_one_run_trains_on_both_worlds_and_eval_reports_each_and_pooled(several)
     assert metrics["pooled"]["episodes"] == 4 and metrics["groups"]["train"]["episodes"] == 4
     for figures in (*rows.values(), metrics["pooled"]):
         assert 0.0 <= figures["success"]["value"] <= 1.0
-    assert (eval_dir / "worlds" / "a" / "report.html").is_file() and (eval_dir / "worlds" / "b" / "report.html").is_file()
+    assert all((eval_dir / "worlds" / name / "report.html").is_file() for name in ("a", "b"))
     # The end-of-run summary: a row per recording, the pooled row, the report and the policy.
     lines = [line for line in first.splitlines() if line.count("│") > 5]
     named = {line.split("│")[1].strip() for line in lines}
