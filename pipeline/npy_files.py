@@ -5,11 +5,16 @@ written back, and on a full disk it has no error code to give, so the process di
 temporary folder left behind. Reserving the blocks up front (`posix_fallocate`, or zeros written with plain file
 writes where the file system cannot allocate) turns a full disk into an ordinary OSError(ENOSPC) before anything is
 written, which the workspace reports as its one disk-full line.
+
+A memmap's pages stay in the process's resident memory once touched (read or written) until the kernel needs the
+memory back, so a pass over an hour of frames would show gigabytes of RSS; `release_pages` after each chunk keeps a
+streaming pass's memory flat (the data stays in the file and the page cache).
 """
 
 from __future__ import annotations
 
 import errno
+import mmap
 import os
 from pathlib import Path
 
@@ -73,3 +78,14 @@ def open_reserved_memmap(path: Path, dtype: np.dtype | type, shape: tuple[int, .
         Path(path).unlink(missing_ok=True)
         raise
     return out
+
+
+def release_pages(array: np.ndarray) -> None:
+    """Drop the pages of a memory-mapped `array` (or a view of one) from this process's resident memory.
+
+    The data is kept: a read-only mapping rereads the file, and written pages of a shared (w+ or r+) mapping stay in
+    the page cache until they are written back. Arrays that are not memory-mapped are left alone.
+    """
+    mapping = getattr(array, "_mmap", None)
+    if isinstance(mapping, mmap.mmap) and hasattr(mmap, "MADV_DONTNEED") and not mapping.closed:
+        mapping.madvise(mmap.MADV_DONTNEED)

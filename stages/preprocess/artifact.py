@@ -15,7 +15,10 @@ Files:
                        arc_length_m float64 (N,)   distance driven since the first frame
                        T_world_vehicle float64 (N,4,4); T_world_camera float64 (N,4,4) (= T_world_vehicle @
                        T_vehicle_camera of the trace's calibration)
-    depth.npy          float32 (N, H, W): optical-axis depth in metres; no estimate (sky) = depth.max_depth_m
+    depth.npy          float16 (N, H, W): optical-axis depth in metres; no estimate (sky) = depth.max_depth_m.
+                       float16 keeps 11 significant bits (under 0.05 % relative error); the world's depth is float16
+                       too and min-pooled from it, which rounding commutes with: the world is the same as from float32.
+                       Artifacts written with float32 depth load as well
     origin.json        {"pose_source": str ("gps_imu", "odometry", "sfm", ...), "origin_lat_deg", "origin_lon_deg",
                         "origin_alt_m" (null without GPS), "residual_m": float | null (RMS distance between the fused
                         path and the raw position fixes), "depth_method": str, "max_depth_m": float,
@@ -38,6 +41,9 @@ from drivesim.sim.world import PATH_ARRAYS, PATH_ARRAYS_FLOAT
 # poses.npz holds the same per-frame arrays as the world's path.npz: one schema, defined by the simulator's loader.
 POSE_ARRAYS_FLOAT = PATH_ARRAYS_FLOAT
 POSE_ARRAYS = PATH_ARRAYS
+# The dtype preprocess stores depth in, and every dtype the loader accepts.
+DEPTH_DTYPE = np.float16
+DEPTH_DTYPES = (np.dtype(np.float16), np.dtype(np.float32))
 ORIGIN_KEYS = ("pose_source", "origin_lat_deg", "origin_lon_deg", "origin_alt_m", "residual_m", "depth_method")
 
 
@@ -47,7 +53,7 @@ class Preprocessed:
 
     :param root: the artifact folder.
     :param poses: the arrays of poses.npz (see the module docstring).
-    :param depth_m: (N, H, W) float32 depth, memory-mapped.
+    :param depth_m: (N, H, W) float16 (or float32) depth, memory-mapped.
     :param origin: the contents of origin.json.
     """
 
@@ -101,8 +107,8 @@ def validate_preprocessed(
         raise InputError("poses.npz: frame_index must be strictly increasing", root)
     if np.any(np.diff(poses["t_ns"]) <= 0):
         raise InputError("poses.npz: t_ns must be strictly increasing", root)
-    if depth_m.dtype != np.float32 or depth_m.ndim != 3 or depth_m.shape[0] != n:
-        raise InputError(f"depth.npy must be float32 ({n}, H, W), got {depth_m.dtype} {depth_m.shape}", root)
+    if depth_m.dtype not in DEPTH_DTYPES or depth_m.ndim != 3 or depth_m.shape[0] != n:
+        raise InputError(f"depth.npy must be float16 ({n}, H, W), got {depth_m.dtype} {depth_m.shape}", root)
     if not isinstance(origin, dict):
         raise InputError("origin.json must hold a JSON object; run `drivesim preprocess --force`", root)
     absent = [k for k in ORIGIN_KEYS if k not in origin]

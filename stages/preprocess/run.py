@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +16,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from drivesim.pipeline.errors import InputError
-from drivesim.pipeline.npy_files import open_reserved_memmap
+from drivesim.pipeline.npy_files import open_reserved_memmap, release_pages
 from drivesim.pipeline.progress import console, progress_bar
 from drivesim.pipeline.stage import BuildContext
 from drivesim.sim.geometry import invert
@@ -24,7 +24,7 @@ from drivesim.stages.ingest.trace import TraceInfo, open_trace
 from drivesim.stages.preprocess import depth as depth_mod
 from drivesim.stages.preprocess import poses as poses_mod
 from drivesim.stages.preprocess import series as series_mod
-from drivesim.stages.preprocess.artifact import POSE_ARRAYS_FLOAT
+from drivesim.stages.preprocess.artifact import DEPTH_DTYPE, POSE_ARRAYS_FLOAT
 from drivesim.stages.preprocess.config import PreprocessConfig
 from drivesim.stages.preprocess.summary import PreprocessSummary
 
@@ -95,6 +95,43 @@ def select_frames(n_frames: int, cfg: PreprocessConfig) -> slice:
     return selected
 
 
+# The depth methods write float32; it is kept here, inside the artifact's temporary folder, until stored compactly.
+DEPTH_WORK_FILE = "depth_float32.npy"
+# Frames between releases of the memory-mapped frames' and depth's pages, and frames per chunk of `store_depth`.
+RELEASE_FRAMES = 32
+
+
+def releasing_pages(progress: Callable[[int], None], *arrays: np.ndarray) -> Callable[[int], None]:
+    """`progress` that also releases the pages of the memory-mapped `arrays` every RELEASE_FRAMES frames, so that a
+    pass over the drive keeps memory flat in its length (`release_pages`)."""
+    since = [0]
+
+    def advance(done: int) -> None:
+        progress(done)
+        since[0] += done
+        if since[0] >= RELEASE_FRAMES:
+            since[0] = 0
+            for array in arrays:
+                release_pages(array)
+
+    return advance
+
+
+def store_depth(depth_m: np.ndarray, path: Path) -> np.ndarray:
+    """`depth_m` (N, H, W) written to `path` as DEPTH_DTYPE (finite values beyond its range clipped to it), a chunk of
+    frames at a time; the stored array, memory-mapped read-only."""
+    out = open_reserved_memmap(path, DEPTH_DTYPE, depth_m.shape)
+    limit = float(np.finfo(DEPTH_DTYPE).max)
+    for start in range(0, depth_m.shape[0], RELEASE_FRAMES):
+        chunk = np.asarray(depth_m[start : start + RELEASE_FRAMES])
+        out[start : start + RELEASE_FRAMES] = np.where(np.isfinite(chunk), np.minimum(chunk, limit), chunk)
+        release_pages(depth_m)
+        release_pages(out)
+    out.flush()
+    del out
+    return np.load(path, mmap_mode="r")
+
+
 def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
     """Fuse poses and estimate per-frame depth for the workspace's trace, writing the files into `ctx.dir`."""
     cfg: PreprocessConfig = ctx.config  # type: ignore[assignment]
@@ -119,7 +156,7 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
     T_world_camera = T_world_vehicle @ T_vehicle_camera
     n, h, w = frames.shape[:3]
 
-    depth_out = open_reserved_memmap(ctx.dir / "depth.npy", np.float32, (n, h, w))
+    depth_work = open_reserved_memmap(ctx.dir / DEPTH_WORK_FILE, np.float32, (n, h, w))
     right = trace.info.right_frames() if method == "stereo" else None
     with progress_bar(f"depth ({method}{', on Ray' if run_method else ''})", total=n) as (progress, task):
         depth_summary = depth_mod.estimate_depth(
@@ -129,14 +166,16 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
             T_vehicle_camera,
             trace.calibration.get("camera_height_m"),
             depth_cfg,
-            depth_out,
-            progress=lambda done: progress.advance(task, done),
+            depth_work,
+            progress=releasing_pages(lambda done: progress.advance(task, done), frames, depth_work),
             points_vehicle=LidarPerFrame(trace.info, frame_times_ns, T_world_vehicle) if method == "lidar" else None,
             right_frames=right[selected] if right is not None else None,
             baseline_m=trace.info.baseline_m if method == "stereo" else None,
             run_method=run_method,
         )
-    depth_out.flush()
+    depth_out = store_depth(depth_work, ctx.dir / "depth.npy")
+    del depth_work
+    (ctx.dir / DEPTH_WORK_FILE).unlink()
     poses = {
         "frame_index": frame_index.astype(np.int64),
         "t_ns": np.asarray(frame_times_ns, dtype=np.int64),

@@ -1,30 +1,32 @@
 """The `drivesim build-world` stage: the simulatable world from the trace and the preprocessed artifact.
 
 The world's schema is in `sim/world.py` (the simulator's loader). Frames and depth are resized to the simulation
-resolution chunk by chunk into .npy memmaps inside the artifact's temporary folder, so memory stays bounded; their
-disk space is reserved first, so a full disk is the one-line disk-full error, not a SIGBUS.
+resolution chunk by chunk into .npy memmaps inside the artifact's temporary folder, each chunk's pages released from
+memory after it is written, so memory stays flat whatever the drive's length; their disk space is reserved first, so
+a full disk is the one-line disk-full error, not a SIGBUS. Depth is stored as float16 (`WORLD_DEPTH_DTYPE`).
 """
 
 from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from drivesim.pipeline.errors import InputError
-from drivesim.pipeline.npy_files import open_reserved_memmap
+from drivesim.pipeline.npy_files import open_reserved_memmap, release_pages
 from drivesim.pipeline.progress import progress_bar
 from drivesim.pipeline.stage import BuildContext
 from drivesim.sim.geometry import scale_intrinsics
-from drivesim.sim.world import WORLD_FORMAT_VERSION
+from drivesim.sim.world import WORLD_DEPTH_DTYPE, WORLD_FORMAT_VERSION
 from drivesim.stages.ingest.trace import TraceView, open_trace
 from drivesim.stages.preprocess.artifact import POSE_ARRAYS, Preprocessed, load_preprocessed
 from drivesim.stages.world.birdseye import write_birdseye
 from drivesim.stages.world.config import WorldConfig
-from drivesim.stages.world.pointcloud import fuse_pointcloud, write_ply
+from drivesim.stages.world.pointcloud import fuse_pointcloud
 from drivesim.stages.world.summary import WorldSummary
 
 PREPROCESS_HINT = "drivesim preprocess"
@@ -109,16 +111,15 @@ def build_world(ctx: BuildContext) -> WorldSummary:
 
     point_count = 0
     if cfg.pointcloud.enabled:
-        points, colours = fuse_pointcloud(
+        point_count = fuse_pointcloud(
             _FrameLookup(trace.frames, frame_index),
             pre.depth_m,
             trace.K,
             pre.poses["T_world_camera"],
             far_depth_m,
             cfg.pointcloud,
+            ctx.dir / "pointcloud.ply",
         )
-        write_ply(ctx.dir / "pointcloud.ply", points, colours)
-        point_count = int(points.shape[0])
     write_birdseye(
         ctx.dir / "birdseye.png",
         path["x_m"],
@@ -166,17 +167,50 @@ def _write_sim_frames(
     `size`, a chunk of frames at a time."""
     w, h = size
     n = pre.frame_count
-    frame_index = pre.poses["frame_index"]
     frames_out = open_reserved_memmap(folder / "frames.npy", np.uint8, (n, h, w, 3))
-    depth_out = open_reserved_memmap(folder / "depth_m.npy", np.float32, (n, h, w))
+    depth_out = open_reserved_memmap(folder / "depth_m.npy", WORLD_DEPTH_DTYPE, (n, h, w))
     with progress_bar(f"world frames at {w}x{h}", total=n) as (progress, task):
-        for start in range(0, n, _CHUNK_FRAMES):
-            stop = min(n, start + _CHUNK_FRAMES)
-            frames_out[start:stop] = resize_frames(trace.frames[frame_index[start:stop]], w, h)
-            depth_out[start:stop] = resize_depth(pre.depth_m[start:stop], w, h, cfg.depth_resize)
-            progress.advance(task, stop - start)
+        resize_into(
+            trace.frames,
+            pre.poses["frame_index"],
+            pre.depth_m,
+            frames_out,
+            depth_out,
+            cfg.depth_resize,
+            lambda done: progress.advance(task, done),
+        )
     frames_out.flush()
     depth_out.flush()
+
+
+def resize_into(
+    frames: np.ndarray,
+    frame_index: np.ndarray,
+    depth_m: np.ndarray,
+    frames_out: np.ndarray,
+    depth_out: np.ndarray,
+    depth_resize: str,
+    progress: Callable[[int], None] | None = None,
+    chunk_frames: int = _CHUNK_FRAMES,
+) -> None:
+    """Fill `frames_out` (N, h, w, 3) with frames[frame_index] and `depth_out` (N, h, w) with `depth_m` (N, H, W),
+    both resized to (w, h), `chunk_frames` at a time.
+
+    Memory stays flat in N: after each chunk the pages it touched in memory-mapped inputs and outputs are released
+    (`release_pages`). Depth is stored in `depth_out`'s dtype; finite depth beyond float16's range is clipped to it.
+    """
+    n = len(frame_index)
+    h, w = depth_out.shape[1:3]
+    limit = float(np.finfo(depth_out.dtype).max)
+    for start in range(0, n, chunk_frames):
+        stop = min(n, start + chunk_frames)
+        frames_out[start:stop] = resize_frames(frames[frame_index[start:stop]], w, h)
+        depth = resize_depth(depth_m[start:stop], w, h, depth_resize)
+        depth_out[start:stop] = np.where(np.isfinite(depth), np.minimum(depth, limit), depth)
+        for array in (frames, depth_m, frames_out, depth_out):
+            release_pages(array)
+        if progress is not None:
+            progress(stop - start)
 
 
 class _FrameLookup:
@@ -185,6 +219,7 @@ class _FrameLookup:
     def __init__(self, frames: np.ndarray, frame_index: np.ndarray) -> None:
         self._frames = frames
         self._index = frame_index
+        self._mmap = getattr(frames, "_mmap", None)  # the trace's mapping, for release_pages
 
     def __getitem__(self, key: tuple) -> np.ndarray:
         i, *rest = key
