@@ -17,7 +17,7 @@ from drivesim.pipeline.config import load_config
 
 BackendOption = backend_option(
     "depth in this process",
-    "camera-only (mvs) depth split over a Ray cluster's workers, chunks of frames as tasks",
+    "camera-only (mvs) depth split over a Ray cluster's workers",
     " The same depth, frame for frame.",
 )
 
@@ -37,6 +37,10 @@ def preprocess_command(
 
     cfg = load_config(PreprocessConfig, preset="preprocess", config_file=config, overrides=set_)
     choose_backend(backend, address, cfg)
+    if cfg.backend == "ray":
+        from drivesim.pipeline.ray_cluster import import_ray
+
+        import_ray()  # a missing Ray is said before any work
     result = run_preprocess(workspace(), cfg, force=force)
     if said_fresh(result, "preprocessed"):
         return

@@ -207,13 +207,11 @@ class PreprocessConfig(StageConfig):
     preview: PreviewConfig = Field(default_factory=PreviewConfig)
     """The depth preview image."""
     backend: Literal["local", "ray"] = Field("local", exclude=True)
-    """local: depth in this process; ray: camera-only (mvs) depth split over a Ray cluster's workers, chunks of
-    frames as tasks (`pip install 'drivesim[ray]'`; the other depth methods run in this process). Not part of the
-    artifact's identity (the same depth, frame for frame)."""
+    """local: depth in this process; ray: mvs depth split over a Ray cluster's workers (other methods run here).
+    Not part of the artifact's identity (the same depth)."""
     address: str | None = Field(None, exclude=True)
-    """With backend ray: the cluster, "auto" (started by `ray start` on this machine) or the head's host:port; null =
-    start Ray on this machine for the run. Every node needs drivesim and the workspace at the same path. Not part of
-    the artifact's identity."""
+    """With backend ray: "auto" (`ray start` on this machine) or the head's host:port; null = start Ray here. Not
+    part of the artifact's identity."""
 
     @model_validator(mode="after")
     def _check(self) -> PreprocessConfig:
