@@ -206,3 +206,26 @@ def test_recording_names_and_list_files(tmp_path: Path) -> None:
     listing.parent.mkdir()
     listing.write_text("  one.bag  \n# skipped\n\n/abs/two.mcap\n")
     assert read_list_file(listing) == [listing.parent / "one.bag", Path("/abs/two.mcap")]
+
+
+def test_a_run_on_one_recording_forgets_an_earlier_set(tmp_path: Path, monkeypatch) -> None:
+    """After `drivesim run a b`, `drivesim run a` alone: a later `drivesim eval` evaluates in a's world only."""
+    from drivesim.chain import run as chain_run
+
+    ws = Workspace(tmp_path / "ws")
+    (ws.root / "drives").mkdir(parents=True)
+    (ws.root / "drives" / "drives.json").write_text(json.dumps({"recordings": []}))
+    monkeypatch.setattr(chain_run, "walk_chain", lambda *a, **k: [])
+    chain_run.run_chain(ws, tmp_path / "a.mcap", {})
+    assert not (ws.root / "drives" / "drives.json").exists() and set_worlds(ws) == []
+
+
+def test_the_chains_eval_settings_override_only_the_env_keys_they_name() -> None:
+    """A run preset's eval section with one env key: the evaluation takes the run's own env config for the others
+    (a run trained with a shorter min_path_length_m is evaluated with it)."""
+    from drivesim.chain.walk import stage_config
+    from drivesim.stages.evaluate.config import EvalConfig
+
+    cfg = stage_config(EvalConfig, "eval", {"episodes": 3, "env": {"max_lateral_m": 2.0}}, "eval")
+    assert cfg.episodes == 3 and cfg.env_overrides() == {"max_lateral_m": 2.0}
+    assert stage_config(EvalConfig, "eval", {"episodes": 3}, "eval").env_overrides() == {}
