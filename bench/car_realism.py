@@ -23,6 +23,7 @@ import numpy as np
 from skimage.feature import hog
 
 from drivesim.sim.camera_look import apply_camera_look_, look_of_frame
+from drivesim.sim.geometry import scale_intrinsics
 from drivesim.sim.harmonize import StatisticalHarmonizer
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.raster import Rasterizer, roi_intrinsics
@@ -126,6 +127,19 @@ def crop(
     if patch.ndim == 3:
         patch = cv2.cvtColor(np.ascontiguousarray(patch), cv2.COLOR_RGB2GRAY)
     return cv2.resize(patch, CROP_SIZE_PX, interpolation=cv2.INTER_AREA)
+
+
+def reduced_view(
+    frame: np.ndarray, K: np.ndarray, box: tuple[int, int, int, int], width_px: int
+) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int]]:
+    """`frame` reduced to `width_px` wide (area mean, as `build-world` makes a world's frames), its intrinsics and
+    `box` scaled with it: where a car is drawn at a world's resolution, as the simulator draws it."""
+    scale = width_px / frame.shape[1]
+    height_px = max(1, round(frame.shape[0] * scale))
+    small = cv2.resize(frame, (width_px, height_px), interpolation=cv2.INTER_AREA)
+    K_small = scale_intrinsics(K, scale, height_px / frame.shape[0])
+    x0, y0, x1, y1 = (round(v * scale) for v in box)
+    return small, K_small, (x0, y0, max(x1, x0 + 1), max(y1, y0 + 1))
 
 
 def _level_meshes(model: VehicleModel, level: str) -> list[Mesh]:

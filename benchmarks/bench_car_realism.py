@@ -36,26 +36,33 @@ LEVEL_NAMES = {
     "camera": "+ camera look (blended edges, the frame's blur and noise; the default)",
 }
 WORLD_WIDTH_PX = 320  # build-world's default sim_width_px
-RESOLUTIONS = {"recording": None, "world": WORLD_WIDTH_PX}
-"""Where crops are cut: the recorded frames as they are, or reduced to a world's width."""
+RESOLUTIONS = {"recording": (None, False), "world": (WORLD_WIDTH_PX, False), "world_drawn": (WORLD_WIDTH_PX, True)}
+"""Where cars are drawn and crops cut, as (width px, drawn at that width): the recorded frames as they are; reduced to
+a world's width after the car is drawn at the recording's; the car drawn into the reduced frame, as the simulator
+draws it."""
 GRID_PER_DRIVE = 3
 GRID_SCALE = 2
 
 
 def crops_of(
-    boxes: list[cr.CarBox], real_root: Path, seed: int, width_px: int | None
+    boxes: list[cr.CarBox], real_root: Path, seed: int, width_px: int | None, drawn_at_width: bool = False
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """(n, h, w) real crops and, per level, the (n, h, w) crops of the car inserted at each box; cut from the frames
-    reduced to `width_px` (None: at the recording's resolution)."""
+    reduced to `width_px` (None: at the recording's resolution), the car drawn before the reduction or, with
+    `drawn_at_width`, into the reduced frame."""
     real, inserted = [], {level: [] for level in cr.LEVELS}
     for i, b in enumerate(boxes):
         frame = cr.load_frame(real_root, b.drive, b.frame)
         K = cr.drive_intrinsics(real_root, b.drive)
         real.append(cr.crop(frame, b.box, width_px=width_px))
         model = cr.library_car(i, seed)
+        target, K_target, box_target, cut_width = frame, K, b.box, width_px
+        if drawn_at_width and width_px is not None:
+            target, K_target, box_target = cr.reduced_view(frame, K, b.box, width_px)
+            cut_width = None
         for level in cr.LEVELS:
-            image, box = cr.insert_car(frame, K, b.box, model, level)
-            inserted[level].append(cr.crop(image, box, width_px=width_px))
+            image, box = cr.insert_car(target, K_target, box_target, model, level)
+            inserted[level].append(cr.crop(image, box, width_px=cut_width))
     return np.stack(real), {level: np.stack(c) for level, c in inserted.items()}
 
 
@@ -153,11 +160,16 @@ def report(args: argparse.Namespace, boxes: list[cr.CarBox], results: dict, seco
         "",
         *_table(results["world"], drives, counts),
         "",
+        f"At a world's resolution, drawn there (the car drawn into the frame reduced to {WORLD_WIDTH_PX} px, as the "
+        "simulator draws it: no supersampling of its edges):",
+        "",
+        *_table(results["world_drawn"], drives, counts),
+        "",
         "The inserted car stands on a flat road 1.65 m below the camera, its near end on the box's bottom row, heading "
         "along the optical axis (the real cars are seen at their own headings, many from the side). Crops at the "
-        "recording's resolution: `car_realism.png` (real, then the levels). At a world's resolution the car is drawn "
-        "at the recording's and reduced with the frame (the simulator draws it at the world's directly, with harder "
-        "edges).",
+        "recording's resolution: `car_realism.png` (real, then the levels). In the second table the car is drawn at "
+        "the recording's resolution and reduced with the frame; in the third it is drawn at the world's, as the "
+        "simulator draws it.",
     ]
     raw = {
         "boxes": len(boxes),
@@ -186,7 +198,7 @@ def main() -> int:
             raise FileNotFoundError(f"no real-data folder {args.real}: pass --real")
         load = " / ".join(f"{x:.2f}" for x in os.getloadavg())
         start = time.perf_counter()
-        crops = {name: crops_of(boxes, args.real, args.seed, width) for name, width in RESOLUTIONS.items()}
+        crops = {name: crops_of(boxes, args.real, args.seed, *where) for name, where in RESOLUTIONS.items()}
     except (ValueError, FileNotFoundError, OSError) as err:
         print(f"bench_car_realism: {err}", file=sys.stderr)
         return 2

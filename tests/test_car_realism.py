@@ -91,3 +91,20 @@ def test_inserted_car_lands_on_the_real_box_at_every_level():
         assert changed[y0:y1, x0:x1].mean() > 0.5 and not changed[:100].any(), level
         gray = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_RGB2GRAY)
         assert np.array_equal(image[y0:y1, x0:x1, 0], gray), level  # a gray camera's car is gray
+
+
+def test_reduced_view_scales_the_frame_its_intrinsics_and_the_box_together():
+    frame = np.zeros((375, 1242, 3), dtype=np.uint8)
+    frame[180:230, 300:400] = 200
+    K = np.array([[721.5, 0.0, 609.6], [0.0, 721.5, 172.9], [0.0, 0.0, 1.0]])
+    small, K_small, box = cr.reduced_view(frame, K, (300, 180, 400, 230), 320)
+    assert small.shape == (97, 320, 3)
+    assert box == (77, 46, 103, 59)
+    point = np.array([2.0, 1.0, 20.0])  # a camera-frame point lands where the reduced image shows it
+    u, v = (K @ point)[:2] / point[2]
+    u_small, v_small = (K_small @ point)[:2] / point[2]
+    # Pixel centres at integer coordinates: a pixel's centre u maps to (u + 0.5) * scale - 0.5.
+    assert u_small == pytest.approx((u + 0.5) * 320 / 1242 - 0.5)
+    assert v_small == pytest.approx((v + 0.5) * 97 / 375 - 0.5)
+    x0, y0, x1, y1 = box
+    assert small[y0 + 2 : y1 - 2, x0 + 2 : x1 - 2].min() == 200, "the box still holds the bright patch"
