@@ -7,9 +7,11 @@ compositing (and harmonization), `apply_camera_look_` makes the car's pixels loo
 1. blur: the car and a one-pixel band around it are replaced by the composited view blurred with a Gaussian of the
    frame's own blur (`frame_blur_sigma`), at least `EDGE_SIGMA_PX`: its edge pixels become blends of car and
    background (a post-filter anti-aliasing), its faces as soft as the recorded surfaces;
-2. grain: the car's pixels get zero-mean noise of the frame's own noise level (`frame_noise_sigma`), the same on
-   every channel (a gray camera's car stays gray), from a fixed noise tile (so a view is a pure function of its
-   inputs).
+2. grain: the car's pixels get zero-mean noise of the frame's own pixel-level variation (`frame_noise_sigma`), the
+   same on every channel (a gray camera's car stays gray), from a fixed noise tile (so a view is a pure function of
+   its inputs). At the recording's size that variation is mostly sensor noise. In frames reduced to a world's size
+   the block mean removes most of the noise, and what is left is mostly fine texture, which a flat car lacks just
+   as much.
 
 The estimates are made once per recorded frame (`look_of_frame`); applying them costs a few OpenCV calls over the
 car's box.
@@ -55,8 +57,9 @@ def _gray(image: np.ndarray) -> np.ndarray:
 
 
 def frame_noise_sigma(image: np.ndarray) -> float:
-    """The noise level of a uint8 frame (h, w[, 3]) in grey levels: the median absolute response of Immerkaer's
-    Laplacian-difference mask (blind to flat and linear shading) over 6 sigma, robust to the frame's edges."""
+    """The pixel-level variation of a uint8 frame (h, w[, 3]) in grey levels (its noise, plus texture finer than a
+    few pixels): the median absolute response of Immerkaer's Laplacian-difference mask (blind to flat and linear
+    shading) over 6 sigma, robust to the frame's edges."""
     response = cv2.filter2D(_gray(image).astype(np.float32), -1, _NOISE_MASK)[1:-1, 1:-1]
     return float(np.median(np.abs(response)) / (0.6745 * 6.0))
 
