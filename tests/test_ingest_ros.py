@@ -46,7 +46,8 @@ def _ingest(tmp_path: Path, msgs: list[Msg], fmt: str = "mcap", cfg: IngestConfi
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_every_container_format_gives_the_same_trace(tmp_path: Path, fmt: str) -> None:
     n = 6
-    result, info = _ingest(tmp_path, drive_messages(n_frames=n, encoding="bgr8", with_ground_truth=True), fmt)
+    msgs = drive_messages(n_frames=n, encoding="bgr8", with_ground_truth=True)
+    result, info = _ingest(tmp_path, msgs, fmt, IngestConfig(ground_truth_depth=True))
     assert info.sources["format"] == {"rosbag2_sqlite3": "rosbag2", "rosbag2_mcap": "rosbag2"}.get(fmt, fmt)
     assert (info.frame_count, info.width_px, info.height_px) == (n, 64, 40)
     np.testing.assert_array_equal(info.frame_times_ns(), START_NS + 1 + np.arange(n) * 100_000_000)

@@ -20,8 +20,19 @@ def trace(tmp_path: Path) -> Path:
     rec = write_recording(tmp_path / "rec.mcap", "mcap", drive_messages(n_frames=4, with_ground_truth=True))
     out = tmp_path / "trace"
     out.mkdir()
-    ingest_recording(rec, IngestConfig(), out)
+    ingest_recording(rec, IngestConfig(ground_truth_depth=True), out)
     return out
+
+
+def test_ground_truth_depth_is_kept_only_when_asked_for(tmp_path: Path) -> None:
+    """A synthetic recording's depth truth (4 bytes per pixel and frame) is opt-in; its poses are always kept."""
+    rec = write_recording(tmp_path / "rec.mcap", "mcap", drive_messages(n_frames=4, with_ground_truth=True))
+    out = tmp_path / "default"
+    out.mkdir()
+    ingest_recording(rec, IngestConfig(), out)
+    info = validate_trace(out)
+    assert not info.has_gt_depth and not (out / "gt_depth.npy").exists()
+    assert "ground_truth" in info.series
 
 
 def test_a_fresh_trace_is_valid(trace: Path) -> None:

@@ -83,6 +83,9 @@ class IngestConfig(StageConfig):
     """Topic choice by role."""
     extrinsics: ExtrinsicsConfig = ExtrinsicsConfig()
     """Camera mounting."""
+    ground_truth_depth: bool = False
+    """Keep a synthetic recording's ground-truth depth as gt_depth.npy (float32: 4 bytes per pixel and frame); no stage
+    reads it, it is for comparing depth estimates with the truth."""
     require_pose_source: bool = True
     """Refuse recordings without GPS or odometry (set false to let preprocess use visual SfM alone)."""
     kitti_time_step_s: float = Field(0.1, gt=0.0)

@@ -334,7 +334,8 @@ class _Pass:
         """Read every handled message in log-time order; the stamps of the frames written."""
         self.out_dir = trace.out_dir
         self.add_recorders(cfg.extrinsics.vehicle_frames)
-        self.open_depth()
+        if cfg.ground_truth_depth:
+            self.open_depth()
         keep = cfg.image.keep_original
         size = (self.cam.processor.out_width, self.cam.processor.out_height)
         store = FrameStore(trace.out_dir, self.n_frames, size, self.cam.source_size if keep else None)

@@ -55,7 +55,7 @@ Files (all arrays are .npy; N = frame count):
                   video's metric SfM poses, world z up on the road or local ENU with a GPS track: video_trace.py)
     ground_truth.npz  (synthetic recordings only) t_ns (M,); T_world_vehicle float64 (M,4,4) in the synth world's
                   ENU frame; depth at the frame times is in gt_depth.npy float32 (N,H,W) metres (inf = sky),
-                  resized to the working resolution by nearest neighbour
+                  resized to the working resolution by nearest neighbour, only with `ground_truth_depth: true`
 
 `validate_trace(path)` checks all of this (without reading the frames) and returns a `TraceInfo`: shapes and dtypes,
 finite intrinsics with positive focal lengths, a finite rigid T_vehicle_camera, strictly increasing frame times,
