@@ -1,0 +1,311 @@
+"""How the chain's cost grows with the drive's length: per stage, wall time per frame, peak memory, disk per minute.
+
+For each drive length (default 1, 5 and 30 minutes; `--minutes 1,5` chooses) a synthetic drive is rendered by
+`drivesim synth --duration-s` (seed 0, the default 960x600 camera at 10 Hz) and run through `drivesim ingest`,
+`drivesim preprocess` and `drivesim build-world`, each stage as the CLI runs it in its own process. Then
+`drivesim bench sim --tasks lane` measures the training env's steps/s on that world (random starts over the whole
+drive, so a long world's frames are read from all over its files).
+
+Measured per stage and length: wall seconds of the process and per frame (frames = the trace's frame count), the
+stage's own seconds from its manifest summary, the child's peak resident memory (`os.wait4`'s ru_maxrss of exactly
+that process: the CLI's imports, ~300 MB with torch, included), and the load average before and after. Per artifact
+(the recording, trace/, preprocessed/, world/): bytes on disk, per frame and per minute of driving, file by file.
+
+Usage: python benchmarks/bench_scaling.py [--minutes 1,5,30] [--depth-method auto] [--keep DIR]
+Writes benchmarks/results/scaling.md, scaling.json and scaling.png (cost vs drive length per stage).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from _lib.report import measured_now, write_markdown
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results"
+STAGES = ("synth", "ingest", "preprocess", "build-world", "sim")
+ARTIFACTS = {"recording": "recordings", "trace": "trace", "preprocessed": "preprocessed", "world": "world"}
+# Artifacts that make up the workspace at the default settings (the recording is the user's input, not counted).
+WORKSPACE_ARTIFACTS = ("trace", "preprocessed", "world")
+MANIFEST = {"ingest": "trace", "preprocess": "preprocessed", "build-world": "world"}
+
+
+@dataclass
+class StageRun:
+    """One stage's process: wall seconds, peak RSS, the stage's own seconds (manifest), the load around it."""
+
+    stage: str
+    minutes: float
+    frames: int
+    wall_s: float
+    peak_rss_mb: float
+    stage_s: float | None
+    load_before: float
+    load_after: float
+    extra: dict[str, Any]
+
+    @property
+    def ms_per_frame(self) -> float:
+        """Wall milliseconds per frame of the drive."""
+        return 1000.0 * self.wall_s / max(self.frames, 1)
+
+
+def load_1min() -> float:
+    """The 1-minute load average."""
+    return round(os.getloadavg()[0], 2)
+
+
+def uptime_line() -> str:
+    """What `uptime` says (its load averages), or the load average when it cannot be run."""
+    try:
+        return subprocess.run(["uptime"], capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "load average: " + ", ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def measure(args: list[str]) -> tuple[float, float, str]:
+    """Run `args`; (wall s, peak RSS MB of exactly that child via os.wait4, its stdout). Exits on failure."""
+    start = time.perf_counter()
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    output = proc.stdout.read() if proc.stdout is not None else b""
+    _, status, usage = os.wait4(proc.pid, 0)
+    seconds = time.perf_counter() - start
+    code = os.waitstatus_to_exitcode(status)
+    text = output.decode(errors="replace")
+    if code != 0:
+        raise SystemExit(f"{' '.join(args)} failed ({code}):\n{text[-4000:]}")
+    return seconds, usage.ru_maxrss / 1024.0, text  # Linux reports KiB
+
+
+def drivesim(ws: Path, *args: str) -> list[str]:
+    """The command line of `drivesim --workspace ws ARGS`."""
+    return [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), *args]
+
+
+def folder_bytes(folder: Path) -> dict[str, int]:
+    """Bytes on disk of every file under `folder` (allocated blocks, so sparse files count what they hold)."""
+    if not folder.is_dir():
+        return {}
+    return {
+        p.relative_to(folder).as_posix(): p.stat().st_blocks * 512 for p in sorted(folder.rglob("*")) if p.is_file()
+    }
+
+
+def run_stage(ws: Path, stage: str, minutes: float, frames: int, args: list[str]) -> StageRun:
+    """Run one stage's command and collect its figures (the manifest summary's seconds when the stage has one)."""
+    before = load_1min()
+    print(f"[{time.strftime('%H:%M:%S')}] {minutes:g} min: {stage} (load {before}) ...", flush=True)
+    wall_s, rss_mb, output = measure(args)
+    stage_s = None
+    extra: dict[str, Any] = {}
+    if stage in MANIFEST:
+        summary = json.loads((ws / MANIFEST[stage] / "manifest.json").read_text()).get("summary", {})
+        stage_s = summary.get("seconds")
+        extra = {k: summary[k] for k in ("depth_method", "depth_seconds_per_frame", "frame_count") if k in summary}
+    if stage == "sim":
+        result = json.loads(output[output.index("{") :])
+        lane = next(t for t in result["tasks"] if t["task"] == "lane")
+        extra = {"steps_per_s": round(lane["steps_per_s"], 1), "ms_per_step": round(lane["ms_per_step"]["total"], 3)}
+    run = StageRun(stage, minutes, frames, wall_s, rss_mb, stage_s, before, load_1min(), extra)
+    print(f"    {wall_s:.1f} s, {run.ms_per_frame:.1f} ms/frame, peak RSS {rss_mb:.0f} MB {extra}", flush=True)
+    return run
+
+
+def measure_length(work: Path, minutes: float, depth_method: str, sim_steps: int) -> dict[str, Any]:
+    """Every stage on a drive of `minutes`; the runs, and the artifacts' bytes per file."""
+    ws = work / f"{minutes:g}min"
+    recording = ws / "recordings" / "drive.mcap"
+    frames = round(minutes * 60 * 10)  # the synth camera's 10 Hz; replaced by the trace's count after ingest
+    synth_json = ws / "synth_run.json"
+    if recording.is_file() and synth_json.is_file():  # a kept workspace: the drive is not rendered again
+        synth = StageRun(**{**json.loads(synth_json.read_text()), "extra": {"reused": "kept recording"}})
+        print(f"{minutes:g} min: reusing {recording} (synth figures of its first run)", flush=True)
+    else:
+        synth_args = ["synth", "--seed", "0", "--duration-s", f"{minutes * 60:g}", "--output", str(recording)]
+        synth = run_stage(ws, "synth", minutes, frames, drivesim(ws, *synth_args))
+        synth_json.write_text(json.dumps(asdict(synth)))
+    runs = [synth, run_stage(ws, "ingest", minutes, frames, drivesim(ws, "ingest", str(recording), "--force"))]
+    frames = int(json.loads((ws / "trace" / "manifest.json").read_text())["summary"]["frame_count"])
+    for run in runs:
+        run.frames = frames
+    depth = ["--set", f"depth.method={depth_method}"]
+    runs.append(run_stage(ws, "preprocess", minutes, frames, drivesim(ws, "preprocess", *depth, "--force")))
+    runs.append(run_stage(ws, "build-world", minutes, frames, drivesim(ws, "build-world", "--force")))
+    sim_args = ["bench", "sim", "--world", str(ws / "world"), "--tasks", "lane", "--steps", str(sim_steps), "--json"]
+    runs.append(run_stage(ws, "sim", minutes, frames, drivesim(ws, *sim_args)))
+    disk = {name: folder_bytes(ws / sub) for name, sub in ARTIFACTS.items()}
+    return {"minutes": minutes, "frames": frames, "runs": [asdict(r) for r in runs], "disk_bytes": disk}
+
+
+def disk_rows(lengths: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per length and artifact: MB, KB per frame, MB per minute of driving, and the largest files' share."""
+    rows = []
+    for length in lengths:
+        minutes, frames = length["minutes"], length["frames"]
+        for name, files in length["disk_bytes"].items():
+            total = sum(files.values())
+            top = sorted(files.items(), key=lambda kv: -kv[1])[:3]
+            rows.append(
+                {
+                    "minutes": minutes,
+                    "artifact": name,
+                    "mb": total / 1e6,
+                    "kb_per_frame": total / 1e3 / max(frames, 1),
+                    "mb_per_min": total / 1e6 / minutes,
+                    "files": {k: round(v / 1e3 / max(frames, 1), 1) for k, v in top},
+                }
+            )
+        workspace = sum(sum(length["disk_bytes"][a].values()) for a in WORKSPACE_ARTIFACTS)
+        rows.append(
+            {
+                "minutes": minutes,
+                "artifact": "workspace (trace + preprocessed + world)",
+                "mb": workspace / 1e6,
+                "kb_per_frame": workspace / 1e3 / max(frames, 1),
+                "mb_per_min": workspace / 1e6 / minutes,
+                "files": {},
+            }
+        )
+    return rows
+
+
+def plot(lengths: list[dict[str, Any]], path: Path) -> None:
+    """scaling.png: per stage, ms per frame and peak RSS against the drive's length; MB per minute per artifact."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    minutes = [length["minutes"] for length in lengths]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), layout="constrained")
+    for stage in STAGES:
+        runs = [next(r for r in length["runs"] if r["stage"] == stage) for length in lengths]
+        per_frame = [1000.0 * r["wall_s"] / max(r["frames"], 1) for r in runs]
+        axes[0].plot(minutes, per_frame, "o-", label=stage)
+        axes[1].plot(minutes, [r["peak_rss_mb"] for r in runs], "o-", label=stage)
+    for name in ARTIFACTS:
+        per_min = [sum(length["disk_bytes"][name].values()) / 1e6 / length["minutes"] for length in lengths]
+        axes[2].plot(minutes, per_min, "o-", label=name)
+    axes[2].axhline(150, color="grey", ls="--", lw=1, label="target: workspace 150 MB/min")
+    titles = ("wall ms per frame (process)", "peak RSS (MB)", "disk MB per minute of driving")
+    for ax, title in zip(axes, titles, strict=True):
+        ax.set_xscale("log")
+        ax.set_xticks(minutes, [f"{m:g}" for m in minutes])
+        ax.set_xlabel("drive length (min)")
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def markdown(raw: dict[str, Any]) -> list[str]:
+    """The report's lines: when, where and at what load; the stage table; the disk table."""
+    lengths = raw["lengths"]
+    m = raw["measured"]
+    lines = [
+        "## Scaling with the drive's length",
+        "",
+        f"Machine: {m['machine']}. Date: {m['date_utc']} UTC. Load average at start {raw['load_start']}, at end "
+        f"{raw['load_end']} (`uptime` at start: {raw['uptime_start']}). Reproduce: `{raw['command']}`.",
+        "",
+        f"Synthetic drives (seed 0, 960x600 camera at 10 Hz) of {', '.join(f'{x:g}' for x in raw['minutes'])} "
+        f"minutes through the chain at its default settings (depth.method={raw['depth_method']}), each stage one CLI "
+        "process; ms/frame = the process's wall time / the drive's frames (imports included: a short drive pays "
+        "more start-up per frame); peak RSS = that process's ru_maxrss (the CLI's imports ~300 MB included); sim = "
+        f"`drivesim bench sim --tasks lane --steps {raw['sim_steps']}` on the drive's world (steps/s of one env). "
+        "The machine was shared: the load is beside each run.",
+        "",
+        "| stage | minutes | frames | wall s | ms/frame | stage s | peak RSS MB | load before/after | notes |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for stage in STAGES:
+        for length in lengths:
+            r = next(x for x in length["runs"] if x["stage"] == stage)
+            per_frame = 1000.0 * r["wall_s"] / max(r["frames"], 1)
+            stage_s = "-" if r["stage_s"] is None else f"{r['stage_s']:.1f}"
+            notes = ", ".join(f"{k} {v}" for k, v in r["extra"].items() if k != "frame_count")
+            lines.append(
+                f"| {stage} | {r['minutes']:g} | {r['frames']} | {r['wall_s']:.1f} | {per_frame:.1f} | {stage_s} "
+                f"| {r['peak_rss_mb']:.0f} | {r['load_before']:.1f} / {r['load_after']:.1f} | {notes or '-'} |"
+            )
+    lines += [
+        "",
+        "Disk per artifact (allocated bytes; KB per frame of the three largest files in brackets):",
+        "",
+        "| minutes | artifact | MB | KB per frame | MB per minute | largest files (KB/frame) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for row in raw["disk"]:
+        files = ", ".join(f"{k} {v:g}" for k, v in row["files"].items()) or "-"
+        lines.append(
+            f"| {row['minutes']:g} | {row['artifact']} | {row['mb']:.0f} | {row['kb_per_frame']:.0f} "
+            f"| {row['mb_per_min']:.0f} | {files} |"
+        )
+    lines += ["", "Plot: `scaling.png` (per stage against the drive's length).", ""]
+    return lines
+
+
+def parse_minutes(text: str) -> list[float]:
+    """`1,5,30` -> [1.0, 5.0, 30.0]; one clear line and exit 2 for anything else."""
+    try:
+        values = sorted({float(x) for x in text.split(",") if x.strip()})
+    except ValueError:
+        values = []
+    if not values or any(v <= 0 or v > 60 for v in values):
+        print(f"--minutes {text!r}: give drive lengths in minutes, comma-separated, each in (0, 60]", file=sys.stderr)
+        raise SystemExit(2)
+    return values
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--minutes", default="1,5,30", help="drive lengths in minutes, comma-separated")
+    parser.add_argument("--depth-method", default="auto", help="preprocess depth.method (default: the chain's)")
+    parser.add_argument("--sim-steps", type=int, default=300, help="env steps of the steps/s measurement")
+    parser.add_argument("--keep", type=Path, default=None, help="keep the workspaces in this folder")
+    parser.add_argument("--output", type=Path, default=RESULTS / "scaling.md", help="markdown report to write")
+    args = parser.parse_args()
+    minutes = parse_minutes(args.minutes)
+    work = args.keep or Path(tempfile.mkdtemp(prefix="drivesim-bench-scaling-"))
+    work.mkdir(parents=True, exist_ok=True)
+    command = f"python benchmarks/bench_scaling.py --minutes {args.minutes}"
+    if args.depth_method != "auto":
+        command += f" --depth-method {args.depth_method}"
+    raw: dict[str, Any] = {
+        "measured": measured_now(),
+        "command": command,
+        "minutes": minutes,
+        "depth_method": args.depth_method,
+        "sim_steps": args.sim_steps,
+        "load_start": load_1min(),
+        "uptime_start": uptime_line(),
+        "lengths": [],
+    }
+    try:
+        for m in minutes:
+            raw["lengths"].append(measure_length(work, m, args.depth_method, args.sim_steps))
+            if args.keep is None:
+                shutil.rmtree(work / f"{m:g}min", ignore_errors=True)
+    finally:
+        if args.keep is None:
+            shutil.rmtree(work, ignore_errors=True)
+    raw["load_end"] = load_1min()
+    raw["uptime_end"] = uptime_line()
+    raw["disk"] = disk_rows(raw["lengths"])
+    plot(raw["lengths"], args.output.with_suffix(".png"))
+    write_markdown(args.output, markdown(raw), raw)
+
+
+if __name__ == "__main__":
+    main()
