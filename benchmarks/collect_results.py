@@ -114,6 +114,13 @@ SECTIONS: tuple[Section, ...] = (
         ("ray.md",),
     ),
     Section(
+        "preprocess_ray",
+        "Preprocessing on Ray",
+        "camera-only depth: one process against a 2-node loopback Ray cluster, bytes per frame, N machines on paper",
+        "python benchmarks/bench_preprocess_ray.py",
+        ("preprocess_ray.md", "preprocess_ray.json"),
+    ),
+    Section(
         "record",
         "Foxglove recordings",
         "time `--record failures` adds to an evaluation",
