@@ -30,8 +30,8 @@ WorldOption = Annotated[
     list[Path] | None,
     typer.Option(
         "--world",
-        help="A world folder to train in (repeatable: episodes come from all of them, each equally often; a world "
-        "given twice gets twice the share); default: the workspace's world.",
+        help="A world folder to train in (repeatable: episodes from all, each equally often; one given twice gets "
+        "twice the share); default: the workspace's world, or each recording's after a run on several.",
     ),
 ]
 TotalStepsOption = Annotated[
@@ -123,6 +123,10 @@ def train_command(
         cfg = load_config(
             TrainConfig, preset=f"train/{task}", config_file=config, overrides=[f"task={task}", *overrides]
         )
+        if not worlds and cfg.envs.source != "cost_free":  # the workspace's recordings, when its last run had several
+            from drivesim.chain.recordings import set_worlds
+
+            worlds = set_worlds(ws)
     choose_backend(backend, address, cfg.envs)
     if cfg.envs.backend == "ray":
         from drivesim.pipeline.ray_cluster import import_ray

@@ -135,11 +135,12 @@ def test_the_same_command_again_skips_every_stage(several) -> None:
 
 
 @pytest.mark.slow
-def test_a_later_eval_defaults_to_every_recordings_world(several, tmp_path: Path, monkeypatch) -> None:
+def test_a_later_eval_or_train_defaults_to_every_recordings_world(several, tmp_path: Path, monkeypatch) -> None:
     from typer.testing import CliRunner
 
     from drivesim.cli.main import app
     from drivesim.stages.evaluate import stage as eval_stage
+    from drivesim.stages.train import stage as train_stage
 
     ws, _, _ = several
     assert set_worlds(Workspace(ws)) == [ws / "world", ws / "drives" / "b" / "world"]
@@ -154,6 +155,14 @@ def test_a_later_eval_defaults_to_every_recordings_world(several, tmp_path: Path
     assert seen["world"] == [str(ws / "world"), str(ws / "drives" / "b" / "world")]
     CliRunner().invoke(app, ["--workspace", str(ws), "eval", "--task", "lane", "--world", str(ws / "world")])
     assert seen["world"] == [str(ws / "world")]  # --world still chooses
+
+    def fake_run_training(ws_, cfg, worlds=None, **kwargs):
+        seen["train"] = worlds
+        raise SystemExit(0)
+
+    monkeypatch.setattr(train_stage, "run_training", fake_run_training)
+    CliRunner().invoke(app, ["--workspace", str(ws), "train", "lane"])
+    assert seen["train"] == [ws / "world", ws / "drives" / "b" / "world"]
 
 
 def _files(root: Path, *names: str, content: bytes = b"") -> list[Path]:
