@@ -187,17 +187,20 @@ def plot(lengths: list[dict[str, Any]], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     minutes = [length["minutes"] for length in lengths]
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), layout="constrained")
+    fig, axes = plt.subplots(1, 4, figsize=(19, 4.2), layout="constrained")
     for stage in STAGES:
         runs = [next(r for r in length["runs"] if r["stage"] == stage) for length in lengths]
-        per_frame = [1000.0 * r["wall_s"] / max(r["frames"], 1) for r in runs]
-        axes[0].plot(minutes, per_frame, "o-", label=stage)
+        if stage != "sim":
+            axes[0].plot(minutes, [1000.0 * r["wall_s"] / max(r["frames"], 1) for r in runs], "o-", label=stage)
         axes[1].plot(minutes, [r["peak_rss_mb"] for r in runs], "o-", label=stage)
-    for name in ARTIFACTS:
-        per_min = [sum(length["disk_bytes"][name].values()) / 1e6 / length["minutes"] for length in lengths]
-        axes[2].plot(minutes, per_min, "o-", label=name)
-    axes[2].axhline(150, color="grey", ls="--", lw=1, label="target: workspace 150 MB/min")
-    titles = ("wall ms per frame (process)", "peak RSS (MB)", "disk MB per minute of driving")
+    sim = [next(r for r in length["runs"] if r["stage"] == "sim") for length in lengths]
+    axes[2].plot(minutes, [r["extra"]["steps_per_s"] for r in sim], "o-", label="lane, one env")
+    for name in (*ARTIFACTS, "workspace"):
+        parts = WORKSPACE_ARTIFACTS if name == "workspace" else (name,)
+        per_min = [sum(sum(x["disk_bytes"][a].values()) for a in parts) / 1e6 / x["minutes"] for x in lengths]
+        axes[3].plot(minutes, per_min, "o-", label=name if name != "workspace" else "workspace (trace+pre+world)")
+    axes[3].axhline(150, color="grey", ls="--", lw=1, label="target: workspace 150 MB/min")
+    titles = ("wall ms per frame (process)", "peak RSS (MB)", "env steps/s on the drive's world", "disk MB per minute")
     for ax, title in zip(axes, titles, strict=True):
         ax.set_xscale("log")
         ax.set_xticks(minutes, [f"{m:g}" for m in minutes])
@@ -232,11 +235,11 @@ def markdown(raw: dict[str, Any]) -> list[str]:
     for stage in STAGES:
         for length in lengths:
             r = next(x for x in length["runs"] if x["stage"] == stage)
-            per_frame = 1000.0 * r["wall_s"] / max(r["frames"], 1)
+            per_frame = f"{1000.0 * r['wall_s'] / max(r['frames'], 1):.1f}" if stage != "sim" else "-"
             stage_s = "-" if r["stage_s"] is None else f"{r['stage_s']:.1f}"
             notes = ", ".join(f"{k} {v}" for k, v in r["extra"].items() if k != "frame_count")
             lines.append(
-                f"| {stage} | {r['minutes']:g} | {r['frames']} | {r['wall_s']:.1f} | {per_frame:.1f} | {stage_s} "
+                f"| {stage} | {r['minutes']:g} | {r['frames']} | {r['wall_s']:.1f} | {per_frame} | {stage_s} "
                 f"| {r['peak_rss_mb']:.0f} | {r['load_before']:.1f} / {r['load_after']:.1f} | {notes or '-'} |"
             )
     lines += [
@@ -252,7 +255,46 @@ def markdown(raw: dict[str, Any]) -> list[str]:
             f"| {row['minutes']:g} | {row['artifact']} | {row['mb']:.0f} | {row['kb_per_frame']:.0f} "
             f"| {row['mb_per_min']:.0f} | {files} |"
         )
+    if raw.get("before"):
+        lines += comparison(raw)
     lines += ["", "Plot: `scaling.png` (per stage against the drive's length).", ""]
+    return lines
+
+
+def comparison(raw: dict[str, Any]) -> list[str]:
+    """Lines of a table of this run beside an earlier code version's run (`--before`), per stage and length."""
+    before = raw["before"]
+    m = before["measured"]
+    lines = [
+        "",
+        f"Beside the code before this change ({before['label']}; measured {m['date_utc']} UTC, load average at start "
+        f"{before['load_start']}, on the same recordings): peak RSS and ms/frame per stage, MB per minute per "
+        "artifact.",
+        "",
+        "| stage or artifact | minutes | peak RSS MB before / now | ms/frame before / now "
+        "| MB per minute before / now |",
+        "|---|---|---|---|---|",
+    ]
+    old = {x["minutes"]: x for x in before["lengths"]}
+    for stage in STAGES[1:]:
+        for length in raw["lengths"]:
+            if length["minutes"] not in old:
+                continue
+            a = next(r for r in old[length["minutes"]]["runs"] if r["stage"] == stage)
+            b = next(r for r in length["runs"] if r["stage"] == stage)
+            per_frame = f"steps/s {a['extra']['steps_per_s']:.0f} / {b['extra']['steps_per_s']:.0f}"
+            if stage != "sim":
+                per_frame = f"{1000 * a['wall_s'] / a['frames']:.1f} / {1000 * b['wall_s'] / b['frames']:.1f}"
+            lines.append(
+                f"| {stage} | {b['minutes']:g} | {a['peak_rss_mb']:.0f} / {b['peak_rss_mb']:.0f} | {per_frame} | - |"
+            )
+    rows_before = {(r["minutes"], r["artifact"]): r for r in before["disk"]}
+    for row in raw["disk"]:
+        a = rows_before.get((row["minutes"], row["artifact"]))
+        if a is not None and row["artifact"] != "recording":
+            lines.append(
+                f"| {row['artifact']} | {row['minutes']:g} | - | - | {a['mb_per_min']:.0f} / {row['mb_per_min']:.0f} |"
+            )
     return lines
 
 
@@ -275,6 +317,8 @@ def main() -> None:
     parser.add_argument("--sim-steps", type=int, default=300, help="env steps of the steps/s measurement")
     parser.add_argument("--keep", type=Path, default=None, help="keep the workspaces in this folder")
     parser.add_argument("--output", type=Path, default=RESULTS / "scaling.md", help="markdown report to write")
+    parser.add_argument("--before", type=Path, default=None, help="scaling.json of an earlier code version")
+    parser.add_argument("--before-label", default="an earlier commit", help="what --before measured")
     args = parser.parse_args()
     minutes = parse_minutes(args.minutes)
     work = args.keep or Path(tempfile.mkdtemp(prefix="drivesim-bench-scaling-"))
@@ -303,6 +347,9 @@ def main() -> None:
     raw["load_end"] = load_1min()
     raw["uptime_end"] = uptime_line()
     raw["disk"] = disk_rows(raw["lengths"])
+    if args.before is not None:
+        raw["before"] = {**json.loads(args.before.read_text()), "label": args.before_label}
+        raw["before"].pop("before", None)
     plot(raw["lengths"], args.output.with_suffix(".png"))
     write_markdown(args.output, markdown(raw), raw)
 
