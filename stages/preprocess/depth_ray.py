@@ -94,10 +94,12 @@ class ChunkDone:
 def _one_thread() -> None:
     """One thread per task: the cluster runs one task per CPU, and more threads would only fight over the cores."""
     import cv2
+    import numba
     import torch
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
+    numba.set_num_threads(1)  # the temporal window's warps
 
 
 def depth_chunk(drive: MvsDrive, start: int, stop: int) -> ChunkResult:
