@@ -11,6 +11,10 @@ The walker (`chain/walk.py`) runs most stages as `run_stage(ws, SPEC, cfg)`; the
 that read files outside the workspace get a runner here (meshes: imported mesh files; train: the towns its config
 names, built first, and a new run folder unless a finished run of the same config and worlds exists, or an
 unfinished one that it continues from its last checkpoint; eval and export: the run that train made).
+
+On several recordings (`run_chain(..., more_recordings=[...])`) each recording first goes through the world-making
+stages in its own workspace (`chain/recordings.py`), then the rest of the chain runs once: train on every world, eval
+in every world.
 """
 
 from __future__ import annotations
