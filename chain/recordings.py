@@ -62,7 +62,10 @@ def recording_name(path: Path) -> str:
 def read_list_file(path: Path) -> list[Path]:
     """The recordings a list file names: one path per line, blank lines and lines starting with `#` skipped; a
     relative path is taken from the list file's folder. An unreadable or empty file is one line."""
+    from drivesim.pipeline.input_paths import refuse_special_file
+
     path = Path(path)
+    refuse_special_file(path, "a text file with one recording path per line")  # a FIFO would block the read
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as e:
@@ -83,7 +86,7 @@ def plan_drives(ws: Workspace, recordings: Sequence[Path]) -> list[Drive]:
     from drivesim.pipeline.hashing import fingerprint_external
 
     drives: list[Drive] = []
-    seen: dict[str, Path] = {}
+    seen: dict[str, str] = {}  # name -> fingerprint
     for i, given in enumerate(recordings):
         path = Path(given).absolute()
         if not path.exists():
@@ -102,7 +105,7 @@ def plan_drives(ws: Workspace, recordings: Sequence[Path]) -> list[Drive]:
         for other_name, other_fingerprint in seen.items():
             if fingerprint == other_fingerprint:
                 raise ConfigError(f"{path} holds the same recording as {other_name!r}; give each recording once")
-        seen[name] = fingerprint  # type: ignore[assignment]
+        seen[name] = fingerprint
         root = ws.root if i == 0 else ws.root / DRIVES_DIR / name
         drives.append(Drive(name, path, root))
     return drives
