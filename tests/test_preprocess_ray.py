@@ -2,7 +2,8 @@
 127.0.0.1): the camera-only (mvs) depth of a synthetic drive equals the one-process depth exactly, frame for frame
 (each frame is computed by the same code from the same inputs, and one thread or two does not change a value); chunks
 with a temporal window (each chunk also estimates the frames beyond its ends) give the same depth; a worker node killed
-mid-run loses no frame; without Ray, --backend ray is one line saying how to install it.
+mid-run loses no frame; without Ray, --backend ray is one line saying how to install it; --address without
+--backend ray is one line; a method other than mvs runs in the driver's process.
 
 Run alone: `.venv/bin/pytest -q tests/test_preprocess_ray.py` (under a minute on 2 quiet cores).
 """
@@ -153,3 +154,25 @@ def test_without_ray_backend_ray_is_one_line_saying_how_to_install(tmp_path: Pat
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "pip install 'drivesim[ray]'" in lines[0], result.stderr
     assert not (tmp_path / "ws" / "preprocessed").exists()
+
+
+def test_address_without_backend_ray_is_one_line(tmp_path: Path) -> None:
+    result = _drivesim(tmp_path / "ws", "preprocess", "--address", "127.0.0.1:6379")
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert result.stderr.strip() == "error: --address is the Ray cluster's address: give it with --backend ray"
+
+
+def test_a_method_other_than_mvs_runs_in_this_process(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Plane depth with the Ray backend never reaches Ray: the address (nobody listens there) is not even tried."""
+    pytest.importorskip("ray", reason="the Ray backend needs `pip install 'drivesim[ray]'` (scripts/setup.sh)")
+    from test_preprocess_stage_fakes import FRAME_COUNT, install_fake_poses, make_trace
+
+    from drivesim.stages.preprocess.stage import run_preprocess
+
+    ws = Workspace(tmp_path / "ws")
+    make_trace(ws)
+    install_fake_poses(monkeypatch)
+    cfg = PreprocessConfig.model_validate({"depth": {"method": "plane"}, "backend": "ray", "address": "127.0.0.1:9"})
+    result = run_preprocess(ws, cfg)
+    assert result.summary.depth_method == "plane" and result.summary.frame_count == FRAME_COUNT
+    assert "backend" not in ws.read_manifest("preprocessed")["config"]  # not part of the artifact's identity
