@@ -19,6 +19,7 @@ car's box.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -126,17 +127,29 @@ def apply_camera_look_(rgb: np.ndarray, mask: np.ndarray, look: CameraLook) -> N
     if look.noise_sigma <= 0.0:
         return
     bh, bw = box.shape[:2]
-    noise = _noise(y0, x0, bh, bw, float(look.noise_sigma))
-    cv2.copyTo(cv2.add(box, noise, dtype=cv2.CV_8U), car, box)
+    up, down = _noise(y0, x0, bh, bw, float(look.noise_sigma))
+    cv2.add(box, up, dst=box, mask=car)  # saturating uint8 arithmetic under the car only, in place
+    cv2.subtract(box, down, dst=box, mask=car)
 
 
-def _noise(y0: int, x0: int, h: int, w: int, sigma: float) -> np.ndarray:
-    """(h, w, 3) int16 noise of standard deviation `sigma`, equal on the three channels, cut from the noise tile
-    at an offset given by the box's corner (tiled where the box is larger)."""
-    tile = _NOISE_TILE
-    reps_y, reps_x = -(-(h + y0 % _NOISE_TILE_PX) // _NOISE_TILE_PX), -(-(w + x0 % _NOISE_TILE_PX) // _NOISE_TILE_PX)
-    if reps_y > 1 or reps_x > 1:
-        tile = np.tile(tile, (reps_y, reps_x))
-    cut = tile[y0 % _NOISE_TILE_PX :][:h, x0 % _NOISE_TILE_PX :][:, :w]
-    one = np.rint(cut * sigma).astype(np.int16)
-    return cv2.merge([one, one, one])
+def _noise(y0: int, x0: int, h: int, w: int, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """(h, w, 3) uint8 noise of standard deviation `sigma` as its positive and negative parts, equal on the three
+    channels, cut from the noise tile at an offset given by the box's corner (tiled where the box is larger)."""
+    tiles = _scaled_tiles(sigma)
+    span = tiles[0].shape[0]
+    oy, ox = y0 % _NOISE_TILE_PX, x0 % _NOISE_TILE_PX
+    if oy + h <= span and ox + w <= tiles[0].shape[1]:
+        return tiles[0][oy : oy + h, ox : ox + w], tiles[1][oy : oy + h, ox : ox + w]
+    reps = (-(-(oy + h) // span), -(-(ox + w) // span), 1)
+    return tuple(np.tile(t, reps)[oy : oy + h, ox : ox + w] for t in tiles)  # type: ignore[return-value]
+
+
+@functools.lru_cache(maxsize=8)
+def _scaled_tiles(sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """The noise tile scaled to `sigma`, rounded, repeated 2 x 2 (so any box up to the tile's size is one slice), as
+    (positive part, negative part) (2T, 2T, 3) uint8: made once per look."""
+    noise = np.rint(np.tile(_NOISE_TILE, (2, 2)) * sigma).clip(-255, 255)
+    return tuple(
+        np.ascontiguousarray(np.repeat(part.astype(np.uint8)[..., None], 3, axis=-1))
+        for part in (np.maximum(noise, 0), np.maximum(-noise, 0))
+    )  # type: ignore[return-value]

@@ -108,3 +108,12 @@ def test_view_with_camera_look_blends_the_cars_edges_and_without_keeps_them_hard
     assert (changed[far] == 0).all()
     inner = cv2.erode(mask.view(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     assert soft.rgb[0][inner][:, 0].astype(float).std() > hard.rgb[0][inner][:, 0].astype(float).std() + 0.5
+
+
+def test_grain_on_a_car_larger_than_the_noise_tile_has_the_asked_spread():
+    rgb = np.full((300, 400, 3), 100, dtype=np.uint8)
+    mask = np.zeros((300, 400), dtype=bool)
+    mask[5:290, 7:395] = True
+    apply_camera_look_(rgb, mask, CameraLook(blur_sigma_px=0.0, noise_sigma=3.0))
+    assert rgb[mask][:, 0].astype(float).std() == pytest.approx(3.0, rel=0.1)
+    assert abs(rgb[mask][:, 0].astype(float).mean() - 100.0) < 0.3
