@@ -317,6 +317,11 @@ def main() -> None:
     parser.add_argument("--sim-steps", type=int, default=300, help="env steps of the steps/s measurement")
     parser.add_argument("--keep", type=Path, default=None, help="keep the workspaces in this folder")
     parser.add_argument("--output", type=Path, default=RESULTS / "scaling.md", help="markdown report to write")
+    parser.add_argument(
+        "--reuse-measured",
+        action="store_true",
+        help="with --keep: read back the lengths measured by an earlier run into the same folder",
+    )
     parser.add_argument("--before", type=Path, default=None, help="scaling.json of an earlier code version")
     parser.add_argument("--before-label", default="an earlier commit", help="what --before measured")
     args = parser.parse_args()
@@ -338,7 +343,13 @@ def main() -> None:
     }
     try:
         for m in minutes:
+            done = work / f"{m:g}min" / "length.json"
+            if args.reuse_measured and done.is_file():
+                print(f"{m:g} min: read back from {done}", flush=True)
+                raw["lengths"].append(json.loads(done.read_text()))
+                continue
             raw["lengths"].append(measure_length(work, m, args.depth_method, args.sim_steps))
+            done.write_text(json.dumps(raw["lengths"][-1]))
             if args.keep is None:
                 shutil.rmtree(work / f"{m:g}min", ignore_errors=True)
     finally:
