@@ -103,7 +103,8 @@ def _one_thread() -> None:
 
 
 def depth_chunk(drive: MvsDrive, start: int, stop: int) -> ChunkResult:
-    """Estimate frames start..stop-1 of `drive` (a Ray task, also callable in-process)."""
+    """Estimate frames start..stop-1 of `drive`: the Ray task (it leaves torch, OpenCV and numba on one thread in
+    the process that runs it)."""
     from drivesim.stages.preprocess.depth_mvs import MvsEstimator, mvs_frames
 
     began = time.perf_counter()
