@@ -1,7 +1,9 @@
 """The `drivesim preprocess` stage: read the trace, fuse poses, estimate depth, write the preprocessed artifact.
 
-The artifact's schema is in `stages/preprocess/artifact.py`. Depth is streamed frame by frame into an .npy memmap
-inside the artifact's temporary folder, so memory stays bounded by a few frames whatever the drive's length.
+The artifact's schema is in `stages/preprocess/artifact.py`. Depth is streamed frame by frame into a float32 .npy
+memmap inside the artifact's temporary folder, the pages of the frames and depth read or written released every
+RELEASE_FRAMES frames, so memory stays flat whatever the drive's length; it is then stored as float16 (depth.npy) a
+chunk at a time and the float32 file removed.
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ class LidarPerFrame(Sequence[np.ndarray]):
         points = info.lidar_points()
         if scans is None or points is None or len(scans["t_ns"]) == 0:
             raise InputError("depth.method=lidar but the trace has no lidar scans", info.path)
-        self._points = points
+        self.points = points  # (P, 4) float32, memory-mapped
         self._start = scans["start"]
         self._count = scans["count"]
         scan_t = scans["t_ns"]
@@ -65,7 +67,7 @@ class LidarPerFrame(Sequence[np.ndarray]):
         if not self._usable[i]:
             return np.empty((0, 3))
         s = self._scan[i]
-        xyz = np.asarray(self._points[self._start[s] : self._start[s] + self._count[s], :3], dtype=np.float64)
+        xyz = np.asarray(self.points[self._start[s] : self._start[s] + self._count[s], :3], dtype=np.float64)
         T = self._T_frame_scan[i]
         return xyz @ T[:3, :3].T + T[:3, 3]
 
@@ -157,7 +159,9 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
     n, h, w = frames.shape[:3]
 
     depth_work = open_reserved_memmap(ctx.dir / DEPTH_WORK_FILE, np.float32, (n, h, w))
-    right = trace.info.right_frames() if method == "stereo" else None
+    right = trace.info.right_frames()[selected] if method == "stereo" else None
+    lidar = LidarPerFrame(trace.info, frame_times_ns, T_world_vehicle) if method == "lidar" else None
+    inputs = [a for a in (frames, depth_work, right, lidar.points if lidar else None) if a is not None]
     with progress_bar(f"depth ({method}{', on Ray' if run_method else ''})", total=n) as (progress, task):
         depth_summary = depth_mod.estimate_depth(
             frames,
@@ -167,9 +171,9 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
             trace.calibration.get("camera_height_m"),
             depth_cfg,
             depth_work,
-            progress=releasing_pages(lambda done: progress.advance(task, done), frames, depth_work),
-            points_vehicle=LidarPerFrame(trace.info, frame_times_ns, T_world_vehicle) if method == "lidar" else None,
-            right_frames=right[selected] if right is not None else None,
+            progress=releasing_pages(lambda done: progress.advance(task, done), *inputs),
+            points_vehicle=lidar,
+            right_frames=right,
             baseline_m=trace.info.baseline_m if method == "stereo" else None,
             run_method=run_method,
         )
