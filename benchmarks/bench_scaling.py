@@ -282,8 +282,9 @@ def comparison(raw: dict[str, Any]) -> list[str]:
                 continue
             a = next(r for r in old[length["minutes"]]["runs"] if r["stage"] == stage)
             b = next(r for r in length["runs"] if r["stage"] == stage)
-            per_frame = f"steps/s {a['extra']['steps_per_s']:.0f} / {b['extra']['steps_per_s']:.0f}"
-            if stage != "sim":
+            if stage == "sim":
+                per_frame = f"steps/s {a['extra']['steps_per_s']:.0f} / {b['extra']['steps_per_s']:.0f}"
+            else:
                 per_frame = f"{1000 * a['wall_s'] / a['frames']:.1f} / {1000 * b['wall_s'] / b['frames']:.1f}"
             lines.append(
                 f"| {stage} | {b['minutes']:g} | {a['peak_rss_mb']:.0f} / {b['peak_rss_mb']:.0f} | {per_frame} | - |"

@@ -194,6 +194,13 @@ SECTIONS: tuple[Section, ...] = (
         ("preprocess_world.md",),
     ),
     Section(
+        "scaling",
+        "Scaling with the drive's length",
+        "per stage: ms per frame, peak memory, disk per minute, for drives of 1 to 30 minutes; float16 depth's cost",
+        "python benchmarks/bench_scaling.py --minutes 1,5,30",
+        ("scaling.md", "scaling.json", "scaling.png", "storage_fidelity.md", "storage_fidelity.json"),
+    ),
+    Section(
         "fidelity",
         "Depth and view fidelity",
         "depth and novel views against ground truth",
