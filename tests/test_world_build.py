@@ -91,7 +91,7 @@ def test_world_summary_in_status_and_people_files(ws: Workspace) -> None:
     points = np.asarray(cloud.points)
     assert len(points) == summary["pointcloud_points"] > 100
     # plane depth: every fused point is on the ground, within 30 m of the path, and coloured
-    assert np.abs(points[:, 2]).max() < 1e-6
+    assert np.abs(points[:, 2]).max() < 1e-3  # float16 depth: under 0.05 % of the range
     assert np.hypot(points[:, 0], points[:, 1]).max() < 30.0 + 11.0 + 2.0
     assert np.asarray(cloud.colors).shape == points.shape
 
