@@ -185,6 +185,7 @@ def plot(lengths: list[dict[str, Any]], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     minutes = [length["minutes"] for length in lengths]
     fig, axes = plt.subplots(1, 4, figsize=(19, 4.2), layout="constrained")
@@ -199,11 +200,13 @@ def plot(lengths: list[dict[str, Any]], path: Path) -> None:
         parts = WORKSPACE_ARTIFACTS if name == "workspace" else (name,)
         per_min = [sum(sum(x["disk_bytes"][a].values()) for a in parts) / 1e6 / x["minutes"] for x in lengths]
         axes[3].plot(minutes, per_min, "o-", label=name if name != "workspace" else "workspace (trace+pre+world)")
+    axes[0].set_yscale("log")
     axes[3].axhline(150, color="grey", ls="--", lw=1, label="target: workspace 150 MB/min")
     titles = ("wall ms per frame (process)", "peak RSS (MB)", "env steps/s on the drive's world", "disk MB per minute")
     for ax, title in zip(axes, titles, strict=True):
         ax.set_xscale("log")
         ax.set_xticks(minutes, [f"{m:g}" for m in minutes])
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("drive length (min)")
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3)
@@ -255,9 +258,41 @@ def markdown(raw: dict[str, Any]) -> list[str]:
             f"| {row['minutes']:g} | {row['artifact']} | {row['mb']:.0f} | {row['kb_per_frame']:.0f} "
             f"| {row['mb_per_min']:.0f} | {files} |"
         )
+    lines += targets(raw)
     if raw.get("before"):
         lines += comparison(raw)
     lines += ["", "Plot: `scaling.png` (per stage against the drive's length).", ""]
+    return lines
+
+
+def targets(raw: dict[str, Any]) -> list[str]:
+    """Lines comparing the longest drive with the shortest against the issue's targets (per-frame cost within 20 %,
+    peak memory within 20 %, env steps/s within 10 %, workspace <= 150 MB per minute)."""
+    lengths = raw["lengths"]
+    if len(lengths) < 2:
+        return []
+    short, long = lengths[0], lengths[-1]
+
+    def run(length: dict[str, Any], stage: str) -> dict[str, Any]:
+        return next(r for r in length["runs"] if r["stage"] == stage)
+
+    lines = ["", f"The {long['minutes']:g}-minute drive against the {short['minutes']:g}-minute one:", ""]
+    for stage in ("ingest", "preprocess", "build-world"):
+        a, b = run(short, stage), run(long, stage)
+        time_ratio = (b["wall_s"] / b["frames"]) / (a["wall_s"] / a["frames"])
+        rss_ratio = b["peak_rss_mb"] / a["peak_rss_mb"]
+        lines.append(
+            f"- {stage}: wall time per frame x{time_ratio:.2f} (start-up spread over more frames), peak RSS "
+            f"x{rss_ratio:.2f} ({'within' if abs(rss_ratio - 1) <= 0.2 else 'beyond'} 20 %)"
+        )
+    steps = run(long, "sim")["extra"]["steps_per_s"] / run(short, "sim")["extra"]["steps_per_s"]
+    verdict = "within 10 %" if abs(steps - 1) <= 0.1 else "beyond 10 %: target not met"
+    lines.append(f"- env steps/s (lane, one env) x{steps:.2f} ({verdict})")
+    workspace = [r for r in raw["disk"] if r["artifact"].startswith("workspace")]
+    worst = max(r["mb_per_min"] for r in workspace)
+    lines.append(
+        f"- workspace {worst:.0f} MB per minute of driving (target 150: {'met' if worst <= 150 else 'not met'})"
+    )
     return lines
 
 
