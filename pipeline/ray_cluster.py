@@ -112,6 +112,20 @@ def is_lost_worker(error: BaseException) -> bool:
     return any(cls.__name__ in LOST_WORKER_ERRORS for cls in type(error).__mro__)
 
 
+def get_or_lost(ray: ModuleType, ref: Any) -> tuple[Any, BaseException | None]:
+    """A finished task's result, or (None, the error) when its worker or node died and the work can run again; the
+    task's own DrivesimError (which Ray wraps) is raised as it is, any other error as Ray raised it."""
+    try:
+        return ray.get(ref), None
+    except Exception as e:
+        if not is_lost_worker(e):
+            cause = getattr(e, "cause", None)
+            if isinstance(cause, DrivesimError):
+                raise cause from None
+            raise
+        return None, e
+
+
 def kill_actors(ray: ModuleType, actors: list[Any]) -> None:
     """Stop actors for good (the dead and the never-started included)."""
     for actor in actors:

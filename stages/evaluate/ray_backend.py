@@ -20,7 +20,14 @@ from types import ModuleType
 from typing import Any
 
 from drivesim.pipeline.errors import DrivesimError
-from drivesim.pipeline.ray_cluster import RaySession, cluster_cpus, cpus_per_actor, is_lost_worker, kill_actors
+from drivesim.pipeline.ray_cluster import (
+    RaySession,
+    cluster_cpus,
+    cpus_per_actor,
+    get_or_lost,
+    is_lost_worker,
+    kill_actors,
+)
 from drivesim.stages.evaluate.metrics import EpisodeRecord, evaluate_episode
 from drivesim.stages.evaluate.rollout import (
     EnvFactory,
@@ -207,18 +214,13 @@ def _drive(
                 continue
             actor, seed = in_flight.pop(ref)
             load[id(actor)] -= 1
-            try:
-                record, node = ray.get(ref)
-            except Exception as e:
-                if not is_lost_worker(e):
-                    cause = getattr(e, "cause", None)  # the episode's own error (RayTaskError wraps it)
-                    if isinstance(cause, DrivesimError):
-                        raise cause from None
-                    raise
+            result, lost_error = get_or_lost(ray, ref)
+            if lost_error is not None:
                 queue.appendleft(seed)
                 resubmitted += 1
                 actors.replace(actor)
                 continue
+            record, node = result
             if seed in written:
                 continue
             write_episode(folder, record)

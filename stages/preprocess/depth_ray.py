@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from drivesim.pipeline.errors import DrivesimError
-from drivesim.pipeline.ray_cluster import RaySession, cluster_cpus, is_lost_worker
+from drivesim.pipeline.ray_cluster import RaySession, cluster_cpus, get_or_lost
 from drivesim.stages.preprocess.config import DepthConfig
 
 TASK_RETRIES = 3
@@ -213,20 +213,14 @@ def _drive(
         done, _ = ray.wait(list(in_flight), num_returns=1)
         for ref in done:
             chunk = in_flight.pop(ref)
-            try:
-                result: ChunkResult = ray.get(ref)
-            except Exception as e:
-                if not is_lost_worker(e):
-                    cause = getattr(e, "cause", None)  # the task's own error (RayTaskError wraps it)
-                    if isinstance(cause, DrivesimError):
-                        raise cause from None
-                    raise
+            result, lost_error = get_or_lost(ray, ref)
+            if lost_error is not None:
                 lost[chunk] += 1
                 if lost[chunk] > CHUNK_RESUBMITS:
                     raise DrivesimError(
                         f"Ray lost the workers of frames {chunk[0]}-{chunk[1] - 1} {lost[chunk]} times "
-                        f"({type(e).__name__}); run the same command again"
-                    ) from e
+                        f"({type(lost_error).__name__}); run the same command again"
+                    ) from lost_error
                 queue.appendleft(chunk)
                 state.resubmitted += 1
                 continue
