@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 from _lib.paths import use_folder
 from _lib.report import measured_now, write_markdown
+from _lib.throughput import node_rows
 
 from drivesim.bench.machine import usable_cores
 from drivesim.pipeline.config import load_config
@@ -286,15 +287,9 @@ def projection(raw: dict) -> list[str]:
         "| nodes | cores | compute bound (frames / s) | expected (frames / s) | limited by | an hour of driving |",
         "|---|---|---|---|---|---|",
     ]
-    for nodes in NODE_COUNTS:
-        compute = nodes * cores / core_s
-        expected = min(compute, driver_limit, network_limit)
-        bound = "compute" if expected == compute else "the driver" if expected == driver_limit else "the network"
-        lines.append(
-            f"| {nodes} | {nodes * cores} | {compute:.2f} | {expected:.2f} | {bound} | "
-            f"{HOUR_FRAMES / expected / 3600:.2f} h |"
-        )
-    return [*lines, ""]
+    limits = (driver_limit, network_limit)
+    hours = lambda rate: f"{HOUR_FRAMES / rate / 3600:.2f} h"  # noqa: E731
+    return [*lines, *node_rows(NODE_COUNTS, cores, 1 / core_s, limits, ".2f", hours), ""]
 
 
 if __name__ == "__main__":

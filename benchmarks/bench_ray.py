@@ -22,6 +22,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from _lib.report import write_markdown
+from _lib.throughput import node_rows
 from bench_eval import build_demo_world
 
 from drivesim.bench.machine import machine_line, usable_cores
@@ -283,15 +284,9 @@ def projection(args: argparse.Namespace, m: Measured, core_s: float) -> list[str
         "1000 episodes take |",
         "|---|---|---|---|---|---|",
     ]
-    for nodes in NODE_COUNTS:
-        compute = 60 * nodes * args.cores_per_node / core_s
-        expected = min(compute, driver_limit, network_limit)
-        bound = "compute" if expected == compute else "the driver" if expected == driver_limit else "the network"
-        lines.append(
-            f"| {nodes} | {nodes * args.cores_per_node} | {compute:,.0f} | {expected:,.0f} | {bound} | "
-            f"{1000 / expected + startup_min:.1f} min |"
-        )
-    return [*lines, ""]
+    limits = (driver_limit, network_limit)
+    minutes = lambda rate: f"{1000 / rate + startup_min:.1f} min"  # noqa: E731
+    return [*lines, *node_rows(NODE_COUNTS, args.cores_per_node, 60 / core_s, limits, ",.0f", minutes), ""]
 
 
 if __name__ == "__main__":
