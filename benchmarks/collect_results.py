@@ -93,6 +93,13 @@ SECTIONS: tuple[Section, ...] = (
         ("gpu.md", "gpu.json", "gpu_h100.md", "gpu_h100.json"),
     ),
     Section(
+        "table1",
+        "Table I on real drives",
+        "`drivesim run REC` as a user runs it, then 1000 episodes per row and the baselines on the same seeds",
+        "python benchmarks/bench_table1.py --drives NAME",
+        ("table1.md", "table1.json"),
+    ),
+    Section(
         "eval",
         "Evaluation (Table I)",
         "episodes/min of `drivesim eval`, the paper's metrics",
