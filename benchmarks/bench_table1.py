@@ -25,7 +25,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from _lib.report import write_markdown
+from _lib.report import measured_now, write_json, write_markdown
 
 from drivesim.bench.machine import machine_line
 from drivesim.stages.evaluate.summary import RESULT_COLUMNS
@@ -200,6 +200,7 @@ def main() -> None:
         sys.exit(f"unknown drive(s) {', '.join(unknown)}; choose from {', '.join(DRIVES)}")
     work = args.work or Path(os.environ.get("TMPDIR", "/tmp")) / f"table1-{os.getpid()}"
     result: dict[str, Any] = {
+        "measured": measured_now(),  # when the chains started, and the load then
         "machine": machine_line(),
         "date": f"{datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
         "commit": _git_commit(),
@@ -240,7 +241,7 @@ def main() -> None:
         elif town_done is not None:
             drive["unseen_town"] = {"error": _one_line(town_done)}
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    (args.out_dir / "table1.json").write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out_dir / "table1.json", result)
     write_markdown(args.out_dir / "table1.md", markdown(result))
 
 
