@@ -1,5 +1,5 @@
 # `make install`: set up only (system libraries, the venv, drivesim and its test tools; then .venv/bin/drivesim works).
-# `make demo`: `drivesim run` on the embedded demo drive (6.0 min without the venv's set-up, on a quiet 2-core VM:
+# `make demo`: `drivesim run` on the embedded demo drive (5.5 min without the venv's set-up, on a quiet 2-core VM:
 # benchmarks/results/demo.md). `make test`: the test suite. Both set up first when needed.
 VENV ?= .venv
 STAMP := $(VENV)/.drivesim-installed

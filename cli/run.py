@@ -48,7 +48,7 @@ def run_command(
         str | None,
         typer.Option(
             "--preset",
-            help="Run preset in configs/run/: recording (the default, at most 40 min of training), demo (6.0 min on "
+            help="Run preset in configs/run/: recording (the default, at most 40 min of training), demo (5.5 min on "
             "a quiet 2-core VM), lane (a lane-keeping policy) or full.",
             show_default=False,
         ),
