@@ -267,7 +267,16 @@ def test_sighup_during_eval_is_handled_as_sigterm(tmp_path) -> None:
     ws = tmp_path / "ws"
     command = _eval_command(ws, world, "--episodes", "6", "--workers", "2", "--trust-entry-point", "--policy", "expert")
     episodes = ws / "eval" / ".partial-overtake-expert" / "episodes"
-    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    # A terminal that closes sends SIGHUP to a process that has it at its default: reset it in the child, so that a
+    # test session started under nohup (SIGHUP ignored, inherited) tests the same thing.
+    proc = subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+        preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL),
+    )
     _wait_for_episodes(episodes, 1, proc)
     workers = psutil.Process(proc.pid).children(recursive=True)
     proc.send_signal(signal.SIGHUP)
