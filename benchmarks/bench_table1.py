@@ -100,6 +100,9 @@ def run_chain(name: str, recording: Path | None, ws: Path, scale: float) -> dict
         return {**entry, "error": _one_line(done)}
     runs = sorted((ws / "runs").glob("overtake-*"))
     entry["run"] = str(runs[-1]) if runs else None
+    if runs:  # the worlds the run trained on, named by their workspace's folder (the drive's name here)
+        worlds = json.loads((runs[-1] / "config.json").read_text()).get("worlds", [])
+        entry["trained_on"] = [Path(w).parent.name for w in worlds]
     entry["stages"] = [line.strip() for line in done.stdout.splitlines() if ": done in " in line]
     return entry
 
@@ -154,10 +157,22 @@ def markdown(result: dict[str, Any]) -> list[str]:
                 continue
             cells = " | ".join(_cell(r.get(k), k == "intervention") for k, _ in RESULT_COLUMNS)
             lines.append(f"| {drive['drive']} | {row} | {r.get('episodes', '')} | {cells} |")
-    lines += ["", "Reported only (not targets): the chain's wall time; the final policy zero-shot elsewhere.", ""]
+    lines += [""] + [
+        f"{d['drive']}: the warm start and the final policy trained on {', '.join(d['trained_on'])} only; random, "
+        "straight and the expert are not trained."
+        for d in result["drives"]
+        if d.get("trained_on")
+    ]
+    lines += [
+        "",
+        "Reported only (not targets): the chain's wall time (ingest to export, its own evaluation and baselines "
+        "included; the rows above are extra evaluations); the final policy zero-shot elsewhere.",
+        "",
+    ]
     lines += [
         "| drive | chain wall time | zero-shot: other real drives (success / intervention) | "
-        f"unseen town {result.get('town')} (success / intervention) | pass-left / right, static / dynamic success |",
+        f"unseen town {result.get('town') or '(not run)'} (success / intervention) | "
+        "pass-left / right, static / dynamic success |",
         "|---|---:|---|---|---|",
     ]
     for drive in result["drives"]:
