@@ -6,9 +6,8 @@ on (the side away from the front car), reports:
   - for collisions, the phase: "closing" (the ego still more than a car length behind, pass_margin < -L), "alongside"
     (within a car length either way) or "cutting back" (the ego ahead of the front car and turning back);
   - the largest lateral swerve away from the front car over the first 2 s, against the expert's on the same seed
-    (a policy that swerves less than the expert did not see, or did not act on, the car);
-  - the mean absolute steering difference from the expert's actions along the expert's own episode is NOT here (it
-    needs the states); `bench_real_gap.py --run` measures it.
+    (a policy that swerves less than the expert did not see, or did not act on, the car).
+The action error against the expert on the same states needs the env, not eval folders: `bench_real_gap.py --run`.
 
     .venv/bin/python experiments/real_gap/failure_phases.py --eval expert=WS/eval/E --eval final=WS/eval/F ...
 """
@@ -40,7 +39,7 @@ def pass_side(record: dict[str, Any]) -> str:
 
 
 def collision_phase(record: dict[str, Any]) -> str:
-    """Where along the pass the collision happened, from the last pass margin and the last steering."""
+    """Where along the pass the collision happened, from the pass margin at its last step."""
     traj = record["trajectory"]
     margin = traj["pass_margin_m"][-1]
     length = record["episode"]["other_length_m"]
