@@ -142,6 +142,10 @@ class ImitationConfig(_Section):
     """Cloning passes over each rollout after its PPO update (0: off)."""
     learning_rate: float = Field(1e-4, gt=0.0, le=1.0)
     """Adam learning rate of the cloning (the std is left to PPO)."""
+    history_steps: int = Field(0, ge=0, le=1_000_000)
+    """Labelled states the cloning draws from: the newest rollouts' and, at first, the warm start's, the oldest
+    dropped first (DAgger's aggregate, bounded; about 30 KB of memory per state at the default image size). 0: the
+    last rollout only. Each update makes as many cloning steps either way."""
 
 
 class LaneAuxConfig(_Section):

@@ -4,7 +4,9 @@ The regularizer (`imitation.epochs` > 0) labels every state of PPO's own rollout
 after each PPO update, fits the steering to those labels (the log std is left to PPO). It keeps PPO near the
 expert where its reward misleads it, as RAD adds an imitation loss to PPO for its 3DGS-trained policy; it alternates
 with PPO's epochs like PPG's auxiliary phase, so sb3-contrib's PPO update stays as it is. The paper's protocol (pure
-PPO, no expert) has it off.
+PPO, no expert) has it off. With `imitation.history_steps` it fits a bounded aggregate of past rollouts (and the warm
+start's data) instead of the last rollout alone, as DAgger fits all data gathered so far: a few episodes' mix of
+sides then no longer pulls the steering toward it.
 """
 
 from __future__ import annotations
@@ -113,38 +115,102 @@ class ExpertLabels(StepLabels):
         return self.values
 
 
-class ImitationRegularizer:
-    """After each PPO update: `epochs` passes of cloning over the rollout PPO just used (module docstring).
+class LabelHistory:
+    """The newest `capacity_steps` labelled states as sequence chunks, the oldest dropped first: a ring of chunks,
+    allocated at the first `add`.
 
-    :param model: the ChunkedRecurrentPPO. :param labels: the wrapper recording the rollout's expert labels.
-    :param epochs: passes per update. :param learning_rate: Adam's. :param seed: the minibatch order's.
+    :param capacity_steps: states kept (rounded down to whole chunks, at least one).
+    :param sequence_length: steps per chunk.
     """
 
-    def __init__(self, model: Any, labels: ExpertLabels, epochs: int, learning_rate: float, seed: int) -> None:
+    def __init__(self, capacity_steps: int, sequence_length: int) -> None:
+        self.capacity = max(1, capacity_steps // sequence_length)
+        self.sequence_length = sequence_length
+        self._ring: ChunkData | None = None
+        self._next = 0
+        self._filled = 0
+
+    def __len__(self) -> int:
+        return self._filled
+
+    def add(self, data: ChunkData) -> None:
+        """Keep `data`'s chunks (the last `capacity` of them when there are more), over the oldest kept."""
+        fields = ("obs", "starts", "labels", "h", "c")
+        if self._ring is None:
+            self._ring = ChunkData(
+                *(np.zeros((self.capacity, *getattr(data, f).shape[1:]), getattr(data, f).dtype) for f in fields)
+            )
+        count = min(len(data.obs), self.capacity)
+        slots = (self._next + np.arange(count)) % self.capacity
+        for f in fields:
+            getattr(self._ring, f)[slots] = getattr(data, f)[len(data.obs) - count :]
+        self._next = int((self._next + count) % self.capacity)
+        self._filled = min(self.capacity, self._filled + count)
+
+    def data(self) -> ChunkData:
+        """The chunks kept (views of the ring, in no particular order)."""
+        if self._ring is None:
+            raise ValueError("no labelled states kept yet")
+        n = self._filled
+        r = self._ring
+        return ChunkData(r.obs[:n], r.starts[:n], r.labels[:n], r.h[:n], r.c[:n])
+
+
+class ImitationRegularizer:
+    """After each PPO update: `epochs` passes' worth of cloning over the rollout PPO just used, or over the label
+    history when one is kept (module docstring).
+
+    :param model: the ChunkedRecurrentPPO. :param labels: the wrapper recording the rollout's expert labels.
+    :param epochs: passes per update (in rollouts' worth of minibatches). :param learning_rate: Adam's.
+    :param seed: the minibatch order's. :param history_steps: labelled states kept across updates (0: none).
+    """
+
+    def __init__(
+        self, model: Any, labels: ExpertLabels, epochs: int, learning_rate: float, seed: int, history_steps: int = 0
+    ) -> None:
         self.model, self.labels, self.epochs = model, labels, epochs
         self.optimizer = cloning_optimizer(model, learning_rate)
         self.rng = np.random.default_rng(seed)
+        self.history = LabelHistory(history_steps, model.sequence_length) if history_steps > 0 else None
+
+    def remember(self, data: ChunkData) -> None:
+        """Add labelled chunks gathered elsewhere (the warm start's) to the history; nothing when none is kept."""
+        if self.history is not None:
+            self.history.add(data)
 
     def __call__(self) -> None:
         start = time.perf_counter()
         self._fit()
         self.model.time_s["imitation"] = self.model.time_s.get("imitation", 0.0) + time.perf_counter() - start
 
-    def _fit(self) -> None:
+    def _rollout_chunks(self) -> ChunkData | None:
+        """The rollout PPO just used, labelled, as chunks; None when the labels do not cover it."""
         buffer, L = self.model.rollout_buffer, self.model.sequence_length
         if len(self.labels.labels) < buffer.buffer_size:
-            return  # fewer labels than rollout steps: not a rollout of this wrapper's env
+            return None  # fewer labels than rollout steps: not a rollout of this wrapper's env
         labels = np.stack(list(self.labels.labels)[-buffer.buffer_size :]).astype(np.float32)
         k, n = buffer.buffer_size // L, buffer.n_envs
-        data = ChunkData(
-            to_chunks(buffer.observations, L),
+        # The buffer keeps images as float32; the history keeps them in the observation space's dtype (uint8).
+        obs_dtype = self.model.observation_space.dtype
+        return ChunkData(
+            to_chunks(buffer.observations, L).astype(obs_dtype, copy=False),
             to_chunks(buffer.episode_starts, L),
             to_chunks(labels.reshape(buffer.buffer_size, n, -1), L),
             buffer.chunk_h.reshape(k * n, *buffer.chunk_h.shape[2:]),
             buffer.chunk_c.reshape(k * n, *buffer.chunk_c.shape[2:]),
         )
-        per_batch = max(1, self.model.batch_size // L)
-        batches = minibatches(k * n, self.epochs * max(1, k * n // per_batch), per_batch, self.rng)
+
+    def _fit(self) -> None:
+        rollout = self._rollout_chunks()
+        if rollout is None:
+            return
+        data = rollout
+        if self.history is not None:
+            self.history.add(rollout)
+            data = self.history.data()
+            self.model.logger.record("train/imitation_history_steps", len(self.history) * self.model.sequence_length)
+        per_batch = max(1, self.model.batch_size // self.model.sequence_length)
+        batches = minibatches(len(data.obs), self.epochs * max(1, len(rollout.obs) // per_batch), per_batch, self.rng)
         loss = fit_to_labels(self.model, data, batches, self.optimizer)
         self.model.logger.record("train/imitation_loss", loss)
         self.model.policy.set_training_mode(False)

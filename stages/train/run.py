@@ -355,8 +355,11 @@ def _add_update_phases(
 ) -> None:
     """The phases after each PPO update the config asks for: the imitation regularizer, the encoder's lane target."""
     if labelled is not None:
+        imitation = cfg.imitation
         model.update_hooks.append(
-            ImitationRegularizer(model, labelled, cfg.imitation.epochs, cfg.imitation.learning_rate, cfg.seed)
+            ImitationRegularizer(
+                model, labelled, imitation.epochs, imitation.learning_rate, cfg.seed, imitation.history_steps
+            )
         )
     if placed is not None:
         scales = (float(env_config["max_lateral_m"]), float(env_config["max_rotation_rad"]))
@@ -388,7 +391,9 @@ def _starting_state(
             report("warm start: restored from the run's warm-start checkpoint")
         else:
             start = time.perf_counter()
-            figures = warm_start(model, venv, cfg.warm_start, cfg.seed, report)
+            regularizers = [h for h in model.update_hooks if isinstance(h, ImitationRegularizer)]
+            keep = regularizers[0].remember if regularizers else None
+            figures = warm_start(model, venv, cfg.warm_start, cfg.seed, report, keep=keep)
             state.wall_s = time.perf_counter() - start
             torch_save_atomic(
                 warm_path, {"policy": model.policy.driving_net_state(), "wall_s": state.wall_s, **return_stats(venv)}

@@ -141,9 +141,15 @@ def _fit_value(
 
 
 def warm_start(
-    model: ChunkedRecurrentPPO, venv: VecEnv, cfg: WarmStartConfig, seed: int, report: Callable[[str], None] = print
+    model: ChunkedRecurrentPPO,
+    venv: VecEnv,
+    cfg: WarmStartConfig,
+    seed: int,
+    report: Callable[[str], None] = print,
+    keep: Callable[[ChunkData], None] | None = None,
 ) -> dict[str, float]:
-    """DAgger from the expert, then the value fit; returns figures for the log (losses, expert share per round)."""
+    """DAgger from the expert, then the value fit; returns figures for the log (losses, expert share per round).
+    `keep`, when given, receives all the labelled chunks gathered (for the imitation regularizer's history)."""
     rng = np.random.default_rng(seed)
     policy = model.policy
     layers, hidden = policy.lstm_actor.num_layers, policy.lstm_actor.hidden_size
@@ -170,6 +176,8 @@ def warm_start(
             f"warm start round {round_}: expert drove {share:.0%} of {len(new.obs) * model.sequence_length} "
             f"steps; cloning loss {loss:.3f} over {len(data.obs) * model.sequence_length} labelled steps"
         )
+    if keep is not None and data is not None:
+        keep(data)
     value_loss = _fit_value(model, venv, cfg.value_fit_steps // n, cfg.value_fit_epochs, cfg.learning_rate, carry)
     figures["warm_start_value_loss"] = value_loss
     report(f"warm start: value head fitted to the cloned policy's returns (loss {value_loss:.3f})")
