@@ -36,6 +36,8 @@ so an episode's repainted car is not packed again), and the contact shadows of a
 
 from __future__ import annotations
 
+import hashlib
+import inspect
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
@@ -50,6 +52,7 @@ from drivesim.sim import raster_kernel
 from drivesim.sim.camera_look import CameraLook, apply_camera_look_, look_of_frames
 from drivesim.sim.cpu_threads import governed_threads
 from drivesim.sim.fill import FillStats, fill_wedges_from_neighbours, inpaint_holes, pull_push_fill, widen_frame
+from drivesim.sim.frame_cache import FrameLayout, PreparedFrames, open_prepared_frames
 from drivesim.sim.geometry import invert, scale_intrinsics
 from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer
 from drivesim.sim.raster import PackedScene, Rasterizer, RenderResult, composite, material_row, merge_scenes
@@ -63,7 +66,7 @@ __all__ = [
 ]  # fmt: skip
 
 TIMING_KEYS = ("warp", "raster", "composite", "lighting", "harmonize")
-_FRAME_CACHE_SIZE = 2048  # recorded frames kept as tensors (about 0.1 MB each at the default view)
+_FRAME_CACHE_SIZE = 2048  # recorded frames kept as tensors (about 0.17 MB each at the default view)
 _NARROW_CACHE_SIZE = 8  # frames kept before widening (a frame's widening reads the few around it)
 _MODEL_CACHE_SIZE = 256  # packed vehicle models kept (about 0.5 MB each; every episode's car is a new repaint)
 _PAINT_CACHE_SIZE = 65536  # the batched path's (geometry slot, paint) of models seen lately (a few hundred bytes each)
@@ -264,8 +267,12 @@ class ViewSynthesizer:
                 world.width_px // self.source_factor + 2 * self.margin_px,
             )
             self._kernel_warp = _view_kernel_warp(self.K_src, src_size, self.K_view, config)
+        self._prepared: PreparedFrames | None = self._open_prepared_frames()
+        """Every frame's prepared form stored beside the world (`frame_cache.py`): a frame the memory cache does not
+        hold is read from it instead of prepared again; None for an in-memory world or a folder that cannot be
+        written."""
         if not self.batched and world.frame_count <= _FRAME_CACHE_SIZE:
-            # Every frame prepared now (about 0.3 ms each), not at its first view: an episode meets a new frame at
+            # Every frame taken into the memory cache now, not at its first view: an episode meets a new frame at
             # nearly every step, so lazily each view paid it until all frames had been seen (10 % of a car-drawn
             # overtake step, measured); the cache would hold them all in the end anyway.
             for index in range(world.frame_count):
@@ -279,12 +286,8 @@ class ViewSynthesizer:
         if entry is not None:
             self._frames.move_to_end(index)
             return entry
-        rgb_np, depth_np, mean_rgb = self._frame_arrays(index)
-        rgb = torch.from_numpy(np.array(rgb_np, copy=True)).to(self.device)
-        depth = torch.from_numpy(np.array(depth_np, dtype=np.float32, copy=True)).to(self.device)
-        entry = (rgb, depth, mean_rgb)
-        finite = depth_np[(depth_np > 0) & np.isfinite(depth_np)]
-        self._min_depth[index] = float(finite.min()) if finite.size else float("inf")
+        rgb_np, depth_np, mean_rgb, self._min_depth[index] = self._prepared_arrays(index)
+        entry = (torch.from_numpy(rgb_np).to(self.device), torch.from_numpy(depth_np).to(self.device), mean_rgb)
         self._frames[index] = entry
         if len(self._frames) > _FRAME_CACHE_SIZE:
             self._frames.popitem(last=False)
@@ -294,11 +297,48 @@ class ViewSynthesizer:
         """Every recorded frame as `_frame` prepares it, stacked on the device (N, H, W, 3) uint8 and (N, H, W)
         float32, and their mean colours (N, 3): made once, for the batched path."""
         if self._stack is None:
-            arrays = [self._frame_arrays(i) for i in range(self.world.frame_count)]
+            arrays = [self._prepared_arrays(i) for i in range(self.world.frame_count)]
             rgb = torch.from_numpy(np.stack([a[0] for a in arrays])).to(self.device)
             depth = torch.from_numpy(np.stack([a[1] for a in arrays]).astype(np.float32)).to(self.device)
             self._stack = (rgb, depth, np.stack([a[2] for a in arrays]))
         return self._stack
+
+    def _prepared_arrays(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Recorded frame `index` as `_frame_arrays` prepares it, as new arrays of this process (rgb uint8, depth
+        float32, mean colour) with its smallest finite depth (m): read from the prepared frames beside the world
+        when there are, else prepared now."""
+        if self._prepared is not None:
+            return self._prepared.read(index)
+        rgb_np, depth_np, mean_rgb = self._frame_arrays(index)
+        depth_np = np.array(depth_np, dtype=np.float32, copy=True)
+        finite = depth_np[(depth_np > 0) & np.isfinite(depth_np)]
+        return np.array(rgb_np, copy=True), depth_np, mean_rgb, float(finite.min()) if finite.size else float("inf")
+
+    def _open_prepared_frames(self) -> PreparedFrames | None:
+        """The prepared frames of this view's settings beside the world, built now if no process has built them
+        (`frame_cache.open_prepared_frames`: keyed by what shapes a prepared frame, so a stale one is never read)."""
+        world, f = self.world, self.source_factor
+        code = "".join(inspect.getsource(fn) for fn in (widen_frame, *_PREPARING_METHODS))
+        recipe = {
+            "source_factor": f, "margin_px": self.margin_px, "margin_frames": list(self.config.margin_frames),
+            "K_frame": self._K_frame.tolist(), "code_sha256": hashlib.sha256(code.encode()).hexdigest(),
+        }  # fmt: skip
+        digest = hashlib.sha256()
+        for array in (world.frames[0], world.frames[-1], world.depth_m[0], world.depth_m[-1], self._T_world_camera):
+            digest.update(np.ascontiguousarray(array).tobytes())
+        sample = {"frame_count": world.frame_count, "size_px": [world.width_px, world.height_px]}
+        sample["arrays_sha256"] = digest.hexdigest()
+        depth_dtype = np.dtype(getattr(world.depth_m, "dtype", np.float32))
+        layout = FrameLayout(
+            world.height_px // f, world.width_px // f, self.margin_px,
+            "float16" if depth_dtype == np.float16 else "float32",
+        )  # fmt: skip
+
+        def prepare(index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            rgb, depth, mean_rgb = self._frame_arrays(index)
+            return rgb, np.asarray(depth, dtype=np.float32), mean_rgb
+
+        return open_prepared_frames(world.root, world.frame_count, recipe, sample, layout, prepare)
 
     def _frame_arrays(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Recorded frame `index` as the warp reads it: at the source resolution, widened by `margin_px` on each side
@@ -786,6 +826,10 @@ class ViewSynthesizer:
             size_px = fx * max(float(car.model.length_m), float(car.model.height_m)) / max(float(T[2, 3]), 0.1)
             placed.append((car.model, T, size_px >= self.config.full_detail_min_px))
         return placed
+
+
+# The code that shapes a prepared frame: its source text is part of the prepared frames' key (`frame_cache.py`).
+_PREPARING_METHODS = (ViewSynthesizer._frame_arrays, ViewSynthesizer._narrow_arrays, ViewSynthesizer._source_arrays)
 
 
 def frames_are_monochrome(frames: np.ndarray) -> bool:

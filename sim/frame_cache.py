@@ -1,0 +1,262 @@
+"""The view's prepared source frames stored once beside the world, so that a view never prepares a frame again.
+
+The CPU view warps each recorded frame from a prepared form (`ViewSynthesizer._frame_arrays`): reduced to the warp's
+source resolution and widened left and right from neighbouring frames. Preparing a frame costs about a millisecond,
+several times an env step; a world of more frames than the view keeps in memory would pay it at nearly every step.
+This module writes every frame's prepared form to a file once and reads it back in one `os.preadv` (tens of
+microseconds), through the page cache that all env processes on the machine share; no process maps or keeps the file.
+
+Files, in `<world>/view_cache/<key>/` (key: `cache_key`):
+    frames.bin   per frame, one record of `FrameLayout.record_bytes` bytes, sections 8-byte aligned:
+                 rgb       uint8   (H, W + 2m, 3)  the widened frame
+                 centre    float16 or float32 (H, W)   its depth inside the recorded frame (float16 only when every
+                                                       value is exactly a float16, as a float16 world's depth is)
+                 margins   float32 (2, H, m)  its depth in the left, then the right margin (warped neighbours' depth)
+    stats.npy    float64 (N, 4): the frame's own mean colour in [0, 1] (3) and its smallest finite depth (m)
+    layout.json  H, W, m, the centre's dtype, the frame count and what the key was made from
+The folder appears by one rename once complete, so a reader never sees a half-written cache; builders of one key
+take turns on `<key>.lock`. The reader returns the arrays the view prepares itself, to the bit (tested).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import logging
+import os
+import shutil
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["CACHE_DIR_NAME", "FrameLayout", "PreparedFrames", "cache_key", "open_prepared_frames"]
+
+CACHE_DIR_NAME = "view_cache"
+# Raised whenever what a record holds or how a frame is prepared changes, so that older caches are never read.
+FORMAT_VERSION = 1
+_ALIGN_BYTES = 8
+_WRITE_CHUNK_FRAMES = 64  # records written per write call while building
+_LOG = logging.getLogger(__name__)
+
+Prepare = Callable[[int], tuple[np.ndarray, np.ndarray, np.ndarray]]
+"""A frame index -> (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float32, mean colour (3,)), as the view prepares it."""
+
+
+def _aligned(n_bytes: int) -> int:
+    return -(-n_bytes // _ALIGN_BYTES) * _ALIGN_BYTES
+
+
+@dataclass(frozen=True)
+class FrameLayout:
+    """The shape of one prepared frame and where its parts lie in its record.
+
+    :param height_px: H. :param width_px: W, the recorded frame at the source resolution. :param margin_px: m, added
+    on each side. :param centre_dtype: "float16" or "float32", the depth inside the recorded frame.
+    """
+
+    height_px: int
+    width_px: int
+    margin_px: int
+    centre_dtype: str
+
+    @property
+    def wide_width_px(self) -> int:
+        """W + 2m."""
+        return self.width_px + 2 * self.margin_px
+
+    @property
+    def rgb_bytes(self) -> int:
+        """Bytes of the widened rgb."""
+        return self.height_px * self.wide_width_px * 3
+
+    @property
+    def centre_offset(self) -> int:
+        """Offset of the centre depth in a record."""
+        return _aligned(self.rgb_bytes)
+
+    @property
+    def margins_offset(self) -> int:
+        """Offset of the margins' depth in a record."""
+        return self.centre_offset + _aligned(self.height_px * self.width_px * np.dtype(self.centre_dtype).itemsize)
+
+    @property
+    def record_bytes(self) -> int:
+        """Bytes per frame in frames.bin."""
+        return self.margins_offset + _aligned(2 * self.height_px * self.margin_px * 4)
+
+    def pack(self, rgb: np.ndarray, depth_m: np.ndarray, out: np.ndarray) -> bool:
+        """Write one prepared frame into the record `out` (record_bytes,) uint8; False when the centre depth does not
+        fit `centre_dtype` exactly (then nothing is promised about `out`)."""
+        W, m = self.width_px, self.margin_px
+        out[: self.rgb_bytes] = np.ascontiguousarray(rgb, dtype=np.uint8).reshape(-1)
+        centre = depth_m[:, m : m + W]
+        packed = centre.astype(self.centre_dtype)
+        if not np.array_equal(packed.astype(np.float32), centre, equal_nan=True):
+            return False
+        out[self.centre_offset : self.centre_offset + packed.nbytes] = packed.reshape(-1).view(np.uint8)
+        margins = np.stack([depth_m[:, :m], depth_m[:, m + W :]]).astype(np.float32)
+        out[self.margins_offset : self.margins_offset + margins.nbytes] = margins.reshape(-1).view(np.uint8)
+        return True
+
+    def unpack(self, record: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float32) arrays of a record; rgb is a view of it."""
+        H, W, m = self.height_px, self.width_px, self.margin_px
+        rgb = record[: self.rgb_bytes].reshape(H, self.wide_width_px, 3)
+        centre_bytes = H * W * np.dtype(self.centre_dtype).itemsize
+        centre = record[self.centre_offset : self.centre_offset + centre_bytes].view(self.centre_dtype).reshape(H, W)
+        margins = record[self.margins_offset : self.margins_offset + 2 * H * m * 4].view(np.float32).reshape(2, H, m)
+        depth = np.empty((H, self.wide_width_px), dtype=np.float32)
+        depth[:, m : m + W] = centre
+        depth[:, :m] = margins[0]
+        depth[:, m + W :] = margins[1]
+        return rgb, depth
+
+
+class PreparedFrames:
+    """A built cache folder opened for reading (module docstring): `read(i)` gives frame i as the view prepares it."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = Path(folder)
+        info = json.loads((self.folder / "layout.json").read_text())
+        self.layout = FrameLayout(**info["layout"])
+        self.frame_count = int(info["frame_count"])
+        self.stats = np.load(self.folder / "stats.npy")
+        self._fd = os.open(self.folder / "frames.bin", os.O_RDONLY)
+
+    def read(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Frame `index`: (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float32, mean colour (3,) in [0, 1], smallest
+        finite depth in m), new arrays of this process."""
+        if not 0 <= index < self.frame_count:
+            raise IndexError(f"frame {index} is outside the cache's {self.frame_count} frames")
+        size = self.layout.record_bytes
+        record = np.empty(size, dtype=np.uint8)
+        got = os.preadv(self._fd, [record], index * size)
+        if got != size:
+            raise OSError(f"{self.folder / 'frames.bin'}: frame {index} cut short ({got} of {size} bytes)")
+        rgb, depth = self.layout.unpack(record)
+        stats = self.stats[index]
+        return rgb, depth, stats[:3].copy(), float(stats[3])
+
+    def close(self) -> None:
+        """Close the file (reads fail afterwards)."""
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __del__(self) -> None:
+        self.close()
+
+    @property
+    def disk_bytes(self) -> int:
+        """Bytes of the cache's files."""
+        return sum(p.stat().st_size for p in self.folder.iterdir() if p.is_file())
+
+
+def _world_fingerprint(root: Path, sample: dict[str, Any]) -> list:
+    """What identifies a world's content: name, size and mtime of every file of its folder (not the cache), and the
+    `sample` the caller reads from the loaded world's arrays (so an in-memory world differing from its folder's files
+    gets another key)."""
+    files = []
+    for entry in sorted(os.scandir(root), key=lambda e: e.name):
+        if entry.is_file() and entry.name != CACHE_DIR_NAME:
+            info = entry.stat()
+            files.append([entry.name, info.st_size, info.st_mtime_ns])
+    return [files, sample]
+
+
+def cache_key(root: Path, recipe: dict[str, Any], sample: dict[str, Any]) -> str:
+    """The folder name of a cache: a hash of the format version, the view settings that shape a prepared frame
+    (`recipe`: source factor, margin, margin frames, intrinsics, the preparing code), and the world's identity
+    (`_world_fingerprint`). Any change of these gives a new key, so a stale cache is never read."""
+    identity = {"format": FORMAT_VERSION, "recipe": recipe, "world": _world_fingerprint(root, sample)}
+    text = json.dumps(identity, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+def open_prepared_frames(
+    root: Path,
+    frame_count: int,
+    recipe: dict[str, Any],
+    sample: dict[str, Any],
+    layout: FrameLayout,
+    prepare: Prepare,
+) -> PreparedFrames | None:
+    """The prepared frames of the world in folder `root` (module docstring), built now by `prepare` when no process
+    has built them for this key yet; None where the folder holds no world.json (an in-memory world) or cannot be
+    written (the view then prepares frames itself, as without a cache)."""
+    root = Path(root)
+    if not (root / "world.json").is_file():
+        return None
+    key = cache_key(root, recipe, sample)
+    cache_dir = root / CACHE_DIR_NAME
+    folder = cache_dir / key
+    if (folder / "layout.json").is_file():
+        return PreparedFrames(folder)
+    try:
+        cache_dir.mkdir(exist_ok=True)
+        lock = open(cache_dir / f"{key}.lock", "a+b")  # noqa: SIM115 (held until the build ends)
+    except OSError as e:
+        _LOG.info("view cache: %s cannot be written (%s); frames are prepared in memory", cache_dir, e)
+        return None
+    with lock:
+        fcntl.flock(lock.fileno(), fcntl.LOCK_EX)  # another process building this key: wait for it, then read
+        if not (folder / "layout.json").is_file():
+            for stale in cache_dir.glob(f".tmp-{key}-*"):  # left by a builder that died: only the lock holder builds
+                shutil.rmtree(stale, ignore_errors=True)
+            try:
+                _build(cache_dir, key, frame_count, {"recipe": recipe, "sample": sample}, layout, prepare)
+            except OSError as e:  # a full or read-only disk: nothing half-written stays, the view prepares in memory
+                _LOG.info("view cache: could not be written in %s (%s); frames are prepared in memory", cache_dir, e)
+                return None
+    return PreparedFrames(folder)
+
+
+def _build(cache_dir: Path, key: str, frame_count: int, made_from: dict, layout: FrameLayout, prepare: Prepare) -> None:
+    """Write every frame's prepared form into a temporary folder, then rename it to `cache_dir / key`. A centre depth
+    that is not exactly float16 makes the build start over with float32."""
+    start = time.perf_counter()
+    tmp = cache_dir / f".tmp-{key}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    try:
+        while not _write_frames(tmp, frame_count, layout, prepare):
+            if layout.centre_dtype == "float32":
+                raise ValueError("a prepared frame's depth is not float32")
+            layout = FrameLayout(layout.height_px, layout.width_px, layout.margin_px, "float32")
+        info = {"layout": asdict(layout), "frame_count": frame_count, "format": FORMAT_VERSION, "made_from": made_from}
+        (tmp / "layout.json").write_text(json.dumps(info, default=str))
+        os.rename(tmp, cache_dir / key)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    _LOG.info(
+        "view cache: %d frames prepared into %s in %.1f s (%d bytes per frame)",
+        frame_count, cache_dir / key, time.perf_counter() - start, layout.record_bytes,
+    )  # fmt: skip
+
+
+def _write_frames(folder: Path, frame_count: int, layout: FrameLayout, prepare: Prepare) -> bool:
+    """frames.bin and stats.npy of every frame in `folder`, in chunks (memory flat in the drive's length); False
+    (and nothing kept) when a centre depth does not fit the layout's dtype."""
+    stats = np.empty((frame_count, 4), dtype=np.float64)
+    chunk = np.zeros((_WRITE_CHUNK_FRAMES, layout.record_bytes), dtype=np.uint8)
+    with open(folder / "frames.bin", "wb") as f:
+        for first in range(0, frame_count, _WRITE_CHUNK_FRAMES):
+            count = min(_WRITE_CHUNK_FRAMES, frame_count - first)
+            for k in range(count):
+                rgb, depth, mean_rgb = prepare(first + k)
+                if not layout.pack(rgb, depth, chunk[k]):
+                    return False
+                finite = depth[(depth > 0) & np.isfinite(depth)]
+                stats[first + k, :3] = mean_rgb
+                stats[first + k, 3] = float(finite.min()) if finite.size else float("inf")
+            f.write(chunk[:count].tobytes())
+        f.flush()
+        os.fsync(f.fileno())
+    np.save(folder / "stats.npy", stats)
+    return True
