@@ -143,6 +143,7 @@ def markdown(result: dict[str, Any]) -> list[str]:
         f"{result['budget_scale']} ({'the preset as shipped' if result['budget_scale'] >= 1 else 'NOT the user run'}); "
         f"{result['episodes']} episodes per row. `python benchmarks/bench_table1.py` redoes it.",
         "",
+        *_measured_lines(result),
         f"| drive | row | episodes | {heads} |",
         "|---|---|---:|" + "---:|" * len(RESULT_COLUMNS),
     ]
@@ -193,6 +194,30 @@ def markdown(result: dict[str, Any]) -> list[str]:
     return lines + [""]
 
 
+def merge_results(results: list[dict[str, Any]]) -> dict[str, Any]:
+    """Several runs' table1.json in one: each drive from the last result that has it, with when, where and on which
+    code it was measured (its own entry, else its result's); the newest result's header."""
+    drives: dict[str, dict[str, Any]] = {}
+    for result in results:
+        for drive in result["drives"]:
+            own = drive.get("measured") or {**result["measured"], "commit": result.get("commit", "unknown")}
+            drives[drive["drive"]] = {**drive, "measured": own}
+    newest = max(results, key=lambda r: r["measured"]["date_utc"])
+    return {**newest, "drives": [drives[name] for name in DRIVES if name in drives]}
+
+
+def _measured_lines(result: dict[str, Any]) -> list[str]:
+    """One line per drive saying when, at which load and on which code its row was measured."""
+    lines = []
+    for drive in result["drives"]:
+        m = drive.get("measured")
+        if m:
+            loads = m.get("load_average_1_5_15_min")
+            load = f"load {loads[0]} at the start" if loads else m.get("load_note", "load not recorded")
+            lines.append(f"- {drive['drive']}: {m['date_utc']} UTC, {load}, code {m.get('commit')}")
+    return ["Each drive's chain started:", "", *lines, ""] if lines else []
+
+
 def _git_commit() -> str:
     done = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
     return done.stdout.strip() or "unknown"
@@ -208,7 +233,19 @@ def main() -> None:
     parser.add_argument("--town", type=int, default=UNSEEN_TOWN, help="unseen town seed (-1: no town column)")
     parser.add_argument("--work", type=Path, default=None, help="where the workspaces go (default: a temporary one)")
     parser.add_argument("--out-dir", type=Path, default=REPO / "benchmarks" / "results")
+    parser.add_argument(
+        "--merge",
+        type=Path,
+        nargs="+",
+        default=None,
+        help="only combine these table1.json files (a later file's drive wins)",
+    )
     args = parser.parse_args()
+    if args.merge:
+        merged = merge_results([json.loads(path.read_text()) for path in args.merge])
+        write_json(args.out_dir / "table1.json", merged)
+        write_markdown(args.out_dir / "table1.md", markdown(merged))
+        return
     names = [n.strip() for n in args.drives.split(",") if n.strip()]
     unknown = [n for n in names if n not in DRIVES]
     if unknown:
@@ -229,7 +266,8 @@ def main() -> None:
             result["drives"].append({"drive": name, "chain_wall_s": 0.0, "error": f"no such recording {recording}"})
             continue
         print(f"{name}: drivesim run ...", flush=True)
-        entry = run_chain(name, recording, work / name, args.budget_scale)
+        measured = {**measured_now(), "commit": result["commit"]}
+        entry = {**run_chain(name, recording, work / name, args.budget_scale), "measured": measured}
         if "error" not in entry and entry.get("run"):
             entry["rows"] = {
                 row: evaluate(work / name, policy, f"table1-{row.replace(' ', '-')}", args.episodes)
