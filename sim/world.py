@@ -4,13 +4,15 @@ The world is what the simulator reads at run time: the recorded frames and their
 the camera model, and the reference path (the recorded trajectory is the lane centre, DESIGN §3). Frames follow
 `sim/geometry.py`: world = local ENU, vehicle x forward / y left / z up, camera optical x right / y down / z forward.
 
-Files (N = frame count, h x w = simulation resolution; arrays are .npy opened with mmap_mode="r"):
-    frames.npy      uint8   (N, h, w, 3)  RGB frames resized with cv2.INTER_AREA
-    depth_m.npy     float16 (N, h, w)     metric depth along the optical axis; min-pooled (or nearest) from the
-                                          preprocessed depth so thin near objects survive; sky / no estimate
-                                          = world.json far_depth_m. float16 keeps 11 significant bits (a
-                                          relative error under 0.05 %, 5 mm at 10 m); worlds written with
-                                          float32 depth load as well
+Files (N = frame count, h x w = simulation resolution). Frames and depth are image stacks (`sim/image_stack.py`:
+one compressed image per frame, decoded one frame at a time by `world.frames[i]` / `world.depth_m[i]`); worlds
+written by earlier versions as frames.npy / depth_m.npy (opened with mmap_mode="r") load as well:
+    frames.imgs     uint8   (N, h, w, 3)  RGB frames resized with cv2.INTER_AREA, JPEG (quality 95, 4:4:4) or PNG
+    depth_m.imgs    float16 (N, h, w)     metric depth along the optical axis, lossless (the float16 bits in a
+                                          16-bit PNG); min-pooled (or nearest) from the preprocessed depth so thin
+                                          near objects survive; sky / no estimate = world.json far_depth_m.
+                                          float16 keeps 11 significant bits (a relative error under 0.05 %, 5 mm
+                                          at 10 m); worlds written with float32 depth (.npy) load as well
     camera.json     {"width_px": w, "height_px": h, "K": 3x3 at (w, h), "T_vehicle_camera": 4x4,
                      "camera_height_m": float | null, "source_width_px", "source_height_px"}
     path.npz        per frame, float64 unless noted:
@@ -38,6 +40,7 @@ from scipy.spatial import cKDTree
 
 from drivesim.sim import association_kernel, world_checks
 from drivesim.sim.geometry import wrap_angle
+from drivesim.sim.image_stack import ImageStack, open_frames, stack_path, stored_file
 
 WORLD_FORMAT_VERSION = 1
 # The dtype build-world stores depth in, and every dtype the loader accepts (the simulator reads depth as float32).
@@ -76,12 +79,23 @@ class Association(NamedTuple):
     q_rot_rad: float
 
 
-def _load_npy(path: Path) -> np.ndarray:
-    """A memory-mapped .npy array; a damaged file is a WorldError naming it."""
+def _stored_file(root: Path, stem: str) -> Path:
+    """The file of the per-frame array `stem`: its image stack, or the .npy of a world built by an earlier version."""
+    path = stored_file(root, stem)
+    if path is None:
+        raise FileNotFoundError(
+            f"{stack_path(root, stem)} or {stem}.npy: missing; is {root} a world built by `drivesim build-world`?"
+        )
+    return path
+
+
+def _load_frames(path: Path) -> np.ndarray | ImageStack:
+    """The per-frame array in `path` (an image stack, or a memory-mapped .npy); a damaged file is a WorldError
+    naming it."""
     try:
-        return np.load(path, mmap_mode="r")
+        return open_frames(path)
     except (OSError, ValueError, EOFError) as e:
-        raise world_checks.WorldError(f"{path}: not a readable .npy array ({e}); rebuild the world") from e
+        raise world_checks.WorldError(f"{path}: not a readable frame array ({e}); rebuild the world") from e
 
 
 def _load_path(path: Path) -> dict[str, np.ndarray]:
@@ -91,6 +105,13 @@ def _load_path(path: Path) -> dict[str, np.ndarray]:
             return {k: np.asarray(data[k]) for k in data.files}
     except (OSError, ValueError, EOFError, KeyError) as e:
         raise world_checks.WorldError(f"{path}: not a readable .npz archive ({e}); rebuild the world") from e
+
+
+def _file_of(array: np.ndarray | ImageStack, root: Path, stem: str) -> Path:
+    """The file a world's per-frame array was read from (for messages)."""
+    if isinstance(array, ImageStack):
+        return array.path
+    return stored_file(root, stem) or stack_path(root, stem)
 
 
 def relative_pose(
@@ -121,8 +142,8 @@ class World:
     """A loaded world: memory-mapped frames and depth, camera model, reference path and a KD-tree over frame poses.
 
     :param root: the world folder.
-    :param frames: (N, h, w, 3) uint8 RGB frames, memory-mapped.
-    :param depth_m: (N, h, w) float16 (or float32) depth in metres, memory-mapped.
+    :param frames: (N, h, w, 3) uint8 RGB frames; `frames[i]` decodes frame i (a memmap for .npy worlds).
+    :param depth_m: (N, h, w) float16 (or float32) depth in metres; `depth_m[i]` as frames.
     :param K: 3x3 intrinsics at the simulation resolution.
     :param T_vehicle_camera: 4x4 camera optical frame -> vehicle frame.
     :param width_px: simulation image width.
@@ -135,8 +156,8 @@ class World:
     """
 
     root: Path
-    frames: np.ndarray
-    depth_m: np.ndarray
+    frames: np.ndarray | ImageStack
+    depth_m: np.ndarray | ImageStack
     K: np.ndarray
     T_vehicle_camera: np.ndarray
     width_px: int
@@ -157,7 +178,8 @@ class World:
             text names the file.
         """
         root = Path(root)
-        for name in ("frames.npy", "depth_m.npy", "camera.json", "path.npz", "world.json"):
+        frames_file, depth_file = _stored_file(root, "frames"), _stored_file(root, "depth_m")
+        for name in ("camera.json", "path.npz", "world.json"):
             if not (root / name).is_file():
                 raise FileNotFoundError(f"{root / name}: missing; is {root} a world built by `drivesim build-world`?")
         info = world_checks.read_json_object(root / "world.json", ("format", "road_width_m", "lane_width_m"))
@@ -169,8 +191,8 @@ class World:
         camera = world_checks.read_json_object(camera_json, ("K", "T_vehicle_camera", "width_px", "height_px"))
         world = cls(
             root=root,
-            frames=_load_npy(root / "frames.npy"),
-            depth_m=_load_npy(root / "depth_m.npy"),
+            frames=_load_frames(frames_file),
+            depth_m=_load_frames(depth_file),
             K=world_checks.intrinsics(camera_json, camera["K"]),
             T_vehicle_camera=world_checks.rigid_transform(camera_json, "T_vehicle_camera", camera["T_vehicle_camera"]),
             width_px=world_checks.image_size(camera_json, "width_px", camera["width_px"]),
@@ -193,19 +215,18 @@ class World:
             raise world_checks.WorldError(f"{self.root}: a world needs at least 2 frames, this one has {n}")
         if self.frames.shape != (n, self.height_px, self.width_px, 3) or self.frames.dtype != np.uint8:
             raise world_checks.WorldError(
-                f"{self.root / 'frames.npy'}: {self.frames.dtype} {self.frames.shape} does not match"
+                f"{_file_of(self.frames, self.root, 'frames')}: {self.frames.dtype} {self.frames.shape} does not match"
             )
         if self.depth_m.shape != (n, self.height_px, self.width_px) or self.depth_m.dtype not in DEPTH_DTYPES:
-            raise world_checks.WorldError(
-                f"{self.root / 'depth_m.npy'}: {self.depth_m.dtype} {self.depth_m.shape} does not match"
-            )
+            where = _file_of(self.depth_m, self.root, "depth_m")
+            raise world_checks.WorldError(f"{where}: {self.depth_m.dtype} {self.depth_m.shape} does not match")
         for key in PATH_ARRAYS:
             if key not in self.path or len(self.path[key]) != n:
                 raise world_checks.WorldError(
                     f"{self.root / 'path.npz'}: array {key!r} is missing or not of length {n}"
                 )
         world_checks.check_path_values(self.root / "path.npz", self.path, PATH_ARRAYS_FLOAT)
-        world_checks.check_depth(self.root / "depth_m.npy", self.depth_m)
+        world_checks.check_depth(_file_of(self.depth_m, self.root, "depth_m"), self.depth_m)
 
     @property
     def frame_count(self) -> int:

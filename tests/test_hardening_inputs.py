@@ -20,6 +20,7 @@ from cli_helpers import run_main
 from test_preprocess_stage_fakes import install_fake_poses, make_trace
 
 from drivesim.pipeline.workspace import Workspace
+from drivesim.sim.image_stack import ImageStack, ImageStackWriter
 from drivesim.stages.preprocess import stage as preprocess_stage
 from drivesim.stages.preprocess.config import PreprocessConfig
 
@@ -42,16 +43,26 @@ def _disk_full(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(os, "posix_fallocate", full)
 
 
+def _disk_full_on_write(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A plain file write fails for lack of space: what the image stacks (written with file writes) meet."""
+
+    def full(self: ImageStackWriter, frame: np.ndarray) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(ImageStackWriter, "write", full)
+
+
 @pytest.mark.parametrize("stage", ["preprocess", "build-world"])
 def test_full_disk_under_a_memmap_is_one_line_and_keeps_nothing(tmp_path, monkeypatch, capsys, stage) -> None:
-    """The depth and frame memmaps of preprocess and build-world reserve their space first: a full disk is the
-    one-line disk-full error (exit 1), not a SIGBUS, and no temporary folder or artifact is left."""
+    """Preprocess's depth memmap reserves its space first, and build-world's image stacks are written with plain
+    file writes: a full disk is the one-line disk-full error (exit 1), not a SIGBUS, and no temporary folder or
+    artifact is left."""
     ws = Workspace(tmp_path / "ws")
     make_trace(ws)
     install_fake_poses(monkeypatch)
     if stage == "build-world":
         preprocess_stage.run_preprocess(ws, PreprocessConfig.model_validate({"depth": {"method": "plane"}}))
-    _disk_full(monkeypatch)
+    _disk_full(monkeypatch) if stage == "preprocess" else _disk_full_on_write(monkeypatch)
     args = [stage, "--set", "depth.method=plane"] if stage == "preprocess" else [stage]
     code, err = run_main(ws.root, *args, monkeypatch=monkeypatch, capsys=capsys)
     lines = _error_lines(err)
@@ -147,9 +158,11 @@ def _set_camera(key: str, value) -> callable:
 
 def _depth(fill) -> callable:
     def apply(world: Path) -> None:
-        depth = np.load(world / "depth_m.npy")
+        depth = np.asarray(ImageStack(world / "depth_m.imgs"))
         fill(depth)
-        np.save(world / "depth_m.npy", depth)
+        writer = ImageStackWriter(world / "depth_m.imgs", depth.shape[1:], depth.dtype, "png")
+        writer.write_rows(depth)
+        writer.close()
 
     return apply
 
@@ -185,7 +198,7 @@ DAMAGED_WORLDS = {
     "K a string": (_set_camera("K", "eye"), "camera.json: K is not"),
     "T not rigid": (_set_camera("T_vehicle_camera", np.diag([2.0, 1, 1, 1]).tolist()), "not a rigid transform"),
     "width a float": (_set_camera("width_px", 48.5), "width_px is 48.5"),
-    "all-NaN depth": (_depth(lambda d: d.fill(np.nan)), "depth_m.npy: frame 0 has NaN depth"),
+    "all-NaN depth": (_depth(lambda d: d.fill(np.nan)), "depth_m.imgs: frame 0 has NaN depth"),
     "negative depth": (_depth(lambda d: d.__setitem__((5, 3, 3), -4.0)), "frame 5 has negative depth"),
     "world.json a list": (_edit_json("world.json", lambda w: [w]), "world.json: holds a JSON list, not an object"),
     "world.json without a key": (
@@ -196,7 +209,7 @@ DAMAGED_WORLDS = {
     "deeply nested world.json": (_nested("world.json"), "world.json: nested more than 32 levels deep"),
     "deeply nested camera.json": (_nested("camera.json"), "camera.json: nested more than"),
     "path NaN": (_path_nan, "path.npz: yaw_rad holds non-finite"),
-    "frames.npy garbage": (lambda w: (w / "frames.npy").write_bytes(b"\x00" * 100), "frames.npy: not a readable"),
+    "frames.imgs garbage": (lambda w: (w / "frames.imgs").write_bytes(b"\x00" * 100), "frames.imgs: not a readable"),
 }
 
 

@@ -51,7 +51,7 @@ def test_ingest_writes_the_trace_then_is_fresh(tmp_path: Path, monkeypatch, caps
     assert summary["frame_count"] == 5 and summary["width_px"] == 64 and summary["height_px"] == 40
     assert summary["duration_s"] == pytest.approx(0.4)
     assert summary["sensors"]["gps"] == {"topic": "/gps/fix", "type": "sensor_msgs/msg/NavSatFix", "message_count": 5}
-    assert "frames.npy" in manifest["outputs"]
+    assert "frames.imgs" in manifest["outputs"]
 
     code, out, _ = _run(monkeypatch, capsys, ws, "ingest", str(rec))
     assert code == 0 and "nothing to do" in out
@@ -125,8 +125,8 @@ def test_ctrl_c_leaves_no_artifact_and_the_next_run_succeeds(tmp_path: Path) -> 
     # wait until frames are being written into the temporary artifact, then interrupt
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
-        tmp = [p for p in ws.glob(".tmp-trace-*") if (p / "frames.npy").is_file()] if ws.is_dir() else []
-        if tmp and (tmp[0] / "frames.npy").stat().st_size > 5_000_000:
+        tmp = [p for p in ws.glob(".tmp-trace-*") if (p / "frames.imgs").is_file()] if ws.is_dir() else []
+        if tmp and (tmp[0] / "frames.imgs").stat().st_size > 5_000_000:
             break
         time.sleep(0.05)
     else:

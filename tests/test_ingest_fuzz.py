@@ -49,6 +49,7 @@ from recordings import (
 )
 
 from drivesim.pipeline.errors import DrivesimError
+from drivesim.sim.image_stack import ImageStack
 from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.run import ingest_recording
 
@@ -435,8 +436,9 @@ def load_trace(out: Path) -> Trace:
     for f in out.glob("*.npz"):
         with np.load(f) as data:
             series[f.stem] = {k: data[k] for k in data.files}
-    right = np.load(out / "frames_right.npy") if (out / "frames_right.npy").is_file() else None
-    return Trace(calibration, np.load(out / "frame_times_ns.npy"), np.load(out / "frames.npy"), right, series)
+    right = np.asarray(ImageStack(out / "frames_right.imgs")) if (out / "frames_right.imgs").is_file() else None
+    frames = np.asarray(ImageStack(out / "frames.imgs"))
+    return Trace(calibration, np.load(out / "frame_times_ns.npy"), frames, right, series)
 
 
 def wrong(out: Path, clean: Trace | None, strict: bool) -> str:

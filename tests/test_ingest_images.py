@@ -17,12 +17,15 @@ from recordings import (
 )
 
 from drivesim.pipeline.errors import InputError
+from drivesim.sim.image_stack import ImageStack
 from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.images import CameraModel, EncodingError, FrameProcessor, area_remap_tables, decode_raw
 from drivesim.stages.ingest.run import ingest_recording
 from drivesim.stages.ingest.trace import validate_trace
 
 COLOUR = (200, 40, 90)
+# Frames stored losslessly (PNG): the tests that compare pixels exactly check the decoding, not JPEG's rounding.
+LOSSLESS = IngestConfig.model_validate({"image": {"codec": "png"}})
 W, H = 64, 40
 
 
@@ -55,7 +58,7 @@ def _patch_centre(frames: np.ndarray) -> np.ndarray:
     ],
 )
 def test_colour_encodings_keep_the_patch_colour(tmp_path: Path, encoding: str, tolerance: int) -> None:
-    _, info = _ingest(tmp_path, drive_messages(n_frames=3, encoding=encoding))
+    _, info = _ingest(tmp_path, drive_messages(n_frames=3, encoding=encoding), LOSSLESS)
     frames = np.asarray(info.frames())
     assert frames.shape == (3, H, W, 3)
     np.testing.assert_allclose(_patch_centre(frames), COLOUR, atol=tolerance + 0.5)
@@ -76,7 +79,7 @@ def test_mono_encodings_give_grey_rgb(tmp_path: Path, encoding: str) -> None:
     ("fmt", "tolerance", "container"), [("png", 0, "mcap"), ("jpeg", 8, "mcap"), ("jpeg", 8, "ros1")]
 )
 def test_compressed_images(tmp_path: Path, fmt: str, tolerance: int, container: str) -> None:
-    result, info = _ingest(tmp_path, drive_messages(n_frames=4, compressed=fmt), fmt=container)
+    result, info = _ingest(tmp_path, drive_messages(n_frames=4, compressed=fmt), LOSSLESS, fmt=container)
     assert result.summary["sensors"]["camera"]["type"] == "sensor_msgs/msg/CompressedImage"
     frames = np.asarray(info.frames())
     assert frames.shape == (4, H, W, 3)
@@ -210,9 +213,9 @@ def test_keep_original_stores_undistorted_frames_at_the_recorded_size(tmp_path: 
     K = np.array([[90.0, 0, 63.5], [0, 90.0, 39.5], [0, 0, 1]])
     D = [-0.3, 0.1, 0.0, 0.0, 0.0]
     msgs = drive_messages(n_frames=3, width=w, height=h, K=K, D=D, image_fn=lambda i: patch_image(w, h, frame=i))
-    cfg = IngestConfig.model_validate({"image": {"width_px": 64, "keep_original": True}})
+    cfg = IngestConfig.model_validate({"image": {"width_px": 64, "keep_original": True, "codec": "png"}})
     _, info = _ingest(tmp_path, msgs, cfg)
-    originals = np.load(info.path / "frames_original.npy", mmap_mode="r")
+    originals = ImageStack(info.path / "frames_original.imgs")
     assert originals.shape == (3, h, w, 3) and info.frames().shape == (3, 40, 64, 3)
     np.testing.assert_allclose(info.calibration["K_source"], K)
     # the originals are undistorted: equal to cv2.undistort of the recorded image

@@ -33,7 +33,8 @@ def _grey_rgb(path: Path) -> np.ndarray:
 
 def test_stereo_folder_keeps_both_cameras_and_the_baseline(tmp_path: Path) -> None:
     folder = kitti_stereo_folder(tmp_path / "seq", n=5, baseline_m=0.54)
-    result, info = _ingest(folder, tmp_path)
+    lossless = IngestConfig.model_validate({"image": {"codec": "png"}})  # frames compared pixel for pixel below
+    result, info = _ingest(folder, tmp_path, lossless)
     assert info.sources["format"] == "kitti_odometry_stereo" and info.sources["camera_topic"] == "image_l"
     assert info.frame_count == 5 and (info.width_px, info.height_px) == (96, 32)
     # 10 Hz without times.txt; poses.txt of the left camera, 1 m forward per frame
@@ -66,7 +67,7 @@ def test_a_mono_odometry_folder_has_no_right_camera(tmp_path: Path) -> None:
     shutil.rmtree(folder / "image_r")
     _, info = _ingest(folder, tmp_path)
     assert info.sources["format"] == "kitti_odometry" and info.baseline_m is None and info.right_frames() is None
-    assert not (info.path / "frames_right.npy").exists() and "baseline_m" not in info.calibration
+    assert not (info.path / "frames_right.imgs").exists() and "baseline_m" not in info.calibration
 
 
 @pytest.mark.parametrize(

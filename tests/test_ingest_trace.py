@@ -43,12 +43,25 @@ def test_a_fresh_trace_is_valid(trace: Path) -> None:
 
 
 def test_missing_frames(trace: Path) -> None:
-    (trace / "frames.npy").unlink()
-    with pytest.raises(InputError, match=r"frames.npy: invalid trace: missing file"):
+    (trace / "frames.imgs").unlink()
+    with pytest.raises(InputError, match=r"frames.imgs: invalid trace: missing file"):
         validate_trace(trace)
 
 
 def test_truncated_frames(trace: Path) -> None:
+    with open(trace / "frames.imgs", "r+b") as f:
+        f.truncate(f.seek(0, 2) - 100)
+    with pytest.raises(InputError, match=r"frames.imgs: invalid trace: unreadable image stack .*truncated"):
+        validate_trace(trace)
+
+
+def test_truncated_frames_of_an_older_npy_trace(trace: Path) -> None:
+    """A trace written as frames.npy by an earlier version still validates; a truncated one is refused."""
+    frames = np.asarray(validate_trace(trace).frames())
+    (trace / "frames.imgs").unlink()
+    np.save(trace / "frames.npy", frames)
+    assert validate_trace(trace).frame_count == 4
+    np.testing.assert_array_equal(validate_trace(trace).frames()[3], frames[3])
     with open(trace / "frames.npy", "r+b") as f:
         f.truncate(f.seek(0, 2) - 100)
     with pytest.raises(InputError, match=r"shorter than its header says"):

@@ -18,6 +18,7 @@ from cli_helpers import run_main_captured
 from gopro_mp4 import add_gopro_gps, gpmf_payload
 
 from drivesim.sim.geometry import R_VEHICLE_OPTICAL
+from drivesim.sim.image_stack import ImageStack
 
 WIDTH, HEIGHT, HFOV_DEG = 320, 240, 90.0
 CAMERA_HEIGHT_M = 1.5
@@ -158,7 +159,7 @@ def test_video_with_camera_height_gives_the_metric_path(drive, tmp_path: Path, m
     T_vehicle_camera = np.array(calibration["T_vehicle_camera"])
     assert T_vehicle_camera[2, 3] == pytest.approx(CAMERA_HEIGHT_M)
     assert np.degrees(np.arccos(T_vehicle_camera[:3, 2] @ [1.0, 0.0, 0.0])) < 2.0  # optical axis level and forward
-    assert np.load(trace / "frames.npy", mmap_mode="r").shape == (
+    assert ImageStack(trace / "frames.imgs").shape == (
         len(np.load(trace / "frame_times_ns.npy")),
         240,
         320,

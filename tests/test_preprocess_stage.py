@@ -74,7 +74,7 @@ def test_preprocess_writes_poses_depth_and_summary(ws: Workspace, monkeypatch) -
     assert preview.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     manifest = ws.read_manifest("preprocessed")
     assert manifest["inputs"]["trace"]["hash"] == ws.read_manifest("trace")["artifact_hash"]
-    assert set(manifest["outputs"]) == {"poses.npz", "depth.npy", "origin.json", "depth_preview.png"}
+    assert set(manifest["outputs"]) == {"poses.npz", "depth.imgs", "origin.json", "depth_preview.png"}
 
 
 def test_second_run_is_fresh_and_force_redoes(ws: Workspace, monkeypatch) -> None:

@@ -22,6 +22,7 @@ from drivesim.pipeline.config import load_config
 from drivesim.pipeline.errors import MissingArtifactError
 from drivesim.pipeline.status import status_report
 from drivesim.pipeline.workspace import Workspace
+from drivesim.sim.image_stack import ImageStack
 from drivesim.sim.world import World
 from drivesim.stages.preprocess import stage as preprocess_stage
 from drivesim.stages.preprocess.config import PreprocessConfig
@@ -44,13 +45,16 @@ def test_build_world_loads_in_the_simulator(ws: Workspace) -> None:
     result = run_build_world(ws, cfg)
     world = World.load(result.path)
     assert (world.width_px, world.height_px) == (48, 30)
-    assert world.frames.shape == (FRAME_COUNT, 30, 48, 3) and isinstance(world.frames, np.memmap)
-    assert world.depth_m.shape == (FRAME_COUNT, 30, 48) and isinstance(world.depth_m, np.memmap)
-    # frames are the trace's, in order (the fake trace stores 10 * frame id in the red channel)
-    np.testing.assert_allclose(world.frames[:, :, :, 0].mean(axis=(1, 2)), np.arange(FRAME_COUNT) * 10, atol=0.6)
+    # read one frame at a time from their image stacks (JPEG frames, lossless float16 depth), never loaded whole
+    assert world.frames.shape == (FRAME_COUNT, 30, 48, 3) and isinstance(world.frames, ImageStack)
+    assert world.depth_m.shape == (FRAME_COUNT, 30, 48) and isinstance(world.depth_m, ImageStack)
+    assert world.frames.codec == "jpeg" and world.depth_m.dtype == np.float16
+    # frames are the trace's, in order (the fake trace stores 10 * frame id in the red channel; JPEG's rounding,
+    # clipped at 0 for frame 0, moves a frame's mean by under 2 levels)
+    np.testing.assert_allclose(world.frames[:, :, :, 0].mean(axis=(1, 2)), np.arange(FRAME_COUNT) * 10, atol=2.0)
     assert world.path_length_m == pytest.approx(SPEED_MPS * (FRAME_COUNT - 1) * 0.1, abs=1e-6)
     assert world.lane_width_m == 3.5 and world.road_width_m == 7.0
-    assert world.info["far_depth_m"] == 80.0 and world.depth_m.max() == pytest.approx(80.0)
+    assert world.info["far_depth_m"] == 80.0 and np.asarray(world.depth_m).max() == pytest.approx(80.0)
 
     # K at the sim resolution still maps a world point to the same place in the image (half the pixels)
     trace_K = np.asarray(json.loads((ws.artifact_dir("trace") / "calibration.json").read_text())["K"])

@@ -136,7 +136,7 @@ def _read_rgb(path: Path) -> np.ndarray:
 def _write_frames(
     trace: TraceWriter, files: list[Path], processor: FrameProcessor, label: str, keep: bool, stem: str = "frames"
 ) -> int:
-    """Resize the image files into `<stem>.npy` in order; the rows written.
+    """Resize the image files into `<stem>.imgs` in order; the rows written.
 
     A damaged image file refuses the folder rather than being skipped: each file is one line of poses.txt and
     times.txt, so a gap would shift every pose after it.
@@ -150,7 +150,8 @@ def _write_frames(
         return (processor.resize(rgb), rgb if keep else None)
 
     original_size = (processor.camera.width_px, processor.camera.height_px) if keep else None
-    store = FrameStore(trace.out_dir, len(files), (processor.out_width, processor.out_height), original_size, stem)
+    size = (processor.out_width, processor.out_height)
+    store = FrameStore(trace.out_dir, len(files), size, original_size, stem, trace.frame_storage)
     stream = None
     try:
         with progress_bar(f"ingest {label}", total=len(files)) as (progress, task):
@@ -448,7 +449,7 @@ def stereo_baseline_m(P_left: np.ndarray, P_right: np.ndarray, path: Path) -> fl
 
 def ingest_kitti_stereo(folder: Path, cfg: IngestConfig, trace: TraceWriter) -> None:
     """A KITTI odometry stereo folder: the left camera as the trace's camera (as `ingest_kitti_odometry`), plus the
-    right camera's frames in frames_right.npy and the baseline in calibration.json (trace.py)."""
+    right camera's frames in frames_right.imgs and the baseline in calibration.json (trace.py)."""
     cam_dir, calib, times = _odometry(folder, cfg, trace)
     right = _STEREO_PAIRS.get(cam_dir.name)
     if right is None or not (folder / right).is_dir():
@@ -472,4 +473,4 @@ def ingest_kitti_stereo(folder: Path, cfg: IngestConfig, trace: TraceWriter) -> 
     _write_frames(trace, files, processor, right, keep=False, stem="frames_right")
     trace.add_calibration(right_camera=right, baseline_m=round(baseline_m, 6))
     trace.add_sensor("camera_right", right, "png", len(files))
-    trace.notes.append(f"stereo: {right} stored as frames_right.npy, baseline {baseline_m:.3f} m")
+    trace.notes.append(f"stereo: {right} stored as frames_right.imgs, baseline {baseline_m:.3f} m")

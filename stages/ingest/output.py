@@ -1,5 +1,5 @@
-"""Writing the trace files: frames streamed into .npy, growable series arrays, JSON (the trace's calibration and
-sources are assembled by writer.TraceWriter)."""
+"""Writing the trace files: frames streamed into image stacks, arrays into .npy, growable series arrays, JSON (the
+trace's calibration and sources are assembled by writer.TraceWriter)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from drivesim.sim.image_stack import DEFAULT_JPEG_QUALITY, ImageStackWriter, stack_path
 from drivesim.stages.ingest.stamps import ordered_series
 
 
@@ -243,13 +244,15 @@ class OrderedPipeline:
 
 
 class FrameStore:
-    """frames.npy (working resolution) and, when asked, frames_original.npy (recorded resolution), row by row.
+    """frames.imgs (working resolution) and, when asked, frames_original.imgs (recorded resolution), frame by frame,
+    each frame one compressed image (`sim/image_stack.py`).
 
     :param out_dir: the trace folder.
-    :param n_frames: frame count.
-    :param size: (width, height) of frames.npy.
-    :param original_size: (width, height) of frames_original.npy, or None to not keep originals.
+    :param n_frames: frame count (the most frames that will be written).
+    :param size: (width, height) of frames.imgs.
+    :param original_size: (width, height) of frames_original.imgs, or None to not keep originals.
     :param stem: file name stem: "frames", or "frames_right" for a stereo rig's second camera.
+    :param storage: (codec, JPEG quality) of the frames: ("jpeg", 95) or ("png", ...) for lossless.
     """
 
     def __init__(
@@ -259,21 +262,26 @@ class FrameStore:
         size: tuple[int, int],
         original_size: tuple[int, int] | None,
         stem: str = "frames",
+        storage: tuple[str, int] = ("jpeg", DEFAULT_JPEG_QUALITY),
     ) -> None:
-        self.frames = NpyStreamWriter(out_dir / f"{stem}.npy", (n_frames, size[1], size[0], 3), np.uint8)
+        codec, quality = storage
+        self.n_frames = n_frames
+        self.frames = ImageStackWriter(stack_path(out_dir, stem), (size[1], size[0], 3), np.uint8, codec, quality)
         self.originals = None
         if original_size is not None:
-            shape = (n_frames, original_size[1], original_size[0], 3)
-            self.originals = NpyStreamWriter(out_dir / f"{stem}_original.npy", shape, np.uint8)
+            shape = (original_size[1], original_size[0], 3)
+            self.originals = ImageStackWriter(stack_path(out_dir, f"{stem}_original"), shape, np.uint8, codec, quality)
 
     def write(self, frames: tuple[np.ndarray, np.ndarray | None]) -> None:
         """Append (working frame, original frame or None)."""
+        if self.frames.rows_written >= self.n_frames:
+            raise ValueError(f"more frames than the {self.n_frames} announced")
         self.frames.write(frames[0])
         if self.originals is not None:
             self.originals.write(frames[1])
 
     def close(self) -> None:
-        """Close the files."""
+        """Finish the files."""
         self.frames.close()
         if self.originals is not None:
             self.originals.close()

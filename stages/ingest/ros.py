@@ -1,7 +1,7 @@
 """Ingest of ROS recordings (ROS1 bag, rosbag2, plain MCAP) into a trace folder.
 
 One pass over the recording in log-time order: camera frames are decoded, undistorted, resized and appended to
-frames.npy as they arrive; the series accumulate in growable arrays. Before that pass, the small topics that
+frames.imgs as they arrive; the series accumulate in growable arrays. Before that pass, the small topics that
 configure it are read once: /tf_static, the first CameraInfo and the first camera message. The trace's calibration
 and sources are written by the TraceWriter (writer.py), which checks them.
 
@@ -338,7 +338,8 @@ class _Pass:
             self.open_depth()
         keep = cfg.image.keep_original
         size = (self.cam.processor.out_width, self.cam.processor.out_height)
-        store = FrameStore(trace.out_dir, self.n_frames, size, self.cam.source_size if keep else None)
+        original = self.cam.source_size if keep else None
+        store = FrameStore(trace.out_dir, self.n_frames, size, original, storage=trace.frame_storage)
         try:
             with progress_bar(f"ingest {self.cam.topic.name}", total=self.n_frames) as (progress, task):
                 self.frames = FrameStream(

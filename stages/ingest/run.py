@@ -83,7 +83,7 @@ def ingest_recording(path: Path, cfg: IngestConfig, out_dir: Path, native_log: P
     """
     path = Path(path)
     fmt = detect_format(path)
-    trace = TraceWriter(Path(out_dir), path, fmt)
+    trace = TraceWriter(Path(out_dir), path, fmt, (cfg.image.codec, cfg.image.jpeg_quality))
     with (
         tempfile.TemporaryDirectory(prefix="drivesim-decoders-") as tmp,
         native_messages_to(native_log or Path(tmp) / "decoders.log") as log,

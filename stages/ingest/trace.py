@@ -6,11 +6,13 @@ epoch (or since the recording's start when the source has no absolute time, see 
 Header stamps are used; a zero stamp falls back to the message's log time. KITTI raw stamps are the drive's clock
 as logged (local time, read as if UTC).
 
-Files (all arrays are .npy; N = frame count):
-    frames.npy              uint8   (N, H, W, 3)  RGB, undistorted, at the working resolution; open with mmap_mode="r"
+Files (N = frame count; frames are image stacks, `sim/image_stack.py`: one JPEG (quality 95, 4:4:4) or PNG
+per frame, decoded one frame at a time; other arrays are .npy):
+    frames.imgs             uint8   (N, H, W, 3)  RGB, undistorted, at the working resolution (`TraceInfo.frames()`;
+                            traces written as frames.npy by earlier versions load as well)
     frame_times_ns.npy      int64   (N,)          camera stamp of each frame, strictly increasing
     calibration.json        {
-        "width_px": W, "height_px": H,            working resolution of frames.npy
+        "width_px": W, "height_px": H,            working resolution of the frames
         "K": [[fx,0,cx],[0,fy,cy],[0,0,1]],       pinhole intrinsics at the working resolution (pixels, pixel-centre
                                                   convention of sim.geometry.scale_intrinsics); after undistortion
                                                   this is CameraInfo P[:3,:3] scaled
@@ -22,17 +24,17 @@ Files (all arrays are .npy; N = frame count):
                                                   z of T_vehicle_camera is then relative to base_link, not the ground)
         "extrinsics_source": "tf_static" | "kitti_calib" | "config" | "default" | "sfm_road_plane" (video),
         "time_base": "unix" | "relative",
-        "right_camera": str, "baseline_m": float  only with frames_right.npy (below)
+        "right_camera": str, "baseline_m": float  only with frames_right.imgs (below)
     }
     sources.json            {"recording": str, "format": a name of run.FORMATS ("ros1" | "rosbag2" | "mcap" |
                              "kitti_raw" | "kitti_odometry" | "kitti_odometry_stereo" | ...), "camera_topic": str,
                              "sensors": {name: {"topic", "type", "message_count"}}}
                             (the same `sensors` as the manifest summary; KITTI "topics" are folder names)
-    frames_original.npy     uint8   (N, Hs, Ws, 3) only with image.keep_original: undistorted frames at the
+    frames_original.imgs    uint8   (N, Hs, Ws, 3) only with image.keep_original: undistorted frames at the
                             recorded resolution (intrinsics K_source)
   Stereo (a KITTI odometry stereo folder, format "kitti_odometry_stereo"):
-    frames_right.npy        uint8   (N, H, W, 3)  the right camera of the rectified pair, frame i taken with frame i
-                            of frames.npy, at the same working resolution and with the same intrinsics K; the right
+    frames_right.imgs       uint8   (N, H, W, 3)  the right camera of the rectified pair, frame i taken with frame i
+                            of frames.imgs, at the same working resolution and with the same intrinsics K; the right
                             camera's optical centre is `calibration.json:baseline_m` metres along the left camera's
                             +x axis (x_right = x_left - baseline_m in left camera coordinates), same orientation.
                             `right_camera` names its source folder (image_r). TraceInfo.baseline_m / right_frames().
@@ -74,6 +76,7 @@ import numpy as np
 
 from drivesim.pipeline.errors import InputError
 from drivesim.pipeline.json_files import read_json
+from drivesim.sim.image_stack import ImageStack, ImageStackError, open_frames, read_meta, stack_path, stored_file
 
 CALIBRATION_KEYS = (
     "width_px",
@@ -152,9 +155,9 @@ class TraceInfo:
     baseline_m: float | None = None
     """Stereo traces: the right camera's offset along the left camera's +x (m); None without frames_right.npy."""
 
-    def frames(self) -> np.ndarray:
-        """frames.npy memory-mapped read-only, uint8 (N, H, W, 3)."""
-        return np.load(self.path / "frames.npy", mmap_mode="r")
+    def frames(self) -> np.ndarray | ImageStack:
+        """The frames, uint8 (N, H, W, 3), read one at a time (`frames()[i]`; an older trace's .npy memory-mapped)."""
+        return _open_stored(self.path, "frames")
 
     def frame_times_ns(self) -> np.ndarray:
         """int64 (N,) frame stamps."""
@@ -171,9 +174,9 @@ class TraceInfo:
         """lidar_points.npy memory-mapped read-only, float32 (P, 4), or None (scan rows: load_series("lidar_scans"))."""
         return np.load(self.path / "lidar_points.npy", mmap_mode="r") if "lidar_scans" in self.series else None
 
-    def right_frames(self) -> np.ndarray | None:
-        """frames_right.npy memory-mapped read-only, uint8 (N, H, W, 3), or None for a one-camera trace."""
-        return np.load(self.path / "frames_right.npy", mmap_mode="r") if self.baseline_m is not None else None
+    def right_frames(self) -> np.ndarray | ImageStack | None:
+        """The right camera's frames as `frames()`, uint8 (N, H, W, 3), or None for a one-camera trace."""
+        return _open_stored(self.path, "frames_right") if self.baseline_m is not None else None
 
     def gt_depth(self) -> np.ndarray | None:
         """gt_depth.npy memory-mapped read-only, float32 (N, H, W) metres, or None."""
@@ -201,6 +204,34 @@ def _npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype, int]:
     return shape, dtype, data_offset
 
 
+def _open_stored(folder: Path, stem: str) -> np.ndarray | ImageStack:
+    """The per-frame array `stem` of a trace (its image stack, or the .npy of an older trace); InputError if absent
+    or unreadable."""
+    path = stored_file(folder, stem)
+    if path is None:
+        raise _fail(stack_path(folder, stem), "missing file")
+    try:
+        return open_frames(path)
+    except (OSError, ValueError) as e:
+        raise _fail(path, f"unreadable ({e}); run `{TRACE_HINT} --force`") from e
+
+
+def _stored_layout(folder: Path, stem: str) -> tuple[Path, tuple[int, ...], np.dtype] | None:
+    """(file, shape, dtype) of the per-frame array `stem` (image stack or .npy), reading only its header; None when
+    absent."""
+    path = stored_file(folder, stem)
+    if path is None:
+        return None
+    if path.suffix == ".npy":
+        shape, dtype, _ = _npy_header(path)
+        return path, shape, dtype
+    try:
+        meta, _ = read_meta(path)
+    except (OSError, ImageStackError) as e:
+        raise _fail(path, f"unreadable image stack ({e})") from e
+    return path, tuple(int(s) for s in meta["shape"]), np.dtype(meta["dtype"])
+
+
 def _check_calibration(path: Path, calibration: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """(K, T_vehicle_camera) after checking the keys, finite intrinsics and a rigid transform."""
     file = path / "calibration.json"
@@ -223,10 +254,13 @@ def _check_calibration(path: Path, calibration: dict[str, Any]) -> tuple[np.ndar
 
 
 def _check_frames(path: Path, width: int, height: int) -> tuple[int, np.ndarray]:
-    """(frame count, frame times) after checking frames.npy's header and the times."""
-    shape, dtype, _ = _npy_header(path / "frames.npy")
+    """(frame count, frame times) after checking the frames' header and the times."""
+    layout = _stored_layout(path, "frames")
+    if layout is None:
+        raise _fail(stack_path(path, "frames"), "missing file")
+    file, shape, dtype = layout
     if dtype != np.uint8 or len(shape) != 4 or shape[1:] != (height, width, 3) or shape[0] < 1:
-        raise _fail(path / "frames.npy", f"expected uint8 (N >= 1, {height}, {width}, 3), got {dtype} {shape}")
+        raise _fail(file, f"expected uint8 (N >= 1, {height}, {width}, 3), got {dtype} {shape}")
     n = shape[0]
     times = np.load(path / "frame_times_ns.npy")
     if times.dtype != np.int64 or times.shape != (n,):
@@ -265,11 +299,12 @@ def _check_extra_arrays(path: Path, calibration: dict[str, Any], n: int) -> tupl
     """Check the optional arrays (originals, lidar, ground-truth depth, right camera); (extra series, gt depth?,
     stereo baseline or None)."""
     width, height = int(calibration["width_px"]), int(calibration["height_px"])
-    if (path / "frames_original.npy").is_file():
-        o_shape, o_dtype, _ = _npy_header(path / "frames_original.npy")
+    originals = _stored_layout(path, "frames_original")
+    if originals is not None:
+        file, o_shape, o_dtype = originals
         source = (int(calibration["source_height_px"]), int(calibration["source_width_px"]), 3)
         if o_dtype != np.uint8 or o_shape != (n, *source):
-            raise _fail(path / "frames_original.npy", f"expected uint8 ({n}, {source}), got {o_dtype} {o_shape}")
+            raise _fail(file, f"expected uint8 ({n}, {source}), got {o_dtype} {o_shape}")
     series = []
     if (path / "lidar_points.npy").is_file() or (path / "lidar_scans.npz").is_file():
         if not (path / "lidar_scans.npz").is_file():
@@ -289,14 +324,14 @@ def _check_extra_arrays(path: Path, calibration: dict[str, Any], n: int) -> tupl
 
 
 def _check_right(path: Path, calibration: dict[str, Any], n: int, width: int, height: int) -> float | None:
-    has_right = (path / "frames_right.npy").is_file()
-    if not has_right and "baseline_m" not in calibration:
+    right = _stored_layout(path, "frames_right")
+    if right is None and "baseline_m" not in calibration:
         return None
-    if not has_right:
-        raise _fail(path / "frames_right.npy", "missing file (calibration.json gives a stereo baseline_m)")
-    r_shape, r_dtype, _ = _npy_header(path / "frames_right.npy")
+    if right is None:
+        raise _fail(stack_path(path, "frames_right"), "missing file (calibration.json gives a stereo baseline_m)")
+    file, r_shape, r_dtype = right
     if r_dtype != np.uint8 or r_shape != (n, height, width, 3):
-        raise _fail(path / "frames_right.npy", f"expected uint8 ({n}, {height}, {width}, 3), got {r_dtype} {r_shape}")
+        raise _fail(file, f"expected uint8 ({n}, {height}, {width}, 3), got {r_dtype} {r_shape}")
     baseline = calibration.get("baseline_m")
     if not isinstance(baseline, int | float) or not np.isfinite(baseline) or baseline <= 0:
         raise _fail(path / "calibration.json", f"baseline_m must be a positive number of metres, got {baseline!r}")
@@ -310,7 +345,9 @@ def validate_trace(path: Path | str) -> TraceInfo:
     Raises InputError naming the file and the problem. Only headers and small arrays are read, never frames.
     """
     path = Path(path)
-    for name in ("frames.npy", "frame_times_ns.npy", "calibration.json", "sources.json"):
+    if stored_file(path, "frames") is None:
+        raise _fail(stack_path(path, "frames"), "missing file")
+    for name in ("frame_times_ns.npy", "calibration.json", "sources.json"):
         if not (path / name).is_file():
             raise _fail(path / name, "missing file")
     try:
@@ -355,7 +392,7 @@ class TraceView:
     """The parts of a trace artifact that preprocess and build-world read.
 
     :param root: the trace folder.
-    :param frames: (N, H, W, 3) uint8 RGB, memory-mapped.
+    :param frames: (N, H, W, 3) uint8 RGB, decoded one frame at a time (`frames[i]`; slices stay lazy).
     :param frame_times_ns: (N,) int64 camera stamps.
     :param calibration: the contents of calibration.json.
     :param K: 3x3 intrinsics at the working resolution.
@@ -363,7 +400,7 @@ class TraceView:
     """
 
     root: Path
-    frames: np.ndarray
+    frames: np.ndarray | ImageStack
     frame_times_ns: np.ndarray
     calibration: dict[str, Any]
     K: np.ndarray
@@ -372,11 +409,12 @@ class TraceView:
 
 
 def open_trace(trace_dir: Path) -> TraceView:
-    """Open the trace's frames (memory-mapped), stamps and calibration; InputError naming the file when malformed."""
+    """Open the trace's frames (read one at a time), stamps and calibration; InputError naming the file when
+    malformed."""
     info = validate_trace(trace_dir)
+    frames = info.frames()
     try:
         calibration = read_json(trace_dir / "calibration.json")
-        frames = np.load(trace_dir / "frames.npy", mmap_mode="r")
         frame_times_ns = np.load(trace_dir / "frame_times_ns.npy")
     except FileNotFoundError as e:
         raise InputError(f"the trace lacks {Path(e.filename).name}; run `{TRACE_HINT}` again", trace_dir) from e
@@ -386,7 +424,7 @@ def open_trace(trace_dir: Path) -> TraceView:
         if key not in calibration:
             raise InputError(f"calibration.json lacks {key!r}", trace_dir)
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
-        raise InputError(f"frames.npy must be uint8 (N, H, W, 3), got {frames.dtype} {frames.shape}", trace_dir)
+        raise InputError(f"the frames must be uint8 (N, H, W, 3), got {frames.dtype} {frames.shape}", trace_dir)
     if frame_times_ns.shape != (frames.shape[0],) or np.any(np.diff(frame_times_ns) <= 0):
         raise InputError("frame_times_ns.npy must hold one strictly increasing stamp per frame", trace_dir)
     K = np.asarray(calibration["K"], dtype=float)

@@ -241,7 +241,7 @@ def _write_trace_frames(
     size = working_size(source.width_px, source.height_px, cfg.image.width_px, cfg.image.upscale)
     processor = FrameProcessor(camera, size, cfg.image.interpolation)
     original = (source.width_px, source.height_px) if cfg.image.keep_original else None
-    store = FrameStore(trace.out_dir, len(indices), size, original)
+    store = FrameStore(trace.out_dir, len(indices), size, original, storage=trace.frame_storage)
     try:
         with progress_bar("ingest: frames", total=len(indices)) as (progress, task):
             for _, rgb in iter_frames(source, indices):

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from drivesim.pipeline.errors import InputError
+from drivesim.sim.image_stack import DEFAULT_JPEG_QUALITY, open_frames, stored_file
 from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.images import DamagedImageError, FrameProcessor
 from drivesim.stages.ingest.output import FrameStore, IngestResult, OrderedPipeline, write_json
@@ -87,11 +88,12 @@ def image_size_problem(width_px: int, height_px: int) -> str | None:
     return None
 
 
-def blank_frames(frames_path: Path) -> tuple[int, int]:
-    """(frames that show no picture, frames looked at) among BLANK_SAMPLE_FRAMES evenly spaced rows of frames.npy."""
-    if not frames_path.is_file():
+def blank_frames(trace_dir: Path) -> tuple[int, int]:
+    """(frames that show no picture, frames looked at) among BLANK_SAMPLE_FRAMES evenly spaced frames of the trace."""
+    frames_path = stored_file(trace_dir, "frames")
+    if frames_path is None:
         return 0, 0
-    frames = np.load(frames_path, mmap_mode="r")
+    frames = open_frames(frames_path)
     n = frames.shape[0]
     if n == 0:
         return 0, 0
@@ -110,10 +112,15 @@ class TraceWriter:
     :param out_dir: the (empty) trace folder.
     :param recording: the recording being read (named in errors).
     :param fmt: its format name (a key of run.FORMATS).
+    :param frame_storage: (codec, JPEG quality) of the stored frames.
     """
 
-    def __init__(self, out_dir: Path, recording: Path, fmt: str) -> None:
+    def __init__(
+        self, out_dir: Path, recording: Path, fmt: str, frame_storage: tuple[str, int] = ("jpeg", DEFAULT_JPEG_QUALITY)
+    ) -> None:
         self.out_dir = Path(out_dir)
+        self.frame_storage = frame_storage
+        """(codec, JPEG quality) the frames are stored with (output.FrameStore)."""
         self.recording = Path(recording)
         self.format = fmt
         self.notes: list[str] = []
@@ -154,7 +161,7 @@ class TraceWriter:
         self._extrinsics = extrinsics
 
     def set_times(self, times_ns: np.ndarray, time_base: str, frame_rows: int) -> None:
-        """The stamps of the `frame_rows` frames written to frames.npy ("unix" or "relative" time base)."""
+        """The stamps of the `frame_rows` frames written to frames.imgs ("unix" or "relative" time base)."""
         self._times = (np.asarray(times_ns, dtype=np.int64), time_base)
         self._frame_rows = frame_rows
 
@@ -190,7 +197,7 @@ class TraceWriter:
         if self._camera is None or self._extrinsics is None:
             raise self.fail("the reader set no camera or extrinsics")
         topic, processor, (source_w, source_h), distortion = self._camera
-        blank, looked_at = blank_frames(self.out_dir / "frames.npy")
+        blank, looked_at = blank_frames(self.out_dir)
         if blank > MAX_BLANK_FRACTION * looked_at:
             raise self.fail(
                 f"camera {topic} shows no picture: {blank} of {looked_at} frames looked at are one flat colour (all "
@@ -230,7 +237,7 @@ class TraceWriter:
 
 
 class FrameStream:
-    """Camera frames made on worker threads, written to frames.npy in order with their stamps.
+    """Camera frames made on worker threads, written to frames.imgs in order with their stamps.
 
     `work(item)` returns (working frame, recorded-size frame or None); when it raises one of `skippable`, the
     message is left out (frame and stamp) and counted; more than MAX_SKIPPED_FRAME_FRACTION left out refuses the

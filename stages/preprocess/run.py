@@ -2,8 +2,8 @@
 
 The artifact's schema is in `stages/preprocess/artifact.py`. Depth is streamed frame by frame into a float32 .npy
 memmap inside the artifact's temporary folder, the pages of the frames and depth read or written released every
-RELEASE_FRAMES frames, so memory stays flat whatever the drive's length; it is then stored as float16 (depth.npy) a
-chunk at a time and the float32 file removed.
+RELEASE_FRAMES frames, so memory stays flat whatever the drive's length; it is then stored frame by frame as float16
+in a lossless image stack (depth.imgs, `sim/image_stack.py`) and the float32 file removed.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from drivesim.pipeline.npy_files import open_reserved_memmap, release_pages
 from drivesim.pipeline.progress import console, progress_bar
 from drivesim.pipeline.stage import BuildContext
 from drivesim.sim.geometry import invert
+from drivesim.sim.image_stack import ImageStack, ImageStackWriter, stack_path
 from drivesim.stages.ingest.trace import TraceInfo, open_trace
 from drivesim.stages.preprocess import depth as depth_mod
 from drivesim.stages.preprocess import poses as poses_mod
@@ -119,19 +120,19 @@ def releasing_pages(progress: Callable[[int], None], *arrays: np.ndarray) -> Cal
     return advance
 
 
-def store_depth(depth_m: np.ndarray, path: Path) -> np.ndarray:
-    """`depth_m` (N, H, W) written to `path` as DEPTH_DTYPE (finite values beyond its range clipped to it), a chunk of
-    frames at a time; the stored array, memory-mapped read-only."""
-    out = open_reserved_memmap(path, DEPTH_DTYPE, depth_m.shape)
+def store_depth(depth_m: np.ndarray, path: Path) -> ImageStack:
+    """`depth_m` (N, H, W) written to the image stack `path` as DEPTH_DTYPE (finite values beyond its range clipped
+    to it; lossless PNG per frame), a chunk of frames at a time; the stored array, read one frame at a time."""
+    out = ImageStackWriter(path, depth_m.shape[1:], DEPTH_DTYPE, "png")
     limit = float(np.finfo(DEPTH_DTYPE).max)
-    for start in range(0, depth_m.shape[0], RELEASE_FRAMES):
-        chunk = np.asarray(depth_m[start : start + RELEASE_FRAMES])
-        out[start : start + RELEASE_FRAMES] = np.where(np.isfinite(chunk), np.minimum(chunk, limit), chunk)
-        release_pages(depth_m)
-        release_pages(out)
-    out.flush()
-    del out
-    return np.load(path, mmap_mode="r")
+    try:
+        for start in range(0, depth_m.shape[0], RELEASE_FRAMES):
+            chunk = np.asarray(depth_m[start : start + RELEASE_FRAMES])
+            out.write_rows(np.where(np.isfinite(chunk), np.minimum(chunk, limit), chunk).astype(DEPTH_DTYPE))
+            release_pages(depth_m)
+    finally:
+        out.close()
+    return ImageStack(path)
 
 
 def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
@@ -177,7 +178,7 @@ def build_preprocessed(ctx: BuildContext) -> PreprocessSummary:
             baseline_m=trace.info.baseline_m if method == "stereo" else None,
             run_method=run_method,
         )
-    depth_out = store_depth(depth_work, ctx.dir / "depth.npy")
+    depth_out = store_depth(depth_work, stack_path(ctx.dir, "depth"))
     del depth_work
     (ctx.dir / DEPTH_WORK_FILE).unlink()
     poses = {
@@ -277,7 +278,7 @@ def _rms_or_none(value: Any) -> float | None:
 def _depth_stats(depth_m: np.ndarray, max_depth_m: float) -> dict[str, float | None]:
     """Median and 95th percentile of the estimated (non-far) depth, and the far fraction, over up to 50 frames."""
     n = depth_m.shape[0]
-    sample = depth_m[:: max(1, n // 50)]
+    sample = np.asarray(depth_m[:: max(1, n // 50)])
     near = sample[sample < max_depth_m]
     far_fraction = 1.0 - near.size / max(sample.size, 1)
     if near.size == 0:

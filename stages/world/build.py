@@ -1,9 +1,9 @@
 """The `drivesim build-world` stage: the simulatable world from the trace and the preprocessed artifact.
 
 The world's schema is in `sim/world.py` (the simulator's loader). Frames and depth are resized to the simulation
-resolution chunk by chunk into .npy memmaps inside the artifact's temporary folder, each chunk's pages released from
-memory after it is written, so memory stays flat whatever the drive's length; their disk space is reserved first, so
-a full disk is the one-line disk-full error, not a SIGBUS. Depth is stored as float16 (`WORLD_DEPTH_DTYPE`).
+resolution chunk by chunk and written frame by frame into image stacks (`sim/image_stack.py`: frames as JPEG or
+PNG, depth as float16 (`WORLD_DEPTH_DTYPE`) in lossless PNG), the pages of memory-mapped inputs released after each
+chunk, so memory stays flat whatever the drive's length.
 """
 
 from __future__ import annotations
@@ -17,10 +17,11 @@ import cv2
 import numpy as np
 
 from drivesim.pipeline.errors import InputError
-from drivesim.pipeline.npy_files import open_reserved_memmap, release_pages
+from drivesim.pipeline.npy_files import release_pages
 from drivesim.pipeline.progress import progress_bar
 from drivesim.pipeline.stage import BuildContext
 from drivesim.sim.geometry import scale_intrinsics
+from drivesim.sim.image_stack import ImageStack, ImageStackWriter, stack_path
 from drivesim.sim.world import WORLD_DEPTH_DTYPE, WORLD_FORMAT_VERSION
 from drivesim.stages.ingest.trace import TraceView, open_trace
 from drivesim.stages.preprocess.artifact import POSE_ARRAYS, Preprocessed, load_preprocessed
@@ -149,7 +150,7 @@ def _check_preprocessed(trace: TraceView, pre: Preprocessed, pre_dir: Path) -> N
     frame_index = pre.poses["frame_index"]
     if pre.depth_m.shape[1:] != (src_h, src_w):
         raise InputError(
-            f"depth.npy is {pre.depth_m.shape[2]}x{pre.depth_m.shape[1]} but the trace's frames are {src_w}x{src_h}; "
+            f"the depth is {pre.depth_m.shape[2]}x{pre.depth_m.shape[1]} but the trace's frames are {src_w}x{src_h}; "
             f"run `{PREPROCESS_HINT} --force`",
             pre_dir,
         )
@@ -163,58 +164,74 @@ def _check_preprocessed(trace: TraceView, pre: Preprocessed, pre_dir: Path) -> N
 def _write_sim_frames(
     folder: Path, trace: TraceView, pre: Preprocessed, size: tuple[int, int], cfg: WorldConfig
 ) -> None:
-    """frames.npy and depth_m.npy: the preprocessed frames and their depth at the simulator's (width, height)
+    """frames.imgs and depth_m.imgs: the preprocessed frames and their depth at the simulator's (width, height)
     `size`, a chunk of frames at a time."""
     w, h = size
     n = pre.frame_count
-    frames_out = open_reserved_memmap(folder / "frames.npy", np.uint8, (n, h, w, 3))
-    depth_out = open_reserved_memmap(folder / "depth_m.npy", WORLD_DEPTH_DTYPE, (n, h, w))
-    with progress_bar(f"world frames at {w}x{h}", total=n) as (progress, task):
-        resize_into(
-            trace.frames,
-            pre.poses["frame_index"],
-            pre.depth_m,
-            frames_out,
-            depth_out,
-            cfg.depth_resize,
-            lambda done: progress.advance(task, done),
-        )
-    frames_out.flush()
-    depth_out.flush()
+    frames_out = ImageStackWriter(stack_path(folder, "frames"), (h, w, 3), np.uint8, cfg.frame_codec, cfg.jpeg_quality)
+    depth_out = ImageStackWriter(stack_path(folder, "depth_m"), (h, w), WORLD_DEPTH_DTYPE, "png")
+    try:
+        with progress_bar(f"world frames at {w}x{h}", total=n) as (progress, task):
+            resize_into(
+                trace.frames,
+                pre.poses["frame_index"],
+                pre.depth_m,
+                frames_out,
+                depth_out,
+                cfg.depth_resize,
+                lambda done: progress.advance(task, done),
+            )
+    finally:
+        frames_out.close()
+        depth_out.close()
 
 
 def resize_into(
-    frames: np.ndarray,
+    frames: np.ndarray | ImageStack,
     frame_index: np.ndarray,
-    depth_m: np.ndarray,
-    frames_out: np.ndarray,
-    depth_out: np.ndarray,
+    depth_m: np.ndarray | ImageStack,
+    frames_out: np.ndarray | ImageStackWriter,
+    depth_out: np.ndarray | ImageStackWriter,
     depth_resize: str,
     progress: Callable[[int], None] | None = None,
     chunk_frames: int = _CHUNK_FRAMES,
 ) -> None:
     """Fill `frames_out` (N, h, w, 3) with frames[frame_index] and `depth_out` (N, h, w) with `depth_m` (N, H, W),
-    both resized to (w, h), `chunk_frames` at a time.
+    both resized to (w, h), `chunk_frames` at a time; the outputs are arrays or image stack writers (appended to).
 
     Memory stays flat in N: after each chunk the pages it touched in memory-mapped inputs and outputs are released
     (`release_pages`). Depth is stored in `depth_out`'s dtype; finite depth beyond float16's range is clipped to it.
     """
     n = len(frame_index)
-    h, w = depth_out.shape[1:3]
+    h, w = _frame_shape(depth_out)[:2]
     limit = float(np.finfo(depth_out.dtype).max)
     for start in range(0, n, chunk_frames):
         stop = min(n, start + chunk_frames)
-        frames_out[start:stop] = resize_frames(frames[frame_index[start:stop]], w, h)
-        depth = resize_depth(depth_m[start:stop], w, h, depth_resize)
-        depth_out[start:stop] = np.where(np.isfinite(depth), np.minimum(depth, limit), depth)
+        _put(frames_out, start, resize_frames(frames[frame_index[start:stop]], w, h))
+        depth = resize_depth(np.asarray(depth_m[start:stop]), w, h, depth_resize)
+        _put(depth_out, start, np.where(np.isfinite(depth), np.minimum(depth, limit), depth).astype(depth_out.dtype))
         for array in (frames, depth_m, frames_out, depth_out):
             release_pages(array)
         if progress is not None:
             progress(stop - start)
 
 
+def _frame_shape(out: np.ndarray | ImageStackWriter) -> tuple[int, ...]:
+    return out.frame_shape if isinstance(out, ImageStackWriter) else out.shape[1:]
+
+
+def _put(out: np.ndarray | ImageStackWriter, start: int, rows: np.ndarray) -> None:
+    """Rows start.. of `out`: assigned into an array, appended to a writer (which is written in order)."""
+    if isinstance(out, ImageStackWriter):
+        if out.rows_written != start:
+            raise ValueError(f"rows must be written in order: row {start} after {out.rows_written}")
+        out.write_rows(rows)
+    else:
+        out[start : start + len(rows)] = rows
+
+
 class _FrameLookup:
-    """The trace frames of the preprocessed selection, indexed 0..N-1 without copying the memmap."""
+    """The trace frames of the preprocessed selection, indexed 0..N-1 without reading the others."""
 
     def __init__(self, frames: np.ndarray, frame_index: np.ndarray) -> None:
         self._frames = frames
