@@ -23,6 +23,7 @@ from drivesim.sim.vehicles import (
     GROUP_NAMES,
     build_vehicle_meshes,
     sample_paint,
+    sample_part_materials,
     sample_vehicle_shape,
 )
 
@@ -107,8 +108,8 @@ class VehicleLibrary:
 
 
 def procedural_models(count: int, seed: int) -> list[VehicleModel]:
-    """`count` procedural models: body types in turn (sedan, hatchback, SUV, van, pickup), shapes and paints
-    drawn from `seed`."""
+    """`count` procedural models: body types in turn (sedan, hatchback, SUV, van, pickup), shapes, paints and the
+    other parts' materials drawn from `seed` (the parts from a stream of their own per model)."""
     from drivesim.sim.vehicles import BODY_TYPES
 
     rng = np.random.default_rng(seed)
@@ -117,8 +118,9 @@ def procedural_models(count: int, seed: int) -> list[VehicleModel]:
         body_type = BODY_TYPES[i % len(BODY_TYPES)]
         shape = sample_vehicle_shape(rng, body_type)
         paint = sample_paint(rng)
-        full = build_vehicle_meshes(shape, paint, "full")
-        light = build_vehicle_meshes(shape, paint, "light")
+        parts = sample_part_materials(np.random.default_rng([seed, i]))
+        full = build_vehicle_meshes(shape, paint, "full", parts=parts)
+        light = build_vehicle_meshes(shape, paint, "light", parts=parts)
         models.append(model_from_meshes(f"{body_type}-{i:02d}", full, light, paint_group=0))
     return models
 

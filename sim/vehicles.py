@@ -1,14 +1,21 @@
 """The one parametrized vehicle builder: sedan, hatchback, SUV, van and pickup from shape parameters.
 
-A vehicle is four material groups, one `Mesh` each, in this order (`GROUP_NAMES`): the painted body (lower hull,
-roof, pillars), the windows (the glass house), the wheels (tyres and hubs) and the lights. Every group is a union of
-closed components with faces counter-clockwise seen from outside, so the rasterizer may cull back faces.
+A vehicle is five material groups, one `Mesh` each, in this order (`GROUP_NAMES`): the painted body (lower hull,
+roof, pillars), the windows (the glass house), the wheels (tyres and hubs), the lights and the trim (the dark
+underbody that also lines the wheel arches, bumper valances and the grille). Every group is a
+union of closed components with faces counter-clockwise seen from outside, so the rasterizer may cull back faces.
+
+The body carries a per-vertex occlusion factor (`BODY_OCCLUSION_FLOOR` at the ground rising to 1 at the belt line):
+the sky lights a car's upper panels while its lower sides see the road and the car's own shadow, so real cars read
+dark at the bottom and bright higher up. It multiplies the paint, so it survives repainting. The windows carry a
+factor rising from `GLASS_REFLECTION_FLOOR` at the belt line to 1 at the roof: the renderer has no environment map,
+so the glass's albedo stands in for what it reflects (see `PART_RANGES`).
 
 Vehicle frame: x forward, y left, z up; the origin is the centre of the footprint on the ground (z = 0).
 
-Two levels of detail: "full" (rounded hull, pillars, hubs; about 2 k triangles, to look at) and "light" (chamfered
-hull, no pillars or hubs; a few hundred triangles, for the policy's 160 x 64 view where a car covers a few hundred
-pixels).
+Two levels of detail: "full" (rounded hull, pillars, hubs, valances, grille; about 2 k triangles, to look
+at) and "light" (chamfered hull, no pillars, hubs or small trim, the underbody kept; a few hundred triangles, for the
+policy's 160 x 64 view where a car covers a few hundred pixels).
 
 Paint (`sample_paint`) follows the paper's five material parameters (§III-A: diffuse colour, specular colour,
 specular highlight, metalness, roughness), drawn from physically plausible ranges:
@@ -27,22 +34,36 @@ specular highlight, metalness, roughness), drawn from physically plausible range
   for a flake-filled base coat (Burley 2012, "Physically-Based Shading at Disney").
 - roughness: 0.05–0.3, a clear coat (Burley 2012 uses clearcoat gloss near 1, i.e. low roughness); weathered
   cars at the top of the range.
+
+The other parts' materials are drawn per car too (`sample_part_materials`, `PART_RANGES`), the same five
+parameters: glass (a smooth dielectric whose specular colour is raised to 0.15–0.3 for the glancing views of a
+windscreen; its albedo 0.12–0.25 is not the tinted glass's own 0.02–0.08 but what a window seen from a car's height
+shows: Schlick's Fresnel reflectance of glass is 0.06–0.2 at the 55–70 degree incidence of a raked windscreen or rear
+window, times a sky brighter than the frame's mean, which the scene's ambient light stands for), tyre rubber (rough,
+dull), black trim plastic (albedo 0.04–0.09, semi-matte), light lenses (smooth polycarbonate) and the wheel's hub
+(painted steel or alloy).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from drivesim.sim.mesh import Material, Mesh
 
 BODY_TYPES: tuple[str, ...] = ("sedan", "hatchback", "suv", "van", "pickup")
-GROUP_NAMES: tuple[str, ...] = ("body", "windows", "wheels", "lights")
+GROUP_NAMES: tuple[str, ...] = ("body", "windows", "wheels", "lights", "trim")
 DETAILS: tuple[str, ...] = ("full", "light")
 
 ROOF_THICKNESS_M = 0.05
 LENS_PROUD_M = 0.012
+TRIM_PROUD_M = 0.008  # valances and grille stand this far out of the hull's ends
+BODY_OCCLUSION_FLOOR = 0.3
+"""The body's per-vertex light factor at the ground (1 at the belt line and above; linear in between)."""
+GLASS_REFLECTION_FLOOR = 0.3
+"""The windows' per-vertex factor at the belt line (1 at the roof; linear in between): what a window shows is mostly
+the sky it reflects at its top and the darker street and cabin lower down."""
 
 
 @dataclass(frozen=True)
@@ -224,15 +245,91 @@ def sample_paint(rng: np.random.Generator) -> Material:
     )
 
 
-# Fixed materials of the other groups: tinted glass (dielectric, F0 ~0.04 raised for the glancing views of a
-# windscreen; smooth), tyre rubber (dark, rough) and light lenses (polycarbonate, smooth; colour per vertex).
+# The default materials of the other groups (a car built without sampled parts): tinted glass (dielectric, F0 ~0.04
+# raised for the glancing views of a windscreen; smooth), tyre rubber (dark, rough), light lenses (polycarbonate,
+# smooth; colour per vertex) and trim plastic (semi-matte; colour per vertex).
 GLASS = Material(diffuse_rgb=(0.035, 0.045, 0.055), specular_rgb=(0.25, 0.25, 0.25), shininess=256.0, roughness=0.05)
 RUBBER = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.04, 0.04, 0.04), shininess=8.0, roughness=0.8)
 LENS = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.3, 0.3, 0.3), shininess=200.0, roughness=0.1)
+TRIM = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.04, 0.04, 0.04), shininess=24.0, roughness=0.6)
 _TYRE_RGB = (0.045, 0.045, 0.05)
 _HUB_RGB = (0.45, 0.46, 0.48)
 _HEADLIGHT_RGB = (0.85, 0.85, 0.80)
 _TAILLIGHT_RGB = (0.55, 0.02, 0.02)
+_UNDERBODY_RGB = (0.03, 0.03, 0.03)  # the underside and arch liners: dark and in the car's own shadow
+
+
+@dataclass(frozen=True)
+class PartMaterials:
+    """The materials of a car's parts other than its paint, and the colours its parts carry per vertex.
+
+    :param glass: the windows. :param rubber: the tyres and hubs (their colours per vertex).
+    :param lens: the lights (colours per vertex). :param trim: underbody, valances and grille (per vertex).
+    :param trim_rgb: albedo of the black plastic trim. :param hub_rgb: albedo of the wheel's hub.
+    """
+
+    glass: Material = field(default_factory=lambda: GLASS)
+    rubber: Material = field(default_factory=lambda: RUBBER)
+    lens: Material = field(default_factory=lambda: LENS)
+    trim: Material = field(default_factory=lambda: TRIM)
+    trim_rgb: tuple[float, float, float] = (0.06, 0.06, 0.06)
+    hub_rgb: tuple[float, float, float] = _HUB_RGB
+
+
+PART_RANGES: dict[str, tuple[float, float]] = {
+    "glass_albedo": (0.12, 0.25),
+    "glass_specular": (0.15, 0.3),
+    "glass_shininess": (128.0, 512.0),
+    "glass_roughness": (0.02, 0.1),
+    "rubber_roughness": (0.7, 0.9),
+    "rubber_shininess": (4.0, 16.0),
+    "trim_albedo": (0.04, 0.09),
+    "trim_roughness": (0.4, 0.8),
+    "trim_shininess": (12.0, 48.0),
+    "lens_specular": (0.2, 0.4),
+    "lens_roughness": (0.05, 0.15),
+    "hub_albedo": (0.05, 0.6),
+}
+
+
+def sample_part_materials(rng: np.random.Generator) -> PartMaterials:
+    """Per-car materials of the glass, tyres, lenses, trim and hubs from `PART_RANGES` (see module doc)."""
+    R = PART_RANGES
+    glass = float(rng.uniform(*R["glass_albedo"]))
+    tint = rng.uniform([0.85, 0.95, 1.0], [1.0, 1.1, 1.25])  # most glass is tinted green-blue, a little
+    glass_spec = float(rng.uniform(*R["glass_specular"]))
+    trim = float(rng.uniform(*R["trim_albedo"]))
+    lens_spec = float(rng.uniform(*R["lens_specular"]))
+    # alloy hubs (bright, most cars) or black-painted steel ones
+    hub = float(rng.uniform(0.3, R["hub_albedo"][1]) if rng.uniform() < 0.7 else rng.uniform(R["hub_albedo"][0], 0.1))
+    return PartMaterials(
+        glass=Material(
+            diffuse_rgb=tuple(float(c) for c in np.clip(glass * tint, 0.0, R["glass_albedo"][1])),
+            specular_rgb=(glass_spec,) * 3,
+            shininess=float(np.exp(rng.uniform(*np.log(R["glass_shininess"])))),
+            roughness=float(rng.uniform(*R["glass_roughness"])),
+        ),
+        rubber=Material(
+            diffuse_rgb=(1.0, 1.0, 1.0),
+            specular_rgb=(0.04, 0.04, 0.04),
+            shininess=float(rng.uniform(*R["rubber_shininess"])),
+            roughness=float(rng.uniform(*R["rubber_roughness"])),
+        ),
+        lens=Material(
+            diffuse_rgb=(1.0, 1.0, 1.0),
+            specular_rgb=(lens_spec,) * 3,
+            shininess=200.0,
+            roughness=float(rng.uniform(*R["lens_roughness"])),
+        ),
+        trim=Material(
+            diffuse_rgb=(1.0, 1.0, 1.0),
+            specular_rgb=(0.04, 0.04, 0.04),
+            shininess=float(rng.uniform(*R["trim_shininess"])),
+            roughness=float(rng.uniform(*R["trim_roughness"])),
+        ),
+        trim_rgb=(trim, trim, trim),
+        hub_rgb=(hub, hub, 1.02 * hub),
+    )
 
 
 # ---------------------------------------------------------------------------------------------- closed primitives
@@ -245,11 +342,14 @@ class _Parts:
         self.rgb: list[np.ndarray] = []
         self.count = 0
 
-    def add(self, vertices: np.ndarray, faces: np.ndarray, rgb: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> None:
+    def add(
+        self, vertices: np.ndarray, faces: np.ndarray, rgb: tuple[float, float, float] | np.ndarray = (1.0, 1.0, 1.0)
+    ) -> None:
+        """Add one closed component; `rgb` is its colour, or (V, 3) colours per vertex."""
         faces = _outward(vertices, faces)
         self.vertices.append(vertices)
         self.faces.append(faces + self.count)
-        self.rgb.append(np.tile(np.asarray(rgb, dtype=np.float32), (len(vertices), 1)))
+        self.rgb.append(np.broadcast_to(np.asarray(rgb, dtype=np.float32), (len(vertices), 3)))
         self.count += len(vertices)
 
     def build(self, material: Material, object_id: int, coloured: bool = False) -> Mesh:
@@ -481,25 +581,75 @@ def _lights(shape: VehicleShape, lay: _Layout) -> list[tuple[np.ndarray, np.ndar
     return out
 
 
-def build_vehicle_meshes(shape: VehicleShape, paint: Material, detail: str = "full", object_id: int = 0) -> list[Mesh]:
-    """The meshes of one vehicle: [body, windows, wheels, lights] (`GROUP_NAMES`), closed, in the vehicle frame
-    (x forward, z up, origin at the centre of the footprint on the ground), each with `object_id`.
+def _underbody(shape: VehicleShape, lay: _Layout) -> tuple[np.ndarray, np.ndarray]:
+    """The dark underside: a slab inside the hull from 8 cm above the ground to just over the arches' tops, between
+    the bumpers. Where the hull is cut away (the wheel arches, under the sills and bumpers) it is what the camera
+    sees: black arch liners behind the tyres and a dark band under the car."""
+    r = shape.wheel_radius_m
+    y = shape.width_m / 2 - 0.04  # behind the tyres' outer faces, inside the hull's sides
+    x0, x1 = lay.rear_x + 0.15, lay.front_x - 0.15
+    z0, z1 = 0.08, 1.12 * r + 0.01
+    bottom = np.array([[x1, -y, z0], [x1, y, z0], [x0, y, z0], [x0, -y, z0]])
+    return _hexahedron(bottom, bottom + [0.0, 0.0, z1 - z0])
+
+
+def _end_box(end_x: float, depth_m: float, half_width_m: float, z0: float, z1: float, y_centre: float = 0.0):
+    """A flat box whose outer face is at `end_x` (sign of `depth_m` points inward), spanning y_centre +- half
+    width and z0..z1: a valance or a grille on a car's end."""
+    x_in = end_x - depth_m
+    y0, y1 = y_centre - half_width_m, y_centre + half_width_m
+    bottom = np.array([[end_x, y0, z0], [end_x, y1, z0], [x_in, y1, z0], [x_in, y0, z0]])
+    return _hexahedron(bottom, bottom + [0.0, 0.0, z1 - z0])
+
+
+def _trim(shape: VehicleShape, lay: _Layout, parts: PartMaterials) -> list[tuple[np.ndarray, np.ndarray, tuple]]:
+    """Bumper valances (dark plastic, the lower 14 cm of each end) and the grille between the headlights, standing
+    `TRIM_PROUD_M` out of the hull's ends."""
+    half_w = shape.width_m / 2
+    nose = min(0.18, 0.05 * shape.length_m)
+    bumper_z = lay.sill_z + 0.08
+    hood_front_z = lay.belt_z - min(0.12, 0.3 * (lay.belt_z - lay.sill_z))
+    head_top = hood_front_z - 0.6 * nose - 0.04
+    out = []
+    for sign, end in ((1.0, lay.front_x), (-1.0, lay.rear_x)):
+        trim_x = end - sign * (LENS_PROUD_M - TRIM_PROUD_M)
+        out.append((*_end_box(trim_x, sign * 0.1, 0.86 * half_w, bumper_z - 0.02, bumper_z + 0.12), parts.trim_rgb))
+    grille_x = lay.front_x - (LENS_PROUD_M - TRIM_PROUD_M)
+    out.append((*_end_box(grille_x, 0.1, 0.48 * half_w, head_top - 0.12, head_top), parts.trim_rgb))
+    return out
+
+
+def _height_ramp(vertices: np.ndarray, z0: float, z1: float, floor: float) -> np.ndarray:
+    """(V, 3) per-vertex factors rising linearly from `floor` at height z0 to 1 at z1 (held outside)."""
+    t = np.clip((vertices[:, 2] - z0) / max(z1 - z0, 1e-6), 0.0, 1.0)
+    return np.repeat((floor + (1.0 - floor) * t)[:, None], 3, axis=1).astype(np.float32)
+
+
+def build_vehicle_meshes(
+    shape: VehicleShape, paint: Material, detail: str = "full", object_id: int = 0, parts: PartMaterials | None = None
+) -> list[Mesh]:
+    """The meshes of one vehicle: [body, windows, wheels, lights, trim] (`GROUP_NAMES`), closed, in the vehicle
+    frame (x forward, z up, origin at the centre of the footprint on the ground), each with `object_id`.
 
     :param shape: the shape parameters.
     :param paint: the body's material (e.g. from `sample_paint`).
     :param detail: "full" (to look at) or "light" (a few hundred triangles).
     :param object_id: id written to the rasterizer's object mask.
+    :param parts: the other parts' materials (e.g. from `sample_part_materials`); None: the defaults.
     """
     if detail not in DETAILS:
         raise ValueError(f"detail {detail!r} is not one of {', '.join(DETAILS)}")
+    parts = parts or PartMaterials()
     lay = _layout(shape)
-    body, glass, wheels, lights = _Parts(), _Parts(), _Parts(), _Parts()
-    body.add(*_hull(shape, lay, detail))
+    body, glass, wheels, lights, trim = _Parts(), _Parts(), _Parts(), _Parts(), _Parts()
+    hull = _hull(shape, lay, detail)
+    body.add(*hull, rgb=_height_ramp(hull[0], 0.0, lay.belt_z, BODY_OCCLUSION_FLOOR))
     body.add(*_roof(shape, lay))
     if detail == "full":
         for part in _pillars(shape, lay):
             body.add(*part)
-    glass.add(*_glass_house(shape, lay))
+    house = _glass_house(shape, lay)
+    glass.add(*house, rgb=_height_ramp(house[0], lay.belt_z, lay.roof_z, GLASS_REFLECTION_FLOOR))
     r = shape.wheel_radius_m
     sides = 20 if detail == "full" else 8
     for ax in lay.axles_x:
@@ -508,14 +658,19 @@ def build_vehicle_meshes(shape: VehicleShape, paint: Material, detail: str = "fu
             wheels.add(*_cylinder_y(centre, r, lay.tyre_width_m, sides), rgb=_TYRE_RGB)
             if detail == "full":  # hub cap standing 5 mm out of the tyre's outer face
                 hub_centre = centre + [0.0, side * (lay.tyre_width_m / 2 + 0.005 - 0.02), 0.0]
-                wheels.add(*_cylinder_y(hub_centre, 0.62 * r, 0.04, 12), rgb=_HUB_RGB)
+                wheels.add(*_cylinder_y(hub_centre, 0.62 * r, 0.04, 12), rgb=parts.hub_rgb)
     for v, f, rgb in _lights(shape, lay):
         lights.add(v, f, rgb=rgb)
+    trim.add(*_underbody(shape, lay), rgb=_UNDERBODY_RGB)
+    if detail == "full":
+        for v, f, rgb in _trim(shape, lay, parts):
+            trim.add(v, f, rgb=rgb)
     return [
-        body.build(paint, object_id),
-        glass.build(GLASS, object_id),
-        wheels.build(RUBBER, object_id, coloured=True),
-        lights.build(LENS, object_id, coloured=True),
+        body.build(paint, object_id, coloured=True),
+        glass.build(parts.glass, object_id, coloured=True),
+        wheels.build(parts.rubber, object_id, coloured=True),
+        lights.build(parts.lens, object_id, coloured=True),
+        trim.build(parts.trim, object_id, coloured=True),
     ]
 
 
