@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from drivesim.cli.common import console, workspace
+from drivesim.cli.common import AddressOption, backend_option, console, workspace
 from drivesim.cli.ingest import TopicOption, topic_overrides
 from drivesim.cli.video_options import NO_VIDEO, VideoOptions, with_video_options
 
@@ -22,6 +22,13 @@ TrustEntryPointOption = Annotated[
         "runs: only for code you trust. Without it only drivesim's own env classes are accepted.",
     ),
 ]
+
+
+BackendOption = backend_option(
+    "preprocess's depth in this process",
+    "preprocess's camera-only (mvs) depth split over a Ray cluster's workers",
+    " As `drivesim preprocess --backend`.",
+)
 
 
 @with_video_options
@@ -68,6 +75,8 @@ def run_command(
     topic: TopicOption = None,
     video: VideoOptions = NO_VIDEO,
     trust_entry_point: TrustEntryPointOption = False,
+    backend: BackendOption = None,
+    address: AddressOption = None,
 ) -> None:
     """Run every stage in order: (synth,) ingest, preprocess, build-world, meshes, train, eval, export.
 
@@ -85,7 +94,7 @@ def run_command(
     if len(given) > 1:
         _refuse_one_video_options(video)
     topics = [f"ingest.{o}" for o in topic_overrides(topic)]
-    overrides = [*(set_ or []), *topics, *video.overrides(prefix="ingest.")]
+    overrides = [*(set_ or []), *topics, *video.overrides(prefix="ingest."), *_backend_overrides(backend, address)]
     overrides = load_run_preset(choose_run_preset(preset), config, overrides)
 
     def on_stage(done: StageRun) -> None:
@@ -101,6 +110,23 @@ def run_command(
         workspace(), first, overrides, force=force, on_stage=on_stage, trust_entry_point=trust_entry_point, **more
     )
     _print_chain_result(result)
+
+
+def _backend_overrides(backend: str | None, address: str | None) -> list[str]:
+    """preprocess.backend / preprocess.address overrides from --backend / --address (a bad pair is one line; Ray's
+    import is checked before any work)."""
+    from drivesim.pipeline.errors import ConfigError
+
+    if backend is not None and backend not in ("local", "ray"):
+        raise ConfigError(f"--backend {backend!r}: choose local or ray")
+    if address is not None and backend != "ray":
+        raise ConfigError("--address is the Ray cluster's address: give it with --backend ray")
+    if backend == "ray":
+        from drivesim.pipeline.ray_cluster import import_ray
+
+        import_ray()
+    out = [] if backend is None else [f"preprocess.backend={backend}"]
+    return out if address is None else [*out, f"preprocess.address={address}"]
 
 
 def _refuse_one_video_options(video: VideoOptions) -> None:

@@ -258,11 +258,12 @@ class ImageStack:
             raise ImageStackError(f"{self.path}: frame {int(self._rows[i])}: {e}") from None
 
     def __getitem__(self, key: Any) -> Any:
-        if isinstance(key, tuple):
+        if isinstance(key, tuple):  # (frames, then indices within each frame), as on an ndarray
             head = self[key[0]]
-            if isinstance(head, ImageStack):
-                return np.asarray(head)[(slice(None), *key[1:])]
-            return head[key[1:]]
+            if isinstance(key[0], int | np.integer):
+                return head[key[1:]]
+            frame_axes = np.asarray(head).ndim - len(self.frame_shape)
+            return np.asarray(head)[(slice(None),) * frame_axes + tuple(key[1:])]
         if isinstance(key, int | np.integer):
             n = len(self._rows)
             if not -n <= key < n:

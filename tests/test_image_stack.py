@@ -70,6 +70,8 @@ def test_indexing_is_per_frame_and_slices_stay_lazy(tmp_path: Path) -> None:
     np.testing.assert_array_equal(view[-1], frames[8])
     np.testing.assert_array_equal(stack[np.array([7, 1])], frames[[7, 1]])
     np.testing.assert_array_equal(stack[4, ::2, 1:3], frames[4, ::2, 1:3])  # (frame, rows, cols) as a memmap
+    np.testing.assert_array_equal(stack[[1, 6], 5:, :7], frames[[1, 6], 5:, :7])
+    np.testing.assert_array_equal(stack[3:5, :, :, 0], frames[3:5, :, :, 0])
     np.testing.assert_array_equal(np.stack(list(view)), frames[2:9:3])
     with pytest.raises(IndexError):
         stack[10]

@@ -183,7 +183,9 @@ def depth_sides(world: str, shift_m: float = 1.5) -> dict[str, dict[str, float]]
     more a view synthesized that far aside on that side stretches and uncovers."""
     camera = json.loads((Path(world) / "camera.json").read_text())
     K = np.asarray(camera["K"], dtype=float)
-    depth = np.load(Path(world) / "depth_m.npy", mmap_mode="r")
+    from drivesim.sim.image_stack import open_frames, stored_file
+
+    depth = open_frames(stored_file(Path(world), "depth_m"))  # an image stack, or the .npy of an older world
     frames = np.linspace(0, depth.shape[0] - 1, min(depth.shape[0], 40)).astype(int)
     cy, cx = int(round(K[1, 2])), int(round(K[0, 2]))
     out = {}

@@ -153,7 +153,7 @@ class TraceInfo:
     series: tuple[str, ...]
     has_gt_depth: bool
     baseline_m: float | None = None
-    """Stereo traces: the right camera's offset along the left camera's +x (m); None without frames_right.npy."""
+    """Stereo traces: the right camera's offset along the left camera's +x (m); None without frames_right.imgs."""
 
     def frames(self) -> np.ndarray | ImageStack:
         """The frames, uint8 (N, H, W, 3), read one at a time (`frames()[i]`; an older trace's .npy memory-mapped)."""

@@ -44,7 +44,7 @@ _ESTIMATOR: dict[str, Any] = {}
 @dataclass(frozen=True)
 class MvsDrive:
     """What a task needs to estimate the mvs depth of any frames of a drive; small (the frames are read from the
-    trace's frames.npy by path), put in Ray's object store once.
+    trace's frames by path), put in Ray's object store once.
 
     :param trace_dir: the trace artifact's folder, at the same path on every node.
     :param selection: (start, stop, step) of the trace frames preprocessed (`run.select_frames`).
@@ -242,7 +242,7 @@ def _write(state: _DriveState, result: ChunkResult, out: np.ndarray) -> None:
 
 
 def ray_depth_method(trace_dir: Path, selection: tuple[int, int, int], address: str | None) -> Callable[..., dict]:
-    """A `depth.DepthMethod` that runs mvs on Ray: the frames given to it are those of `trace_dir`'s frames.npy at
+    """A `depth.DepthMethod` that runs mvs on Ray: the frames given to it are those of `trace_dir`'s frames at
     `selection` (start, stop, step), which each task reads itself."""
 
     def run(inputs: Any, cfg: DepthConfig, out: np.ndarray, progress: Callable[[int], None] | None) -> dict:

@@ -216,7 +216,7 @@ def _depth_method(cfg: PreprocessConfig, trace: Any) -> str:
     if cfg.depth.method == "lidar" and not has_lidar:
         raise InputError("depth.method=lidar but the trace has no point cloud (no PointCloud2 topic); use auto or mvs")
     if cfg.depth.method == "stereo" and not has_stereo:
-        raise InputError("depth.method=stereo but the trace has no second camera (frames_right.npy); use auto or mvs")
+        raise InputError("depth.method=stereo but the trace has no second camera (frames_right.imgs); use auto or mvs")
     method, why = depth_mod.choose_method(cfg.depth.method, has_lidar, has_stereo)
     console.print(f"depth method: {method} ({why})")
     return method
