@@ -10,22 +10,21 @@ Surfaces carry semantic object ids (`SEMANTIC_IDS`), readable with `render_full`
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 from scipy.spatial import cKDTree
 
 from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert, pose_2d
 from drivesim.sim.mesh import Material, Mesh
-from drivesim.sim.raster import Lighting, Rasterizer
+from drivesim.sim.raster import Lighting
 from drivesim.sim.vehicles import GROUP_NAMES, VehicleShape, build_vehicle_meshes
 from drivesim.stages.synth import textures
 from drivesim.stages.synth.config import CameraConfig, SynthConfig, SynthWorldConfig
 from drivesim.stages.synth.primitives import MeshBuffer, box, icosphere, prism, quad_faces
+from drivesim.stages.synth.render import CellCulling, Sky, render_packed
 from drivesim.stages.synth.road import RoadPath, build_centreline
 from drivesim.stages.synth.scenery import (
     CURB_TOP_WIDTH_M,
@@ -43,6 +42,7 @@ GROUND_TILE_M = 10.0
 FAR_TILE_M = 100.0
 FAR_EXTENT_M = 1500.0
 GROUND_Z_M = -0.03
+BUILDING_GROUP_M = 160.0  # buildings share a facade atlas within squares of this size
 
 SUN_DIR_WORLD = np.array([0.45, -0.55, 0.70])  # towards the sun: south-east, about 44 degrees up
 SKY_ZENITH_RGB = np.array([0.33, 0.52, 0.80], np.float32)
@@ -94,11 +94,8 @@ class SynthWorld:
         self.path: RoadPath = self.road.offset(-0.5 * config.road.lane_width_m)
         self.layout: Layout = place_scenery(self.road, config.road, config.scenery, world_rng)
         self.meshes: list[Mesh] = _build_meshes(self.road, self.layout, config, texture_rng)
-        self._culling = _CellCulling(self.meshes)
-        self._clouds = _cloud_cover(sky_rng)
-        self._rasterizers: dict[tuple[int, int], Rasterizer] = {}
-        self._rays_key: tuple | None = None
-        self._rays = np.zeros((0, 0, 3), np.float32)
+        self._culling = CellCulling(self.meshes)
+        self._sky = Sky(_cloud_cover(sky_rng), SKY_ZENITH_RGB, SKY_HORIZON_RGB, CLOUD_RGB, CLOUD_HEIGHT_M, CLOUD_TILE_M)
 
     @classmethod
     def from_seed(cls, seed: int, cfg: SynthConfig | SynthWorldConfig | None = None) -> SynthWorld:
@@ -128,44 +125,18 @@ class SynthWorld:
             light_rgb=np.array([0.62, 0.58, 0.50]),
         )
 
-    def _pixel_rays(self, K: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
-        """(H, W, 3) rays K^-1 [u, v, 1] in the optical frame (cached per camera)."""
-        key = (np.asarray(K, float).tobytes(), int(width_px), int(height_px))
-        if self._rays_key != key:
-            u, v = np.meshgrid(np.arange(width_px, dtype=np.float32), np.arange(height_px, dtype=np.float32))
-            self._rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T.astype(np.float32)
-            self._rays_key = key
-        return self._rays
-
-    def _rasterizer(self, width_px: int, height_px: int) -> Rasterizer:
-        key = (int(width_px), int(height_px))
-        if key not in self._rasterizers:
-            self._rasterizers[key] = Rasterizer(width_px, height_px, "cpu")
-        return self._rasterizers[key]
-
     def render_full(
         self, T_world_camera: np.ndarray, K: np.ndarray, width_px: int, height_px: int
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Colour (H, W, 3) uint8, depth along the optical axis (H, W) float32 m (+inf = sky) and semantic object
         ids (H, W) int32 (`SEMANTIC_IDS`, -1 = sky) seen by a camera at `T_world_camera` (optical frame -> world)."""
         T_world_camera = np.asarray(T_world_camera, float)
-        meshes = self._culling.visible(T_world_camera[:2, 3], self.config.scenery.view_distance_m)
-        result = self._rasterizer(width_px, height_px).render(
-            meshes, invert(T_world_camera), K, self.lighting(T_world_camera)
-        )
-        rgb = result.rgb[0]
-        depth = result.depth_m[0]
-        sky = torch.isinf(depth)
-        # aerial perspective: blend toward the horizon colour with distance (in place, in torch: this runs per frame)
-        haze = -torch.expm1(-depth.masked_fill(sky, 0.0) / HAZE_DISTANCE_M)
-        rgb.lerp_(torch.as_tensor(SKY_HORIZON_RGB, dtype=rgb.dtype).expand_as(rgb), haze[..., None].expand_as(rgb))
-        rgb = rgb.clamp_(0.0, 1.0).mul_(255.0).add_(0.5).to(torch.uint8).numpy()
-        sky_np = sky.numpy()
-        if sky_np.any():
-            rays = self._pixel_rays(K, width_px, height_px)[sky_np]
-            colour = _sky_colour(rays @ T_world_camera[:3, :3].T.astype(np.float32), self._clouds)
-            rgb[sky_np] = (colour * 255.0 + 0.5).astype(np.uint8)
-        return rgb, depth.numpy().astype(np.float32, copy=False), result.object_id[0].numpy()
+        packed, triangles = self._culling.scene(T_world_camera[:2, 3], self.config.scenery.view_distance_m)
+        frame = render_packed(
+            packed, triangles, invert(T_world_camera), K, int(width_px), int(height_px), self.lighting(T_world_camera),
+            HAZE_DISTANCE_M, self._sky,
+        )  # fmt: skip
+        return frame.rgb, frame.depth_m, frame.object_id
 
     def render(
         self, T_world_camera: np.ndarray, K: np.ndarray, width_px: int, height_px: int
@@ -176,79 +147,11 @@ class SynthWorld:
         return rgb, depth
 
 
-class _CellCulling:
-    """The meshes cut down to the 40 m cells within the view distance of a camera.
-
-    Faces keep their mesh (one texture, one material per kind) and only the face list shrinks; the last few cut-down
-    lists are kept so that consecutive frames seeing the same cells hand the rasterizer the same (cached) meshes.
-    """
-
-    CELL_M = 40.0
-    KEEP = 4
-
-    def __init__(self, meshes: list[Mesh]) -> None:
-        self.meshes = meshes
-        self.face_cells: list[np.ndarray] = []
-        cells: dict[int, list[np.ndarray]] = {}
-        for mesh in meshes:
-            centroid = mesh.vertices_m[mesh.faces].mean(axis=1)[:, :2]
-            ij = np.floor(centroid / self.CELL_M).astype(np.int64)
-            key = ij[:, 0] * 1_000_003 + ij[:, 1]
-            self.face_cells.append(key)
-            for k in np.unique(key):
-                cells.setdefault(int(k), []).append(mesh.vertices_m[mesh.faces[key == k]].reshape(-1, 3)[:, :2])
-        self.cell_keys = np.array(sorted(cells), dtype=np.int64)
-        self.cell_centre = np.zeros((len(self.cell_keys), 2))
-        self.cell_radius = np.zeros(len(self.cell_keys))
-        for i, k in enumerate(self.cell_keys):
-            pts = np.concatenate(cells[int(k)])
-            lo, hi = pts.min(0), pts.max(0)
-            self.cell_centre[i] = (lo + hi) / 2
-            self.cell_radius[i] = np.linalg.norm(hi - lo) / 2
-        self._recent: list[tuple[bytes, list[Mesh]]] = []
-
-    def visible(self, camera_xy_m: np.ndarray, view_distance_m: float) -> list[Mesh]:
-        """The meshes with only the faces in cells that come within `view_distance_m` of the camera."""
-        near = np.linalg.norm(self.cell_centre - camera_xy_m, axis=1) - self.cell_radius < view_distance_m
-        if near.all():
-            return self.meshes
-        signature = near.tobytes()
-        for sig, meshes in self._recent:
-            if sig == signature:
-                return meshes
-        keys = self.cell_keys[near]
-        meshes = []
-        for mesh, face_cells in zip(self.meshes, self.face_cells, strict=True):
-            faces = mesh.faces[np.isin(face_cells, keys)]
-            if len(faces):
-                meshes.append(dataclasses.replace(mesh, faces=faces))
-        self._recent = [*self._recent[-(self.KEEP - 1) :], (signature, meshes)]
-        return meshes
-
-
 def _cloud_cover(rng: np.random.Generator) -> np.ndarray:
     """(N, N) cloud opacity in [0, 1] on a periodic tile of the cloud layer (CLOUD_TILE_M across)."""
     n = 512
     c = textures.periodic_noise(rng, n, n, 14.0) + 0.45 * textures.periodic_noise(rng, n, n, 3.0)
     return np.clip((c - 0.55) * 0.9, 0.0, 1.0).astype(np.float32)
-
-
-def _sky_colour(directions: np.ndarray, clouds: np.ndarray) -> np.ndarray:
-    """Sky colour (N, 3) for world-frame ray directions (N, 3): a blue gradient from the hazy horizon to the zenith,
-    clouds on a layer CLOUD_HEIGHT_M up fading out toward the horizon, and hazy ground below the horizon."""
-    d = directions / np.linalg.norm(directions, axis=-1, keepdims=True)
-    elevation = d[:, 2]
-    t = np.clip(elevation, 0.0, 1.0) ** 0.6
-    rgb = SKY_HORIZON_RGB * (1 - t[:, None]) + SKY_ZENITH_RGB * t[:, None]
-    up = elevation > 0.01
-    if up.any():
-        n = clouds.shape[0]
-        hit = d[up, :2] * (CLOUD_HEIGHT_M / d[up, 2:3])
-        ij = np.floor(hit / CLOUD_TILE_M * n).astype(np.int64) % n
-        cover = clouds[ij[:, 1], ij[:, 0]] * np.clip((elevation[up] - np.float32(0.03)) * np.float32(4.0), 0.0, 1.0)
-        rgb[up] = rgb[up] * (1 - cover[:, None]) + CLOUD_RGB * cover[:, None]
-    rgb[elevation < 0] = SKY_HORIZON_RGB * 0.85
-    return rgb.astype(np.float32)
 
 
 # ---------------------------------------------------------------------------------------------------- meshes
@@ -258,7 +161,7 @@ def _build_meshes(road: RoadPath, layout: Layout, cfg: SynthWorldConfig, rng: np
         _road_mesh(road, road_cfg, rng),
         *_sidewalk_meshes(road, road_cfg, rng),
         *_ground_meshes(road, cfg, rng),
-        _building_mesh(layout, rng),
+        *_building_meshes(layout),
         *_tree_meshes(layout, rng),
         *_car_meshes(layout),
     ]
@@ -393,17 +296,26 @@ def _ground_meshes(road: RoadPath, cfg: SynthWorldConfig, rng: np.random.Generat
     return meshes
 
 
-def _building_mesh(layout: Layout, rng: np.random.Generator) -> Mesh:
-    """All buildings as one mesh over a facade atlas: each building has its own facade."""
-    images = []
+def _building_meshes(layout: Layout) -> list[Mesh]:
+    """The buildings, one mesh per BUILDING_GROUP_M square of the map (by their centres), each over its own facade
+    atlas: a camera's view then holds only the facades near it, however long the road."""
+    groups: dict[tuple[int, int], list[Building]] = {}
     for b in layout.buildings:
+        groups.setdefault((int(b.x_m // BUILDING_GROUP_M), int(b.y_m // BUILDING_GROUP_M)), []).append(b)
+    if not groups:
+        return [MeshBuffer().build(Material(), SEMANTIC_IDS["building"])]
+    return [_building_mesh(buildings) for buildings in groups.values()]
+
+
+def _building_mesh(buildings: list[Building]) -> Mesh:
+    """Buildings as one mesh over a facade atlas: each building has its own facade."""
+    images = []
+    for b in buildings:
         brng = np.random.default_rng(b.facade_seed)
         images.append(textures.facade_texture(brng, max(b.length_m, b.depth_m), b.height_m))
-    if not images:
-        return MeshBuffer().build(Material(), SEMANTIC_IDS["building"])
     atlas, rects = textures.pack_atlas(images, atlas_width_px=1024)
     buf = MeshBuffer()
-    for i, b in enumerate(layout.buildings):
+    for i, b in enumerate(buildings):
         v, f = box(np.array([b.x_m, b.y_m]), b.yaw_rad, b.length_m, b.depth_m, GROUND_Z_M - 0.1, b.height_m)
         u0, v0, u1, v1 = rects[i]
         facade_w = max(b.length_m, b.depth_m)

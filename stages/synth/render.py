@@ -1,0 +1,220 @@
+"""The synth world's ground-truth renderer: the world's faces cut down to the cells near the camera, packed once per
+set of cells, and drawn by the rasterizer's compiled kernels (set-up and depth test, `sim.raster_kernel`) and the
+synth's own compiled per-pixel pass (`render_kernel.shade_world`: texture, shading, haze, uint8).
+
+Why not `sim.raster.Rasterizer.render`: its textured path resolves pixels through whole-image torch operations
+(about two thirds of a frame's time on one core), and it keeps up to 16 packings of the mesh lists it is given, each
+with a copy of every texture; the synth world hands it a new cut-down list every few metres of driving.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivesim.sim.mesh import Mesh
+from drivesim.sim.raster import Lighting, PackedScene, pack_meshes
+
+NEAR_M = 0.05  # nearest drawn depth, as the rasterizer's default
+
+
+@dataclass(frozen=True)
+class FrameImages:
+    """One rendered frame: colour (H, W, 3) uint8, depth (H, W) float32 m (+inf = sky), semantic object ids (H, W)
+    int32 (-1 = sky)."""
+
+    rgb: np.ndarray
+    depth_m: np.ndarray
+    object_id: np.ndarray
+
+
+@dataclass(frozen=True)
+class Sky:
+    """What the sky looks like: cloud opacity (N, N) in [0, 1] on a periodic tile of the cloud layer, the colours
+    at the zenith, at the horizon (also the haze's) and of the clouds, the cloud layer's height and tile size (m)."""
+
+    clouds: np.ndarray
+    zenith_rgb: np.ndarray
+    horizon_rgb: np.ndarray
+    cloud_rgb: np.ndarray
+    cloud_height_m: float
+    cloud_tile_m: float
+
+    def table(self) -> np.ndarray:
+        """(12,) float32 as `render_kernel.paint_sky` takes it."""
+        row = np.zeros(12, np.float32)
+        row[0:3], row[3:6], row[6:9] = self.zenith_rgb, self.horizon_rgb, self.cloud_rgb
+        row[9], row[10] = self.cloud_height_m, self.cloud_tile_m
+        return row
+
+
+@dataclass(frozen=True)
+class _Packed:
+    """A PackedScene's tables as numpy arrays (the compiled kernels' inputs)."""
+
+    origin_m: np.ndarray
+    vertices: np.ndarray  # (3 xyz, 3 corners * T)
+    attributes: np.ndarray
+    material: np.ndarray
+    object_id: np.ndarray
+    texture_index: np.ndarray
+    texels: np.ndarray
+    texture_info: np.ndarray
+
+    @classmethod
+    def of(cls, scene: PackedScene) -> _Packed:
+        n = scene.triangle_count
+        return cls(
+            origin_m=scene.origin_m,
+            vertices=np.ascontiguousarray(scene.vertex_components.numpy().reshape(3, 3 * n)),
+            attributes=scene.attribute_table.numpy(),
+            material=scene.material.numpy(),
+            object_id=scene.object_id.numpy(),
+            texture_index=scene.texture_index.numpy(),
+            texels=scene.texels.numpy(),
+            texture_info=np.ascontiguousarray(scene.texture_info.numpy()),
+        )
+
+
+class CellCulling:
+    """The faces in the 40 m cells that come within the view distance of a camera, packed.
+
+    Faces keep their mesh (one texture, one material per kind) and their order; only the face list shrinks. Each
+    mesh's faces are sorted by cell once, so cutting costs the visible faces, not the world's. A packing holds the
+    cells within the view distance plus `MARGIN_M` of where it was made, and serves every camera within `MARGIN_M` of
+    that place: each frame draws only its own cells' triangles of it (the same faces, in the same order).
+    """
+
+    CELL_M = 40.0
+    MARGIN_M = 40.0
+
+    def __init__(self, meshes: list[Mesh]) -> None:
+        self.meshes = meshes
+        self._order: list[np.ndarray] = []  # per mesh: its face indices sorted by cell
+        self._cells: list[np.ndarray] = []  # per mesh: the (global) cells it has faces in ...
+        self._bounds: list[np.ndarray] = []  # ... and where each one's faces start and end in `_order`
+        keys_per_mesh, lo_per_mesh, hi_per_mesh = [], [], []
+        for mesh in meshes:
+            tri_xy = mesh.vertices_m[mesh.faces][:, :, :2]  # (F, 3, 2)
+            ij = np.floor(tri_xy.mean(axis=1) / self.CELL_M).astype(np.int64)
+            key = ij[:, 0] * 1_000_003 + ij[:, 1]
+            order = np.argsort(key, kind="stable")
+            keys, starts = np.unique(key[order], return_index=True)
+            self._order.append(order)
+            self._bounds.append(np.append(starts, len(order)))
+            keys_per_mesh.append(keys)
+            lo_per_mesh.append(np.minimum.reduceat(tri_xy.min(1)[order], starts) if len(order) else np.zeros((0, 2)))
+            hi_per_mesh.append(np.maximum.reduceat(tri_xy.max(1)[order], starts) if len(order) else np.zeros((0, 2)))
+        keys = np.concatenate(keys_per_mesh)
+        order = np.argsort(keys, kind="stable")
+        self.cell_keys, starts = np.unique(keys[order], return_index=True)
+        lo = np.minimum.reduceat(np.concatenate(lo_per_mesh)[order], starts).astype(np.float64)
+        hi = np.maximum.reduceat(np.concatenate(hi_per_mesh)[order], starts).astype(np.float64)
+        self.cell_centre = (lo + hi) / 2
+        self.cell_radius = np.linalg.norm(hi - lo, axis=1) / 2
+        self._cells = [np.searchsorted(self.cell_keys, k) for k in keys_per_mesh]
+        self._pack: tuple[np.ndarray, _Packed, np.ndarray] | None = None  # (made at xy, packing, its triangles' cells)
+
+    def near_cells(self, camera_xy_m: np.ndarray, distance_m: float) -> np.ndarray:
+        """(cells,) bool: the cells that come within `distance_m` of the camera."""
+        return np.linalg.norm(self.cell_centre - camera_xy_m, axis=1) - self.cell_radius < distance_m
+
+    def visible_meshes(self, near: np.ndarray) -> tuple[list[Mesh], np.ndarray]:
+        """The meshes with only the faces in the cells `near` (a mask over `cell_keys`), and each of their faces'
+        cell (in the order of the meshes' faces)."""
+        meshes, face_cells = [], []
+        for mesh, order, cells, bounds in zip(self.meshes, self._order, self._cells, self._bounds, strict=True):
+            at = np.flatnonzero(near[cells])
+            if not len(at):
+                continue
+            if len(at) == len(cells):
+                faces = np.arange(len(order))
+            else:
+                faces = np.sort(np.concatenate([order[bounds[i] : bounds[i + 1]] for i in at]))
+            cell_of_face = np.empty(len(order), np.int64)
+            cell_of_face[order] = np.repeat(cells, np.diff(bounds))
+            meshes.append(dataclasses.replace(mesh, faces=mesh.faces[faces]))
+            face_cells.append(cell_of_face[faces])
+        return meshes, np.concatenate(face_cells) if face_cells else np.zeros(0, np.int64)
+
+    def scene(self, camera_xy_m: np.ndarray, view_distance_m: float) -> tuple[_Packed, np.ndarray | None]:
+        """The packing that holds the cells within `view_distance_m` of the camera, and which of its triangles lie
+        in them (None: all)."""
+        xy = np.asarray(camera_xy_m, np.float64)
+        if self._pack is None or np.linalg.norm(xy - self._pack[0]) > self.MARGIN_M:
+            self._pack = None  # the old packing's memory goes before the new one is made
+            meshes, face_cells = self.visible_meshes(self.near_cells(xy, view_distance_m + self.MARGIN_M))
+            self._pack = (xy, _Packed.of(pack_meshes(meshes)), face_cells)
+        _, packed, face_cells = self._pack
+        keep = self.near_cells(xy, view_distance_m)[face_cells]
+        return packed, None if keep.all() else np.flatnonzero(keep)
+
+
+def lighting_row(lighting: Lighting) -> np.ndarray:
+    """(9,) float32: ambient rgb, unit light direction (camera frame), light rgb."""
+    direction = np.asarray(lighting.light_dir_cam, dtype=np.float64)
+    row = np.zeros(9, np.float32)
+    row[0:3] = lighting.ambient_rgb
+    row[3:6] = direction / max(np.linalg.norm(direction), 1e-12)
+    row[6:9] = lighting.light_rgb
+    return row
+
+
+def render_packed(
+    packed: _Packed,
+    triangles: np.ndarray | None,
+    T_camera_world: np.ndarray,
+    K: np.ndarray,
+    width_px: int,
+    height_px: int,
+    lighting: Lighting,
+    haze_distance_m: float,
+    sky: Sky,
+) -> FrameImages:
+    """Draw the triangles `triangles` (None: all) of `packed` seen by a camera at T_camera_world (4x4, world ->
+    optical frame) with intrinsics K, hazy with distance (`haze_distance_m`), under `sky`."""
+    from drivesim.sim import raster_kernel  # numba compiles (or loads its cache) on first import
+    from drivesim.stages.synth import render_kernel
+
+    T = np.asarray(T_camera_world, dtype=np.float64)
+    shift = np.eye(4)
+    shift[:3, 3] = packed.origin_m
+    M = (T @ shift)[:3, :].astype(np.float32)
+    vertices = packed.vertices
+    if triangles is not None:
+        vertices = vertices.reshape(3, 3, -1)[:, :, triangles].reshape(3, -1)
+    n_tri = vertices.shape[1] // 3
+    vc = np.ascontiguousarray((M[:, :3] @ vertices + M[:, 3:]).reshape(9, n_tri))
+    K64 = np.asarray(K, dtype=np.float64)
+    table = np.empty((13, n_tri), np.float32)
+    bbox = np.empty((n_tri, 4), np.int64)
+    index = np.empty(n_tri, np.int64)
+    kept = raster_kernel.setup(
+        vc, K64[0, 0], K64[1, 1], K64[0, 2], K64[1, 2], width_px, height_px, NEAR_M, False, table, bbox, index
+    )
+    size = width_px * height_px
+    depth = np.full(size, np.inf, np.float32)
+    winner = np.full(size, -1, np.int64)
+    table = np.ascontiguousarray(table[:, :kept])
+    if kept:
+        camera = np.zeros(kept, np.int64)
+        raster_kernel.depth_test(table, bbox[:kept], camera, width_px, height_px, NEAR_M, depth, winner)
+    source = index[:kept] if triangles is None else triangles[index[:kept]]
+    rgb = np.empty((size, 3), np.uint8)
+    ids = np.empty(size, np.int32)
+    K_inv = np.linalg.inv(K64).astype(np.float32)
+    uncovered = render_kernel.shade_world(
+        depth, winner, table, source, packed.attributes, packed.material, packed.object_id,
+        packed.texture_index, packed.texels, packed.texture_info, T[:3, :3].astype(np.float32),
+        K_inv, lighting_row(lighting), haze_distance_m, np.asarray(sky.horizon_rgb, np.float32), width_px, rgb, ids,
+    )  # fmt: skip
+    if uncovered:
+        R_world_camera = np.ascontiguousarray(T[:3, :3].T, np.float32)
+        render_kernel.paint_sky(winner, K_inv, R_world_camera, sky.clouds, sky.table(), width_px, rgb)
+    return FrameImages(
+        rgb=rgb.reshape(height_px, width_px, 3),
+        depth_m=depth.reshape(height_px, width_px),
+        object_id=ids.reshape(height_px, width_px),
+    )
