@@ -3,7 +3,8 @@
 The recording's own cars are boxed by hand in frames of the real drives (`benchmarks/data/real_car_boxes.json`). For
 each box a library car is inserted into the same frame at the same place: standing on the flat road 1.65 m below the
 camera (KITTI's height), its near end on the ground row of the box's bottom edge, its centre column on the box's,
-heading along the optical axis. It is drawn with the simulator's own parts (the rasterizer, the scene's lighting,
+seen from the side the real car shows (the box's hand-judged `view`: rear, front, or broadside pointing left or
+right). It is drawn with the simulator's own parts (the rasterizer, the scene's lighting,
 the contact shadow, luma on a gray camera, the statistical harmonizer, the camera's look), switched on one level at a
 time. Both cars
 are cropped by their boxes (the inserted one by its drawn mask's box), resized to one size, described by HOG
@@ -45,6 +46,9 @@ DRIVES = {
     "07": ("kitti_odometry_07_first160/image_0/{:06d}.png", "kitti_odometry_07_first160"),
 }
 """Real drive id -> (frame path pattern, folder holding its calibration), under the real-data folder."""
+VIEW_YAW_RAD = {"rear": 0.0, "front": np.pi, "left": 0.5 * np.pi, "right": -0.5 * np.pi}
+"""The side of a car the camera sees -> the car's heading relative to the optical axis (0: driving away from the
+camera; positive: turned toward the image's left)."""
 _FLAT_GRAY = Material(diffuse_rgb=(0.5, 0.5, 0.5), specular_rgb=(0.0, 0.0, 0.0), shininess=1.0, roughness=1.0)
 _UNLIT = np.array([1, 1, 1, 0, 0, 1, 0, 0, 0], dtype=np.float32)  # ambient 1, no directional light: base colour
 _DIRECTIONAL_GAIN = 0.8  # the simulator's default (ViewConfig.directional_gain)
@@ -53,12 +57,14 @@ _CONTACT_SHADOW = 0.6  # the simulator's default (ViewConfig.contact_shadow)
 
 @dataclass(frozen=True)
 class CarBox:
-    """One hand-marked car: drive id, frame index, box (x0, y0, x1, y1) px (x1, y1 exclusive), parked or moving."""
+    """One hand-marked car: drive id, frame index, box (x0, y0, x1, y1) px (x1, y1 exclusive), parked or moving, the
+    side of it the camera sees (`VIEW_YAW_RAD`)."""
 
     drive: str
     frame: int
     box: tuple[int, int, int, int]
     motion: str
+    view: str = "rear"
 
 
 def load_boxes(path: Path) -> list[CarBox]:
@@ -71,7 +77,10 @@ def load_boxes(path: Path) -> list[CarBox]:
             raise ValueError(f"{path}: box {i} needs drive in {sorted(DRIVES)}, box [x0, y0, x1, y1], motion")
         if box[2] <= box[0] or box[3] <= box[1] or int(entry.get("frame", -1)) < 0:
             raise ValueError(f"{path}: box {i} is empty or has a negative frame: {entry}")
-        boxes.append(CarBox(entry["drive"], int(entry["frame"]), box, entry["motion"]))  # type: ignore[arg-type]
+        view = entry.get("view", "rear")
+        if view not in VIEW_YAW_RAD:
+            raise ValueError(f"{path}: box {i} has view {view!r}; use one of {sorted(VIEW_YAW_RAD)}")
+        boxes.append(CarBox(entry["drive"], int(entry["frame"]), box, entry["motion"], view))  # type: ignore[arg-type]
     if not boxes:
         raise ValueError(f"{path}: no boxes")
     return boxes
@@ -149,31 +158,45 @@ def _level_meshes(model: VehicleModel, level: str) -> list[Mesh]:
     return [dataclasses.replace(m, material=_FLAT_GRAY, vertex_rgb=None, texture_rgb=None, uv=None) for m in model.full]
 
 
-def camera_pose_of_car(K: np.ndarray, box: tuple[int, int, int, int], length_m: float) -> np.ndarray:
+def camera_pose_of_car(
+    K: np.ndarray, box: tuple[int, int, int, int], length_m: float, width_m: float = 1.8, yaw_rad: float = 0.0
+) -> np.ndarray:
     """(4, 4) T_camera_car of a car on the road whose near end stands on the box's bottom row, centred on its
-    column, heading along the optical axis."""
+    column, heading `yaw_rad` from the optical axis (0: driving away from the camera, pi / 2: toward the image's
+    left)."""
     x0, y0, x1, y1 = box
     near_m = ground_distance_m(K, y1, y1 - y0)
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    half_depth_m = 0.5 * (abs(c) * length_m + abs(s) * width_m)  # the footprint's half extent along the axis
     T = np.eye(4)
-    T[:3, :3] = [[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]  # car x forward, y left, z up -> camera axes
-    T[:3, 3] = [(0.5 * (x0 + x1) - K[0, 2]) * near_m / K[0, 0], CAMERA_HEIGHT_M, near_m + 0.5 * length_m]
+    to_camera = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])  # car x forward, y left, z up
+    T[:3, :3] = to_camera @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    T[:3, 3] = [(0.5 * (x0 + x1) - K[0, 2]) * near_m / K[0, 0], CAMERA_HEIGHT_M, near_m + half_depth_m]
     return T
 
 
 def insert_car(
-    frame: np.ndarray, K: np.ndarray, box: tuple[int, int, int, int], model: VehicleModel, level: str
+    frame: np.ndarray,
+    K: np.ndarray,
+    box: tuple[int, int, int, int],
+    model: VehicleModel,
+    level: str,
+    view: str = "rear",
 ) -> tuple[np.ndarray, tuple[int, int, int, int]]:
-    """`frame` (h, w, 3) uint8 with `model` inserted at the place of `box`, drawn at `level` (`LEVELS`), and the
-    inserted car's own box (x0, y0, x1, y1) px; only a region around the box is rendered."""
+    """`frame` (h, w, 3) uint8 with `model` inserted at the place of `box`, seen from its `view` side
+    (`VIEW_YAW_RAD`), drawn at `level` (`LEVELS`), and the inserted car's own box (x0, y0, x1, y1) px; only a region
+    around the box is rendered."""
     if level not in LEVELS:
         raise ValueError(f"level {level!r}: choose one of {LEVELS}")
+    if view not in VIEW_YAW_RAD:
+        raise ValueError(f"view {view!r}: choose one of {sorted(VIEW_YAW_RAD)}")
     h, w = frame.shape[:2]
     bx0, by0, bx1, by1 = box
     bw, bh = bx1 - bx0, by1 - by0
     x0, y0 = max(0, bx0 - 2 * bw), max(0, by0 - 2 * bh)
     x1, y1 = min(w, bx1 + 2 * bw), min(h, by1 + bh)
     K_roi = roi_intrinsics(K, (x0, y0, x1 - x0, y1 - y0))
-    T = camera_pose_of_car(K, box, float(model.length_m))
+    T = camera_pose_of_car(K, box, float(model.length_m), float(model.width_m), VIEW_YAW_RAD[view])
     rank = LEVELS.index(level)
     lights = _UNLIT[None]
     if rank >= LEVELS.index("lighting"):

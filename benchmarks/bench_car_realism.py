@@ -1,8 +1,9 @@
 """How real the inserted cars look on the real drives: a classifier two-sample test (C2ST), per drive and per level.
 
 The recording's own cars, boxed by hand (`benchmarks/data/real_car_boxes.json`), against library cars inserted into
-the same frames at the same places (`drivesim.bench.car_realism`), drawn at six levels (a flat gray mesh, + its
-materials, + the scene's lighting, + the contact shadow, + harmonization, + the camera's look). A logistic regression
+the same frames at the same places and seen from the same side (`drivesim.bench.car_realism`), drawn at six levels
+(a flat gray mesh, + its materials, + the scene's lighting, + the contact shadow, + harmonization, + the camera's
+look). A logistic regression
 on HOG features of the gray crops, stratified 5-fold cross-validation repeated 5 times: 50 % = indistinguishable,
 100 % = always told apart. Per drive: the same out-of-fold predictions, counted over that drive's crops only.
 
@@ -24,6 +25,7 @@ from _lib.report import measured_now, write_markdown
 from drivesim.bench import car_realism as cr
 
 HERE = Path(__file__).resolve().parent
+REAR = "camera_rear"
 RESULTS = HERE / "results" / "car_realism.md"
 BOXES = HERE / "data" / "real_car_boxes.json"
 REAL = HERE.parent.parent / "shared" / "data" / "real"
@@ -34,7 +36,9 @@ LEVEL_NAMES = {
     "shadow": "+ contact shadow",
     "harmonization": "+ harmonization",
     "camera": "+ camera look (blended edges, the frame's blur and noise; the default)",
+    REAR: "the default, every car seen from behind (the protocol before the boxes' views)",
 }
+ROWS = (*cr.LEVELS, REAR)
 WORLD_WIDTH_PX = 320  # build-world's default sim_width_px
 RESOLUTIONS = {"recording": (None, False), "world": (WORLD_WIDTH_PX, False), "world_drawn": (WORLD_WIDTH_PX, True)}
 """Where cars are drawn and crops cut, as (width px, drawn at that width): the recorded frames as they are; reduced to
@@ -50,7 +54,7 @@ def crops_of(
     """(n, h, w) real crops and, per level, the (n, h, w) crops of the car inserted at each box; cut from the frames
     reduced to `width_px` (None: at the recording's resolution), the car drawn before the reduction or, with
     `drawn_at_width`, into the reduced frame."""
-    real, inserted = [], {level: [] for level in cr.LEVELS}
+    real, inserted = [], {row: [] for row in ROWS}
     for i, b in enumerate(boxes):
         frame = cr.load_frame(real_root, b.drive, b.frame)
         K = cr.drive_intrinsics(real_root, b.drive)
@@ -60,9 +64,10 @@ def crops_of(
         if drawn_at_width and width_px is not None:
             target, K_target, box_target = cr.reduced_view(frame, K, b.box, width_px)
             cut_width = None
-        for level in cr.LEVELS:
-            image, box = cr.insert_car(target, K_target, box_target, model, level)
-            inserted[level].append(cr.crop(image, box, width_px=cut_width))
+        for row in ROWS:
+            level, view = ("camera", "rear") if row == REAR else (row, b.view)
+            image, box = cr.insert_car(target, K_target, box_target, model, level, view)
+            inserted[row].append(cr.crop(image, box, width_px=cut_width))
     return np.stack(real), {level: np.stack(c) for level, c in inserted.items()}
 
 
@@ -72,7 +77,7 @@ def measure(real: np.ndarray, inserted: dict[str, np.ndarray], drives: np.ndarra
     labels = np.r_[np.zeros(len(real)), np.ones(len(real))]
     both_drives = np.r_[drives, drives]
     out = {}
-    for level in cr.LEVELS:
+    for level in ROWS:
         features = np.vstack([real_features, cr.hog_features(inserted[level])])
         correct = cr.c2st(features, labels, seed=seed)
         entry = {"all": cr.accuracy_interval(correct), "n_crops": int(len(labels))}
@@ -118,7 +123,7 @@ def _table(results: dict, drives: list[str], counts: dict[str, int]) -> list[str
         f"| {LEVEL_NAMES[level]} | {_cell(results[level]['all'])} | "
         + " | ".join(_cell(results[level][d]) for d in drives)
         + " |"
-        for level in cr.LEVELS
+        for level in ROWS
     ]
     control = results["control"]
     return [
@@ -149,7 +154,9 @@ def report(args: argparse.Namespace, boxes: list[cr.CarBox], results: dict, seco
         "Accuracy of a logistic regression (HOG of 64 x 40 gray crops) telling a real car from a library car inserted "
         "at the same place, out of fold (stratified 5-fold, repeated 5 times), with its Wilson 95 % interval over the "
         "crops; 50 % = indistinguishable. Drive columns: the same predictions counted over that drive's crops "
-        "(boxes in brackets). Levels add one part each; the last is what the simulator draws today.",
+        "(boxes in brackets). Levels add one part each; the camera-look level is what the simulator draws. The row "
+        "after it draws that car from behind whatever side the real car shows, as the benchmark did before the boxes "
+        "carried their views.",
         "",
         "At the recording's resolution (about 1240 x 375):",
         "",
@@ -165,8 +172,9 @@ def report(args: argparse.Namespace, boxes: list[cr.CarBox], results: dict, seco
         "",
         *_table(results["world_drawn"], drives, counts),
         "",
-        "The inserted car stands on a flat road 1.65 m below the camera, its near end on the box's bottom row, heading "
-        "along the optical axis (the real cars are seen at their own headings, many from the side). Crops at the "
+        "The inserted car stands on a flat road 1.65 m below the camera, its near end on the box's bottom row, seen "
+        "from the side the real car shows (each box's hand-judged view: "
+        f"{', '.join(f'{v} {sum(b.view == v for b in boxes)}' for v in cr.VIEW_YAW_RAD)}). Crops at the "
         "recording's resolution: `car_realism.png` (real, then the levels). In the second table the car is drawn at "
         "the recording's resolution and reduced with the frame; in the third it is drawn at the world's, as the "
         "simulator draws it.",

@@ -29,6 +29,7 @@ def test_boxes_file_has_cars_on_several_drives_inside_their_frames():
         assert y1 - y0 >= 10, f"{b}: too small to judge"
         assert 0 <= b.frame < FRAME_COUNTS[b.drive], b
     assert {b.motion for b in boxes} == {"parked", "moving"}
+    assert {b.view for b in boxes} == set(cr.VIEW_YAW_RAD)  # cars seen from behind, in front and broadside
 
 
 def test_boxes_file_with_a_bad_entry_is_refused(tmp_path):
@@ -36,6 +37,25 @@ def test_boxes_file_with_a_bad_entry_is_refused(tmp_path):
     bad.write_text(json.dumps({"boxes": [{"drive": "0001", "frame": 0, "box": [10, 10, 5, 20], "motion": "parked"}]}))
     with pytest.raises(ValueError, match="box 0 is empty"):
         cr.load_boxes(bad)
+    entry = {"drive": "0001", "frame": 0, "box": [10, 10, 50, 40], "motion": "parked", "view": "top"}
+    bad.write_text(json.dumps({"boxes": [entry]}))
+    with pytest.raises(ValueError, match="box 0 has view 'top'"):
+        cr.load_boxes(bad)
+
+
+def test_the_car_turns_to_the_view_and_its_near_end_stays_on_the_box_row():
+    K = np.array([[721.5, 0.0, 609.6], [0.0, 721.5, 172.9], [0.0, 0.0, 1.0]])
+    box = (500, 180, 600, 240)
+    length_m, width_m = 4.5, 1.8
+    near_m = cr.ground_distance_m(K, box[3], box[3] - box[1])
+    for view, forward_cam, depth_m in (
+        ("rear", (0, 0, 1), length_m), ("front", (0, 0, -1), length_m), ("left", (-1, 0, 0), width_m),
+        ("right", (1, 0, 0), width_m),
+    ):  # fmt: skip
+        T = cr.camera_pose_of_car(K, box, length_m, width_m, cr.VIEW_YAW_RAD[view])
+        np.testing.assert_allclose(T[:3, 0], forward_cam, atol=1e-12, err_msg=view)  # the car's nose points there
+        np.testing.assert_allclose(T[:3, 2], (0, -1, 0), atol=1e-12)  # still upright
+        assert T[2, 3] - 0.5 * depth_m == pytest.approx(near_m), view  # the footprint's near edge on the box row
 
 
 def test_crop_is_the_box_widened_and_resized_to_one_gray_size():
@@ -81,8 +101,10 @@ def test_inserted_car_lands_on_the_real_box_at_every_level():
     frame = cr.load_frame(REAL, "0001", 0)
     K = cr.drive_intrinsics(REAL, "0001")
     model = cr.library_car(0)
-    for level in cr.LEVELS:
-        image, (x0, y0, x1, y1) = cr.insert_car(frame, K, box, model, level)
+    aspect = {}
+    for level, view in [(level, "rear") for level in cr.LEVELS] + [("camera", "front"), ("camera", "left")]:
+        image, (x0, y0, x1, y1) = cr.insert_car(frame, K, box, model, level, view)
+        aspect[view] = (x1 - x0) / (y1 - y0)
         assert image.shape == frame.shape
         assert abs(y1 - box[3]) <= 6, (level, y1)  # stands on the box's bottom row
         assert abs(0.5 * (x0 + x1) - 0.5 * (box[0] + box[2])) <= 0.25 * (box[2] - box[0]), level
@@ -91,6 +113,8 @@ def test_inserted_car_lands_on_the_real_box_at_every_level():
         assert changed[y0:y1, x0:x1].mean() > 0.5 and not changed[:100].any(), level
         gray = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_RGB2GRAY)
         assert np.array_equal(image[y0:y1, x0:x1, 0], gray), level  # a gray camera's car is gray
+    assert aspect["left"] > 1.5 * aspect["rear"]  # broadside, the car's length shows
+    assert aspect["front"] == pytest.approx(aspect["rear"], rel=0.3)
 
 
 def test_reduced_view_scales_the_frame_its_intrinsics_and_the_box_together():

@@ -9,16 +9,21 @@ import pytest
 import trimesh
 
 from drivesim.sim import geometry as g
+from drivesim.sim.mesh import Material
 from drivesim.sim.raster import Rasterizer
 from drivesim.sim.vehicle_library import VehicleLibrary, save_library
 from drivesim.sim.vehicles import (
+    BODY_OCCLUSION_FLOOR,
     BODY_TYPES,
     DETAILS,
     GROUP_NAMES,
     PAINT_RANGES,
+    PART_RANGES,
     VehicleShape,
     build_vehicle_meshes,
+    repaint,
     sample_paint,
+    sample_part_materials,
     sample_vehicle_shape,
 )
 
@@ -181,3 +186,96 @@ def test_library_load_names_the_bad_file(tmp_path):
     (tmp_path / "library.json").write_text(json.dumps({"format": 99, "models": []}))
     with pytest.raises(ValueError, match="library.json"):
         VehicleLibrary.load(tmp_path)
+
+
+def _side_view_pixel(shape: VehicleShape, point_m: np.ndarray, meshes: list) -> tuple[np.ndarray, int]:
+    """The unlit colour and object id at the pixel showing vehicle-frame `point_m` to a camera 6 m off the car's
+    left side, looking at it square on from the point's height."""
+    K = g.intrinsics_from_hfov(320, 200, np.radians(60.0))
+    eye = np.array([point_m[0], 6.0, point_m[2]])
+    forward = np.array([0.0, -1.0, 0.0])  # towards the car
+    right, down = np.cross(forward, [0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0])
+    R = np.stack([right, down, forward])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, -R @ eye
+    unlit = np.array([1, 1, 1, 0, 0, 1, 0, 0, 0], dtype=np.float32)[None]
+    drawn = Rasterizer(320, 200, cull_back_faces=True).render(meshes, T, K, lighting=unlit)
+    p = R @ (point_m - eye)
+    u, v = (K @ p)[:2] / p[2]
+    r, c = int(round(v)), int(round(u))
+    return drawn.rgb[0, r, c].numpy(), int(drawn.object_id[0, r, c])
+
+
+def test_wheel_arches_are_lined_and_the_body_darkens_toward_the_ground():
+    """Behind and in front of each tyre, below the cut-away hull, the camera sees the dark underbody (no background
+    through the arch); the painted side is darker at the sill than at the belt line, and stays so when repainted."""
+    shape = sample_vehicle_shape(np.random.default_rng(5), "sedan")
+    white = Material(diffuse_rgb=(0.8, 0.8, 0.8))
+    meshes = build_vehicle_meshes(shape, white, "full", object_id=3)
+    r, axle_x = shape.wheel_radius_m, shape.wheelbase_fraction * shape.length_m / 2
+    for x in (axle_x + 1.0 * r, axle_x - 1.0 * r, -axle_x + 1.0 * r):
+        rgb, obj = _side_view_pixel(shape, np.array([x, shape.width_m / 2, 0.5 * r]), meshes)
+        assert obj == 3, f"background seen through the arch at x = {x:.2f} m"
+        assert rgb.max() < 0.06, f"arch at x = {x:.2f} m is not lined dark: {rgb}"
+    belt_z = shape.belt_fraction * shape.height_m
+    low, _ = _side_view_pixel(shape, np.array([0.0, shape.width_m / 2, 0.3]), meshes)
+    high, _ = _side_view_pixel(shape, np.array([0.0, shape.width_m / 2, belt_z - 0.08]), meshes)
+    assert low[0] < 0.7 * high[0] and high[0] > 0.6
+    body = meshes[GROUP_NAMES.index("body")]
+    z = body.vertices_m[:, 2]
+    expected = BODY_OCCLUSION_FLOOR + (1.0 - BODY_OCCLUSION_FLOOR) * np.clip(z / belt_z, 0.0, 1.0)
+    hull = z < belt_z - 0.01  # the hull's vertices below the belt line; roof and pillars stand above it
+    np.testing.assert_allclose(body.vertex_rgb[hull, 0], expected[hull], atol=1e-3)
+    assert body.vertex_rgb.max() == 1.0
+    assert repaint(meshes, sample_paint(np.random.default_rng(0)))[0].vertex_rgb is body.vertex_rgb
+
+
+def test_trim_and_wheel_parts_at_each_level_of_detail():
+    """Full detail: four tyres with hubs, the underbody, both valances and the grille as separate closed parts; light
+    detail keeps the tyres and the underbody only. The trim is dark plastic."""
+    shape = sample_vehicle_shape(np.random.default_rng(2), "hatchback")
+    paint = sample_paint(np.random.default_rng(2))
+    for detail, wheel_parts, trim_parts in (("full", 8, 4), ("light", 4, 1)):
+        meshes = build_vehicle_meshes(shape, paint, detail)
+        wheels = trimesh.Trimesh(meshes[GROUP_NAMES.index("wheels")].vertices_m, meshes[2].faces, process=True)
+        trim_mesh = meshes[GROUP_NAMES.index("trim")]
+        trim = trimesh.Trimesh(trim_mesh.vertices_m, trim_mesh.faces, process=True)
+        assert len(wheels.split(only_watertight=True)) == wheel_parts, detail
+        assert len(trim.split(only_watertight=True)) == trim_parts, detail
+        assert trim_mesh.vertex_rgb.max() <= PART_RANGES["trim_albedo"][1]
+    front = build_vehicle_meshes(shape, paint, "full")[GROUP_NAMES.index("trim")].vertices_m
+    assert front[:, 0].max() == pytest.approx(shape.length_m / 2 - 0.004, abs=2e-3)  # the grille and valance
+    assert front[:, 2].min() == pytest.approx(0.08)  # the underbody's floor
+
+
+def test_part_materials_are_sampled_in_their_ranges_and_per_seed():
+    rng = np.random.default_rng(0)
+    parts = [sample_part_materials(rng) for _ in range(2000)]
+    R = PART_RANGES
+    glass = np.array([p.glass.diffuse_rgb for p in parts])
+    assert R["glass_albedo"][0] * 0.85 - 1e-9 <= glass.min() and glass.max() <= R["glass_albedo"][1]
+    assert (glass[:, 2] >= glass[:, 0]).mean() > 0.9  # tinted toward blue-green
+    for name, values in (
+        ("glass_specular", [p.glass.specular_rgb[0] for p in parts]),
+        ("glass_shininess", [p.glass.shininess for p in parts]),
+        ("glass_roughness", [p.glass.roughness for p in parts]),
+        ("rubber_roughness", [p.rubber.roughness for p in parts]),
+        ("rubber_shininess", [p.rubber.shininess for p in parts]),
+        ("trim_albedo", [p.trim_rgb[0] for p in parts]),
+        ("trim_roughness", [p.trim.roughness for p in parts]),
+        ("trim_shininess", [p.trim.shininess for p in parts]),
+        ("lens_specular", [p.lens.specular_rgb[0] for p in parts]),
+        ("lens_roughness", [p.lens.roughness for p in parts]),
+        ("hub_albedo", [p.hub_rgb[0] for p in parts]),
+    ):
+        values = np.asarray(values)
+        assert R[name][0] <= values.min() and values.max() <= R[name][1], name
+        assert values.max() - values.min() > 0.5 * (R[name][1] - R[name][0]), f"{name} barely varies"
+    hubs = np.array([p.hub_rgb[0] for p in parts])
+    assert 0.6 < (hubs >= 0.3).mean() < 0.8  # alloy hubs on most cars, black steel on the rest
+    a, b, c = (VehicleLibrary.procedural(3, seed=s).models for s in (7, 7, 8))
+    for x, y, z in zip(a, b, c, strict=True):
+        assert [m.material for m in x.full[1:]] == [m.material for m in y.full[1:]]  # the same per seed
+        assert x.full[1].material != z.full[1].material  # another seed, other glass
+        assert x.full[1].material == x.light[1].material  # both levels of detail share the car's parts
+    assert len({m.full[1].material.diffuse_rgb for m in a}) == 3  # each car its own glass
