@@ -4,7 +4,7 @@ The storage of the trace's frames, the preprocessed depth and the world's frames
 the simulator's loader (`sim/world.py`) reads it and `sim` imports only itself.
 
 A drive's frames and depth maps are the bulk of a workspace: raw, a 640x400 RGB frame is 768 KB; as a JPEG at
-quality 95 (4:4:4, no chroma subsampling) it is a tenth of that, and a depth map stored as the bit patterns of its
+quality 97 (4:4:4, no chroma subsampling) it is a seventh of that, and a depth map stored as the bit patterns of its
 float16 values in a 16-bit PNG is lossless and, for smooth depth, a few KB. Readers get frames back one at a time
 (`ImageStack[i]`), so memory stays flat in the drive's length and a random frame costs one decode.
 
@@ -39,7 +39,9 @@ _END = b"DSIMGEND"
 _TRAILER_BYTES = 24
 CODECS = ("jpeg", "png")
 DTYPES = (np.dtype(np.uint8), np.dtype(np.float16))
-DEFAULT_JPEG_QUALITY = 95
+# The JPEG quality of stored frames (the ingest and build-world config defaults say the same): novel views warped
+# from frames stored at it stay within 0.1 dB of lossless frames (benchmarks/bench_frame_storage.py).
+DEFAULT_JPEG_QUALITY = 97
 # zlib level of the PNGs: level 1 is within a few % of level 3's size on depth maps and several times faster to write
 _PNG_LEVEL = 1
 

@@ -7,7 +7,7 @@ the camera model, and the reference path (the recorded trajectory is the lane ce
 Files (N = frame count, h x w = simulation resolution). Frames and depth are image stacks (`sim/image_stack.py`:
 one compressed image per frame, decoded one frame at a time by `world.frames[i]` / `world.depth_m[i]`); worlds
 written by earlier versions as frames.npy / depth_m.npy (opened with mmap_mode="r") load as well:
-    frames.imgs     uint8   (N, h, w, 3)  RGB frames resized with cv2.INTER_AREA, JPEG (quality 95, 4:4:4) or PNG
+    frames.imgs     uint8   (N, h, w, 3)  RGB frames resized with cv2.INTER_AREA, JPEG (quality 97, 4:4:4) or PNG
     depth_m.imgs    float16 (N, h, w)     metric depth along the optical axis, lossless (the float16 bits in a
                                           16-bit PNG); min-pooled (or nearest) from the preprocessed depth so thin
                                           near objects survive; sky / no estimate = world.json far_depth_m.

@@ -1,5 +1,5 @@
 """Image stacks (sim/image_stack.py): the compressed per-frame storage of trace frames, preprocessed depth and the
-world's frames and depth. Lossless codecs give back the same arrays, JPEG at quality 95 stays close, reads are per
+world's frames and depth. Lossless codecs give back the same arrays, JPEG at quality 97 stays close, reads are per
 frame, damage is one clear error, and worlds and traces written as .npy by earlier versions still load."""
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def test_png_frames_and_float16_depth_come_back_bit_for_bit(tmp_path: Path) -> N
 def test_jpeg_frames_stay_close_and_are_several_times_smaller(tmp_path: Path) -> None:
     frames = _scene_frames(4, 96, 128)
     stack = _write(tmp_path / "frames.imgs", frames, "jpeg")
-    assert read_meta(stack.path)[0]["quality"] == 95
+    assert read_meta(stack.path)[0]["quality"] == 97
     assert min(_psnr_db(stack[i], frames[i]) for i in range(4)) > 38.0
     assert stack.path.stat().st_size < frames.nbytes / 4
 

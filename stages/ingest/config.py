@@ -28,7 +28,7 @@ class ImageConfig(StageConfig):
     """Also store the undistorted frames at the recorded resolution (frames_original.imgs; intrinsics K_source)."""
     codec: Literal["jpeg", "png"] = "jpeg"
     """How each stored frame is compressed: "jpeg" (lossy, `jpeg_quality`, 4:4:4) or "png" (lossless, ~3x larger)."""
-    jpeg_quality: int = Field(95, ge=50, le=100)
+    jpeg_quality: int = Field(97, ge=50, le=100)
     """JPEG quality of the stored frames (with codec jpeg)."""
     reduced_jpeg_decode: bool = True
     """Decode jpeg frames at 1/2, 1/4 or 1/8 size when that still covers the working width (faster)."""

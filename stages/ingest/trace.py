@@ -6,7 +6,7 @@ epoch (or since the recording's start when the source has no absolute time, see 
 Header stamps are used; a zero stamp falls back to the message's log time. KITTI raw stamps are the drive's clock
 as logged (local time, read as if UTC).
 
-Files (N = frame count; frames are image stacks, `sim/image_stack.py`: one JPEG (quality 95, 4:4:4) or PNG
+Files (N = frame count; frames are image stacks, `sim/image_stack.py`: one JPEG (quality 97, 4:4:4) or PNG
 per frame, decoded one frame at a time; other arrays are .npy):
     frames.imgs             uint8   (N, H, W, 3)  RGB, undistorted, at the working resolution (`TraceInfo.frames()`;
                             traces written as frames.npy by earlier versions load as well)

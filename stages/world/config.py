@@ -40,7 +40,7 @@ class WorldConfig(StageConfig):
     """The fused point cloud written for people."""
     frame_codec: Literal["jpeg", "png"] = "jpeg"
     """How each world frame is compressed: "jpeg" (lossy, `jpeg_quality`, 4:4:4) or "png" (lossless, ~2.5x larger)."""
-    jpeg_quality: int = Field(95, ge=50, le=100)
+    jpeg_quality: int = Field(97, ge=50, le=100)
     """JPEG quality of the world frames (with frame_codec jpeg)."""
 
     @model_validator(mode="after")
