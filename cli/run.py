@@ -27,7 +27,6 @@ TrustEntryPointOption = Annotated[
 BackendOption = backend_option(
     "preprocess's depth in this process",
     "preprocess's camera-only (mvs) depth split over a Ray cluster's workers",
-    " As `drivesim preprocess --backend`.",
 )
 
 
