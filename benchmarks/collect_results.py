@@ -203,9 +203,18 @@ SECTIONS: tuple[Section, ...] = (
     Section(
         "scaling",
         "Scaling with the drive's length",
-        "per stage: ms per frame, peak memory, disk per minute, for drives of 1 to 30 minutes; float16 depth's cost",
+        "per stage: ms per frame, peak memory, disk per minute, for drives of 1 to 30 minutes; float16 depth's "
+        "and JPEG frames' cost",
         "python benchmarks/bench_scaling.py --minutes 1,5,30",
-        ("scaling.md", "scaling.json", "scaling.png", "storage_fidelity.md", "storage_fidelity.json"),
+        (
+            "scaling.md",
+            "scaling.json",
+            "scaling.png",
+            "storage_fidelity.md",
+            "storage_fidelity.json",
+            "frame_storage.md",
+            "frame_storage.json",
+        ),
     ),
     Section(
         "fidelity",
