@@ -3,17 +3,18 @@
 The CPU view warps each recorded frame from a prepared form (`ViewSynthesizer._frame_arrays`): reduced to the warp's
 source resolution and widened left and right from neighbouring frames. Preparing a frame costs about a millisecond,
 several times an env step; a world of more frames than the view keeps in memory would pay it at nearly every step.
-This module writes every frame's prepared form to a file once and reads it back in one `os.preadv` (tens of
-microseconds), through the page cache that all env processes on the machine share; no process maps or keeps the file.
+This module writes every frame's prepared form to a file once; views read it through a copy-on-write memory map (a
+frame costs a few page faults, microseconds), so its pages live once in the page cache that all env processes on the
+machine share, and a view lets the pages of a frame it no longer keeps go (`PreparedFrames.release`).
 
 Files, in `<world>/view_cache/<key>/` (key: `cache_key`):
     frames.bin   per frame, one record of `FrameLayout.record_bytes` bytes, sections 8-byte aligned:
                  rgb       uint8   (H, W + 2m, 3)  the widened frame
-                 centre    float16 or float32 (H, W)   its depth inside the recorded frame (float16 only when every
-                                                       value is exactly a float16, as a float16 world's depth is)
-                 margins   float32 (2, H, m)  its depth in the left, then the right margin (warped neighbours' depth)
+                 depth     float32 (H, W + 2m)     its depth (m); float32 and not float16 because the margins hold
+                                                   warped neighbours' depth, which float16 would round, and because a
+                                                   read then needs no conversion (a view of the bytes read)
     stats.npy    float64 (N, 4): the frame's own mean colour in [0, 1] (3) and its smallest finite depth (m)
-    layout.json  H, W, m, the centre's dtype, the frame count and what the key was made from
+    layout.json  H, W, m, the frame count and what the key was made from
 The folder appears by one rename once complete, so a reader never sees a half-written cache; builders of one key
 take turns on `<key>.lock`. The reader returns the arrays the view prepares itself, to the bit (tested).
 """
@@ -24,6 +25,7 @@ import fcntl
 import hashlib
 import json
 import logging
+import mmap
 import os
 import shutil
 import time
@@ -39,7 +41,7 @@ __all__ = ["CACHE_DIR_NAME", "FrameLayout", "PreparedFrames", "cache_key", "open
 
 CACHE_DIR_NAME = "view_cache"
 # Raised whenever what a record holds or how a frame is prepared changes, so that older caches are never read.
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 _ALIGN_BYTES = 8
 _WRITE_CHUNK_FRAMES = 64  # records written per write call while building
 _LOG = logging.getLogger(__name__)
@@ -57,13 +59,12 @@ class FrameLayout:
     """The shape of one prepared frame and where its parts lie in its record.
 
     :param height_px: H. :param width_px: W, the recorded frame at the source resolution. :param margin_px: m, added
-    on each side. :param centre_dtype: "float16" or "float32", the depth inside the recorded frame.
+    on each side.
     """
 
     height_px: int
     width_px: int
     margin_px: int
-    centre_dtype: str
 
     @property
     def wide_width_px(self) -> int:
@@ -76,50 +77,37 @@ class FrameLayout:
         return self.height_px * self.wide_width_px * 3
 
     @property
-    def centre_offset(self) -> int:
-        """Offset of the centre depth in a record."""
+    def depth_offset(self) -> int:
+        """Offset of the depth in a record."""
         return _aligned(self.rgb_bytes)
-
-    @property
-    def margins_offset(self) -> int:
-        """Offset of the margins' depth in a record."""
-        return self.centre_offset + _aligned(self.height_px * self.width_px * np.dtype(self.centre_dtype).itemsize)
 
     @property
     def record_bytes(self) -> int:
         """Bytes per frame in frames.bin."""
-        return self.margins_offset + _aligned(2 * self.height_px * self.margin_px * 4)
+        return self.depth_offset + _aligned(self.height_px * self.wide_width_px * 4)
 
-    def pack(self, rgb: np.ndarray, depth_m: np.ndarray, out: np.ndarray) -> bool:
-        """Write one prepared frame into the record `out` (record_bytes,) uint8; False when the centre depth does not
-        fit `centre_dtype` exactly (then nothing is promised about `out`)."""
-        W, m = self.width_px, self.margin_px
+    def pack(self, rgb: np.ndarray, depth_m: np.ndarray, out: np.ndarray) -> None:
+        """Write one prepared frame (rgb uint8, depth float32, both (H, W + 2m)) into the record `out`
+        (record_bytes,) uint8."""
+        shape = (self.height_px, self.wide_width_px)
+        if rgb.shape != (*shape, 3) or depth_m.shape != shape:
+            raise ValueError(f"a prepared frame of {rgb.shape} / {depth_m.shape}, the layout says {shape}")
         out[: self.rgb_bytes] = np.ascontiguousarray(rgb, dtype=np.uint8).reshape(-1)
-        centre = depth_m[:, m : m + W]
-        packed = centre.astype(self.centre_dtype)
-        if not np.array_equal(packed.astype(np.float32), centre, equal_nan=True):
-            return False
-        out[self.centre_offset : self.centre_offset + packed.nbytes] = packed.reshape(-1).view(np.uint8)
-        margins = np.stack([depth_m[:, :m], depth_m[:, m + W :]]).astype(np.float32)
-        out[self.margins_offset : self.margins_offset + margins.nbytes] = margins.reshape(-1).view(np.uint8)
-        return True
+        depth = np.ascontiguousarray(depth_m, dtype=np.float32).reshape(-1).view(np.uint8)
+        out[self.depth_offset : self.depth_offset + depth.size] = depth
 
     def unpack(self, record: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float32) arrays of a record; rgb is a view of it."""
-        H, W, m = self.height_px, self.width_px, self.margin_px
-        rgb = record[: self.rgb_bytes].reshape(H, self.wide_width_px, 3)
-        centre_bytes = H * W * np.dtype(self.centre_dtype).itemsize
-        centre = record[self.centre_offset : self.centre_offset + centre_bytes].view(self.centre_dtype).reshape(H, W)
-        margins = record[self.margins_offset : self.margins_offset + 2 * H * m * 4].view(np.float32).reshape(2, H, m)
-        depth = np.empty((H, self.wide_width_px), dtype=np.float32)
-        depth[:, m : m + W] = centre
-        depth[:, :m] = margins[0]
-        depth[:, m + W :] = margins[1]
+        """The (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float32) arrays of a record: views of it, no copy."""
+        H, wide = self.height_px, self.wide_width_px
+        rgb = record[: self.rgb_bytes].reshape(H, wide, 3)
+        depth = record[self.depth_offset : self.depth_offset + H * wide * 4].view(np.float32).reshape(H, wide)
         return rgb, depth
 
 
 class PreparedFrames:
-    """A built cache folder opened for reading (module docstring): `read(i)` gives frame i as the view prepares it."""
+    """A built cache folder opened for reading (module docstring): `read(i)` gives frame i as the view prepares it,
+    as views of the file mapped copy-on-write (pages come from the page cache that every process shares; a write
+    into them would change this process's copy only)."""
 
     def __init__(self, folder: Path) -> None:
         self.folder = Path(folder)
@@ -127,30 +115,30 @@ class PreparedFrames:
         self.layout = FrameLayout(**info["layout"])
         self.frame_count = int(info["frame_count"])
         self.stats = np.load(self.folder / "stats.npy")
-        self._fd = os.open(self.folder / "frames.bin", os.O_RDONLY)
+        size = self.layout.record_bytes * self.frame_count
+        with open(self.folder / "frames.bin", "rb") as f:
+            if os.fstat(f.fileno()).st_size != size:
+                raise OSError(f"{self.folder / 'frames.bin'}: not {self.frame_count} frames of {size} bytes")
+            self._map = mmap.mmap(f.fileno(), size, access=mmap.ACCESS_COPY)
+        self._records = np.frombuffer(self._map, dtype=np.uint8).reshape(self.frame_count, -1)
 
     def read(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """Frame `index`: (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float32, mean colour (3,) in [0, 1], smallest
-        finite depth in m), new arrays of this process."""
+        finite depth in m); rgb and depth are views of the mapped file, read from it when first touched."""
         if not 0 <= index < self.frame_count:
             raise IndexError(f"frame {index} is outside the cache's {self.frame_count} frames")
-        size = self.layout.record_bytes
-        record = np.empty(size, dtype=np.uint8)
-        got = os.preadv(self._fd, [record], index * size)
-        if got != size:
-            raise OSError(f"{self.folder / 'frames.bin'}: frame {index} cut short ({got} of {size} bytes)")
-        rgb, depth = self.layout.unpack(record)
+        rgb, depth = self.layout.unpack(self._records[index])
         stats = self.stats[index]
         return rgb, depth, stats[:3].copy(), float(stats[3])
 
-    def close(self) -> None:
-        """Close the file (reads fail afterwards)."""
-        if self._fd >= 0:
-            os.close(self._fd)
-            self._fd = -1
-
-    def __del__(self) -> None:
-        self.close()
+    def release(self, index: int) -> None:
+        """Let this process's pages of frame `index` go (the whole pages inside its record), so that the resident
+        memory stays that of the frames in use; reading it again maps them again from the page cache."""
+        size = self.layout.record_bytes
+        start = -(-index * size // mmap.PAGESIZE) * mmap.PAGESIZE
+        stop = (index + 1) * size // mmap.PAGESIZE * mmap.PAGESIZE
+        if stop > start:
+            self._map.madvise(mmap.MADV_DONTNEED, start, stop - start)
 
     @property
     def disk_bytes(self) -> int:
@@ -218,16 +206,12 @@ def open_prepared_frames(
 
 
 def _build(cache_dir: Path, key: str, frame_count: int, made_from: dict, layout: FrameLayout, prepare: Prepare) -> None:
-    """Write every frame's prepared form into a temporary folder, then rename it to `cache_dir / key`. A centre depth
-    that is not exactly float16 makes the build start over with float32."""
+    """Write every frame's prepared form into a temporary folder, then rename it to `cache_dir / key`."""
     start = time.perf_counter()
     tmp = cache_dir / f".tmp-{key}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
     try:
-        while not _write_frames(tmp, frame_count, layout, prepare):
-            if layout.centre_dtype == "float32":
-                raise ValueError("a prepared frame's depth is not float32")
-            layout = FrameLayout(layout.height_px, layout.width_px, layout.margin_px, "float32")
+        _write_frames(tmp, frame_count, layout, prepare)
         info = {"layout": asdict(layout), "frame_count": frame_count, "format": FORMAT_VERSION, "made_from": made_from}
         (tmp / "layout.json").write_text(json.dumps(info, default=str))
         os.rename(tmp, cache_dir / key)
@@ -240,9 +224,8 @@ def _build(cache_dir: Path, key: str, frame_count: int, made_from: dict, layout:
     )  # fmt: skip
 
 
-def _write_frames(folder: Path, frame_count: int, layout: FrameLayout, prepare: Prepare) -> bool:
-    """frames.bin and stats.npy of every frame in `folder`, in chunks (memory flat in the drive's length); False
-    (and nothing kept) when a centre depth does not fit the layout's dtype."""
+def _write_frames(folder: Path, frame_count: int, layout: FrameLayout, prepare: Prepare) -> None:
+    """frames.bin and stats.npy of every frame in `folder`, in chunks (memory flat in the drive's length)."""
     stats = np.empty((frame_count, 4), dtype=np.float64)
     chunk = np.zeros((_WRITE_CHUNK_FRAMES, layout.record_bytes), dtype=np.uint8)
     with open(folder / "frames.bin", "wb") as f:
@@ -250,8 +233,7 @@ def _write_frames(folder: Path, frame_count: int, layout: FrameLayout, prepare: 
             count = min(_WRITE_CHUNK_FRAMES, frame_count - first)
             for k in range(count):
                 rgb, depth, mean_rgb = prepare(first + k)
-                if not layout.pack(rgb, depth, chunk[k]):
-                    return False
+                layout.pack(rgb, depth, chunk[k])
                 finite = depth[(depth > 0) & np.isfinite(depth)]
                 stats[first + k, :3] = mean_rgb
                 stats[first + k, 3] = float(finite.min()) if finite.size else float("inf")
@@ -259,4 +241,3 @@ def _write_frames(folder: Path, frame_count: int, layout: FrameLayout, prepare: 
         f.flush()
         os.fsync(f.fileno())
     np.save(folder / "stats.npy", stats)
-    return True

@@ -290,7 +290,9 @@ class ViewSynthesizer:
         entry = (torch.from_numpy(rgb_np).to(self.device), torch.from_numpy(depth_np).to(self.device), mean_rgb)
         self._frames[index] = entry
         if len(self._frames) > _FRAME_CACHE_SIZE:
-            self._frames.popitem(last=False)
+            evicted, _ = self._frames.popitem(last=False)
+            if self._prepared is not None:
+                self._prepared.release(evicted)
         return entry
 
     def _frame_stack(self) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
@@ -304,9 +306,9 @@ class ViewSynthesizer:
         return self._stack
 
     def _prepared_arrays(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        """Recorded frame `index` as `_frame_arrays` prepares it, as new arrays of this process (rgb uint8, depth
-        float32, mean colour) with its smallest finite depth (m): read from the prepared frames beside the world
-        when there are, else prepared now."""
+        """Recorded frame `index` as `_frame_arrays` prepares it (rgb uint8, depth float32, mean colour) with its
+        smallest finite depth (m): views of the prepared frames beside the world when there are, else new arrays
+        prepared now."""
         if self._prepared is not None:
             return self._prepared.read(index)
         rgb_np, depth_np, mean_rgb = self._frame_arrays(index)
@@ -328,11 +330,7 @@ class ViewSynthesizer:
             digest.update(np.ascontiguousarray(array).tobytes())
         sample = {"frame_count": world.frame_count, "size_px": [world.width_px, world.height_px]}
         sample["arrays_sha256"] = digest.hexdigest()
-        depth_dtype = np.dtype(getattr(world.depth_m, "dtype", np.float32))
-        layout = FrameLayout(
-            world.height_px // f, world.width_px // f, self.margin_px,
-            "float16" if depth_dtype == np.float16 else "float32",
-        )  # fmt: skip
+        layout = FrameLayout(world.height_px // f, world.width_px // f, self.margin_px)
 
         def prepare(index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             rgb, depth, mean_rgb = self._frame_arrays(index)

@@ -73,7 +73,6 @@ def test_views_from_the_cache_are_the_views_prepared_in_memory_to_the_bit(tmp_pa
     monkeypatch.setattr(view_module, "_FRAME_CACHE_SIZE", 4)
     cached = ViewSynthesizer(world, config)
     assert cached._prepared is not None and cached.source_factor == 2 and cached.margin_px == 10
-    assert cached._prepared.layout.centre_dtype == np.dtype(depth_dtype).name
     prepared = _count_preparations(monkeypatch)
     for frames in (range(world.frame_count), range(world.frame_count)):  # the second pass reads evicted frames again
         rgb, mask = _render_drive(cached, frames)
@@ -85,7 +84,7 @@ def test_views_from_the_cache_are_the_views_prepared_in_memory_to_the_bit(tmp_pa
 
 def test_the_cache_is_built_once_per_world_and_settings_and_costs_what_its_layout_says(tmp_path, monkeypatch):
     """A second synthesizer, or two made at the same time, prepare no frame again; the file holds one record per
-    frame: the widened rgb, float16 depth inside the frame and float32 depth in the margins (8-byte aligned)."""
+    frame: the widened rgb and its float32 depth (8-byte aligned)."""
     world = _world(tmp_path)
     prepared = _count_preparations(monkeypatch)
     made: list[ViewSynthesizer] = []
@@ -99,8 +98,8 @@ def test_the_cache_is_built_once_per_world_and_settings_and_costs_what_its_layou
     assert len(prepared) == world.frame_count
     layout = made[0]._prepared.layout
     assert (layout.height_px, layout.width_px, layout.margin_px) == (25, 40, 10)
-    rgb_bytes, centre_bytes, margin_bytes = 4504, 25 * 40 * 2, 2 * 25 * 10 * 4  # rgb 25 * 60 * 3 = 4500, padded
-    assert layout.record_bytes == rgb_bytes + centre_bytes + margin_bytes
+    assert layout.record_bytes == 4504 + 25 * 60 * 4  # rgb 25 x 60 x 3 = 4500 bytes, padded to 8
+
     folders = [p for p in (world.root / frame_cache.CACHE_DIR_NAME).iterdir() if p.is_dir()]
     assert len(folders) == 1
     assert (folders[0] / "frames.bin").stat().st_size == world.frame_count * layout.record_bytes
