@@ -10,7 +10,7 @@ from drivesim.sim.geometry import invert, pose_2d
 from drivesim.sim.raster import Rasterizer, pack_meshes
 from drivesim.stages.synth.config import SynthConfig
 from drivesim.stages.synth.render import CellCulling
-from drivesim.stages.synth.world import HAZE_DISTANCE_M, SKY_HORIZON_RGB, SynthWorld
+from drivesim.stages.synth.world import HAZE_DISTANCE_M, SEMANTIC_IDS, SKY_HORIZON_RGB, SynthWorld
 
 W, H = 320, 200
 
@@ -88,17 +88,37 @@ def test_a_packing_serves_the_cells_a_camera_sees_and_only_those(world):
 
 def test_a_packing_holds_what_is_near_however_long_the_road():
     """Textures and triangles in a packing do not grow with the road: a 4 km world's packing holds about what a
-    1 km world's does (each building group has its own facade atlas)."""
+    1 km world's does (each building group has its own facade atlas, made when a packing needs it)."""
     sizes = {}
     for length_m in (1000.0, 4000.0):
         world = SynthWorld.from_seed(0, small_cfg(length_m))
-        culling = CellCulling(world.meshes)
+        culling = world._culling  # the world's own: its facades are made as cameras come near
         texels, triangles = [], []
         for s_m in (300.0, 600.0):
             packed, _ = culling.scene(camera_pose(world, s_m)[:2, 3], world.config.scenery.view_distance_m)
             texels.append(len(packed.texels))
             triangles.append(len(packed.object_id))
         sizes[length_m] = (max(texels), max(triangles), world.triangle_count)
+        groups = [m for m in world._meshes if m.object_id == SEMANTIC_IDS["building"]]
+        made = world._culling._textures  # the facade atlases made and kept: those of the packing in use
+        assert 0 < len(made) <= len(groups) // (3 if length_m > 2000 else 1)
     short, long = sizes[1000.0], sizes[4000.0]
     assert long[2] > 3 * short[2]  # the long world is larger ...
     assert long[0] < 1.5 * short[0] and long[1] < 1.5 * short[1]  # ... its packings are not
+
+
+def test_facades_made_on_demand_are_the_whole_worlds(world):
+    """The world makes a building group's facade atlas only when a packing needs it; its frames are those of the
+    same meshes with every atlas made up front, to the bit."""
+    T = camera_pose(world, 120.0)
+    cam = world.camera
+    rgb, depth, ids = world.render_full(T, cam.K, W, H)
+    from drivesim.stages.synth.render import render_packed
+
+    culling = CellCulling(world.meshes)
+    packed, triangles = culling.scene(T[:2, 3], world.config.scenery.view_distance_m)
+    frame = render_packed(
+        packed, triangles, invert(T), cam.K, W, H, world.lighting(T), HAZE_DISTANCE_M, world._sky
+    )  # fmt: skip
+    assert np.array_equal(frame.rgb, rgb) and np.array_equal(frame.depth_m, depth)
+    assert np.array_equal(frame.object_id, ids)

@@ -10,6 +10,7 @@ with a copy of every texture; the synth world hands it a new cut-down list every
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,8 +91,10 @@ class CellCulling:
     CELL_M = 40.0
     MARGIN_M = 40.0
 
-    def __init__(self, meshes: list[Mesh]) -> None:
+    def __init__(self, meshes: list[Mesh], textures: dict[int, Callable[[], np.ndarray]] | None = None) -> None:
         self.meshes = meshes
+        self._make_texture = dict(textures or {})  # mesh index -> what makes its texture (the mesh has none)
+        self._textures: dict[int, np.ndarray] = {}  # the made textures of the current packing's meshes
         self._order: list[np.ndarray] = []  # per mesh: its face indices sorted by cell
         self._cells: list[np.ndarray] = []  # per mesh: the (global) cells it has faces in ...
         self._bounds: list[np.ndarray] = []  # ... and where each one's faces start and end in `_order`
@@ -121,22 +124,41 @@ class CellCulling:
         """(cells,) bool: the cells that come within `distance_m` of the camera."""
         return np.linalg.norm(self.cell_centre - camera_xy_m, axis=1) - self.cell_radius < distance_m
 
+    def textured(self, indices: Iterable[int], keep: bool = True) -> list[Mesh]:
+        """The meshes `indices` with their textures (those made on demand made, or taken from the current packing's);
+        with `keep`, the made ones are kept as the current packing's (and the others dropped)."""
+        indices = list(indices)
+        made = {}
+        for i in indices:
+            if i in self._make_texture:
+                made[i] = self._textures[i] if i in self._textures else self._make_texture[i]()
+        if keep:
+            self._textures = made
+        return [
+            dataclasses.replace(self.meshes[i], texture_rgb=made[i]) if i in made else self.meshes[i] for i in indices
+        ]
+
     def visible_meshes(self, near: np.ndarray) -> tuple[list[Mesh], np.ndarray]:
-        """The meshes with only the faces in the cells `near` (a mask over `cell_keys`), and each of their faces'
-        cell (in the order of the meshes' faces)."""
-        meshes, face_cells = [], []
-        for mesh, order, cells, bounds in zip(self.meshes, self._order, self._cells, self._bounds, strict=True):
+        """The meshes with only the faces in the cells `near` (a mask over `cell_keys`), textures included, and each
+        of their faces' cell (in the order of the meshes' faces)."""
+        indices, faces_of, face_cells = [], {}, []
+        for i, (order, cells, bounds) in enumerate(zip(self._order, self._cells, self._bounds, strict=True)):
             at = np.flatnonzero(near[cells])
             if not len(at):
                 continue
             if len(at) == len(cells):
                 faces = np.arange(len(order))
             else:
-                faces = np.sort(np.concatenate([order[bounds[i] : bounds[i + 1]] for i in at]))
+                faces = np.sort(np.concatenate([order[bounds[k] : bounds[k + 1]] for k in at]))
             cell_of_face = np.empty(len(order), np.int64)
             cell_of_face[order] = np.repeat(cells, np.diff(bounds))
-            meshes.append(dataclasses.replace(mesh, faces=mesh.faces[faces]))
+            indices.append(i)
+            faces_of[i] = faces
             face_cells.append(cell_of_face[faces])
+        meshes = [
+            dataclasses.replace(mesh, faces=mesh.faces[faces_of[i]])
+            for i, mesh in zip(indices, self.textured(indices), strict=True)
+        ]
         return meshes, np.concatenate(face_cells) if face_cells else np.zeros(0, np.int64)
 
     def scene(self, camera_xy_m: np.ndarray, view_distance_m: float) -> tuple[_Packed, np.ndarray | None]:

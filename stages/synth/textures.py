@@ -170,14 +170,22 @@ def facade_texture(rng: np.random.Generator, width_m: float, height_m: float) ->
     return _to_uint8(rgb)
 
 
-def pack_atlas(images: list[np.ndarray], atlas_width_px: int = 1024) -> tuple[np.ndarray, list[tuple[float, ...]]]:
-    """Pack images into one atlas (shelf packing); returns the atlas and, per image, its uv rectangle
-    (u0, v0, u1, v1) in [0, 1] with half-pixel insets so that sampling never bleeds into a neighbour."""
-    order = sorted(range(len(images)), key=lambda i: -images[i].shape[0])
+def facade_size_px(width_m: float, height_m: float) -> tuple[int, int]:
+    """(height, width) in pixels of `facade_texture(rng, width_m, height_m)`."""
+    return max(8, int(round(height_m * FACADE_PX_PER_M))), max(8, int(round(width_m * FACADE_PX_PER_M)))
+
+
+def atlas_layout(
+    sizes: list[tuple[int, int]], atlas_width_px: int = 1024
+) -> tuple[list[tuple[int, int]], int, list[tuple[float, ...]]]:
+    """Where images of (height, width) `sizes` go in an atlas (shelf packing): each one's (x, y) corner in pixels,
+    the atlas height, and each one's uv rectangle (u0, v0, u1, v1) in [0, 1] with half-pixel insets so that sampling
+    never bleeds into a neighbour."""
+    order = sorted(range(len(sizes)), key=lambda i: -sizes[i][0])
     places: dict[int, tuple[int, int]] = {}
     x = y = shelf_h = 0
     for i in order:
-        h, w = images[i].shape[:2]
+        h, w = sizes[i]
         if w > atlas_width_px:
             raise ValueError(f"image {w} px wide does not fit an atlas {atlas_width_px} px wide")
         if x + w > atlas_width_px:
@@ -186,18 +194,20 @@ def pack_atlas(images: list[np.ndarray], atlas_width_px: int = 1024) -> tuple[np
         x += w
         shelf_h = max(shelf_h, h)
     atlas_h = y + shelf_h
+    corners = [places[i] for i in range(len(sizes))]
+    rects = [
+        ((px + 0.5) / atlas_width_px, (py + 0.5) / atlas_h, (px + w - 0.5) / atlas_width_px, (py + h - 0.5) / atlas_h)
+        for (px, py), (h, w) in zip(corners, sizes, strict=True)
+    ]
+    return corners, atlas_h, rects
+
+
+def pack_atlas(images: list[np.ndarray], atlas_width_px: int = 1024) -> tuple[np.ndarray, list[tuple[float, ...]]]:
+    """Pack images into one atlas (shelf packing); returns the atlas and, per image, its uv rectangle
+    (u0, v0, u1, v1) in [0, 1] with half-pixel insets so that sampling never bleeds into a neighbour."""
+    corners, atlas_h, rects = atlas_layout([img.shape[:2] for img in images], atlas_width_px)
     atlas = np.zeros((atlas_h, atlas_width_px, 3), np.uint8)
-    rects = []
-    for i, img in enumerate(images):
-        px, py = places[i]
+    for (px, py), img in zip(corners, images, strict=True):
         h, w = img.shape[:2]
         atlas[py : py + h, px : px + w] = img
-        rects.append(
-            (
-                (px + 0.5) / atlas_width_px,
-                (py + 0.5) / atlas_h,
-                (px + w - 0.5) / atlas_width_px,
-                (py + h - 0.5) / atlas_h,
-            )
-        )
     return atlas, rects

@@ -10,7 +10,10 @@ Surfaces carry semantic object ids (`SEMANTIC_IDS`), readable with `render_full`
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,6 +45,7 @@ GROUND_TILE_M = 10.0
 FAR_TILE_M = 100.0
 FAR_EXTENT_M = 1500.0
 GROUND_Z_M = -0.03
+FACADE_ATLAS_WIDTH_PX = 1024
 BUILDING_GROUP_M = 160.0  # buildings share a facade atlas within squares of this size
 
 SUN_DIR_WORLD = np.array([0.45, -0.55, 0.70])  # towards the sun: south-east, about 44 degrees up
@@ -93,8 +97,9 @@ class SynthWorld:
         self.road: RoadPath = build_centreline(config.road, world_rng)
         self.path: RoadPath = self.road.offset(-0.5 * config.road.lane_width_m)
         self.layout: Layout = place_scenery(self.road, config.road, config.scenery, world_rng)
-        self.meshes: list[Mesh] = _build_meshes(self.road, self.layout, config, texture_rng)
-        self._culling = CellCulling(self.meshes)
+        # the building groups' facade atlases are made when the camera comes near (`CellCulling`), not here
+        self._meshes, facades = _build_meshes(self.road, self.layout, config, texture_rng)
+        self._culling = CellCulling(self._meshes, facades)
         self._sky = Sky(_cloud_cover(sky_rng), SKY_ZENITH_RGB, SKY_HORIZON_RGB, CLOUD_RGB, CLOUD_HEIGHT_M, CLOUD_TILE_M)
 
     @classmethod
@@ -114,7 +119,13 @@ class SynthWorld:
     @property
     def triangle_count(self) -> int:
         """Triangles in the world."""
-        return sum(m.triangle_count for m in self.meshes)
+        return sum(m.triangle_count for m in self._meshes)
+
+    @property
+    def meshes(self) -> list[Mesh]:
+        """Every surface of the world as world-frame meshes, textures included (made on each call: a long road's
+        facades take hundreds of MB)."""
+        return self._culling.textured(range(len(self._meshes)), keep=False)
 
     def lighting(self, T_world_camera: np.ndarray) -> Lighting:
         """Sun and sky light for a camera at `T_world_camera`."""
@@ -155,17 +166,26 @@ def _cloud_cover(rng: np.random.Generator) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------- meshes
-def _build_meshes(road: RoadPath, layout: Layout, cfg: SynthWorldConfig, rng: np.random.Generator) -> list[Mesh]:
+def _build_meshes(
+    road: RoadPath, layout: Layout, cfg: SynthWorldConfig, rng: np.random.Generator
+) -> tuple[list[Mesh], dict[int, Callable[[], np.ndarray]]]:
+    """The world's meshes, and for those whose texture is made on demand (the building groups' facade atlases: the
+    mesh has its uv but no texture) the function that makes it, by index in the list."""
     road_cfg = cfg.road
     meshes = [
         _road_mesh(road, road_cfg, rng),
         *_sidewalk_meshes(road, road_cfg, rng),
         *_ground_meshes(road, cfg, rng),
-        *_building_meshes(layout),
-        *_tree_meshes(layout, rng),
-        *_car_meshes(layout),
     ]
-    return [m for m in meshes if m.triangle_count]
+    facades: dict[int, Callable[[], np.ndarray]] = {}
+    for mesh, make_atlas in _building_meshes(layout):
+        if mesh.triangle_count:
+            facades[len(meshes)] = make_atlas
+            meshes.append(mesh)
+    meshes += [*_tree_meshes(layout, rng), *_car_meshes(layout)]
+    kept = [i for i, m in enumerate(meshes) if m.triangle_count]
+    index = {old: new for new, old in enumerate(kept)}
+    return [meshes[i] for i in kept], {index[i]: f for i, f in facades.items()}
 
 
 def _stations(road: RoadPath, period_m: float) -> np.ndarray:
@@ -296,24 +316,31 @@ def _ground_meshes(road: RoadPath, cfg: SynthWorldConfig, rng: np.random.Generat
     return meshes
 
 
-def _building_meshes(layout: Layout) -> list[Mesh]:
+def _building_meshes(layout: Layout) -> list[tuple[Mesh, Callable[[], np.ndarray]]]:
     """The buildings, one mesh per BUILDING_GROUP_M square of the map (by their centres), each over its own facade
-    atlas: a camera's view then holds only the facades near it, however long the road."""
+    atlas, with the function that makes the atlas: a camera's view then holds only the facades near it, and only
+    those are made, however long the road."""
     groups: dict[tuple[int, int], list[Building]] = {}
     for b in layout.buildings:
         groups.setdefault((int(b.x_m // BUILDING_GROUP_M), int(b.y_m // BUILDING_GROUP_M)), []).append(b)
-    if not groups:
-        return [MeshBuffer().build(Material(), SEMANTIC_IDS["building"])]
     return [_building_mesh(buildings) for buildings in groups.values()]
 
 
-def _building_mesh(buildings: list[Building]) -> Mesh:
-    """Buildings as one mesh over a facade atlas: each building has its own facade."""
+def _facade_atlas(buildings: list[Building]) -> np.ndarray:
+    """The facade atlas of a group of buildings (each building's facade from its own seed)."""
     images = []
     for b in buildings:
         brng = np.random.default_rng(b.facade_seed)
         images.append(textures.facade_texture(brng, max(b.length_m, b.depth_m), b.height_m))
-    atlas, rects = textures.pack_atlas(images, atlas_width_px=1024)
+    atlas, _ = textures.pack_atlas(images, atlas_width_px=FACADE_ATLAS_WIDTH_PX)
+    return atlas
+
+
+def _building_mesh(buildings: list[Building]) -> tuple[Mesh, Callable[[], np.ndarray]]:
+    """Buildings as one mesh over a facade atlas (each building has its own facade), without the atlas, and the
+    function that makes it."""
+    sizes = [textures.facade_size_px(max(b.length_m, b.depth_m), b.height_m) for b in buildings]
+    _, _, rects = textures.atlas_layout(sizes, FACADE_ATLAS_WIDTH_PX)
     buf = MeshBuffer()
     for i, b in enumerate(buildings):
         v, f = box(np.array([b.x_m, b.y_m]), b.yaw_rad, b.length_m, b.depth_m, GROUND_Z_M - 0.1, b.height_m)
@@ -328,7 +355,9 @@ def _building_mesh(buildings: list[Building]) -> Mesh:
         keep = [k for k in range(4) if k != _back_wall(b)]
         buf.add(v, f[np.concatenate([[2 * k, 2 * k + 1] for k in keep])], uv=uv)
     mat = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.06, 0.06, 0.06), shininess=24.0, roughness=0.7)
-    return buf.build(mat, SEMANTIC_IDS["building"], texture_rgb=atlas)
+    # built with a stand-in texture so that the mesh keeps its uv; the atlas replaces it when it is made
+    mesh = buf.build(mat, SEMANTIC_IDS["building"], texture_rgb=np.zeros((1, 1, 3), np.uint8))
+    return dataclasses.replace(mesh, texture_rgb=None), functools.partial(_facade_atlas, buildings)
 
 
 def _back_wall(b: Building) -> int:
