@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -44,6 +45,7 @@ DTYPES = (np.dtype(np.uint8), np.dtype(np.float16))
 DEFAULT_JPEG_QUALITY = 97
 # zlib level of the PNGs: level 1 is within a few % of level 3's size on depth maps and several times faster to write
 _PNG_LEVEL = 1
+_OPEN_LOCK = threading.Lock()
 
 
 class ImageStackError(ValueError):
@@ -246,7 +248,9 @@ class ImageStack:
         row = int(self._rows[i])
         start, stop = int(self._offsets[row]), int(self._offsets[row + 1])
         if self._fd is None:
-            self._fd = os.open(self.path, os.O_RDONLY)
+            with _OPEN_LOCK:  # threads reading a fresh stack at once open it once
+                if self._fd is None:
+                    self._fd = os.open(self.path, os.O_RDONLY)
         data = os.pread(self._fd, stop - start, start)
         if len(data) != stop - start:
             raise ImageStackError(f"{self.path}: frame {row} is cut short (truncated file)")

@@ -128,3 +128,15 @@ def test_a_damaged_world_stack_is_one_line_naming_it(tmp_path: Path) -> None:
         World.load(root)
     meta = json.loads(json.dumps(read_meta(root / "frames.imgs")[0]))
     assert meta["codec"] == "png" and meta["dtype"] == "uint8"
+
+
+def test_threads_reading_one_stack_get_the_frames_a_single_reader_gets(tmp_path: Path) -> None:
+    from concurrent.futures import ThreadPoolExecutor
+
+    frames = _scene_frames(16)
+    stack = _write(tmp_path / "frames.imgs", frames, "png")
+    order = np.random.default_rng(0).integers(0, 16, 200)
+    with ThreadPoolExecutor(4) as pool:
+        got = list(pool.map(lambda i: stack[int(i)], order))
+    for i, frame in zip(order, got, strict=True):
+        np.testing.assert_array_equal(frame, frames[i])
