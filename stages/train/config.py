@@ -143,9 +143,8 @@ class ImitationConfig(_Section):
     learning_rate: float = Field(1e-4, gt=0.0, le=1.0)
     """Adam learning rate of the cloning (the std is left to PPO)."""
     history_steps: int = Field(0, ge=0, le=1_000_000)
-    """Labelled states the cloning draws from: the newest rollouts' and, at first, the warm start's, the oldest
-    dropped first (DAgger's aggregate, bounded; about 30 KB of memory per state at the default image size). 0: the
-    last rollout only. Each update makes as many cloning steps either way."""
+    """Labelled states the cloning draws from: the newest rollouts' (the warm start's first), oldest dropped first;
+    about 30 KB of memory each. 0: the last rollout only."""
 
 
 class LaneAuxConfig(_Section):
