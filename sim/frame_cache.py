@@ -3,12 +3,13 @@
 The CPU view warps each recorded frame from a prepared form (`ViewSynthesizer._frame_arrays`): reduced to the warp's
 source resolution and widened left and right from neighbouring frames. Preparing a frame costs about a millisecond,
 several times an env step; a world of more frames than the view keeps in memory would pay it at nearly every step.
-This module writes every frame's prepared form to a file once; views read it through a copy-on-write memory map (a
-frame costs a few page faults, microseconds), so its pages live once in the page cache that all env processes on the
-machine share, and a view lets the pages of a frame it no longer keeps go (`PreparedFrames.release`).
+This module writes every frame's prepared form to a file once; views map a frame's record copy-on-write when they
+need it (a mapping and a few page faults, tens of microseconds), so its pages live once in the page cache that all env
+processes on the machine share, and a process keeps resident only the frames it holds.
 
 Files, in `<world>/view_cache/<key>/` (key: `cache_key`):
-    frames.bin   per frame, one record of `FrameLayout.record_bytes` bytes, sections 8-byte aligned:
+    frames.bin   per frame, one record of `FrameLayout.record_bytes` bytes (a multiple of 4096), sections 8-byte
+                 aligned:
                  rgb       uint8   (H, W + 2m, 3)  the widened frame
                  depth     float32 (H, W + 2m)     its depth (m); float32 and not float16 because the margins hold
                                                    warped neighbours' depth, which float16 would round, and because a
@@ -41,8 +42,9 @@ __all__ = ["CACHE_DIR_NAME", "FrameLayout", "PreparedFrames", "cache_key", "open
 
 CACHE_DIR_NAME = "view_cache"
 # Raised whenever what a record holds or how a frame is prepared changes, so that older caches are never read.
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 _ALIGN_BYTES = 8
+_RECORD_ALIGN_BYTES = 4096  # records start on page boundaries: each is mapped alone (`PreparedFrames.read`)
 _WRITE_CHUNK_FRAMES = 64  # records written per write call while building
 _LOG = logging.getLogger(__name__)
 
@@ -50,8 +52,8 @@ Prepare = Callable[[int], tuple[np.ndarray, np.ndarray, np.ndarray]]
 """A frame index -> (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float32, mean colour (3,)), as the view prepares it."""
 
 
-def _aligned(n_bytes: int) -> int:
-    return -(-n_bytes // _ALIGN_BYTES) * _ALIGN_BYTES
+def _aligned(n_bytes: int, to_bytes: int = _ALIGN_BYTES) -> int:
+    return -(-n_bytes // to_bytes) * to_bytes
 
 
 @dataclass(frozen=True)
@@ -84,7 +86,7 @@ class FrameLayout:
     @property
     def record_bytes(self) -> int:
         """Bytes per frame in frames.bin."""
-        return self.depth_offset + _aligned(self.height_px * self.wide_width_px * 4)
+        return _aligned(self.depth_offset + self.height_px * self.wide_width_px * 4, _RECORD_ALIGN_BYTES)
 
     def pack(self, rgb: np.ndarray, depth_m: np.ndarray, out: np.ndarray) -> None:
         """Write one prepared frame (rgb uint8, depth float32, both (H, W + 2m)) into the record `out`
@@ -106,7 +108,7 @@ class FrameLayout:
 
 class PreparedFrames:
     """A built cache folder opened for reading (module docstring): `read(i)` gives frame i as the view prepares it,
-    as views of the file mapped copy-on-write (pages come from the page cache that every process shares; a write
+    as views of its record mapped copy-on-write (pages come from the page cache that every process shares; a write
     into them would change this process's copy only)."""
 
     def __init__(self, folder: Path) -> None:
@@ -115,30 +117,26 @@ class PreparedFrames:
         self.layout = FrameLayout(**info["layout"])
         self.frame_count = int(info["frame_count"])
         self.stats = np.load(self.folder / "stats.npy")
+        self._file = open(self.folder / "frames.bin", "rb")  # noqa: SIM115 (open while the cache is read)
         size = self.layout.record_bytes * self.frame_count
-        with open(self.folder / "frames.bin", "rb") as f:
-            if os.fstat(f.fileno()).st_size != size:
-                raise OSError(f"{self.folder / 'frames.bin'}: not {self.frame_count} frames of {size} bytes")
-            self._map = mmap.mmap(f.fileno(), size, access=mmap.ACCESS_COPY)
-        self._records = np.frombuffer(self._map, dtype=np.uint8).reshape(self.frame_count, -1)
+        if os.fstat(self._file.fileno()).st_size != size:
+            raise OSError(f"{self.folder / 'frames.bin'}: not {self.frame_count} frames of {size} bytes")
 
-    def read(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    def read(self, index: int, populate: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """Frame `index`: (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float32, mean colour (3,) in [0, 1], smallest
-        finite depth in m); rgb and depth are views of the mapped file, read from it when first touched."""
+        finite depth in m). rgb and depth are views of a mapping of the frame's record alone, read from the page
+        cache when first touched (with `populate`: now, one read per page) and unmapped when no array refers to it
+        any more: the process's resident share of the cache is the frames it holds."""
         if not 0 <= index < self.frame_count:
             raise IndexError(f"frame {index} is outside the cache's {self.frame_count} frames")
-        rgb, depth = self.layout.unpack(self._records[index])
+        size = self.layout.record_bytes
+        record = mmap.mmap(self._file.fileno(), size, offset=index * size, access=mmap.ACCESS_COPY)
+        record_bytes = np.frombuffer(record, dtype=np.uint8)
+        if populate:
+            int(record_bytes[:: mmap.PAGESIZE].max())
+        rgb, depth = self.layout.unpack(record_bytes)
         stats = self.stats[index]
         return rgb, depth, stats[:3].copy(), float(stats[3])
-
-    def release(self, index: int) -> None:
-        """Let this process's pages of frame `index` go (the whole pages inside its record), so that the resident
-        memory stays that of the frames in use; reading it again maps them again from the page cache."""
-        size = self.layout.record_bytes
-        start = -(-index * size // mmap.PAGESIZE) * mmap.PAGESIZE
-        stop = (index + 1) * size // mmap.PAGESIZE * mmap.PAGESIZE
-        if stop > start:
-            self._map.madvise(mmap.MADV_DONTNEED, start, stop - start)
 
     @property
     def disk_bytes(self) -> int:

@@ -84,7 +84,7 @@ def test_views_from_the_cache_are_the_views_prepared_in_memory_to_the_bit(tmp_pa
 
 def test_the_cache_is_built_once_per_world_and_settings_and_costs_what_its_layout_says(tmp_path, monkeypatch):
     """A second synthesizer, or two made at the same time, prepare no frame again; the file holds one record per
-    frame: the widened rgb and its float32 depth (8-byte aligned)."""
+    frame: the widened rgb and its float32 depth (8-byte aligned), padded to whole pages."""
     world = _world(tmp_path)
     prepared = _count_preparations(monkeypatch)
     made: list[ViewSynthesizer] = []
@@ -98,7 +98,8 @@ def test_the_cache_is_built_once_per_world_and_settings_and_costs_what_its_layou
     assert len(prepared) == world.frame_count
     layout = made[0]._prepared.layout
     assert (layout.height_px, layout.width_px, layout.margin_px) == (25, 40, 10)
-    assert layout.record_bytes == 4504 + 25 * 60 * 4  # rgb 25 x 60 x 3 = 4500 bytes, padded to 8
+    assert 4504 + 25 * 60 * 4 == 10504  # rgb 25 x 60 x 3 = 4500 bytes padded to 8, then float32 depth
+    assert layout.record_bytes == 12288  # a record starts on a page: 10504 bytes padded to 3 x 4096
 
     folders = [p for p in (world.root / frame_cache.CACHE_DIR_NAME).iterdir() if p.is_dir()]
     assert len(folders) == 1
@@ -155,3 +156,30 @@ def test_a_folder_that_cannot_hold_the_cache_prepares_in_memory(tmp_path):
     assert vs._prepared is None
     rgb, _ = _render_drive(vs, range(0, 40, 13))
     assert rgb.max() > 0
+
+
+def _mapped_kb(path: Path) -> int:
+    """Resident kB of this process's mappings of `path` (/proc/self/smaps)."""
+    lines = Path("/proc/self/smaps").read_text().splitlines()
+    total, inside = 0, False
+    for line in lines:
+        if "-" in line.split(" ")[0] and len(line.split()) >= 5:  # a mapping's header line
+            inside = line.endswith(" " + str(path))
+        elif inside and line.startswith("Rss:"):
+            total += int(line.split()[1])
+    return total
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").is_file(), reason="needs Linux's /proc/self/smaps")
+def test_a_long_drive_keeps_only_the_frames_in_use_resident(tmp_path, monkeypatch):
+    """With a memory cache of 4 frames, driving through every frame leaves at most the pages of those 4 frames (and
+    the neighbours a view's fill may hold) of the cache file resident in the process, not the whole file."""
+    world = _world(tmp_path)
+    monkeypatch.setattr(view_module, "_FRAME_CACHE_SIZE", 4)
+    vs = ViewSynthesizer(world, ViewConfig(**SMALL))
+    _render_drive(vs, range(world.frame_count))
+    assert _mapped_kb(Path("/proc/self/exe").resolve()) > 0, "the smaps reader must find a mapped file"
+    frames_bin = vs._prepared.folder / "frames.bin"
+    record_kb = vs._prepared.layout.record_bytes // 1024
+    assert world.frame_count * record_kb == 61 * 12
+    assert _mapped_kb(frames_bin) <= 6 * record_kb
