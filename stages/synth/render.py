@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivesim.sim.mesh import Mesh
-from drivesim.sim.raster import Lighting, PackedScene, pack_meshes
+from drivesim.sim.raster import Lighting, pack_meshes
 
 NEAR_M = 0.05  # nearest drawn depth, as the rasterizer's default
 
@@ -65,7 +65,14 @@ class _Packed:
     texture_info: np.ndarray
 
     @classmethod
-    def of(cls, scene: PackedScene) -> _Packed:
+    def of(cls, meshes: list[Mesh]) -> _Packed:
+        """`raster.pack_meshes(meshes)` with the texel table made here, 4 bytes a texel and no more: the rasterizer's
+        packing goes through 12 bytes a texel, ~100 MB at a time for the facades near a camera."""
+        stand_in = np.zeros((1, 1, 3), np.uint8)
+        textures = [m.texture_rgb for m in meshes if m.texture_rgb is not None and m.uv is not None]
+        scene = pack_meshes(
+            [dataclasses.replace(m, texture_rgb=stand_in) if m.texture_rgb is not None else m for m in meshes]
+        )
         n = scene.triangle_count
         return cls(
             origin_m=scene.origin_m,
@@ -74,9 +81,27 @@ class _Packed:
             material=scene.material.numpy(),
             object_id=scene.object_id.numpy(),
             texture_index=scene.texture_index.numpy(),
-            texels=scene.texels.numpy(),
-            texture_info=np.ascontiguousarray(scene.texture_info.numpy()),
+            texels=_texel_table(textures),
+            texture_info=_texture_info(textures),
         )
+
+
+def _texel_table(textures: list[np.ndarray]) -> np.ndarray:
+    """(N,) int32 RGB8 texels of `textures` one after the other, r in the low byte (`raster.PackedScene.texels`)."""
+    rgba = np.zeros((max(sum(t.shape[0] * t.shape[1] for t in textures), 1), 4), np.uint8)
+    start = 0
+    for t in textures:
+        end = start + t.shape[0] * t.shape[1]
+        rgba[start:end, :3] = t.reshape(-1, 3)
+        start = end
+    return rgba.view("<i4").reshape(-1).astype(np.int32, copy=False)
+
+
+def _texture_info(textures: list[np.ndarray]) -> np.ndarray:
+    """(3, X) int32 offset, width, height of each texture in the texel table."""
+    sizes = np.array([[t.shape[1], t.shape[0]] for t in textures], np.int64).reshape(-1, 2)
+    offsets = np.cumsum(sizes[:, 0] * sizes[:, 1]) - sizes[:, 0] * sizes[:, 1]
+    return np.ascontiguousarray(np.stack([offsets, sizes[:, 0], sizes[:, 1]]).astype(np.int32))
 
 
 class CellCulling:
@@ -168,7 +193,7 @@ class CellCulling:
         if self._pack is None or np.linalg.norm(xy - self._pack[0]) > self.MARGIN_M:
             self._pack = None  # the old packing's memory goes before the new one is made
             meshes, face_cells = self.visible_meshes(self.near_cells(xy, view_distance_m + self.MARGIN_M))
-            self._pack = (xy, _Packed.of(pack_meshes(meshes)), face_cells)
+            self._pack = (xy, _Packed.of(meshes), face_cells)
         _, packed, face_cells = self._pack
         keep = self.near_cells(xy, view_distance_m)[face_cells]
         return packed, None if keep.all() else np.flatnonzero(keep)
