@@ -60,8 +60,9 @@ class EnvConfig(BaseModel):
     """Time limit in steps; reaching it truncates the episode."""
     wheelbase_m: float = Field(2.7, gt=0.0)
     """Inter-axle distance L of every vehicle's bicycle model, metres."""
-    max_curvature_1pm: float = Field(0.15, gt=0.0)
-    """Path curvature of a full steering action (a = ±1), 1/m."""
+    max_curvature_1pm: float = Field(0.2, gt=0.0)
+    """Path curvature of a full steering action (a = ±1), 1/m; 0.2 is a car's 5 m turning radius, which a recorded
+    intersection turn can need."""
     max_steering_rate_radps: float = Field(1.0, gt=0.0)
     """Steering-angle rate limit, rad/s."""
     ego_length_m: float = Field(4.5, gt=0.0)
