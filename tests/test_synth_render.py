@@ -113,12 +113,12 @@ def test_facades_made_on_demand_are_the_whole_worlds(world):
     T = camera_pose(world, 120.0)
     cam = world.camera
     rgb, depth, ids = world.render_full(T, cam.K, W, H)
-    from drivesim.stages.synth.render import render_packed
+    from drivesim.stages.synth.render import Scratch, render_packed
 
     culling = CellCulling(world.meshes)
     packed, triangles = culling.scene(T[:2, 3], world.config.scenery.view_distance_m)
     frame = render_packed(
-        packed, triangles, invert(T), cam.K, W, H, world.lighting(T), HAZE_DISTANCE_M, world._sky
+        packed, triangles, invert(T), cam.K, W, H, world.lighting(T), HAZE_DISTANCE_M, world._sky, Scratch()
     )  # fmt: skip
     assert np.array_equal(frame.rgb, rgb) and np.array_equal(frame.depth_m, depth)
     assert np.array_equal(frame.object_id, ids)

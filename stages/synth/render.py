@@ -209,6 +209,23 @@ def lighting_row(lighting: Lighting) -> np.ndarray:
     return row
 
 
+class Scratch:
+    """Working arrays kept from frame to frame (about the same sizes every frame): allocated anew per frame, tens of
+    MB a frame, they fragmented the heap of a long drive's process (peak memory grew with the number of frames)."""
+
+    def __init__(self) -> None:
+        self._arrays: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
+        """A C-contiguous array `shape` of `dtype` (its content is whatever was there)."""
+        need = int(np.prod(shape))
+        have = self._arrays.get(name)
+        if have is None or have.size < need or have.dtype != np.dtype(dtype):
+            have = np.empty(need + need // 4, dtype)  # room to grow: the next packing may hold a few more
+            self._arrays[name] = have
+        return have[:need].reshape(shape)
+
+
 def render_packed(
     packed: _Packed,
     triangles: np.ndarray | None,
@@ -219,9 +236,11 @@ def render_packed(
     lighting: Lighting,
     haze_distance_m: float,
     sky: Sky,
+    scratch: Scratch,
 ) -> FrameImages:
     """Draw the triangles `triangles` (None: all) of `packed` seen by a camera at T_camera_world (4x4, world ->
-    optical frame) with intrinsics K, hazy with distance (`haze_distance_m`), under `sky`."""
+    optical frame) with intrinsics K, hazy with distance (`haze_distance_m`), under `sky`; working arrays from
+    `scratch`."""
     from drivesim.sim import raster_kernel  # numba compiles (or loads its cache) on first import
     from drivesim.stages.synth import render_kernel
 
@@ -231,9 +250,10 @@ def render_packed(
     M = (T @ shift)[:3, :].astype(np.float32)
     vertices = packed.vertices
     if triangles is not None:
-        vertices = vertices.reshape(3, 3, -1)[:, :, triangles].reshape(3, -1)
+        subset = scratch.get("subset", (3, 3, len(triangles)), np.float32)
+        vertices = np.take(vertices.reshape(3, 3, -1), triangles, axis=2, out=subset).reshape(3, -1)
     n_tri = vertices.shape[1] // 3
-    vc = np.empty((3, 3 * n_tri), np.float32)
+    vc = scratch.get("vc", (3, 3 * n_tri), np.float32)
     for r in range(3):  # row by row: numpy's (3, 3) @ (3, N) matrix product was 25 times slower
         np.multiply(vertices[0], M[r, 0], out=vc[r])
         vc[r] += M[r, 1] * vertices[1]
@@ -241,15 +261,16 @@ def render_packed(
         vc[r] += M[r, 3]
     vc = vc.reshape(9, n_tri)
     K64 = np.asarray(K, dtype=np.float64)
-    table = np.empty((13, n_tri), np.float32)
-    bbox = np.empty((n_tri, 4), np.int64)
-    index = np.empty(n_tri, np.int64)
+    table = scratch.get("table", (13, n_tri), np.float32)
+    bbox = scratch.get("bbox", (n_tri, 4), np.int64)
+    index = scratch.get("index", (n_tri,), np.int64)
     kept = raster_kernel.setup(
         vc, K64[0, 0], K64[1, 1], K64[0, 2], K64[1, 2], width_px, height_px, NEAR_M, False, table, bbox, index
     )
     size = width_px * height_px
     depth = np.full(size, np.inf, np.float32)
-    winner = np.full(size, -1, np.int64)
+    winner = scratch.get("winner", (size,), np.int64)
+    winner.fill(-1)
     table = np.ascontiguousarray(table[:, :kept])
     if kept:
         camera = np.zeros(kept, np.int64)

@@ -10,6 +10,7 @@ Output files (written as hidden temporaries and moved into place only when compl
 from __future__ import annotations
 
 import functools
+import heapq
 import json
 import os
 import time
@@ -188,7 +189,7 @@ def _record_drive(
     world: SynthWorld,
     traj: Trajectory,
     frame_t: np.ndarray,
-    events: list,
+    events: Iterator[tuple[int, str, Callable[[], Any]]],
     ns: Callable[[float], int],
     thumb_frames: set[int],
     on_frame: Callable[[int, int], None] | None,
@@ -202,12 +203,12 @@ def _record_drive(
     writer = rec.RecordingWriter(stream)
     writer.add_metadata("drivesim_synth", {"seed": str(cfg.seed), "config": json.dumps(cfg.model_dump())})
     writer.write("/tf_static", rec.tf_static_msg(cam.T_vehicle_camera, ns(0.0)), ns(0.0))
-    e = 0
+    pending = next(events, None)
     for k, t in enumerate(frame_t):
         t_ns = ns(float(t))
-        while e < len(events) and events[e][0] <= t_ns:
-            writer.write(events[e][1], events[e][2](), events[e][0])
-            e += 1
+        while pending is not None and pending[0] <= t_ns:
+            writer.write(pending[1], pending[2](), pending[0])
+            pending = next(events, None)
         T_world_vehicle = traj.vehicle_pose(float(t))
         tic = time.perf_counter()
         rgb, depth = world.render(T_world_vehicle @ cam.T_vehicle_camera, cam.K, cam.width_px, cam.height_px)
@@ -221,26 +222,33 @@ def _record_drive(
             thumbs.append((float(t), cv2.resize(rgb, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)))
         if on_frame is not None:
             on_frame(k + 1, len(frame_t))
-    while e < len(events):
-        writer.write(events[e][1], events[e][2](), events[e][0])
-        e += 1
+    while pending is not None:
+        writer.write(pending[1], pending[2](), pending[0])
+        pending = next(events, None)
     writer.finish()
     return dict(writer.counts), render_s, thumbs
 
 
 def _timed_events(
     t_s: Any, ns: Callable[[float], int], topic: str, message: Callable[[int, int], Any]
-) -> list[tuple[int, str, Callable[[], Any]]]:
-    """(log time ns, topic, message factory) of one sensor's messages; `message(i, t_ns)` builds message i."""
-    return [(t_ns, topic, functools.partial(message, i, t_ns)) for i, t_ns in enumerate(ns(float(t)) for t in t_s)]
+) -> Iterator[tuple[int, str, Callable[[], Any]]]:
+    """(log time ns, topic, message factory) of one sensor's messages in time order; `message(i, t_ns)` builds
+    message i."""
+    for i, t in enumerate(t_s):
+        t_ns = ns(float(t))
+        yield t_ns, topic, functools.partial(message, i, t_ns)
 
 
-def _sensor_events(cfg: SynthConfig, gps: dict, imu: dict, wheel: dict, ns: Callable[[float], int]) -> list:
-    """(log time ns, topic, message factory) of every GPS, IMU and wheel message, in time order."""
+def _sensor_events(
+    cfg: SynthConfig, gps: dict, imu: dict, wheel: dict, ns: Callable[[float], int]
+) -> Iterator[tuple[int, str, Callable[[], Any]]]:
+    """(log time ns, topic, message factory) of every GPS, IMU and wheel message, in time order, made as they are
+    consumed (a long drive has hundreds of thousands)."""
     gyro_var = cfg.sensors.imu.gyro_noise_radps**2
     accel_var = cfg.sensors.imu.accel_noise_mps2**2
-    events = [
-        *_timed_events(
+    # merged by time; equal stamps keep the GPS, IMU, wheel order (heapq.merge takes ties from the first iterable)
+    return heapq.merge(
+        _timed_events(
             gps["t_s"],
             ns,
             "/gps/fix",
@@ -248,7 +256,7 @@ def _sensor_events(cfg: SynthConfig, gps: dict, imu: dict, wheel: dict, ns: Call
                 gps["lat_deg"][i], gps["lon_deg"][i], gps["alt_m"][i], gps["covariance_m2"][i], t_ns
             ),
         ),
-        *_timed_events(
+        _timed_events(
             imu["t_s"],
             ns,
             "/imu/data",
@@ -256,7 +264,6 @@ def _sensor_events(cfg: SynthConfig, gps: dict, imu: dict, wheel: dict, ns: Call
                 imu["angular_velocity_radps"][i], imu["linear_acceleration_mps2"][i], gyro_var, accel_var, t_ns
             ),
         ),
-        *_timed_events(wheel["t_s"], ns, "/vehicle/twist", lambda i, t_ns: rec.twist_msg(wheel["speed_mps"][i], t_ns)),
-    ]
-    events.sort(key=lambda ev: ev[0])  # stable: equal stamps keep GPS, IMU, wheel order
-    return events
+        _timed_events(wheel["t_s"], ns, "/vehicle/twist", lambda i, t_ns: rec.twist_msg(wheel["speed_mps"][i], t_ns)),
+        key=lambda ev: ev[0],
+    )

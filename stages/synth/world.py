@@ -27,7 +27,7 @@ from drivesim.sim.vehicles import GROUP_NAMES, VehicleShape, build_vehicle_meshe
 from drivesim.stages.synth import textures
 from drivesim.stages.synth.config import CameraConfig, SynthConfig, SynthWorldConfig
 from drivesim.stages.synth.primitives import MeshBuffer, box, icosphere, prism, quad_faces
-from drivesim.stages.synth.render import CellCulling, Sky, render_packed
+from drivesim.stages.synth.render import CellCulling, Scratch, Sky, render_packed
 from drivesim.stages.synth.road import RoadPath, build_centreline
 from drivesim.stages.synth.scenery import (
     CURB_TOP_WIDTH_M,
@@ -100,6 +100,7 @@ class SynthWorld:
         # the building groups' facade atlases are made when the camera comes near (`CellCulling`), not here
         self._meshes, facades = _build_meshes(self.road, self.layout, config, texture_rng)
         self._culling = CellCulling(self._meshes, facades)
+        self._scratch = Scratch()
         self._sky = Sky(_cloud_cover(sky_rng), SKY_ZENITH_RGB, SKY_HORIZON_RGB, CLOUD_RGB, CLOUD_HEIGHT_M, CLOUD_TILE_M)
 
     @classmethod
@@ -145,7 +146,7 @@ class SynthWorld:
         packed, triangles = self._culling.scene(T_world_camera[:2, 3], self.config.scenery.view_distance_m)
         frame = render_packed(
             packed, triangles, invert(T_world_camera), K, int(width_px), int(height_px), self.lighting(T_world_camera),
-            HAZE_DISTANCE_M, self._sky,
+            HAZE_DISTANCE_M, self._sky, self._scratch,
         )  # fmt: skip
         return frame.rgb, frame.depth_m, frame.object_id
 
