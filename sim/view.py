@@ -267,10 +267,11 @@ class ViewSynthesizer:
                 world.width_px // self.source_factor + 2 * self.margin_px,
             )
             self._kernel_warp = _view_kernel_warp(self.K_src, src_size, self.K_view, config)
-        self._prepared: PreparedFrames | None = self._open_prepared_frames()
+        long_world = world.frame_count > _FRAME_CACHE_SIZE
+        self._prepared: PreparedFrames | None = self._open_prepared_frames() if long_world else None
         """Every frame's prepared form stored beside the world (`frame_cache.py`): a frame the memory cache does not
-        hold is read from it instead of prepared again; None for an in-memory world or a folder that cannot be
-        written."""
+        hold is read from it instead of prepared again; None for a world the memory cache holds whole (no disk
+        spent), an in-memory world or a folder that cannot be written."""
         if not self.batched and world.frame_count <= _FRAME_CACHE_SIZE:
             # Every frame taken into the memory cache now (and its prepared pages mapped), not at its first view: an
             # episode meets a new frame at nearly every step, so lazily each view paid it until all frames had been

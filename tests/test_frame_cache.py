@@ -21,6 +21,13 @@ from drivesim.sim.world import World
 SMALL = {"roi_px": (0, 10, 80, 40), "out_width_px": 40, "out_height_px": 20}
 
 
+@pytest.fixture(autouse=True)
+def _long_worlds(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The test worlds count as long: more frames than the view's memory cache holds, so the prepared frames are
+    stored beside them."""
+    monkeypatch.setattr(view_module, "_FRAME_CACHE_SIZE", 4)
+
+
 def _world(tmp_path: Path, depth_dtype: type = np.float16) -> World:
     root = write_test_world(tmp_path / "world", length_m=60.0)
     depth = np.load(root / "depth_m.npy")
@@ -183,3 +190,12 @@ def test_a_long_drive_keeps_only_the_frames_in_use_resident(tmp_path, monkeypatc
     record_kb = vs._prepared.layout.record_bytes // 1024
     assert world.frame_count * record_kb == 61 * 12
     assert _mapped_kb(frames_bin) <= 6 * record_kb
+
+
+def test_a_world_the_memory_cache_holds_whole_spends_no_disk(tmp_path, monkeypatch):
+    """A drive short enough for the memory cache (up to 2048 frames) is prepared in memory: no view_cache folder."""
+    world = _world(tmp_path)
+    monkeypatch.setattr(view_module, "_FRAME_CACHE_SIZE", world.frame_count)
+    rgb, _ = _render_drive(ViewSynthesizer(world, ViewConfig(**SMALL)), range(0, world.frame_count, 5))
+    assert rgb.std() > 0
+    assert not (world.root / "view_cache").exists()
