@@ -210,8 +210,8 @@ def lighting_row(lighting: Lighting) -> np.ndarray:
 
 
 class Scratch:
-    """Working arrays kept from frame to frame (about the same sizes every frame): allocated anew per frame, tens of
-    MB a frame, they fragmented the heap of a long drive's process (peak memory grew with the number of frames)."""
+    """Working arrays kept from frame to frame (about the same sizes every frame) rather than tens of MB allocated
+    and freed per frame."""
 
     def __init__(self) -> None:
         self._arrays: dict[str, np.ndarray] = {}
