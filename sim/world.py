@@ -168,6 +168,7 @@ class World:
     lane_width_m: float
     info: dict
     _tree: cKDTree | None = None
+    _blocks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def load(cls, root: Path | str) -> World:
@@ -255,6 +256,7 @@ class World:
             best = association_kernel.closest_frames(
                 x, y, yaw, np.broadcast_to(np.asarray(near, dtype=np.int64), x.shape), self.path["x_m"],
                 self.path["y_m"], self.path["yaw_rad"], self.path["arc_length_m"], _CANDIDATES, float(max_arc_gap_m),
+                self._path_blocks(),
             )  # fmt: skip
         else:
             best = self._closest_frames_by_tree(x, y, yaw, near_index, max_arc_gap_m)
@@ -262,6 +264,12 @@ class World:
             x, y, yaw, self.path["x_m"][best], self.path["y_m"][best], self.path["yaw_rad"][best]
         )
         return best.astype(np.int64), q_lat, q_long, q_rot
+
+    def _path_blocks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The path's blocks of frames as bounding circles (`association_kernel.path_blocks`), made once."""
+        if self._blocks is None:
+            self._blocks = association_kernel.path_blocks(self.path["x_m"], self.path["y_m"])
+        return self._blocks
 
     def _closest_frames_by_tree(
         self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, near_index: np.ndarray | None, max_arc_gap_m: float

@@ -146,3 +146,25 @@ def test_world_load_refuses_mismatched_arrays(tmp_path: Path) -> None:
     np.save(root / "depth_m.npy", np.ones((4, 4, 6), np.float32))
     with pytest.raises(ValueError, match="depth_m.npy"):
         World.load(root)
+
+
+def test_the_block_search_finds_the_frames_a_scan_of_every_frame_finds(tmp_path: Path) -> None:
+    """On a long drive that passes the same places several times, the search that skips far blocks of frames picks
+    the frame a scan of every frame picks (8 nearest by distance, then the lower index; the same penalties)."""
+    angle = np.linspace(0.0, 12 * np.pi, 3000, endpoint=False)
+    radius_m = 30.0 + 0.05 * angle
+    x_path, y_path, yaw_path = radius_m * np.cos(angle), radius_m * np.sin(angle), angle + np.pi / 2
+    world = World.load(_write_world(tmp_path / "w", x_path, y_path, yaw_path))
+    rng = np.random.default_rng(7)
+    x, y = rng.uniform(-34, 34, 300), rng.uniform(-34, 34, 300)
+    yaw = rng.uniform(-np.pi, np.pi, 300)
+    near = rng.integers(0, 3000, 300)
+    path = world.path
+    found = world.closest_frames(x, y, yaw, near_index=near)[0]
+    for b in range(len(x)):
+        d = np.hypot(path["x_m"] - x[b], path["y_m"] - y[b])
+        nearest = np.lexsort((np.arange(len(d)), d))[:8]
+        heading = np.abs((yaw[b] - path["yaw_rad"][nearest] + np.pi) % (2 * np.pi) - np.pi)
+        score = d[nearest] + np.where(heading > 0.5 * np.pi, 1e6, 0.0)
+        score += np.where(np.abs(path["arc_length_m"][nearest] - path["arc_length_m"][near[b]]) > 15.0, 1e3, 0.0)
+        assert found[b] == nearest[int(np.argmin(score))], b
