@@ -61,6 +61,31 @@ def _sample(texels: np.ndarray, info: np.ndarray, tex: int, u: float, v: float) 
     return r, g, b
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _camera_normal(
+    attributes: np.ndarray, s: int, b0: float, b1: float, b2: float, R_cam_world: np.ndarray
+) -> tuple[float, float, float]:
+    """Scene triangle s's normal interpolated at barycentrics (b0, b1, b2), in the camera frame, unit length."""
+    nw0 = attributes[0, s] * b0 + attributes[8, s] * b1 + attributes[16, s] * b2
+    nw1 = attributes[1, s] * b0 + attributes[9, s] * b1 + attributes[17, s] * b2
+    nw2 = attributes[2, s] * b0 + attributes[10, s] * b1 + attributes[18, s] * b2
+    return _normalized(
+        R_cam_world[0, 0] * nw0 + R_cam_world[0, 1] * nw1 + R_cam_world[0, 2] * nw2,
+        R_cam_world[1, 0] * nw0 + R_cam_world[1, 1] * nw1 + R_cam_world[1, 2] * nw2,
+        R_cam_world[2, 0] * nw0 + R_cam_world[2, 1] * nw1 + R_cam_world[2, 2] * nw2,
+    )
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _to_viewer(K_inv: np.ndarray, fx: float, fy: float) -> tuple[float, float, float]:
+    """The unit direction from pixel (fx, fy)'s surface point back to the camera, in the camera frame."""
+    return _normalized(
+        -(K_inv[0, 0] * fx + K_inv[0, 1] * fy + K_inv[0, 2]),
+        -(K_inv[1, 0] * fx + K_inv[1, 1] * fy + K_inv[1, 2]),
+        -(K_inv[2, 0] * fx + K_inv[2, 1] * fy + K_inv[2, 2]),
+    )
+
+
 @njit(cache=True, nogil=True)
 def shade_world(
     depth: np.ndarray,
@@ -110,20 +135,8 @@ def shade_world(
         inv_sum = f32(1.0) / (w0 + w1 + w2)
         b0, b1, b2 = w0 * inv_sum, w1 * inv_sum, w2 * inv_sum
         s = source[t]
-        nw0 = attributes[0, s] * b0 + attributes[8, s] * b1 + attributes[16, s] * b2
-        nw1 = attributes[1, s] * b0 + attributes[9, s] * b1 + attributes[17, s] * b2
-        nw2 = attributes[2, s] * b0 + attributes[10, s] * b1 + attributes[18, s] * b2
-        n0, n1, n2 = _normalized(
-            R_cam_world[0, 0] * nw0 + R_cam_world[0, 1] * nw1 + R_cam_world[0, 2] * nw2,
-            R_cam_world[1, 0] * nw0 + R_cam_world[1, 1] * nw1 + R_cam_world[1, 2] * nw2,
-            R_cam_world[2, 0] * nw0 + R_cam_world[2, 1] * nw1 + R_cam_world[2, 2] * nw2,
-        )
-        fx, fy = f32(x), f32(y)
-        v0, v1, v2 = _normalized(
-            -(K_inv[0, 0] * fx + K_inv[0, 1] * fy + K_inv[0, 2]),
-            -(K_inv[1, 0] * fx + K_inv[1, 1] * fy + K_inv[1, 2]),
-            -(K_inv[2, 0] * fx + K_inv[2, 1] * fy + K_inv[2, 2]),
-        )
+        n0, n1, n2 = _camera_normal(attributes, s, b0, b1, b2, R_cam_world)
+        v0, v1, v2 = _to_viewer(K_inv, f32(x), f32(y))
         if n0 * v0 + n1 * v1 + n2 * v2 < 0:  # two-sided: the normal turned towards the viewer
             n0, n1, n2 = -n0, -n1, -n2
         h0, h1, h2 = _normalized(v0 + l0, v1 + l1, v2 + l2)
