@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from _lib.observations import observation_difference
 from _lib.report import measured_now, write_markdown
 
 from drivesim.bench.fidelity import DEFAULT_OFFSETS, image_metrics, render_drive
@@ -94,43 +95,11 @@ def view_fidelity(quality: int, sources: list[str]) -> list[dict[str, Any]]:
     return rows
 
 
-def _observations(world: Path, task: str, steps: int) -> list[np.ndarray]:
-    """The image observations of `steps` expert steps of `task` on `world` (episode k from seed k)."""
-    from drivesim.bench.sim_steps import make_env
-
-    env = make_env(task, str(world), None, "train")
-    unwrapped = env.unwrapped
-    env.reset(seed=0)
-    images, episode = [], 0
-    while len(images) < steps:
-        obs, _, terminated, truncated, _ = env.step(unwrapped.expert_action())
-        parts = obs.values() if isinstance(obs, dict) else [obs]
-        images.append(np.concatenate([np.asarray(p).ravel() for p in parts if np.asarray(p).dtype == np.uint8]))
-        if terminated or truncated:
-            episode += 1
-            env.reset(seed=episode)
-    env.close()
-    return images
-
-
 def observation_change(reference: Path, world: Path, tasks: list[str], steps: int) -> list[dict[str, Any]]:
     """Per task: how the observations of the same expert steps differ between the lossless and the JPEG world."""
     rows = []
     for task in tasks:
-        a = np.stack(_observations(reference, task, steps)).astype(np.float64)
-        b = np.stack(_observations(world, task, steps)).astype(np.float64)
-        diff = np.abs(a - b)
-        mse = float(np.mean(diff**2))
-        rows.append(
-            {
-                "task": task,
-                "steps": steps,
-                "psnr_db": float("inf") if mse == 0 else 10.0 * np.log10(255.0**2 / mse),
-                "pixels_differing": float(np.mean(diff > 0)),
-                "mean_abs_diff": float(diff.mean()),
-                "max_abs_diff": float(diff.max()),
-            }
-        )
+        rows.append(observation_difference(reference, world, task, steps))
         print(rows[-1], flush=True)
     return rows
 

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from _lib.observations import observation_difference
 from _lib.report import measured_now, write_markdown
 
 from drivesim.bench.fidelity import DEFAULT_OFFSETS, image_metrics, render_drive
@@ -88,45 +89,13 @@ def float16_copy(world: Path, folder: Path) -> Path:
     return copy
 
 
-def _observations(world: Path, task: str, steps: int) -> list[np.ndarray]:
-    """The image observations of `steps` expert steps of `task` on `world` (episode k from seed k)."""
-    from drivesim.bench.sim_steps import make_env
-
-    env = make_env(task, str(world), None, "train")
-    unwrapped = env.unwrapped
-    obs, _ = env.reset(seed=0)
-    images, episode = [], 0
-    while len(images) < steps:
-        obs, _, terminated, truncated, _ = env.step(unwrapped.expert_action())
-        parts = obs.values() if isinstance(obs, dict) else [obs]
-        images.append(np.concatenate([np.asarray(p).ravel() for p in parts if np.asarray(p).dtype == np.uint8]))
-        if terminated or truncated:
-            episode += 1
-            env.reset(seed=episode)
-    env.close()
-    return images
-
-
 def observation_change(world: Path, tasks: list[str], steps: int) -> list[dict[str, Any]]:
     """Per task: how the observations of the same expert steps differ between float32 and float16 depth."""
     rows = []
     with tempfile.TemporaryDirectory(prefix="drivesim-storage-") as tmp:
         copy = float16_copy(world, Path(tmp))
         for task in tasks:
-            a = np.stack(_observations(world, task, steps)).astype(np.float64)
-            b = np.stack(_observations(copy, task, steps)).astype(np.float64)
-            diff = np.abs(a - b)
-            mse = float(np.mean(diff**2))
-            rows.append(
-                {
-                    "task": task,
-                    "steps": steps,
-                    "psnr_db": float("inf") if mse == 0 else 10.0 * np.log10(255.0**2 / mse),
-                    "pixels_differing": float(np.mean(diff > 0)),
-                    "max_abs_diff": float(diff.max()),
-                    "steps_identical": int(np.sum(diff.reshape(len(diff), -1).max(axis=1) == 0)),
-                }
-            )
+            rows.append(observation_difference(world, copy, task, steps))
             print(rows[-1], flush=True)
         shutil.rmtree(copy, ignore_errors=True)
     return rows
