@@ -281,6 +281,19 @@ def shade(
 
 
 @njit(cache=True, nogil=True, inline="always")
+def pixel_barycentrics(table: np.ndarray, t: int, x: int, y: int) -> tuple[float, float, float]:
+    """Perspective-correct barycentric weights of pixel (x, y) in set-up candidate t (`setup`'s column table)."""
+    f32 = np.float32
+    xo = f32(x) - table[11, t]
+    yo = f32(y) - table[12, t]
+    w0 = table[3, t] + table[1, t] * xo + table[2, t] * yo
+    w1 = table[6, t] + table[4, t] * xo + table[5, t] * yo
+    w2 = table[9, t] + table[7, t] * xo + table[8, t] * yo
+    inv_sum = f32(1.0) / (w0 + w1 + w2)
+    return w0 * inv_sum, w1 * inv_sum, w2 * inv_sum
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _shade_pixel(
     x: int,
     y: int,
@@ -297,13 +310,7 @@ def _shade_pixel(
     """`shade` of one covered pixel (x, y of camera cam) whose z-buffer winner is candidate t: its colour in [0, 1]
     and its camera-frame unit normal (r, g, b, nx, ny, nz)."""
     f32 = np.float32
-    xo = f32(x) - table[11, t]
-    yo = f32(y) - table[12, t]
-    w0 = table[3, t] + table[1, t] * xo + table[2, t] * yo
-    w1 = table[6, t] + table[4, t] * xo + table[5, t] * yo
-    w2 = table[9, t] + table[7, t] * xo + table[8, t] * yo
-    inv_sum = f32(1.0) / (w0 + w1 + w2)
-    b0, b1, b2 = w0 * inv_sum, w1 * inv_sum, w2 * inv_sum
+    b0, b1, b2 = pixel_barycentrics(table, t, x, y)
     s = source[t]
     nw0 = attributes[0, s] * b0 + attributes[8, s] * b1 + attributes[16, s] * b2
     nw1 = attributes[1, s] * b0 + attributes[9, s] * b1 + attributes[17, s] * b2

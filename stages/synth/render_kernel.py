@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from drivesim.sim.raster_kernel import pixel_barycentrics
+
 
 @njit(cache=True, nogil=True, inline="always")
 def _normalized(x: float, y: float, z: float) -> tuple[float, float, float]:
@@ -127,13 +129,7 @@ def shade_world(
             uncovered += 1
             continue
         x, y = p % width_px, p // width_px
-        xo = f32(x) - table[11, t]
-        yo = f32(y) - table[12, t]
-        w0 = table[3, t] + table[1, t] * xo + table[2, t] * yo
-        w1 = table[6, t] + table[4, t] * xo + table[5, t] * yo
-        w2 = table[9, t] + table[7, t] * xo + table[8, t] * yo
-        inv_sum = f32(1.0) / (w0 + w1 + w2)
-        b0, b1, b2 = w0 * inv_sum, w1 * inv_sum, w2 * inv_sum
+        b0, b1, b2 = pixel_barycentrics(table, t, x, y)
         s = source[t]
         n0, n1, n2 = _camera_normal(attributes, s, b0, b1, b2, R_cam_world)
         v0, v1, v2 = _to_viewer(K_inv, f32(x), f32(y))
