@@ -32,6 +32,8 @@ from drivesim.stages.ingest.config import IngestConfig
 from drivesim.stages.ingest.run import ingest_recording
 from drivesim.stages.ingest.trace import validate_trace
 
+LOSSLESS = IngestConfig.model_validate({"image": {"codec": "png"}})  # frames compared pixel for pixel
+
 
 def _ingest(tmp_path: Path, msgs: list[Msg], fmt: str = "mcap", cfg: IngestConfig | None = None):
     """Write the messages as a recording in a fresh folder under tmp_path and ingest it."""
@@ -47,7 +49,8 @@ def _ingest(tmp_path: Path, msgs: list[Msg], fmt: str = "mcap", cfg: IngestConfi
 def test_every_container_format_gives_the_same_trace(tmp_path: Path, fmt: str) -> None:
     n = 6
     msgs = drive_messages(n_frames=n, encoding="bgr8", with_ground_truth=True)
-    result, info = _ingest(tmp_path, msgs, fmt, IngestConfig(ground_truth_depth=True))
+    lossless = {"ground_truth_depth": True, "image": {"codec": "png"}}  # frames compared pixel for pixel below
+    result, info = _ingest(tmp_path, msgs, fmt, IngestConfig.model_validate(lossless))
     assert info.sources["format"] == {"rosbag2_sqlite3": "rosbag2", "rosbag2_mcap": "rosbag2"}.get(fmt, fmt)
     assert (info.frame_count, info.width_px, info.height_px) == (n, 64, 40)
     np.testing.assert_array_equal(info.frame_times_ns(), START_NS + 1 + np.arange(n) * 100_000_000)
@@ -169,16 +172,16 @@ def _two_cameras(with_info_on: str) -> list[Msg]:
 
 
 def test_several_cameras_pick_the_one_with_camera_info_and_say_so(tmp_path: Path) -> None:
-    result, info = _ingest(tmp_path, _two_cameras("/camera"))
+    result, info = _ingest(tmp_path, _two_cameras("/camera"), cfg=LOSSLESS)
     assert info.sources["camera_topic"] == "/camera/image_raw"
     assert any("with a CameraInfo" in note for note in result.notes)
-    result, info = _ingest(tmp_path, _two_cameras("/a"))
+    result, info = _ingest(tmp_path, _two_cameras("/a"), cfg=LOSSLESS)
     assert info.sources["camera_topic"] == "/a/image_raw"
     assert tuple(np.asarray(info.frames()[0])[20, 32]) == (0, 0, 255)
 
 
 def test_topic_option_picks_the_camera(tmp_path: Path) -> None:
-    cfg = IngestConfig.model_validate({"topics": {"camera": "/a/image_raw"}})
+    cfg = IngestConfig.model_validate({"topics": {"camera": "/a/image_raw"}, "image": {"codec": "png"}})
     result, info = _ingest(tmp_path, _two_cameras("/camera"), cfg=cfg)
     assert info.sources["camera_topic"] == "/a/image_raw"
     assert tuple(np.asarray(info.frames()[0])[20, 32]) == (0, 0, 255)
