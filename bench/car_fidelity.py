@@ -72,14 +72,15 @@ def world_from_drive(drive, root: Path) -> World:  # noqa: ANN001 (bench.fidelit
 
 def true_view(drive, car_meshes_world: list, T_world_camera: np.ndarray, K: np.ndarray, size: tuple[int, int]):  # noqa: ANN001
     """The synthetic world's own render with the car added: colour (h, w, 3) uint8 and the car's true mask."""
+    from drivesim.stages.synth.render import CellCulling
+
     synth = drive.world
-    culling = synth._culling  # the car joins the scene's visible meshes for this render only
-    visible = culling.visible
-    culling.visible = lambda xy, distance: visible(xy, distance) + car_meshes_world
+    culling = synth._culling  # the car joins the scene's meshes for this render only
+    synth._culling = CellCulling(synth.meshes + list(car_meshes_world))
     try:
         rgb, _, ids = synth.render_full(T_world_camera, K, *size)
     finally:
-        culling.visible = visible
+        synth._culling = culling
     return rgb, ids == _CAR_ID
 
 
