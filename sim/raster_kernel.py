@@ -221,7 +221,8 @@ def _bbox_points(
 
 
 @njit(cache=True, nogil=True)
-def _normalized(x: float, y: float, z: float) -> tuple[float, float, float]:
+def normalized(x: float, y: float, z: float) -> tuple[float, float, float]:
+    """(x, y, z) scaled to unit length (float32 arithmetic; a zero vector stays near zero)."""
     inv = np.float32(1.0) / np.sqrt(max(x * x + y * y + z * z, np.float32(1e-30)))
     return x * inv, y * inv, z * inv
 
@@ -316,13 +317,13 @@ def _shade_pixel(
     nw1 = attributes[1, s] * b0 + attributes[9, s] * b1 + attributes[17, s] * b2
     nw2 = attributes[2, s] * b0 + attributes[10, s] * b1 + attributes[18, s] * b2
     R = R_cam_world[cam]
-    n0, n1, n2 = _normalized(
+    n0, n1, n2 = normalized(
         R[0, 0] * nw0 + R[0, 1] * nw1 + R[0, 2] * nw2,
         R[1, 0] * nw0 + R[1, 1] * nw1 + R[1, 2] * nw2,
         R[2, 0] * nw0 + R[2, 1] * nw1 + R[2, 2] * nw2,
     )
     fx, fy = f32(x), f32(y)
-    v0, v1, v2 = _normalized(
+    v0, v1, v2 = normalized(
         -(K_inv[0, 0] * fx + K_inv[0, 1] * fy + K_inv[0, 2]),
         -(K_inv[1, 0] * fx + K_inv[1, 1] * fy + K_inv[1, 2]),
         -(K_inv[2, 0] * fx + K_inv[2, 1] * fy + K_inv[2, 2]),
@@ -330,7 +331,7 @@ def _shade_pixel(
     if n0 * v0 + n1 * v1 + n2 * v2 < 0:  # two-sided: the normal turned towards the viewer
         n0, n1, n2 = -n0, -n1, -n2
     l0, l1, l2 = -lights[cam, 3], -lights[cam, 4], -lights[cam, 5]
-    h0, h1, h2 = _normalized(v0 + l0, v1 + l1, v2 + l2)
+    h0, h1, h2 = normalized(v0 + l0, v1 + l1, v2 + l2)
     n_dot_l = max(n0 * l0 + n1 * l1 + n2 * l2, f32(0.0))
     n_dot_h = max(n0 * h0 + n1 * h1 + n2 * h2, f32(0.0))
     metalness, roughness, unlit = material[4, s], material[5, s], material[6, s]

@@ -14,13 +14,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from drivesim.sim.raster_kernel import pixel_barycentrics
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _normalized(x: float, y: float, z: float) -> tuple[float, float, float]:
-    inv = np.float32(1.0) / np.sqrt(max(x * x + y * y + z * z, np.float32(1e-30)))
-    return x * inv, y * inv, z * inv
+from drivesim.sim.raster_kernel import normalized, pixel_barycentrics
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -71,7 +65,7 @@ def _camera_normal(
     nw0 = attributes[0, s] * b0 + attributes[8, s] * b1 + attributes[16, s] * b2
     nw1 = attributes[1, s] * b0 + attributes[9, s] * b1 + attributes[17, s] * b2
     nw2 = attributes[2, s] * b0 + attributes[10, s] * b1 + attributes[18, s] * b2
-    return _normalized(
+    return normalized(
         R_cam_world[0, 0] * nw0 + R_cam_world[0, 1] * nw1 + R_cam_world[0, 2] * nw2,
         R_cam_world[1, 0] * nw0 + R_cam_world[1, 1] * nw1 + R_cam_world[1, 2] * nw2,
         R_cam_world[2, 0] * nw0 + R_cam_world[2, 1] * nw1 + R_cam_world[2, 2] * nw2,
@@ -81,7 +75,7 @@ def _camera_normal(
 @njit(cache=True, nogil=True, inline="always")
 def _to_viewer(K_inv: np.ndarray, fx: float, fy: float) -> tuple[float, float, float]:
     """The unit direction from pixel (fx, fy)'s surface point back to the camera, in the camera frame."""
-    return _normalized(
+    return normalized(
         -(K_inv[0, 0] * fx + K_inv[0, 1] * fy + K_inv[0, 2]),
         -(K_inv[1, 0] * fx + K_inv[1, 1] * fy + K_inv[1, 2]),
         -(K_inv[2, 0] * fx + K_inv[2, 1] * fy + K_inv[2, 2]),
@@ -135,7 +129,7 @@ def shade_world(
         v0, v1, v2 = _to_viewer(K_inv, f32(x), f32(y))
         if n0 * v0 + n1 * v1 + n2 * v2 < 0:  # two-sided: the normal turned towards the viewer
             n0, n1, n2 = -n0, -n1, -n2
-        h0, h1, h2 = _normalized(v0 + l0, v1 + l1, v2 + l2)
+        h0, h1, h2 = normalized(v0 + l0, v1 + l1, v2 + l2)
         n_dot_l = max(n0 * l0 + n1 * l1 + n2 * l2, f32(0.0))
         n_dot_h = max(n0 * h0 + n1 * h1 + n2 * h2, f32(0.0))
         metalness, roughness, unlit = material[4, s], material[5, s], material[6, s]
@@ -186,7 +180,7 @@ def paint_sky(
         r0 = K_inv[0, 0] * fx + K_inv[0, 1] * fy + K_inv[0, 2]
         r1 = K_inv[1, 0] * fx + K_inv[1, 1] * fy + K_inv[1, 2]
         r2 = K_inv[2, 0] * fx + K_inv[2, 1] * fy + K_inv[2, 2]
-        d0, d1, d2 = _normalized(
+        d0, d1, d2 = normalized(
             R_world_camera[0, 0] * r0 + R_world_camera[0, 1] * r1 + R_world_camera[0, 2] * r2,
             R_world_camera[1, 0] * r0 + R_world_camera[1, 1] * r1 + R_world_camera[1, 2] * r2,
             R_world_camera[2, 0] * r0 + R_world_camera[2, 1] * r1 + R_world_camera[2, 2] * r2,
