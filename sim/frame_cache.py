@@ -11,9 +11,9 @@ Files, in `<world>/view_cache/<key>/` (key: `cache_key`):
     frames.bin   per frame, one record of `FrameLayout.record_bytes` bytes (a multiple of 4096), sections 8-byte
                  aligned:
                  rgb       uint8   (H, W + 2m, 3)  the widened frame
-                 depth     float32 (H, W + 2m)     its depth (m); float32 and not float16 because the margins hold
-                                                   warped neighbours' depth, which float16 would round, and because a
-                                                   read then needs no conversion (a view of the bytes read)
+                 depth     float16 (H, W + 2m)     its depth (m); the view rounds a prepared frame's depth to
+                                                   float16 itself (`ViewSynthesizer._frame_arrays`), so this loses
+                                                   nothing, and it halves the record against float32
     stats.npy    float64 (N, 4): the frame's own mean colour in [0, 1] (3) and its smallest finite depth (m)
     layout.json  H, W, m, the frame count and what the key was made from
 The folder appears by one rename once complete, so a reader never sees a half-written cache; builders of one key
@@ -42,14 +42,14 @@ __all__ = ["CACHE_DIR_NAME", "FrameLayout", "PreparedFrames", "cache_key", "open
 
 CACHE_DIR_NAME = "view_cache"
 # Raised whenever what a record holds or how a frame is prepared changes, so that older caches are never read.
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 _ALIGN_BYTES = 8
 _RECORD_ALIGN_BYTES = 4096  # records start on page boundaries: each is mapped alone (`PreparedFrames.read`)
 _WRITE_CHUNK_FRAMES = 64  # records written per write call while building
 _LOG = logging.getLogger(__name__)
 
 Prepare = Callable[[int], tuple[np.ndarray, np.ndarray, np.ndarray]]
-"""A frame index -> (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float32, mean colour (3,)), as the view prepares it."""
+"""A frame index -> (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) in m, mean colour (3,)), as the view prepares it."""
 
 
 def _aligned(n_bytes: int, to_bytes: int = _ALIGN_BYTES) -> int:
@@ -86,23 +86,23 @@ class FrameLayout:
     @property
     def record_bytes(self) -> int:
         """Bytes per frame in frames.bin."""
-        return _aligned(self.depth_offset + self.height_px * self.wide_width_px * 4, _RECORD_ALIGN_BYTES)
+        return _aligned(self.depth_offset + self.height_px * self.wide_width_px * 2, _RECORD_ALIGN_BYTES)
 
     def pack(self, rgb: np.ndarray, depth_m: np.ndarray, out: np.ndarray) -> None:
-        """Write one prepared frame (rgb uint8, depth float32, both (H, W + 2m)) into the record `out`
-        (record_bytes,) uint8."""
+        """Write one prepared frame (rgb uint8, depth in m, both (H, W + 2m)) into the record `out` (record_bytes,)
+        uint8, the depth as float16."""
         shape = (self.height_px, self.wide_width_px)
         if rgb.shape != (*shape, 3) or depth_m.shape != shape:
             raise ValueError(f"a prepared frame of {rgb.shape} / {depth_m.shape}, the layout says {shape}")
         out[: self.rgb_bytes] = np.ascontiguousarray(rgb, dtype=np.uint8).reshape(-1)
-        depth = np.ascontiguousarray(depth_m, dtype=np.float32).reshape(-1).view(np.uint8)
+        depth = np.ascontiguousarray(depth_m, dtype=np.float16).reshape(-1).view(np.uint8)
         out[self.depth_offset : self.depth_offset + depth.size] = depth
 
     def unpack(self, record: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float32) arrays of a record: views of it, no copy."""
+        """The (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float16) arrays of a record: views of it, no copy."""
         H, wide = self.height_px, self.wide_width_px
         rgb = record[: self.rgb_bytes].reshape(H, wide, 3)
-        depth = record[self.depth_offset : self.depth_offset + H * wide * 4].view(np.float32).reshape(H, wide)
+        depth = record[self.depth_offset : self.depth_offset + H * wide * 2].view(np.float16).reshape(H, wide)
         return rgb, depth
 
 
@@ -124,9 +124,10 @@ class PreparedFrames:
 
     def read(self, index: int, populate: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """Frame `index`: (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float32, mean colour (3,) in [0, 1], smallest
-        finite depth in m). rgb and depth are views of a mapping of the frame's record alone, read from the page
-        cache when first touched (with `populate`: now, one read per page) and unmapped when no array refers to it
-        any more: the process's resident share of the cache is the frames it holds."""
+        finite depth in m). rgb is a view of a mapping of the frame's record alone, read from the page cache when
+        first touched (with `populate`: now, one read per page) and unmapped when no array refers to it any more, so
+        the process's resident share of the cache is the frames it holds; depth is widened from the record's float16
+        into an array of its own."""
         if not 0 <= index < self.frame_count:
             raise IndexError(f"frame {index} is outside the cache's {self.frame_count} frames")
         size = self.layout.record_bytes
@@ -134,9 +135,9 @@ class PreparedFrames:
         record_bytes = np.frombuffer(record, dtype=np.uint8)
         if populate:
             int(record_bytes[:: mmap.PAGESIZE].max())
-        rgb, depth = self.layout.unpack(record_bytes)
+        rgb, depth16 = self.layout.unpack(record_bytes)
         stats = self.stats[index]
-        return rgb, depth, stats[:3].copy(), float(stats[3])
+        return rgb, depth16.astype(np.float32), stats[:3].copy(), float(stats[3])
 
     @property
     def disk_bytes(self) -> int:

@@ -67,6 +67,9 @@ __all__ = [
 
 TIMING_KEYS = ("warp", "raster", "composite", "lighting", "harmonize")
 _FRAME_CACHE_SIZE = 2048  # recorded frames kept as tensors (about 0.17 MB each at the default view)
+# Of a world read from its prepared frames on disk (a frame read there costs tens of microseconds), fewer are kept: the
+# depth of each is the process's own memory.
+_BACKED_FRAME_CACHE_SIZE = 512
 _NARROW_CACHE_SIZE = 8  # frames kept before widening (a frame's widening reads the few around it)
 _MODEL_CACHE_SIZE = 256  # packed vehicle models kept (about 0.5 MB each; every episode's car is a new repaint)
 _PAINT_CACHE_SIZE = 65536  # the batched path's (geometry slot, paint) of models seen lately (a few hundred bytes each)
@@ -291,7 +294,8 @@ class ViewSynthesizer:
         rgb_np, depth_np, mean_rgb, self._min_depth[index] = self._prepared_arrays(index, populate)
         entry = (torch.from_numpy(rgb_np).to(self.device), torch.from_numpy(depth_np).to(self.device), mean_rgb)
         self._frames[index] = entry
-        if len(self._frames) > _FRAME_CACHE_SIZE:
+        limit = _FRAME_CACHE_SIZE if self._prepared is None else min(_FRAME_CACHE_SIZE, _BACKED_FRAME_CACHE_SIZE)
+        if len(self._frames) > limit:
             self._frames.popitem(last=False)
         return entry
 
@@ -344,7 +348,7 @@ class ViewSynthesizer:
         arrays and the frame's own mean colour in [0, 1]."""
         rgb, depth, mean_rgb = self._narrow_arrays(index)
         if self.margin_px == 0:
-            return rgb, depth, mean_rgb
+            return rgb, _float16_precision(depth), mean_rgb
         T_camera_world = invert(self._T_world_camera[index])
         neighbours = [
             (*self._narrow_arrays(index + offset)[:2], T_camera_world @ self._T_world_camera[index + offset])
@@ -352,7 +356,7 @@ class ViewSynthesizer:
             if 0 <= index + offset < self.world.frame_count
         ]
         wide = widen_frame(rgb, depth, self._K_frame, self.margin_px, neighbours)
-        return wide.rgb, wide.depth_m, mean_rgb
+        return wide.rgb, _float16_precision(wide.depth_m), mean_rgb
 
     def _narrow_arrays(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Recorded frame `index` at the warp's source resolution, not widened: (rgb (H, W, 3) uint8, depth (H, W)
@@ -827,7 +831,15 @@ class ViewSynthesizer:
 
 
 # The code that shapes a prepared frame: its source text is part of the prepared frames' key (`frame_cache.py`).
-_PREPARING_METHODS = (ViewSynthesizer._frame_arrays, ViewSynthesizer._narrow_arrays, ViewSynthesizer._source_arrays)
+def _float16_precision(depth_m: np.ndarray) -> np.ndarray:
+    """`depth_m` rounded to float16 and back (float32): a prepared frame's depth is what the frame cache stores at half
+    the bytes, whether it is read from there or prepared in memory (a relative step of 1/2048, 2.4 cm at 50 m)."""
+    return np.asarray(depth_m, dtype=np.float16).astype(np.float32)
+
+
+_PREPARING_METHODS = (
+    ViewSynthesizer._frame_arrays, ViewSynthesizer._narrow_arrays, ViewSynthesizer._source_arrays, _float16_precision
+)  # fmt: skip
 
 
 def frames_are_monochrome(frames: np.ndarray) -> bool:

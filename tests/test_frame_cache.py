@@ -91,7 +91,7 @@ def test_views_from_the_cache_are_the_views_prepared_in_memory_to_the_bit(tmp_pa
 
 def test_the_cache_is_built_once_per_world_and_settings_and_costs_what_its_layout_says(tmp_path, monkeypatch):
     """A second synthesizer, or two made at the same time, prepare no frame again; the file holds one record per
-    frame: the widened rgb and its float32 depth (8-byte aligned), padded to whole pages."""
+    frame: the widened rgb and its float16 depth (8-byte aligned), padded to whole pages."""
     world = _world(tmp_path)
     prepared = _count_preparations(monkeypatch)
     made: list[ViewSynthesizer] = []
@@ -105,8 +105,8 @@ def test_the_cache_is_built_once_per_world_and_settings_and_costs_what_its_layou
     assert len(prepared) == world.frame_count
     layout = made[0]._prepared.layout
     assert (layout.height_px, layout.width_px, layout.margin_px) == (25, 40, 10)
-    assert 4504 + 25 * 60 * 4 == 10504  # rgb 25 x 60 x 3 = 4500 bytes padded to 8, then float32 depth
-    assert layout.record_bytes == 12288  # a record starts on a page: 10504 bytes padded to 3 x 4096
+    assert 4504 + 25 * 60 * 2 == 7504  # rgb 25 x 60 x 3 = 4500 bytes padded to 8, then float16 depth
+    assert layout.record_bytes == 8192  # a record starts on a page: 7504 bytes padded to 2 x 4096
 
     folders = [p for p in (world.root / frame_cache.CACHE_DIR_NAME).iterdir() if p.is_dir()]
     assert len(folders) == 1
@@ -188,7 +188,7 @@ def test_a_long_drive_keeps_only_the_frames_in_use_resident(tmp_path, monkeypatc
     assert _mapped_kb(Path("/proc/self/exe").resolve()) > 0, "the smaps reader must find a mapped file"
     frames_bin = vs._prepared.folder / "frames.bin"
     record_kb = vs._prepared.layout.record_bytes // 1024
-    assert world.frame_count * record_kb == 61 * 12
+    assert world.frame_count * record_kb == 61 * 8
     assert _mapped_kb(frames_bin) <= 6 * record_kb
 
 
