@@ -3,9 +3,9 @@
 The CPU view warps each recorded frame from a prepared form (`ViewSynthesizer._frame_arrays`): reduced to the warp's
 source resolution and widened left and right from neighbouring frames. Preparing a frame costs about a millisecond,
 several times an env step; a world of more frames than the view keeps in memory would pay it at nearly every step.
-This module writes every frame's prepared form to a file once; views map a frame's record copy-on-write when they
-need it (a mapping and a few page faults, tens of microseconds), so its pages live once in the page cache that all env
-processes on the machine share, and a process keeps resident only the frames it holds.
+This module writes every frame's prepared form to a file once; views read a frame's record when they need it (one
+read from the page cache that all env processes on the machine share: about ten microseconds, a third of mapping the
+record and faulting its pages in), and a process keeps in memory only the frames it holds.
 
 Files, in `<world>/view_cache/<key>/` (key: `cache_key`):
     frames.bin   per frame, one record of `FrameLayout.record_bytes` bytes (a multiple of 4096), sections 8-byte
@@ -26,13 +26,13 @@ import fcntl
 import hashlib
 import json
 import logging
-import mmap
 import os
 import shutil
 import time
 import uuid
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +44,7 @@ CACHE_DIR_NAME = "view_cache"
 # Raised whenever what a record holds or how a frame is prepared changes, so that older caches are never read.
 FORMAT_VERSION = 4
 _ALIGN_BYTES = 8
-_RECORD_ALIGN_BYTES = 4096  # records start on page boundaries: each is mapped alone (`PreparedFrames.read`)
+_RECORD_ALIGN_BYTES = 4096  # records start on page boundaries (a read copies whole pages of the page cache)
 _WRITE_CHUNK_FRAMES = 64  # records written per write call while building
 _LOG = logging.getLogger(__name__)
 
@@ -68,25 +68,30 @@ class FrameLayout:
     width_px: int
     margin_px: int
 
-    @property
+    @cached_property
     def wide_width_px(self) -> int:
         """W + 2m."""
         return self.width_px + 2 * self.margin_px
 
-    @property
+    @cached_property
     def rgb_bytes(self) -> int:
         """Bytes of the widened rgb."""
         return self.height_px * self.wide_width_px * 3
 
-    @property
+    @cached_property
     def depth_offset(self) -> int:
         """Offset of the depth in a record."""
         return _aligned(self.rgb_bytes)
 
-    @property
+    @cached_property
+    def used_bytes(self) -> int:
+        """Bytes of a record that hold the frame (its start up to the end of the depth)."""
+        return self.depth_offset + self.height_px * self.wide_width_px * 2
+
+    @cached_property
     def record_bytes(self) -> int:
         """Bytes per frame in frames.bin."""
-        return _aligned(self.depth_offset + self.height_px * self.wide_width_px * 2, _RECORD_ALIGN_BYTES)
+        return _aligned(self.used_bytes, _RECORD_ALIGN_BYTES)
 
     def pack(self, rgb: np.ndarray, depth_m: np.ndarray, out: np.ndarray) -> None:
         """Write one prepared frame (rgb uint8, depth in m, both (H, W + 2m)) into the record `out` (record_bytes,)
@@ -108,8 +113,7 @@ class FrameLayout:
 
 class PreparedFrames:
     """A built cache folder opened for reading (module docstring): `read(i)` gives frame i as the view prepares it,
-    as views of its record mapped copy-on-write (pages come from the page cache that every process shares; a write
-    into them would change this process's copy only)."""
+    as views of a copy of its record read from the file."""
 
     def __init__(self, folder: Path) -> None:
         self.folder = Path(folder)
@@ -122,22 +126,18 @@ class PreparedFrames:
         if os.fstat(self._file.fileno()).st_size != size:
             raise OSError(f"{self.folder / 'frames.bin'}: not {self.frame_count} frames of {size} bytes")
 
-    def read(self, index: int, populate: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        """Frame `index`: (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float32, mean colour (3,) in [0, 1], smallest
-        finite depth in m). rgb is a view of a mapping of the frame's record alone, read from the page cache when
-        first touched (with `populate`: now, one read per page) and unmapped when no array refers to it any more, so
-        the process's resident share of the cache is the frames it holds; depth is widened from the record's float16
-        into an array of its own."""
+    def read(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Frame `index`: (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float16, mean colour (3,) in [0, 1], smallest
+        finite depth in m). rgb and depth are views of one new buffer holding the frame's record."""
         if not 0 <= index < self.frame_count:
             raise IndexError(f"frame {index} is outside the cache's {self.frame_count} frames")
-        size = self.layout.record_bytes
-        record = mmap.mmap(self._file.fileno(), size, offset=index * size, access=mmap.ACCESS_COPY)
-        record_bytes = np.frombuffer(record, dtype=np.uint8)
-        if populate:
-            int(record_bytes[:: mmap.PAGESIZE].max())
-        rgb, depth16 = self.layout.unpack(record_bytes)
+        record = np.empty(self.layout.used_bytes, dtype=np.uint8)
+        got = os.preadv(self._file.fileno(), [record], index * self.layout.record_bytes)
+        if got != record.size:
+            raise OSError(f"{self.folder / 'frames.bin'}: frame {index} is {got} bytes, not {record.size}")
+        rgb, depth = self.layout.unpack(record)
         stats = self.stats[index]
-        return rgb, depth16.astype(np.float32), stats[:3].copy(), float(stats[3])
+        return rgb, depth, stats[:3].copy(), float(stats[3])
 
     @property
     def disk_bytes(self) -> int:

@@ -276,23 +276,24 @@ class ViewSynthesizer:
         hold is read from it instead of prepared again; None for a world the memory cache holds whole (no disk
         spent), an in-memory world or a folder that cannot be written."""
         if not self.batched and world.frame_count <= _FRAME_CACHE_SIZE:
-            # Every frame taken into the memory cache now (and its prepared pages mapped), not at its first view: an
+            # Every frame taken into the memory cache now, not at its first view: an
             # episode meets a new frame at nearly every step, so lazily each view paid it until all frames had been
             # seen (10 % of a car-drawn overtake step, measured); the cache would hold them all in the end anyway.
             for index in range(world.frame_count):
-                self._frame(index, populate=True)
+                self._frame(index)
 
     # ------------------------------------------------------------------ caches
-    def _frame(self, index: int, populate: bool = False) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+    def _frame(self, index: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
         """Recorded frame `index` as (rgb (H, W, 3) uint8, depth (H, W) float32) tensors and its mean colour in [0, 1];
-        the same tensor objects while cached, so the warp's per-source cache hits (`populate`: a frame read from the
-        prepared frames has its pages mapped now)."""
+        the same tensor objects while cached, so the warp's per-source cache hits."""
         entry = self._frames.get(index)
         if entry is not None:
             self._frames.move_to_end(index)
             return entry
-        rgb_np, depth_np, mean_rgb, self._min_depth[index] = self._prepared_arrays(index, populate)
-        entry = (torch.from_numpy(rgb_np).to(self.device), torch.from_numpy(depth_np).to(self.device), mean_rgb)
+        rgb_np, depth_np, mean_rgb, self._min_depth[index] = self._prepared_arrays(index)
+        # float16 depth from the prepared frames widened here: torch's conversion is ten times numpy's
+        depth = torch.from_numpy(depth_np).to(self.device, torch.float32)
+        entry = (torch.from_numpy(rgb_np).to(self.device), depth, mean_rgb)
         self._frames[index] = entry
         limit = _FRAME_CACHE_SIZE if self._prepared is None else min(_FRAME_CACHE_SIZE, _BACKED_FRAME_CACHE_SIZE)
         if len(self._frames) > limit:
@@ -309,12 +310,12 @@ class ViewSynthesizer:
             self._stack = (rgb, depth, np.stack([a[2] for a in arrays]))
         return self._stack
 
-    def _prepared_arrays(self, index: int, populate: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        """Recorded frame `index` as `_frame_arrays` prepares it (rgb uint8, depth float32, mean colour) with its
-        smallest finite depth (m): views of the prepared frames beside the world when there are, else new arrays
-        prepared now."""
+    def _prepared_arrays(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Recorded frame `index` as `_frame_arrays` prepares it (rgb uint8, depth float32 or its float16 record,
+        mean colour) with its smallest finite depth (m): views of the prepared frames beside the world when there
+        are, else new arrays prepared now."""
         if self._prepared is not None:
-            return self._prepared.read(index, populate)
+            return self._prepared.read(index)
         rgb_np, depth_np, mean_rgb = self._frame_arrays(index)
         depth_np = np.array(depth_np, dtype=np.float32, copy=True)
         finite = depth_np[(depth_np > 0) & np.isfinite(depth_np)]
