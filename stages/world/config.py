@@ -21,7 +21,8 @@ class PointCloudConfig(StageConfig):
     max_depth_m: float = Field(30.0, gt=0.0)
     """Only pixels nearer than this (m) are kept: far depth is unreliable and smears the cloud."""
     voxel_size_m: float = Field(0.2, gt=0.0)
-    """Voxel edge (m) of the down-sampling that merges the frames' points (0.2: about 6 MB per minute of a synthetic drive)."""
+    """Voxel edge (m) of the down-sampling that merges the frames' points (0.2 m: about 6 MB per minute of a
+    synthetic drive)."""
 
 
 class WorldConfig(StageConfig):
