@@ -199,7 +199,7 @@ def disk_rows(lengths: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
-def plot(lengths: list[dict[str, Any]], path: Path) -> None:
+def plot(raw: dict[str, Any], path: Path) -> None:
     """scaling.png: per stage, ms per frame and peak RSS against the drive's length; MB per minute per artifact."""
     import matplotlib
 
@@ -207,6 +207,7 @@ def plot(lengths: list[dict[str, Any]], path: Path) -> None:
     import matplotlib.pyplot as plt
     import matplotlib.ticker
 
+    lengths = raw["lengths"]
     minutes = [length["minutes"] for length in lengths]
     fig, axes = plt.subplots(1, 4, figsize=(19, 4.2), layout="constrained")
     for stage in STAGES:
@@ -215,7 +216,14 @@ def plot(lengths: list[dict[str, Any]], path: Path) -> None:
             axes[0].plot(minutes, [1000.0 * r["wall_s"] / max(r["frames"], 1) for r in runs], "o-", label=stage)
         axes[1].plot(minutes, [r["peak_rss_mb"] for r in runs], "o-", label=stage)
     sim = [next(r for r in length["runs"] if r["stage"] == "sim") for length in lengths]
-    axes[2].plot(minutes, [r["extra"]["steps_per_s"] for r in sim], "o-", label="lane, one env")
+    axes[2].plot(minutes, [r["extra"]["steps_per_s"] for r in sim], "o-", label="lane, one env, one run")
+    steps = raw.get("steps_interleaved")
+    if steps:
+        axes[2].plot(
+            [minutes[0], minutes[-1]], [steps["short_steps_per_s"], steps["long_steps_per_s"]], "s--",
+            label=f"median of {steps['repeats']} alternating runs",
+        )  # fmt: skip
+    axes[2].set_ylim(bottom=0)
     for name in (*ARTIFACTS, "workspace"):
         parts = WORKSPACE_ARTIFACTS if name == "workspace" else (name,)
         per_min = [sum(sum(x["disk_bytes"].get(a, {}).values()) for a in parts) / 1e6 / x["minutes"] for x in lengths]
@@ -246,11 +254,13 @@ def markdown(raw: dict[str, Any]) -> list[str]:
         f"{raw['load_end']} (`uptime` at start: {raw['uptime_start']}). Reproduce: `{raw['command']}`.",
         "",
         f"Synthetic drives (seed 0, 960x600 camera at 10 Hz) of {', '.join(f'{x:g}' for x in raw['minutes'])} "
-        f"minutes through the chain at its default settings (depth.method={raw['depth_method']}), each stage one CLI "
+        f"minutes through the chain at its default settings but depth.method={raw['depth_method']} (auto picks mvs "
+        "for a camera-only drive: its cost is per frame, on a window of neighbours, see Depth), each stage one CLI "
         "process; ms/frame = the process's wall time / the drive's frames (imports included: a short drive pays "
         "more start-up per frame); peak RSS = that process's ru_maxrss (the CLI's imports ~300 MB included); sim = "
         f"`drivesim bench sim --tasks lane --steps {raw['sim_steps']}` on the drive's world (steps/s of one env). "
-        "The machine was shared: the load is beside each run.",
+        "The load is beside each run. The view cache is what the first env writes beside a world of more than 2048 "
+        "frames (`sim/frame_cache.py`): a cache the simulator rebuilds, counted apart from the workspace.",
         "",
         "| stage | minutes | frames | wall s | ms/frame | stage s | peak RSS MB | load before/after | notes |",
         "|---|---|---|---|---|---|---|---|---|",
@@ -463,7 +473,7 @@ def main() -> None:
     if args.before is not None:
         raw["before"] = {**json.loads(args.before.read_text()), "label": args.before_label}
         raw["before"].pop("before", None)
-    plot(raw["lengths"], args.output.with_suffix(".png"))
+    plot(raw, args.output.with_suffix(".png"))
     write_markdown(args.output, markdown(raw), raw)
 
 
