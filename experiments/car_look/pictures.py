@@ -12,6 +12,7 @@ Run from the repository root:  .venv/bin/python experiments/car_look/pictures.py
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import cv2
@@ -23,28 +24,12 @@ from drivesim.sim.vehicles import sample_paint
 from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer
 from drivesim.sim.world import World
 
-ROOT = Path(__file__).resolve().parents[2]
-BOXES = ROOT / "benchmarks" / "data" / "real_car_boxes.json"
-REAL = ROOT.parent / "shared" / "data" / "real"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "_lib"))  # the studies' shared helpers
+from crops import BOXES, REAL, ROOT, crop_cell, labelled  # noqa: E402
+
 PICKS = (9, 20, 55)  # boxes of three drives
 SCALE = 2
 CELL_PX = (120, 64)  # (w, h) of a crop cell before enlarging
-
-
-def _cell(image: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
-    """The box widened by half its size each side, gray, fitted into `CELL_PX`."""
-    x0, y0, x1, y1 = box
-    dx, dy = (x1 - x0) // 2, (y1 - y0) // 2
-    h, w = image.shape[:2]
-    patch = image[max(0, y0 - dy) : min(h, y1 + dy), max(0, x0 - dx) : min(w, x1 + dx)]
-    return cv2.resize(cv2.cvtColor(np.ascontiguousarray(patch), cv2.COLOR_RGB2GRAY), CELL_PX, cv2.INTER_AREA)
-
-
-def _label(image: np.ndarray, names: list[str], cell_w: int) -> np.ndarray:
-    header = np.full((20, image.shape[1]), 255, dtype=np.uint8)
-    for c, name in enumerate(names):
-        cv2.putText(header, name, (c * cell_w + 4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, 0, 1, cv2.LINE_AA)
-    return np.vstack([header, image])
 
 
 def crops_picture(out: Path) -> None:
@@ -56,14 +41,14 @@ def crops_picture(out: Path) -> None:
         frame = cr.load_frame(REAL, b.drive, b.frame)
         K = cr.drive_intrinsics(REAL, b.drive)
         model = cr.library_car(i)
-        cells = [_cell(frame, b.box)]
+        cells = [crop_cell(frame, b.box, 0.5, CELL_PX)]
         for level in ("harmonization", "camera"):
             image, _ = cr.insert_car(frame, K, b.box, model, level)
-            cells.append(_cell(image, b.box))
+            cells.append(crop_cell(image, b.box, 0.5, CELL_PX))
         rows.append(np.hstack(cells))
     grid = cv2.resize(np.vstack(rows), None, fx=SCALE, fy=SCALE, interpolation=cv2.INTER_NEAREST)
     names = ["real car", "inserted, before", "inserted, + camera look"]
-    cv2.imwrite(str(out), _label(grid, names, CELL_PX[0] * SCALE))
+    cv2.imwrite(str(out), labelled(grid, names, CELL_PX[0] * SCALE))
 
 
 def sim_picture(world_dir: Path, out: Path) -> None:
@@ -84,7 +69,7 @@ def sim_picture(world_dir: Path, out: Path) -> None:
         views.append(cv2.cvtColor(view.rgb[0], cv2.COLOR_RGB2GRAY))
     strip = np.hstack([views[0], np.full((views[0].shape[0], 2), 255, np.uint8), views[1]])
     strip = cv2.resize(strip, None, fx=SCALE, fy=SCALE, interpolation=cv2.INTER_NEAREST)
-    cv2.imwrite(str(out), _label(strip, ["camera_look off", "camera_look on"], (views[0].shape[1] + 2) * SCALE))
+    cv2.imwrite(str(out), labelled(strip, ["camera_look off", "camera_look on"], (views[0].shape[1] + 2) * SCALE))
 
 
 def main() -> None:

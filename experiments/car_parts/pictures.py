@@ -19,26 +19,18 @@ Run from the repository root:
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
-BOXES = ROOT / "benchmarks" / "data" / "real_car_boxes.json"
-REAL = ROOT.parent / "shared" / "data" / "real"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "_lib"))  # the studies' shared helpers
+from crops import BOXES, REAL, ROOT, crop_cell, labelled  # noqa: E402
+
 PICKS = (7, 13, 20, 28, 34, 55)  # front, front, rear, broadside left, broadside left, rear; three drives
 SCALE = 2
 CELL_PX = (160, 90)  # (w, h) of a crop cell before enlarging
-
-
-def _cell(image: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
-    """The box widened by a quarter of its size each side, gray, fitted into `CELL_PX`."""
-    x0, y0, x1, y1 = box
-    dx, dy = (x1 - x0) // 4, (y1 - y0) // 4
-    h, w = image.shape[:2]
-    patch = image[max(0, y0 - dy) : min(h, y1 + dy), max(0, x0 - dx) : min(w, x1 + dx)]
-    return cv2.resize(cv2.cvtColor(np.ascontiguousarray(patch), cv2.COLOR_RGB2GRAY), CELL_PX, cv2.INTER_AREA)
 
 
 def crop_cells() -> tuple[np.ndarray, np.ndarray]:
@@ -51,8 +43,8 @@ def crop_cells() -> tuple[np.ndarray, np.ndarray]:
         b = boxes[i]
         frame = cr.load_frame(REAL, b.drive, b.frame)
         image, _ = cr.insert_car(frame, cr.drive_intrinsics(REAL, b.drive), b.box, cr.library_car(i), "camera", b.view)
-        real.append(_cell(frame, b.box))
-        inserted.append(_cell(image, b.box))
+        real.append(crop_cell(frame, b.box, 0.25, CELL_PX))
+        inserted.append(crop_cell(image, b.box, 0.25, CELL_PX))
     return np.stack(real), np.stack(inserted)
 
 
@@ -81,25 +73,18 @@ def sim_view(world_dir: Path) -> np.ndarray:
     return cv2.cvtColor(view.rgb[0], cv2.COLOR_RGB2GRAY)
 
 
-def _label(image: np.ndarray, names: list[str], cell_w: int) -> np.ndarray:
-    header = np.full((20, image.shape[1]), 255, dtype=np.uint8)
-    for c, name in enumerate(names):
-        cv2.putText(header, name, (c * cell_w + 4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, 0, 1, cv2.LINE_AA)
-    return np.vstack([header, image])
-
-
 def compose(before: dict, after: dict, out: Path) -> None:
     """Write `car_parts_crops.png` (and `car_parts_sim.png` when both hold a simulator view) into `out`."""
     rows = [np.hstack([r, b, a]) for r, b, a in zip(after["real"], before["inserted"], after["inserted"], strict=True)]
     grid = cv2.resize(np.vstack(rows), None, fx=SCALE, fy=SCALE, interpolation=cv2.INTER_NEAREST)
     names = ["real car", "inserted, before", "inserted, with its parts"]
-    cv2.imwrite(str(out / "car_parts_crops.png"), _label(grid, names, CELL_PX[0] * SCALE))
+    cv2.imwrite(str(out / "car_parts_crops.png"), labelled(grid, names, CELL_PX[0] * SCALE))
     if "sim" in before and "sim" in after:
         gap = np.full((before["sim"].shape[0], 2), 255, np.uint8)
         strip = cv2.resize(np.hstack([before["sim"], gap, after["sim"]]), None, fx=SCALE, fy=SCALE,
                            interpolation=cv2.INTER_NEAREST)  # fmt: skip
         names = ["before", "with its parts"]
-        cv2.imwrite(str(out / "car_parts_sim.png"), _label(strip, names, (before["sim"].shape[1] + 2) * SCALE))
+        cv2.imwrite(str(out / "car_parts_sim.png"), labelled(strip, names, (before["sim"].shape[1] + 2) * SCALE))
 
 
 def main() -> None:
