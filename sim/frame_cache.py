@@ -4,7 +4,7 @@ The CPU view warps each recorded frame from a prepared form (`ViewSynthesizer._f
 source resolution and widened left and right from neighbouring frames. Preparing a frame costs about a millisecond,
 several times an env step; a world of more frames than the view keeps in memory would pay it at nearly every step.
 This module writes every frame's prepared form to a file once; views read a frame's record when they need it (one
-read from the page cache that all env processes on the machine share: about ten microseconds, a third of mapping the
+read from the page cache that all env processes on the machine share: 10-20 microseconds, less than mapping the
 record and faulting its pages in), and a process keeps in memory only the frames it holds.
 
 Files, in `<world>/view_cache/<key>/` (key: `cache_key`):

@@ -276,9 +276,9 @@ class ViewSynthesizer:
         hold is read from it instead of prepared again; None for a world the memory cache holds whole (no disk
         spent), an in-memory world or a folder that cannot be written."""
         if not self.batched and world.frame_count <= _FRAME_CACHE_SIZE:
-            # Every frame taken into the memory cache now, not at its first view: an
-            # episode meets a new frame at nearly every step, so lazily each view paid it until all frames had been
-            # seen (10 % of a car-drawn overtake step, measured); the cache would hold them all in the end anyway.
+            # Every frame taken into the memory cache now, not at its first view: an episode meets a new frame at nearly
+            # every step, so lazily each view paid it until all frames had been seen (10 % of a car-drawn overtake
+            # step, measured); the cache would hold them all in the end anyway.
             for index in range(world.frame_count):
                 self._frame(index)
 
@@ -831,13 +831,13 @@ class ViewSynthesizer:
         return placed
 
 
-# The code that shapes a prepared frame: its source text is part of the prepared frames' key (`frame_cache.py`).
 def _float16_precision(depth_m: np.ndarray) -> np.ndarray:
     """`depth_m` rounded to float16 and back (float32): a prepared frame's depth is what the frame cache stores at half
-    the bytes, whether it is read from there or prepared in memory (a relative step of 1/2048, 2.4 cm at 50 m)."""
+    the bytes, whether it is read from there or prepared in memory (at most 1/2048 relative: under 2.5 cm at 50 m)."""
     return np.asarray(depth_m, dtype=np.float16).astype(np.float32)
 
 
+# The code that shapes a prepared frame: its source text is part of the prepared frames' key (`frame_cache.py`).
 _PREPARING_METHODS = (
     ViewSynthesizer._frame_arrays, ViewSynthesizer._narrow_arrays, ViewSynthesizer._source_arrays, _float16_precision
 )  # fmt: skip
