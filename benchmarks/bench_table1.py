@@ -4,6 +4,7 @@ for random, straight, expert, the warm start alone and the final policy.
     .venv/bin/python benchmarks/bench_table1.py                                   # every drive, the real budgets
     .venv/bin/python benchmarks/bench_table1.py --drives kitti_odometry_00 --budget-scale 0.002 --episodes 8 \
         --zero-shot-episodes 4 --town -1 --out-dir /tmp/table1-smoke              # a smoke run (no real figure)
+    .venv/bin/python benchmarks/bench_table1.py --zero-shot-of benchmarks/results/table1.json   # columns only
 
 For each drive, in a fresh workspace: `drivesim run REC` with no flags (the recording preset; the demo world is
 `drivesim run` without a recording), its wall time; then `drivesim eval` of each row's policy on the drive's own
@@ -223,6 +224,31 @@ def _git_commit() -> str:
     return done.stdout.strip() or "unknown"
 
 
+def zero_shot_columns(result: dict[str, Any], work: Path, town: int, episodes: int) -> None:
+    """Each trained drive's final policy on the other real drives' worlds and on an unseen town (`town` < 0: none),
+    `episodes` each, into its entry's "zero_shot" and "unseen_town" (a drive's world is its workspace's, the parent
+    of its run folder's runs/)."""
+    trained = [d for d in result["drives"] if "error" not in d and d.get("run")]
+    workspaces = {d["drive"]: Path(d["run"]).parents[1] for d in trained}
+    real_worlds = {name: ws / "world" for name, ws in workspaces.items() if name != "demo"}
+    town_ws = work / "towns"
+    build_town = bool(trained) and town >= 0
+    town_done, _ = drivesim(town_ws, "towns", "build", str(town)) if build_town else (None, 0.0)
+    town_world = town_ws / "towns" / f"seed{town}" / "world"
+    result["town"] = town if build_town else None
+    for drive in trained:
+        ws = workspaces[drive["drive"]]
+        drive["zero_shot"] = {
+            other: evaluate(ws, drive["run"], f"table1-zero-shot-{other}", episodes, world)
+            for other, world in real_worlds.items()
+            if other != drive["drive"]
+        }
+        if town_done is not None and town_done.returncode == 0:
+            drive["unseen_town"] = evaluate(ws, drive["run"], "table1-town", episodes, town_world)
+        elif town_done is not None:
+            drive["unseen_town"] = {"error": _one_line(town_done)}
+
+
 def main() -> None:
     """Run the chains, the rows' evaluations and the zero-shot columns; write table1.json and table1.md."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -240,7 +266,20 @@ def main() -> None:
         default=None,
         help="only combine these table1.json files (a later file's drive wins)",
     )
+    parser.add_argument(
+        "--zero-shot-of",
+        type=Path,
+        default=None,
+        help="only add the zero-shot columns to this table1.json, from its drives' own workspaces",
+    )
     args = parser.parse_args()
+    if args.zero_shot_of:
+        result = json.loads(args.zero_shot_of.read_text())
+        zero_shot_columns(result, args.work or args.zero_shot_of.parent / "zero-shot-work", args.town,
+                          args.zero_shot_episodes)  # fmt: skip
+        write_json(args.out_dir / "table1.json", result)
+        write_markdown(args.out_dir / "table1.md", markdown(result))
+        return
     if args.merge:
         merged = merge_results([json.loads(path.read_text()) for path in args.merge])
         write_json(args.out_dir / "table1.json", merged)
@@ -275,24 +314,7 @@ def main() -> None:
             }
         print(f"{name}: chain {entry['chain_wall_s'] / 60:.1f} min {entry.get('error', '')}", flush=True)
         result["drives"].append(entry)
-    trained = [d for d in result["drives"] if "error" not in d and d.get("run")]
-    real_worlds = {d["drive"]: work / d["drive"] / "world" for d in trained if d["drive"] != "demo"}
-    town_ws = work / "towns"
-    build_town = trained and args.town >= 0
-    town_done, _ = drivesim(town_ws, "towns", "build", str(args.town)) if build_town else (None, 0.0)
-    town_world = town_ws / "towns" / f"seed{args.town}" / "world"
-    result["town"] = args.town if build_town else None
-    for drive in trained:
-        ws = work / drive["drive"]
-        drive["zero_shot"] = {
-            other: evaluate(ws, drive["run"], f"table1-zero-shot-{other}", args.zero_shot_episodes, world)
-            for other, world in real_worlds.items()
-            if other != drive["drive"]
-        }
-        if town_done is not None and town_done.returncode == 0:
-            drive["unseen_town"] = evaluate(ws, drive["run"], "table1-town", args.zero_shot_episodes, town_world)
-        elif town_done is not None:
-            drive["unseen_town"] = {"error": _one_line(town_done)}
+    zero_shot_columns(result, work, args.town, args.zero_shot_episodes)
     args.out_dir.mkdir(parents=True, exist_ok=True)
     write_json(args.out_dir / "table1.json", result)
     write_markdown(args.out_dir / "table1.md", markdown(result))
