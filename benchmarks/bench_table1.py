@@ -171,6 +171,12 @@ def markdown(result: dict[str, Any]) -> list[str]:
         "included; the rows above are extra evaluations); the final policy zero-shot elsewhere.",
         "",
     ]
+    if result.get("zero_shot_measured"):
+        m = result["zero_shot_measured"]
+        lines += [
+            f"Zero-shot columns measured {m['date_utc']} UTC, code {m['commit']}, {m['episodes']} episodes each.",
+            "",
+        ]
     lines += [
         "| drive | chain wall time | zero-shot: other real drives (success / intervention) | "
         f"unseen town {result.get('town') or '(not run)'} (success / intervention) | "
@@ -236,6 +242,7 @@ def zero_shot_columns(result: dict[str, Any], work: Path, town: int, episodes: i
     town_done, _ = drivesim(town_ws, "towns", "build", str(town)) if build_town else (None, 0.0)
     town_world = town_ws / "towns" / f"seed{town}" / "world"
     result["town"] = town if build_town else None
+    result["zero_shot_measured"] = {**measured_now(), "commit": _git_commit(), "episodes": episodes}
     for drive in trained:
         ws = workspaces[drive["drive"]]
         drive["zero_shot"] = {
