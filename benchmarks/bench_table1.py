@@ -242,7 +242,8 @@ def zero_shot_columns(result: dict[str, Any], work: Path, town: int, episodes: i
     town_done, _ = drivesim(town_ws, "towns", "build", str(town)) if build_town else (None, 0.0)
     town_world = town_ws / "towns" / f"seed{town}" / "world"
     result["town"] = town if build_town else None
-    result["zero_shot_measured"] = {**measured_now(), "commit": _git_commit(), "episodes": episodes}
+    if build_town or len(real_worlds) > 1:
+        result["zero_shot_measured"] = {**measured_now(), "commit": _git_commit(), "episodes": episodes}
     for drive in trained:
         ws = workspaces[drive["drive"]]
         drive["zero_shot"] = {
