@@ -156,46 +156,31 @@ def measure_length(work: Path, minutes: float, depth_method: str, sim_steps: int
     return {"minutes": minutes, "frames": frames, "runs": [asdict(r) for r in runs], "disk_bytes": disk}
 
 
+def _disk_row(minutes: float, frames: int, artifact: str, files: dict[str, int]) -> dict[str, Any]:
+    """One artifact's row: MB, KB per frame, MB per minute of driving, and its three largest files' KB per frame."""
+    total = sum(files.values())
+    top = sorted(files.items(), key=lambda kv: -kv[1])[:3]
+    return {
+        "minutes": minutes,
+        "artifact": artifact,
+        "mb": total / 1e6,
+        "kb_per_frame": total / 1e3 / max(frames, 1),
+        "mb_per_min": total / 1e6 / minutes,
+        "files": {k: round(v / 1e3 / max(frames, 1), 1) for k, v in top},
+    }
+
+
 def disk_rows(lengths: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per length and artifact: MB, KB per frame, MB per minute of driving, and the largest files' share."""
+    """Per length and artifact: MB, KB per frame, MB per minute of driving, and the largest files' share; then the
+    workspace (trace + preprocessed + world) and the workspace with the view cache as totals."""
     rows = []
     for length in lengths:
-        minutes, frames = length["minutes"], length["frames"]
-        for name, files in length["disk_bytes"].items():
-            total = sum(files.values())
-            top = sorted(files.items(), key=lambda kv: -kv[1])[:3]
-            rows.append(
-                {
-                    "minutes": minutes,
-                    "artifact": name,
-                    "mb": total / 1e6,
-                    "kb_per_frame": total / 1e3 / max(frames, 1),
-                    "mb_per_min": total / 1e6 / minutes,
-                    "files": {k: round(v / 1e3 / max(frames, 1), 1) for k, v in top},
-                }
-            )
-        workspace = sum(sum(length["disk_bytes"][a].values()) for a in WORKSPACE_ARTIFACTS)
-        rows.append(
-            {
-                "minutes": minutes,
-                "artifact": "workspace (trace + preprocessed + world)",
-                "mb": workspace / 1e6,
-                "kb_per_frame": workspace / 1e3 / max(frames, 1),
-                "mb_per_min": workspace / 1e6 / minutes,
-                "files": {},
-            }
-        )
-        with_cache = workspace + sum(length["disk_bytes"].get("view cache", {}).values())
-        rows.append(
-            {
-                "minutes": minutes,
-                "artifact": "workspace and view cache",
-                "mb": with_cache / 1e6,
-                "kb_per_frame": with_cache / 1e3 / max(frames, 1),
-                "mb_per_min": with_cache / 1e6 / minutes,
-                "files": {},
-            }
-        )
+        minutes, frames, disk = length["minutes"], length["frames"], length["disk_bytes"]
+        rows += [_disk_row(minutes, frames, name, files) for name, files in disk.items()]
+        workspace = {f"{a}/{k}": n for a in WORKSPACE_ARTIFACTS for k, n in disk[a].items()}
+        cache = {f"view cache/{k}": n for k, n in disk.get("view cache", {}).items()}
+        rows.append({**_disk_row(minutes, frames, "workspace (trace + preprocessed + world)", workspace), "files": {}})
+        rows.append({**_disk_row(minutes, frames, "workspace and view cache", workspace | cache), "files": {}})
     return rows
 
 
