@@ -22,7 +22,7 @@ import numpy as np
 from gymnasium import spaces
 
 from drivesim.sim.agents import Agent, LateralProfile, ReferencePath, pursue_profile
-from drivesim.sim.dynamics import BicycleState, curvature_of_steering
+from drivesim.sim.dynamics import BicycleState, curvature_of_steering, steering_for_curvature
 from drivesim.sim.envs.augment import Augmentation, ViewJitter
 from drivesim.sim.envs.config import TASK_ONLY_KEYS, EnvConfig
 from drivesim.sim.envs.rewards import collision_reward, comfort_reward, lane_reward
@@ -171,6 +171,13 @@ class DrivingEnv(gymnasium.Env):
         info = self._info(reset=True)
         return self.observation_from(self._render_one()), info
 
+    def _road_steering_rad(self, arc_m: float) -> float:
+        """The steering angle that follows the road's curve at `arc_m` (within the steering limit): every car starts
+        steering with the road, as the recorded car was, so that a start in a bend is not a start off the road."""
+        c = self.config
+        curvature_1pm = float(np.clip(self.sim.reference.curvature(arc_m), -c.max_curvature_1pm, c.max_curvature_1pm))
+        return steering_for_curvature(curvature_1pm, c.wheelbase_m)
+
     def reset_state(self, seed: int | None) -> None:
         """Draw the episode's start state (no rendering)."""
         super().reset(seed=seed)
@@ -187,7 +194,8 @@ class DrivingEnv(gymnasium.Env):
         lat0 = float(rng.uniform(-c.initial_lateral_m, c.initial_lateral_m))
         yaw0 = float(rng.uniform(-c.initial_yaw_rad, c.initial_yaw_rad))
         x, y, yaw = ref.pose(start_arc, lat0)
-        ego = Agent(BicycleState(x, y, yaw + yaw0, 0.0, ego_speed), c.ego_length_m, c.ego_width_m, ego_speed)
+        ego_state = BicycleState(x, y, yaw + yaw0, self._road_steering_rad(start_arc), ego_speed)
+        ego = Agent(ego_state, c.ego_length_m, c.ego_width_m, ego_speed)
         ego.arc_m, ego.lateral_m = start_arc, lat0
         sim.agents, sim.models = [ego], [None]
         self._gap_m = NAN
@@ -197,7 +205,8 @@ class DrivingEnv(gymnasium.Env):
             size = DEFAULT_OTHER_SIZE_M if model is None else (model.length_m, model.width_m)
             arc, lateral, profile = self._place_other(rng, start_arc, ref, ego_speed, other_speed)
             ox, oy, oyaw = ref.pose(arc, profile(arc))
-            other = Agent(BicycleState(ox, oy, oyaw, 0.0, other_speed), size[0], size[1], other_speed, profile)
+            other_state = BicycleState(ox, oy, oyaw, self._road_steering_rad(arc), other_speed)
+            other = Agent(other_state, size[0], size[1], other_speed, profile)
             other.arc_m, other.lateral_m = arc, profile(arc)
             sim.agents.append(other)
             sim.models.append(model)

@@ -23,8 +23,9 @@ class LaneEnv(DrivingEnv):
 
     ## Start state
     A random place of the recorded path with at least min_path_length_m of road ahead; the ego within
-    ±initial_lateral_m of the lane centre, ±initial_yaw_rad of the road heading, at a speed drawn from
-    ego_speed_mps and held.
+    ±initial_lateral_m of the lane centre, ±initial_yaw_rad of the road heading, steering with the road's curve there
+    (within max_curvature_1pm), at a speed drawn from ego_speed_mps and held. Other cars start steering with the road
+    too.
 
     ## Episode end
     Terminated: off_lane (|q_lat| > Z_lat = max_lateral_m), over_rotation (|q_rot| > Z_rot = max_rotation_rad),
