@@ -12,7 +12,7 @@ from eval_fakes import pass_record
 from sim_worlds import SMALL_VIEW, write_test_world
 
 import drivesim.sim.envs  # noqa: F401  (registers the envs)
-from drivesim.sim.envs.winnable import OvertakeStart, SteeringLimits, is_winnable, time_to_contact_s
+from drivesim.sim.envs.winnable import OvertakeStart, SteeringLimits, is_winnable, pass_fits, time_to_contact_s
 from drivesim.stages.evaluate.metrics import evaluate_episode, winnable_table
 
 LIMITS = SteeringLimits(wheelbase_m=2.7, max_curvature_1pm=0.15, max_steering_rate_radps=1.0, max_rotation_rad=0.5,
@@ -25,13 +25,23 @@ def _start(gap_m: float, ego_mps: float, other_mps: float, other_lateral_m: floa
     return OvertakeStart(gap_m, ego_mps, other_mps, other_lateral_m=other_lateral_m, **{**base, **kw})
 
 
+def test_a_pass_must_fit_in_the_road_and_time_left() -> None:
+    """Not closing, the ego never gets past; closing at 1 m/s on 15 m of gap plus 6 m to pass takes 21 s, 105 m of
+    road at 5 m/s: unwinnable with 100 m of road or 20 s left, winnable with 110 m and 25 s."""
+    assert not pass_fits(_start(15.0, 3.0, 3.0, 1.0)) and not is_winnable(_start(15.0, 3.0, 3.0, 1.0), LIMITS)
+    slow = {"pass_distance_m": 6.0, "road_left_m": 110.0, "time_left_s": 25.0}
+    assert pass_fits(_start(15.0, 5.0, 4.0, 1.5, **slow)) and is_winnable(_start(15.0, 5.0, 4.0, 1.5, **slow), LIMITS)
+    assert not is_winnable(_start(15.0, 5.0, 4.0, 1.5, **{**slow, "road_left_m": 100.0}), LIMITS)
+    assert not is_winnable(_start(15.0, 5.0, 4.0, 1.5, **{**slow, "time_left_s": 20.0}), LIMITS)
+
+
 def test_the_bound_on_hand_made_starts() -> None:
     # 2 m of bumper gap closing at 8 m/s: 0.25 s, far too little to swerve the 0.85 m it needs.
     close = _start(6.5, 9.0, 1.0, 1.0)
     assert time_to_contact_s(close) == pytest.approx(0.25) and not is_winnable(close, LIMITS)
-    # The same cars 15 m apart: over a second to swerve; not closing: never contact; already beside: clear.
+    # The same cars 15 m apart: over a second to swerve; not closing: never in contact; already beside: clear.
     assert is_winnable(_start(15.0, 9.0, 1.0, 1.0), LIMITS)
-    assert time_to_contact_s(_start(6.5, 3.0, 3.0, 1.0)) == math.inf and is_winnable(_start(6.5, 3.0, 3.0, 1.0), LIMITS)
+    assert time_to_contact_s(_start(6.5, 3.0, 3.0, 1.0)) == math.inf
     assert is_winnable(_start(6.5, 9.0, 1.0, 2.0, ego_lateral_m=-0.2), LIMITS)
     # A car on the lane centre, 15 m ahead: clear on either side of a normal lane, on neither of a narrow one (the
     # ego's centre would leave the lane before its footprint is beside the car's).

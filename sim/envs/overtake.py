@@ -100,6 +100,9 @@ class OvertakeEnv(DrivingEnv):
             ego_width_m=ep["ego_width_m"],
             other_length_m=ep["other_length_m"],
             other_width_m=ep["other_width_m"],
+            pass_distance_m=c.pass_distance_m,
+            road_left_m=self.sim.reference.end_m - c.end_margin_m - ego.arc_m,
+            time_left_s=c.episode_steps * c.dt_s,
         )
         limits = SteeringLimits(
             c.wheelbase_m, c.max_curvature_1pm, c.max_steering_rate_radps, c.max_rotation_rad, c.max_lateral_m

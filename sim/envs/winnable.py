@@ -11,7 +11,9 @@ The test looks at the hardest swerve to either side, optimistic for the driver w
 - the footprints are the env's rectangles (the ego's turned by its heading, so its front corner swings away from
   the car as it turns), compared every `CHECK_EVERY_S`; the swerve escapes when the ego is wholly beside the front
   car without having touched it and with its centre inside the lane limit `max_lateral_m`.
-Both cars keep their speeds (the ego only steers); the road's own curve is ignored (both cars follow it). A swerve at
+Both cars keep their speeds (the ego only steers); the road's own curve is ignored (both cars follow it). A start is
+also unwinnable when the ego cannot get past at these speeds before the recorded road or the episode's time runs out
+(`pass_fits`). A swerve at
 full lock is the quickest way sideways, but not provably the only way out, so the label is checked against the
 expert (experiments/winnable/bench_winnable.py).
 """
@@ -51,6 +53,12 @@ class OvertakeStart:
     ego_width_m: float
     other_length_m: float
     other_width_m: float
+    pass_distance_m: float = 0.0
+    """How far ahead of the front car the ego must get to have passed it (the task's Z_pass)."""
+    road_left_m: float = math.inf
+    """Recorded road ahead of the ego before the episode ends for the end of the data."""
+    time_left_s: float = math.inf
+    """Time before the episode's time limit."""
 
 
 @dataclass(frozen=True)
@@ -150,12 +158,22 @@ def _swerve_checks(
     return None
 
 
-def is_winnable(start: OvertakeStart, limits: SteeringLimits) -> bool:
-    """False when neither hardest swerve keeps the ego clear of the front car (the module docstring's test); True
-    otherwise (the start may still be hard)."""
+def pass_fits(start: OvertakeStart) -> bool:
+    """Whether, at the two cars' fixed speeds, the ego can get `pass_distance_m` ahead of the front car before the
+    recorded road or the time runs out (optimistic: the swerve's extra length and the return to the lane are free)."""
     closing_mps = start.ego_speed_mps - start.other_speed_mps
     if closing_mps <= 0.0:
-        return True
+        return False
+    pass_s = (start.gap_m + start.pass_distance_m) / closing_mps
+    return pass_s <= start.time_left_s and start.ego_speed_mps * pass_s <= start.road_left_m
+
+
+def is_winnable(start: OvertakeStart, limits: SteeringLimits) -> bool:
+    """False when the pass cannot be completed in the road and time left (`pass_fits`) or neither hardest swerve
+    keeps the ego clear of the front car (the module docstring's test); True otherwise (the start may still be hard)."""
+    if not pass_fits(start):
+        return False
+    closing_mps = start.ego_speed_mps - start.other_speed_mps
     bumper_gap_m = start.gap_m - 0.5 * (start.ego_length_m + start.other_length_m)
     horizon_s = max(bumper_gap_m, 0.0) / closing_mps + (start.ego_length_m + start.other_length_m) / closing_mps
     horizon_s = min(horizon_s, HORIZON_MAX_S)
