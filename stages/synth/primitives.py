@@ -19,9 +19,9 @@ class MeshBuffer:
 
     vertices: list[np.ndarray] = field(default_factory=list)
     faces: list[np.ndarray] = field(default_factory=list)
-    uv: list[np.ndarray] = field(default_factory=list)
-    rgb: list[np.ndarray] = field(default_factory=list)
-    normals: list[np.ndarray] = field(default_factory=list)
+    uv: list[np.ndarray | None] = field(default_factory=list)
+    rgb: list[np.ndarray | None] = field(default_factory=list)
+    normals: list[np.ndarray | None] = field(default_factory=list)
     count: int = 0
 
     def add(
@@ -32,17 +32,22 @@ class MeshBuffer:
         rgb: np.ndarray | None = None,
         normals: np.ndarray | None = None,
     ) -> None:
-        """Append a piece; its faces index its own vertices."""
+        """Append a piece; its faces index its own vertices. A part not given (uv, rgb, normals) is filled at `build`
+        only if the mesh has it (zeros, white, zeros), so a long road's pieces hold no unused arrays."""
         n = len(vertices_m)
         self.vertices.append(np.asarray(vertices_m, np.float32))
         self.faces.append(np.asarray(faces, np.int64) + self.count)
-        self.uv.append(np.zeros((n, 2), np.float32) if uv is None else np.asarray(uv, np.float32))
-        if rgb is None:
-            rgb = np.ones((n, 3))
-        rgb = np.broadcast_to(np.asarray(rgb, np.float32), (n, 3))
-        self.rgb.append(rgb)
-        self.normals.append(np.zeros((n, 3), np.float32) if normals is None else np.asarray(normals, np.float32))
+        self.uv.append(None if uv is None else np.asarray(uv, np.float32))
+        self.rgb.append(None if rgb is None else np.broadcast_to(np.asarray(rgb, np.float32), (n, 3)))
+        self.normals.append(None if normals is None else np.asarray(normals, np.float32))
         self.count += n
+
+    def _joined(self, parts: list[np.ndarray | None], fill: float, width: int) -> np.ndarray:
+        """The pieces' `parts` in one (V, width) float32 array, a piece without them filled with `fill`."""
+        return np.concatenate([
+            np.full((len(v), width), fill, np.float32) if p is None else p
+            for v, p in zip(self.vertices, parts, strict=True)
+        ])  # fmt: skip
 
     def build(
         self,
@@ -61,10 +66,10 @@ class MeshBuffer:
         return Mesh(
             vertices_m=np.concatenate(self.vertices),
             faces=np.concatenate(self.faces),
-            vertex_rgb=np.concatenate(self.rgb) if coloured else None,
-            uv=np.concatenate(self.uv) if texture_rgb is not None else None,
+            vertex_rgb=self._joined(self.rgb, 1.0, 3) if coloured else None,
+            uv=self._joined(self.uv, 0.0, 2) if texture_rgb is not None else None,
             texture_rgb=texture_rgb,
-            normals=np.concatenate(self.normals) if smooth else None,
+            normals=self._joined(self.normals, 0.0, 3) if smooth else None,
             material=material,
             object_id=object_id,
         )

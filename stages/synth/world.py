@@ -44,6 +44,7 @@ PARKED_CAR_HEIGHT_M = 1.45
 GROUND_TILE_M = 10.0
 FAR_TILE_M = 100.0
 FAR_EXTENT_M = 1500.0
+LAWN_CHUNK_TILES = 20_000
 GROUND_Z_M = -0.03
 FACADE_ATLAS_WIDTH_PX = 1024
 BUILDING_GROUP_M = 160.0  # buildings share a facade atlas within squares of this size
@@ -258,45 +259,71 @@ def _sidewalk_meshes(road: RoadPath, road_cfg, rng: np.random.Generator) -> list
     ]
 
 
-def _ground_meshes(road: RoadPath, cfg: SynthWorldConfig, rng: np.random.Generator) -> list[Mesh]:
-    """Textured lawn tiles around the road and coarse far tiles to the horizon.
-
-    The rasterizer pays for every triangle's screen area, hidden or not, so lawn is not laid under the pavement:
-    10 m tiles near the road are split into 2.5 m sub-tiles and those entirely under the road and sidewalks dropped.
-    """
+def _lawn_box(road: RoadPath, cfg: SynthWorldConfig) -> tuple[float, float, float, float]:
+    """x0, x1, y0, y1 (m) of the 10 m lawn grid: the road's bounding box plus `ground_margin_m`, on the grid."""
     margin = cfg.scenery.ground_margin_m
     x0 = np.floor((road.x_m.min() - margin) / GROUND_TILE_M) * GROUND_TILE_M
     x1 = np.ceil((road.x_m.max() + margin) / GROUND_TILE_M) * GROUND_TILE_M
     y0 = np.floor((road.y_m.min() - margin) / GROUND_TILE_M) * GROUND_TILE_M
     y1 = np.ceil((road.y_m.max() + margin) / GROUND_TILE_M) * GROUND_TILE_M
+    return float(x0), float(x1), float(y0), float(y1)
+
+
+def _lawn_tiles(road: RoadPath, cfg: SynthWorldConfig, rng: np.random.Generator) -> np.ndarray:
+    """(T, 6) lawn tiles: x, y, size, the parent 10 m tile's x, y, its quarter turns. The 10 m grid covers the road's
+    bounding box plus `ground_margin_m`; tiles near the road are split into 2.5 m sub-tiles and those entirely under
+    the road and sidewalks dropped. Made as arrays: a list of tuples took several times the memory on a long road."""
+    x0, x1, y0, y1 = _lawn_box(road, cfg)
     gx, gy = (a.ravel() for a in np.meshgrid(np.arange(x0, x1, GROUND_TILE_M), np.arange(y0, y1, GROUND_TILE_M)))
     turns = rng.integers(0, 4, len(gx))  # each tile's texture turned by a multiple of 90 degrees: no visible tiling
     tree = cKDTree(np.column_stack([road.x_m, road.y_m]))
     paved_m = sidewalk_outer_m(cfg.road)
-    near = tree.query(np.column_stack([gx, gy]) + GROUND_TILE_M / 2)[0] < paved_m + GROUND_TILE_M
+    road_m = tree.query(np.column_stack([gx, gy]) + GROUND_TILE_M / 2)[0]
+    near = road_m < paved_m + GROUND_TILE_M
+    whole = ~near
     sub = GROUND_TILE_M / 4
     offsets = np.stack(np.meshgrid(np.arange(4) * sub, np.arange(4) * sub), -1).reshape(-1, 2)
-    tiles = [(x, y, GROUND_TILE_M, x, y, t) for x, y, t in zip(gx[~near], gy[~near], turns[~near], strict=True)]
-    for x, y, t in zip(gx[near], gy[near], turns[near], strict=True):
-        corners = np.array([x, y]) + offsets
-        probe = corners[:, None, :] + np.array([[0, 0], [1, 0], [0, 1], [1, 1], [0.5, 0.5]]) * sub
-        hidden = tree.query(probe.reshape(-1, 2))[0].reshape(-1, 5).max(1) < paved_m - 0.05
-        tiles += [(cx, cy, sub, x, y, t) for (cx, cy), h in zip(corners, hidden, strict=True) if not h]
-    arr = np.array(tiles, float).reshape(-1, 6)
-    n = len(arr)
+    parents = np.column_stack([gx[near], gy[near]])
+    corners = parents[:, None, :] + offsets[None]  # (P, 16, 2)
+    probe = corners[:, :, None, :] + np.array([[0, 0], [1, 0], [0, 1], [1, 1], [0.5, 0.5]]) * sub
+    hidden = tree.query(probe.reshape(-1, 2))[0].reshape(len(parents), 16, 5).max(-1) < paved_m - 0.05
+    shown = ~hidden
+    subs = np.column_stack([
+        corners[shown], np.full(int(shown.sum()), sub), np.repeat(parents, shown.sum(1), axis=0),
+        np.repeat(turns[near], shown.sum(1)),
+    ])  # fmt: skip
+    wholes = np.column_stack([gx[whole], gy[whole], np.full(int(whole.sum()), GROUND_TILE_M), gx[whole], gy[whole]])
+    return np.concatenate([np.column_stack([wholes, turns[whole]]), subs.reshape(-1, 6)]).astype(float)
+
+
+def _lawn_quads(tiles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices (4T, 3), faces (2T, 3) and uv (4T, 2) of (T, 6) lawn tiles (`_lawn_tiles`), faces from 0."""
+    n = len(tiles)
     unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
     verts = np.zeros((n, 4, 3))
-    verts[:, :, :2] = arr[:, None, :2] + unit[None] * arr[:, None, 2:3]
+    verts[:, :, :2] = tiles[:, None, :2] + unit[None] * tiles[:, None, 2:3]
     verts[:, :, 2] = GROUND_Z_M
     # texture coordinates from the position inside the parent 10 m tile, turned by its multiple of 90 degrees
-    local = (verts[:, :, :2] - arr[:, None, 3:5]) / GROUND_TILE_M - 0.5
-    angle = arr[:, 5, None] * (np.pi / 2)
+    local = (verts[:, :, :2] - tiles[:, None, 3:5]) / GROUND_TILE_M - 0.5
+    angle = tiles[:, 5, None] * (np.pi / 2)
     c, sn = np.cos(angle), np.sin(angle)
     uv = np.stack([c * local[..., 0] - sn * local[..., 1], sn * local[..., 0] + c * local[..., 1]], -1) + 0.5
     uv[..., 1] = 1.0 - uv[..., 1]
     faces = (np.arange(n)[:, None, None] * 4 + np.array([[0, 1, 2], [0, 2, 3]])[None]).reshape(-1, 3)
+    return verts.reshape(-1, 3), faces, np.clip(uv, 0.0, 1.0).reshape(-1, 2)
+
+
+def _ground_meshes(road: RoadPath, cfg: SynthWorldConfig, rng: np.random.Generator) -> list[Mesh]:
+    """Textured lawn tiles around the road (`_lawn_tiles`) and coarse far tiles to the horizon.
+
+    The rasterizer pays for every triangle's screen area, hidden or not, so lawn is not laid under the pavement.
+    """
+    x0, x1, y0, y1 = _lawn_box(road, cfg)
+    tiles = _lawn_tiles(road, cfg, rng)
     lawn = MeshBuffer()
-    lawn.add(verts.reshape(-1, 3), faces, uv=np.clip(uv, 0.0, 1.0).reshape(-1, 2))
+    for start in range(0, len(tiles), LAWN_CHUNK_TILES):  # in chunks: the float64 working arrays stay small
+        verts, faces, uv = _lawn_quads(tiles[start : start + LAWN_CHUNK_TILES])
+        lawn.add(verts, faces, uv=uv)
     grass = textures.grass_texture(rng, GROUND_TILE_M)
     mat = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.02, 0.02, 0.02), roughness=1.0)
     meshes = [lawn.build(mat, SEMANTIC_IDS["ground"], texture_rgb=grass)]
