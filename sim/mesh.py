@@ -36,7 +36,7 @@ class Mesh:
     """A triangle mesh in its own object frame (metres).
 
     :param vertices_m: (V, 3) float32 vertex positions.
-    :param faces: (F, 3) int64 vertex indices, counter-clockwise seen from outside.
+    :param faces: (F, 3) int64 (or int32) vertex indices, counter-clockwise seen from outside.
     :param vertex_rgb: (V, 3) float32 per-vertex colour in [0, 1] multiplying the material's diffuse colour, or None.
     :param uv: (V, 2) float32 texture coordinates in [0, 1] (u right, v down), or None.
     :param texture_rgb: (Ht, Wt, 3) uint8 texture sampled at `uv`, or None.

@@ -65,7 +65,7 @@ class MeshBuffer:
             )
         return Mesh(
             vertices_m=np.concatenate(self.vertices),
-            faces=np.concatenate(self.faces),
+            faces=np.concatenate(self.faces).astype(np.int32 if self.count < 2**31 else np.int64),
             vertex_rgb=self._joined(self.rgb, 1.0, 3) if coloured else None,
             uv=self._joined(self.uv, 0.0, 2) if texture_rgb is not None else None,
             texture_rgb=texture_rgb,

@@ -130,7 +130,7 @@ class CellCulling:
             key = ij[:, 0] * 1_000_003 + ij[:, 1]
             order = np.argsort(key, kind="stable")
             keys, starts = np.unique(key[order], return_index=True)
-            self._order.append(order)
+            self._order.append(order.astype(np.int32))  # half the memory of a long road's faces
             self._bounds.append(np.append(starts, len(order)))
             keys_per_mesh.append(keys)
             lo_per_mesh.append(np.minimum.reduceat(tri_xy.min(1)[order], starts) if len(order) else np.zeros((0, 2)))

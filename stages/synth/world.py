@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from drivesim.pipeline.memory import release_freed_memory
 from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert, pose_2d
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.raster import Lighting
@@ -101,6 +102,7 @@ class SynthWorld:
         # the building groups' facade atlases are made when the camera comes near (`CellCulling`), not here
         self._meshes, facades = _build_meshes(self.road, self.layout, config, texture_rng)
         self._culling = CellCulling(self._meshes, facades)
+        release_freed_memory()  # the meshes' temporaries: a long road's build would keep them resident all along
         self._scratch = Scratch()
         self._sky = Sky(_cloud_cover(sky_rng), SKY_ZENITH_RGB, SKY_HORIZON_RGB, CLOUD_RGB, CLOUD_HEIGHT_M, CLOUD_TILE_M)
 
