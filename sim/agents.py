@@ -95,6 +95,11 @@ class ReferencePath:
         """Road curvature (1/m, + = left) at `arc_m`."""
         return float(np.interp(arc_m, self.arc_m, self.curvature_1pm))
 
+    def mean_curvature(self, start_m: float, length_m: float) -> float:
+        """Mean signed curvature over [start, start + length] (1/m, + = left)."""
+        mask = (self.arc_m >= start_m) & (self.arc_m <= start_m + length_m)
+        return float(np.mean(self.curvature_1pm[mask])) if mask.any() else self.curvature(start_m)
+
     def mean_abs_curvature(self, start_m: float, length_m: float) -> float:
         """Mean |curvature| over [start, start + length] (1/m)."""
         mask = (self.arc_m >= start_m) & (self.arc_m <= start_m + length_m)

@@ -101,3 +101,13 @@ def test_evaluation_reports_the_two_groups_apart() -> None:
     assert table[1]["share"] == 0.2
     unlabelled = [evaluate_episode(pass_record(3.0, seed=s)).metrics for s in range(2)]
     assert winnable_table(unlabelled) == [] and unlabelled[0].winnable is None
+
+
+def test_a_swerve_to_the_inside_of_a_tight_bend_has_no_steering_to_spare() -> None:
+    """A car 1.5 m to the right, 12 m ahead: on a straight road either swerve clears it; in a left bend of radius
+    6 m (the steering's limit is 6.7 m here) the ego cannot swerve further left than the bend already turns it, and
+    the outside is the car's side; in a gentle bend (radius 100 m) it still can."""
+    start = {"gap_m": 12.0, "ego_mps": 8.0, "other_mps": 2.0, "other_lateral_m": -1.5}
+    assert is_winnable(_start(**start), LIMITS)
+    assert not is_winnable(_start(**start, road_curvature_1pm=1.0 / 6.0), LIMITS)
+    assert is_winnable(_start(**start, road_curvature_1pm=0.01), LIMITS)

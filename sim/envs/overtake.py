@@ -103,6 +103,7 @@ class OvertakeEnv(DrivingEnv):
             pass_distance_m=c.pass_distance_m,
             road_left_m=self.sim.reference.end_m - c.end_margin_m - ego.arc_m,
             time_left_s=c.episode_steps * c.dt_s,
+            road_curvature_1pm=self.sim.reference.mean_curvature(ego.arc_m, self._gap_m),
         )
         limits = SteeringLimits(
             c.wheelbase_m, c.max_curvature_1pm, c.max_steering_rate_radps, c.max_rotation_rad, c.max_lateral_m

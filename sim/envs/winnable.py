@@ -11,7 +11,8 @@ The test looks at the hardest swerve to either side, optimistic for the driver w
 - the footprints are the env's rectangles (the ego's turned by its heading, so its front corner swings away from
   the car as it turns), compared every `CHECK_EVERY_S`; the swerve escapes when the ego is wholly beside the front
   car without having touched it and with its centre inside the lane limit `max_lateral_m`.
-Both cars keep their speeds (the ego only steers); the road's own curve is ignored (both cars follow it). A start is
+Both cars keep their speeds (the ego only steers); the road's curve where the pass happens is taken as constant
+(road coordinates: a swerve to the inside of a bend has less steering to spare, the outside more). A start is
 also unwinnable when the ego cannot get past at these speeds before the recorded road or the episode's time runs out
 (`pass_fits`). A swerve at
 full lock is the quickest way sideways, but not provably the only way out, so the label is checked against the
@@ -59,6 +60,8 @@ class OvertakeStart:
     """Recorded road ahead of the ego before the episode ends for the end of the data."""
     time_left_s: float = math.inf
     """Time before the episode's time limit."""
+    road_curvature_1pm: float = 0.0
+    """The road's curvature where the pass happens (+ = left); both cars start steering with it."""
 
 
 @dataclass(frozen=True)
@@ -100,14 +103,15 @@ def _swerve_clears(
         start.ego_speed_mps, start.ego_lateral_m, start.ego_yaw_rad, 0.5 * start.ego_length_m,
         0.5 * start.ego_width_m, side * start.other_lateral_m + 0.5 * start.other_width_m, side, horizon_s,
         heading_cap_rad, math.atan(limits.max_curvature_1pm * limits.wheelbase_m), limits.max_steering_rate_radps,
-        limits.wheelbase_m, limits.max_lateral_m,
+        limits.wheelbase_m, limits.max_lateral_m, start.road_curvature_1pm,
     )  # fmt: skip
     if checks is None:
         return False
     xs, ys, headings, ts = checks
     egos = footprints(xs, ys, headings, start.ego_length_m, start.ego_width_m)
+    other_arc_mps = start.other_speed_mps / (1.0 - start.road_curvature_1pm * start.other_lateral_m)
     others = footprints(
-        start.gap_m + start.other_speed_mps * ts, np.full(len(ts), start.other_lateral_m), np.zeros(len(ts)),
+        start.gap_m + other_arc_mps * ts, np.full(len(ts), start.other_lateral_m), np.zeros(len(ts)),
         start.other_length_m, start.other_width_m,
     )  # fmt: skip
     return not bool(shapely.intersects(egos, others).any())
@@ -128,6 +132,7 @@ def _swerve_checks(
     steering_rate_radps: float,
     wheelbase_m: float,
     max_lateral_m: float,
+    road_curvature_1pm: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """The ego's poses (x, y, heading, t arrays) at the checks of `_swerve_clears`'s swerve, up to and with the first
     that has its footprint wholly past `clear_of_m` (the car's side, times `side`); None when the centre leaves the
@@ -135,7 +140,10 @@ def _swerve_checks(
     n_max = int(horizon_s / CHECK_EVERY_S) + 2
     xs, ys, hs, ts = np.empty(n_max), np.empty(n_max), np.empty(n_max), np.empty(n_max)
     n = 0
-    x, y, heading, steer, t, since_check = 0.0, lateral_m, yaw_rad, 0.0, 0.0, np.inf
+    # Road coordinates (arc x, lateral y, heading relative to the road) on a road of constant curvature; the steering
+    # starts with the road's curve (as the env's start) and turns at its rate to full lock toward `side`.
+    x, y, heading, t, since_check = 0.0, lateral_m, yaw_rad, 0.0, np.inf
+    steer, lock = np.arctan(road_curvature_1pm * wheelbase_m), side * max_steer_rad
     while t <= horizon_s:
         if since_check >= CHECK_EVERY_S:
             since_check = 0.0
@@ -146,10 +154,15 @@ def _swerve_checks(
             if side * (y - side * reach) > clear_of_m:
                 return xs[:n], ys[:n], hs[:n], ts[:n]
         dt = INTEGRATION_STEP_S
-        steer = min(steer + steering_rate_radps * dt, max_steer_rad)
-        heading += side * speed_mps * np.tan(steer) / wheelbase_m * dt
+        turn = steering_rate_radps * dt
+        steer = min(steer + turn, lock) if lock > steer else max(steer - turn, lock)
+        stretch = 1.0 - road_curvature_1pm * y  # < 1 on the inside of the bend: less road per metre driven
+        if stretch < 0.05:
+            return None
+        arc_rate = speed_mps * np.cos(heading) / stretch
+        heading += (speed_mps * np.tan(steer) / wheelbase_m - road_curvature_1pm * arc_rate) * dt
         heading = max(-heading_cap_rad, min(heading_cap_rad, heading))
-        x += speed_mps * np.cos(heading) * dt
+        x += arc_rate * dt
         y += speed_mps * np.sin(heading) * dt
         if abs(y) > max_lateral_m:
             return None
