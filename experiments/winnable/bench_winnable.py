@@ -1,7 +1,7 @@
 """Overtake starts that can be won (issue 19 item 7): how many of the default starts the env labels unwinnable
 (sim/envs/winnable.py), and how the privileged expert does on them and on the others, on the same seeds.
 
-    .venv/bin/python experiments/winnable/bench_winnable.py --world WS/world [--episodes 500]
+    .venv/bin/python experiments/winnable/bench_winnable.py --world WS/world [--world WS2/world ...] [--episodes 500]
 
 The label: the hardest swerve within the ego's steering limits does not get it clear of the front car; the expert
 checks it: it should fail most of the labelled starts and rarely the others. Writes
@@ -69,46 +69,41 @@ def _rate(rows: list[dict[str, str]], key: str) -> str:
 def main() -> None:
     """Run the expert on the default starts and write the markdown."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--world", type=Path, required=True)
+    parser.add_argument("--world", type=Path, action="append", required=True)
     parser.add_argument("--episodes", type=int, default=500)
     args = parser.parse_args()
     load_before = os.getloadavg()[0]
-    rows, wall_s = evaluate(args.world.absolute(), args.episodes)
+    runs = [(world, *evaluate(world.absolute(), args.episodes)) for world in args.world]
     load_after = os.getloadavg()[0]
-    winnable = [r for r in rows if r["winnable"] == "True"]
-    unwinnable = [r for r in rows if r["winnable"] == "False"]
+    wall_s = sum(run[2] for run in runs)
     lines = [
-        "## Overtake starts that can be won (issue 19, item 7)",
+        "## Overtake starts that can be won",
         "",
         f"Measured {datetime.now(UTC):%Y-%m-%d %H:%M} UTC on {machine_line()}; load {load_before:.1f} before, "
-        f"{load_after:.1f} after ({wall_s:.0f} s for {len(rows)} episodes, one process). "
-        f"`{' '.join([Path(sys.argv[0]).name, *sys.argv[1:]])}`; world `{args.world}`.",
+        f"{load_after:.1f} after ({wall_s:.0f} s for {len(runs)} x {args.episodes} episodes, one process). "
+        f"`{' '.join([Path(sys.argv[0]).name, *sys.argv[1:]])}`.",
         "",
         "The privileged expert on the overtake task's default starts (seeds 0 to "
         f'{args.episodes - 1}), split by the env\'s label `info["episode"]["winnable"]` (sim/envs/winnable.py: '
-        "the hardest swerve within the ego's steering limits does not get it clear of the front car). The expert is "
-        "stepped without rendering (it sees the true state; the outcome is the same).",
+        "the hardest swerve within the ego's steering limits, on the bend where the pass happens, does not get it "
+        "clear of the front car, or the pass cannot finish in the road and time left). The expert is stepped without "
+        "rendering (it sees the true state; the outcome is the same).",
         "",
-        "| starts | episodes | expert fails (intervention) | collision | success |",
-        "|---|---|---|---|---|",
+        "| world | starts | episodes | expert fails (intervention) | collision | success |",
+        "|---|---|---|---|---|---|",
     ]
-    for name, group in (("labelled unwinnable", unwinnable), ("labelled winnable", winnable), ("all", rows)):
-        lines.append(
-            f"| {name} | {len(group)} | {_rate(group, 'intervention')} | {_rate(group, 'collision')} | "
-            f"{_rate(group, 'success')} |"
-        )
-    if unwinnable:
-        gaps = [r["bumper_gap_m"] for r in unwinnable]
-        closing = [r["closing_mps"] for r in unwinnable]
-        lines += [
-            "",
-            f"The labelled starts: bumper gap {min(gaps):.1f}-{max(gaps):.1f} m, closing at {min(closing):.1f}-"
-            f"{max(closing):.1f} m/s.",
-        ]
+    for world, rows, _ in runs:
+        winnable = [r for r in rows if r["winnable"] == "True"]
+        unwinnable = [r for r in rows if r["winnable"] == "False"]
+        for name, group in (("labelled unwinnable", unwinnable), ("labelled winnable", winnable), ("all", rows)):
+            lines.append(
+                f"| {world.absolute().parent.name} | {name} | {len(group)} | {_rate(group, 'intervention')} | "
+                f"{_rate(group, 'collision')} | {_rate(group, 'success')} |"
+            )
     lines += [
         "",
-        f"Unwinnable share of the starts: {len(unwinnable)}/{len(rows)}. `--set env.redraw_unwinnable=true` (train "
-        "or eval) draws them again; every report has a table of the two groups apart.",
+        "`--set env.redraw_unwinnable=true` (train or eval) draws unwinnable starts again; every report has a table "
+        "of the two groups apart.",
         "",
     ]
     write_markdown(RESULTS, lines)

@@ -1,7 +1,8 @@
 """Overtake starts that can hardly be won: the front car so close and the closing speed so high that even the hardest
-swerve the ego's steering allows does not get its footprint clear of the front car's (labelled unwinnable). On the
-default starts about 5 % are labelled; the privileged expert fails 81 % of them and 2 % of the others
-(experiments/winnable): a strong predictor, not a proof that no driver could win them.
+swerve the ego's steering allows does not get its footprint clear of the front car's, or the pass cannot finish before
+the road or the time runs out (labelled unwinnable). On the default starts of four worlds 6-8 % are labelled; the
+privileged expert succeeds on 7-15 % of them and 95-99.6 % of the others (experiments/winnable): a strong predictor,
+not a proof that no driver could win them.
 
 The test looks at the hardest swerve to either side, optimistic for the driver where it simplifies:
 - the ego swerves at once (no reaction time, the first step included), the steering angle rising at
