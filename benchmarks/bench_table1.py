@@ -171,17 +171,11 @@ def markdown(result: dict[str, Any]) -> list[str]:
         "included; the rows above are extra evaluations); the final policy zero-shot elsewhere.",
         "",
     ]
-    if result.get("zero_shot_measured"):
-        m = result["zero_shot_measured"]
-        lines += [
-            f"Zero-shot columns measured {m['date_utc']} UTC, code {m['commit']}, {m['episodes']} episodes each.",
-            "",
-        ]
     lines += [
         "| drive | chain wall time | zero-shot: other real drives (success / intervention) | "
         f"unseen town {result.get('town') or '(not run)'} (success / intervention) | "
-        "pass-left / right, static / dynamic success |",
-        "|---|---:|---|---|---|",
+        "pass-left / right, static / dynamic success | zero-shot measured |",
+        "|---|---:|---|---|---|---|",
     ]
     for drive in result["drives"]:
         wall = f"{drive['chain_wall_s'] / 60:.1f} min"
@@ -197,7 +191,9 @@ def markdown(result: dict[str, Any]) -> list[str]:
             town_text = f"{_cell(town['success'])} / {_cell(town['intervention'])}"
         scen = (drive.get("rows", {}).get("final policy") or {}).get("scenarios") or {}
         split = " / ".join(_cell(scen.get(k)) for k in SCENARIO_ROWS)
-        lines.append(f"| {drive['drive']} | {wall} | {zero or 'n/a'} | {town_text} | {split} |")
+        m = drive.get("zero_shot_measured")
+        when = f"{m['date_utc']} UTC, code {m['commit']}, {m['episodes']} episodes" if m else "n/a"
+        lines.append(f"| {drive['drive']} | {wall} | {zero or 'n/a'} | {town_text} | {split} | {when} |")
     return lines + [""]
 
 
@@ -208,7 +204,10 @@ def merge_results(results: list[dict[str, Any]]) -> dict[str, Any]:
     for result in results:
         for drive in result["drives"]:
             own = drive.get("measured") or {**result["measured"], "commit": result.get("commit", "unknown")}
-            drives[drive["drive"]] = {**drive, "measured": own}
+            zero_shot = drive.get("zero_shot_measured")
+            if not zero_shot and (drive.get("zero_shot") or drive.get("unseen_town")):
+                zero_shot = result.get("zero_shot_measured")
+            drives[drive["drive"]] = {**drive, "measured": own, "zero_shot_measured": zero_shot}
     newest = max(results, key=lambda r: r["measured"]["date_utc"])
     return {**newest, "commit": "per drive, below", "drives": [drives[name] for name in DRIVES if name in drives]}
 
@@ -242,10 +241,12 @@ def zero_shot_columns(result: dict[str, Any], work: Path, town: int, episodes: i
     town_done, _ = drivesim(town_ws, "towns", "build", str(town)) if build_town else (None, 0.0)
     town_world = town_ws / "towns" / f"seed{town}" / "world"
     result["town"] = town if build_town else None
+    stamp = {**measured_now(), "commit": _git_commit(), "episodes": episodes}
     if build_town or len(real_worlds) > 1:
-        result["zero_shot_measured"] = {**measured_now(), "commit": _git_commit(), "episodes": episodes}
+        result["zero_shot_measured"] = stamp
     for drive in trained:
         ws = workspaces[drive["drive"]]
+        drive["zero_shot_measured"] = stamp
         drive["zero_shot"] = {
             other: evaluate(ws, drive["run"], f"table1-zero-shot-{other}", episodes, world)
             for other, world in real_worlds.items()
