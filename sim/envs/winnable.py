@@ -13,11 +13,10 @@ The test looks at the hardest swerve to either side, optimistic for the driver w
   the car as it turns), compared every `CHECK_EVERY_S`; the swerve escapes when the ego is wholly beside the front
   car without having touched it and with its centre inside the lane limit `max_lateral_m`.
 Both cars keep their speeds (the ego only steers); the road's curve where the pass happens is taken as constant
-(road coordinates: a swerve to the inside of a bend has less steering to spare, the outside more). A start is
-also unwinnable when the ego cannot get past at these speeds before the recorded road or the episode's time runs out
-(`pass_fits`). A swerve at
-full lock is the quickest way sideways, but not provably the only way out, so the label is checked against the
-expert (experiments/winnable/bench_winnable.py).
+(road coordinates: a swerve to the inside of a bend has less steering to spare, the outside more). A start is also
+unwinnable when the ego cannot get past at these speeds before the recorded road or the episode's time runs out
+(`pass_fits`). A swerve at full lock is the quickest way sideways, but not provably the only way out, so the label is
+checked against the expert (experiments/winnable/bench_winnable.py).
 """
 
 from __future__ import annotations
