@@ -95,15 +95,18 @@ class ReferencePath:
         """Road curvature (1/m, + = left) at `arc_m`."""
         return float(np.interp(arc_m, self.arc_m, self.curvature_1pm))
 
+    def _curvatures_along(self, start_m: float, length_m: float) -> np.ndarray:
+        """The path's curvature samples in [start, start + length] (1/m), or the one at `start_m` when none is."""
+        mask = (self.arc_m >= start_m) & (self.arc_m <= start_m + length_m)
+        return self.curvature_1pm[mask] if mask.any() else np.array([self.curvature(start_m)])
+
     def mean_curvature(self, start_m: float, length_m: float) -> float:
         """Mean signed curvature over [start, start + length] (1/m, + = left)."""
-        mask = (self.arc_m >= start_m) & (self.arc_m <= start_m + length_m)
-        return float(np.mean(self.curvature_1pm[mask])) if mask.any() else self.curvature(start_m)
+        return float(np.mean(self._curvatures_along(start_m, length_m)))
 
     def mean_abs_curvature(self, start_m: float, length_m: float) -> float:
         """Mean |curvature| over [start, start + length] (1/m)."""
-        mask = (self.arc_m >= start_m) & (self.arc_m <= start_m + length_m)
-        return float(np.mean(np.abs(self.curvature_1pm[mask]))) if mask.any() else abs(self.curvature(start_m))
+        return float(np.mean(np.abs(self._curvatures_along(start_m, length_m))))
 
 
 def pure_pursuit_curvature(

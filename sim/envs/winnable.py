@@ -143,7 +143,8 @@ def _swerve_checks(
     # Road coordinates (arc x, lateral y, heading relative to the road) on a road of constant curvature; the steering
     # starts with the road's curve (as the env's start) and turns at its rate to full lock toward `side`.
     x, y, heading, t, since_check = 0.0, lateral_m, yaw_rad, 0.0, np.inf
-    steer, lock = np.arctan(road_curvature_1pm * wheelbase_m), side * max_steer_rad
+    steer = max(-max_steer_rad, min(max_steer_rad, np.arctan(road_curvature_1pm * wheelbase_m)))
+    lock = side * max_steer_rad
     while t <= horizon_s:
         if since_check >= CHECK_EVERY_S:
             since_check = 0.0
