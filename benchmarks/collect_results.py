@@ -258,6 +258,13 @@ SECTIONS: tuple[Section, ...] = (
         "python benchmarks/bench_car_realism.py",
         ("car_realism.md", "car_realism.json", "car_realism.png"),
     ),
+    Section(
+        "occlusion",
+        "Inserted cars in the right depth order",
+        "background pixels shown through a car body over expert steps on each real drive",
+        "python benchmarks/bench_occlusion.py --world NAME=W",
+        ("occlusion.md", "occlusion.json"),
+    ),
 )
 # Files under results/ that are no benchmark's section, and why.
 NOT_SECTIONS: dict[str, str] = {"targets.md": "the issue targets table, linked from the summary"}
