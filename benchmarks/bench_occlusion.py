@@ -129,6 +129,8 @@ def main() -> None:
         for seed in (int(s) for s in args.seeds.split(",")):
             rows.append({"drive": name, "world": world, "seed": seed, **count_drive(world, seed, args.steps, config)})
             print(f"{name} seed {seed}: {rows[-1]['through_body']} through the body", flush=True)
+            if rows[-1]["views"] == 0:  # a count over no drawn car would read as a pass
+                sys.exit(f"{name}: no step drew the car on the compiled CPU path; nothing was counted")
     raw = {"rows": rows, "load_average_start_end": [load_before, os.getloadavg()[0]]}
     write_markdown(args.out, report_lines(rows, short, args.steps, load_before), raw)
 
