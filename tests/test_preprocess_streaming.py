@@ -48,7 +48,9 @@ def _store_peak_growth_mb(depth, path, monkeypatch, release: bool) -> tuple[floa
 
 def test_store_depth_is_float16_and_keeps_memory_flat(long_depth, tmp_path, monkeypatch) -> None:
     growth_mb, stored = _store_peak_growth_mb(long_depth, tmp_path / "depth16.npy", monkeypatch, release=True)
-    assert growth_mb < 30.0, f"resident memory grew {growth_mb:.0f} MB storing {N_FRAMES} frames of depth"
+    # Flat: under half the 102 MB pass, and well under the control below (> 80 MB held without releasing); a busy
+    # machine measured up to 34 MB here.
+    assert growth_mb < 45.0, f"resident memory grew {growth_mb:.0f} MB storing {N_FRAMES} frames of depth"
     assert stored.dtype == np.float16 and stored.shape == long_depth.shape
     assert np.isinf(stored[0, 0, 0]) and stored[0, 0, 1] == np.finfo(np.float16).max
     for i in (1, 211, N_FRAMES - 1):
