@@ -22,6 +22,7 @@ from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from drivesim.pipeline.config import load_config
+from drivesim.pipeline.errors import ConfigError
 from drivesim.pipeline.workspace import Workspace
 from drivesim.policy.run_folder import RunError, latest_run, load_policy
 from drivesim.sim.envs.registry import TASK_NAMES
@@ -315,12 +316,16 @@ def test_a_run_that_used_its_time_limit_resumes_only_with_more_time(tmp_path: Pa
     assert int((run_dir / "progress.csv").read_text().splitlines()[-1].split(",")[0]) >= done + 512
 
 
-def test_warm_start_clones_the_expert() -> None:
-    """After DAgger the deterministic policy steers like the expert on states it drives into itself."""
+@pytest.mark.parametrize("clone_chunk_steps", [None, 32])
+def test_warm_start_clones_the_expert(clone_chunk_steps: int | None) -> None:
+    """After DAgger the deterministic policy steers like the expert on states it drives into itself, with the cloning
+    over the policy's 16-step chunks or over chunks of its own length."""
     torch.manual_seed(0)
+    chunk_override = [] if clone_chunk_steps is None else [f"warm_start.sequence_length_steps={clone_chunk_steps}"]
     cfg = small_config(
         256,
         [
+            *chunk_override,
             "warm_start.method=expert",
             "warm_start.iterations=3",
             "warm_start.epochs=6",
@@ -349,10 +354,19 @@ def test_warm_start_clones_the_expert() -> None:
         return float(np.mean(errors))
 
     before = disagreement()
-    figures = warm_start(model, venv, cfg.warm_start, seed=0, report=lambda _: None)
+    kept: list[Any] = []
+    figures = warm_start(model, venv, cfg.warm_start, seed=0, report=lambda _: None, keep=kept.append)
     after = disagreement()
     assert after < 0.5 * before, (before, after)
     assert np.isfinite(figures["warm_start_value_loss"])
+    assert kept[0].obs.shape[1] == (clone_chunk_steps or 16)  # steps per cloned chunk
+    assert model.sequence_length == 16  # PPO's chunks are left as they were
+
+
+def test_clone_chunks_of_another_length_refused_with_a_kept_history() -> None:
+    """The imitation history holds PPO's chunks, so warm-start chunks of another length cannot join it."""
+    with pytest.raises(ConfigError, match=r"warm_start.sequence_length_steps \(32\) must equal"):
+        small_config(256, ["warm_start.sequence_length_steps=32", "imitation.epochs=1", "imitation.history_steps=64"])
 
 
 @pytest.mark.parametrize(

@@ -128,6 +128,9 @@ class WarmStartConfig(_Section):
     """Passes over the aggregated data after each round."""
     learning_rate: float = Field(1e-3, gt=0.0, le=1.0)
     """Adam learning rate for cloning and for the value fit."""
+    sequence_length_steps: int | None = Field(None, ge=1)
+    """Length of the chunks the cloning fits the LSTM over [env steps] (None: policy.sequence_length_steps); longer
+    chunks ask the LSTM to keep what it saw for longer."""
     value_fit_steps: int = Field(4096, ge=0)
     """Env steps of the cloned policy whose returns the value head is fitted to before PPO."""
     value_fit_epochs: int = Field(10, ge=0)
@@ -243,6 +246,12 @@ class TrainConfig(StageConfig):
             )
         if self.envs.count < 1:
             raise ValueError("envs.count must be at least 1")
+        clone_seq = self.warm_start.sequence_length_steps
+        if clone_seq not in (None, seq) and self.imitation.epochs > 0 and self.imitation.history_steps > 0:
+            raise ValueError(
+                f"warm_start.sequence_length_steps ({clone_seq}) must equal policy.sequence_length_steps ({seq}) "
+                "when imitation.history_steps keeps the warm start's chunks"
+            )
         pol = self.policy
         check_network_size(
             self.envs.config.observation_shape,

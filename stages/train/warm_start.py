@@ -31,10 +31,17 @@ def _on(policy: Any, array: np.ndarray) -> torch.Tensor:
 
 
 def _collect(
-    model: ChunkedRecurrentPPO, venv: VecEnv, steps_per_env: int, beta: float, rng: np.random.Generator, carry: dict
+    model: ChunkedRecurrentPPO,
+    venv: VecEnv,
+    steps_per_env: int,
+    chunk_steps: int,
+    beta: float,
+    rng: np.random.Generator,
+    carry: dict,
 ) -> tuple[ChunkData, float]:
-    """Drive `steps_per_env` steps per env (expert with probability beta); return chunks and the expert share."""
-    policy, L, n = model.policy, model.sequence_length, venv.num_envs
+    """Drive `steps_per_env` steps per env (expert with probability beta); return `chunk_steps`-long chunks and the
+    expert share."""
+    policy, L, n = model.policy, chunk_steps, venv.num_envs
     layers, hidden = policy.lstm_actor.num_layers, policy.lstm_actor.hidden_size
     steps_per_env = max(L, steps_per_env // L * L)
     obs_buf = np.zeros((steps_per_env, n, *venv.observation_space.shape), np.uint8)
@@ -157,12 +164,13 @@ def warm_start(
     zeros = torch.zeros(layers, n, hidden, device=policy.device)
     carry = {"obs": venv.reset(), "start": np.ones(n, np.float32), "state": (zeros, zeros.clone())}
     optimizer = cloning_optimizer(model, cfg.learning_rate)
-    chunks_per_batch = max(1, model.batch_size // model.sequence_length)
+    chunk_steps = cfg.sequence_length_steps or model.sequence_length
+    chunks_per_batch = max(1, model.batch_size // chunk_steps)
     data: ChunkData | None = None
     figures: dict[str, float] = {}
     for round_ in range(cfg.iterations):
         beta = cfg.beta**round_
-        new, share = _collect(model, venv, cfg.steps_per_iteration // n, beta, rng, carry)
+        new, share = _collect(model, venv, cfg.steps_per_iteration // n, chunk_steps, beta, rng, carry)
         data = _concat(data, new)
         # `epochs` passes over all data so far: round i costs i + 1 times round 0 (36 rounds' worth for 8 rounds).
         # Passes over one round's size instead would cost less but make 4.5x fewer gradient steps for 8 rounds and
@@ -173,8 +181,8 @@ def warm_start(
         loss = fit_to_labels(model, data, batches, optimizer)
         figures[f"warm_start_bc_loss_{round_}"] = loss
         report(
-            f"warm start round {round_}: expert drove {share:.0%} of {len(new.obs) * model.sequence_length} "
-            f"steps; cloning loss {loss:.3f} over {len(data.obs) * model.sequence_length} labelled steps"
+            f"warm start round {round_}: expert drove {share:.0%} of {len(new.obs) * chunk_steps} "
+            f"steps; cloning loss {loss:.3f} over {len(data.obs) * chunk_steps} labelled steps"
         )
     if keep is not None and data is not None:
         keep(data)
