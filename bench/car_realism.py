@@ -25,7 +25,7 @@ from skimage.feature import hog
 
 from drivesim.sim.camera_look import apply_camera_look_, look_of_frame
 from drivesim.sim.geometry import scale_intrinsics
-from drivesim.sim.harmonize import StatisticalHarmonizer
+from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer, harmonize_view_uint8_
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.raster import Rasterizer, roi_intrinsics
 from drivesim.sim.shading import contact_shadow_
@@ -182,10 +182,11 @@ def insert_car(
     model: VehicleModel,
     level: str,
     view: str = "rear",
+    harmonizer: Harmonizer | None = None,
 ) -> tuple[np.ndarray, tuple[int, int, int, int]]:
     """`frame` (h, w, 3) uint8 with `model` inserted at the place of `box`, seen from its `view` side
     (`VIEW_YAW_RAD`), drawn at `level` (`LEVELS`), and the inserted car's own box (x0, y0, x1, y1) px; only a region
-    around the box is rendered."""
+    around the box is rendered. `harmonizer`: the harmonization level's (None: the simulator's statistical one)."""
     if level not in LEVELS:
         raise ValueError(f"level {level!r}: choose one of {LEVELS}")
     if view not in VIEW_YAW_RAD:
@@ -215,7 +216,7 @@ def insert_car(
     luma = (car @ np.array([0.299, 0.587, 0.114]))[..., None]  # a gray camera's car: luma, as the simulator draws it
     region[mask] = (np.repeat(luma, 3, axis=-1)[mask] * 255.0 + 0.5).astype(np.uint8)
     if rank >= LEVELS.index("harmonization"):
-        StatisticalHarmonizer().harmonize_view_uint8_(region, mask)
+        harmonize_view_uint8_(harmonizer if harmonizer is not None else StatisticalHarmonizer(), region, mask)
     if rank >= LEVELS.index("camera"):
         apply_camera_look_(region, mask, look_of_frame(frame))
     out[y0:y1, x0:x1] = region

@@ -23,6 +23,7 @@ import numpy as np
 from _lib.report import measured_now, write_markdown
 
 from drivesim.bench import car_realism as cr
+from drivesim.sim.harmonize import Harmonizer
 
 HERE = Path(__file__).resolve().parent
 REAR = "camera_rear"
@@ -49,11 +50,16 @@ GRID_SCALE = 2
 
 
 def crops_of(
-    boxes: list[cr.CarBox], real_root: Path, seed: int, width_px: int | None, drawn_at_width: bool = False
+    boxes: list[cr.CarBox],
+    real_root: Path,
+    seed: int,
+    width_px: int | None,
+    drawn_at_width: bool = False,
+    harmonizer: Harmonizer | None = None,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """(n, h, w) real crops and, per level, the (n, h, w) crops of the car inserted at each box; cut from the frames
     reduced to `width_px` (None: at the recording's resolution), the car drawn before the reduction or, with
-    `drawn_at_width`, into the reduced frame."""
+    `drawn_at_width`, into the reduced frame; `harmonizer` for the harmonization level (None: the statistical one)."""
     real, inserted = [], {row: [] for row in ROWS}
     for i, b in enumerate(boxes):
         frame = cr.load_frame(real_root, b.drive, b.frame)
@@ -66,7 +72,7 @@ def crops_of(
             cut_width = None
         for row in ROWS:
             level, view = ("camera", "rear") if row == REAR else (row, b.view)
-            image, box = cr.insert_car(target, K_target, box_target, model, level, view)
+            image, box = cr.insert_car(target, K_target, box_target, model, level, view, harmonizer)
             inserted[row].append(cr.crop(image, box, width_px=cut_width))
     return np.stack(real), {level: np.stack(c) for level, c in inserted.items()}
 

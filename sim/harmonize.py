@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch.nn.functional import max_pool2d
 
-__all__ = ["Harmonizer", "OnnxHarmonizer", "StatisticalHarmonizer"]
+__all__ = ["Harmonizer", "OnnxHarmonizer", "StatisticalHarmonizer", "harmonize_view_uint8_"]
 
 
 class Harmonizer(Protocol):
@@ -157,3 +157,17 @@ class OnnxHarmonizer:
             raise ValueError(f"the harmonization model returned {out.shape}, expected {image.shape}")
         harmonized = torch.from_numpy(np.clip(out, 0.0, 1.0)).permute(0, 2, 3, 1).to(rgb.device, rgb.dtype)
         return torch.where(mask[..., None], harmonized, rgb)
+
+
+def harmonize_view_uint8_(harmonizer: Harmonizer, rgb: np.ndarray, mask: np.ndarray) -> None:
+    """Harmonize one uint8 view `rgb` (h, w, 3) under `mask` (h, w) bool in place, with any harmonizer: its own
+    in-place uint8 path where it has one, else its float batch call (rounded back to uint8)."""
+    in_place = getattr(harmonizer, "harmonize_view_uint8_", None)
+    if in_place is not None:
+        in_place(rgb, mask)
+        return
+    view = torch.from_numpy(rgb)[None]
+    car = torch.from_numpy(mask)[None]
+    harmonized = harmonizer(view.to(torch.float32) / 255.0, car)
+    out = torch.where(car[..., None], (harmonized * 255.0 + 0.5).clamp_(0, 255).to(torch.uint8), view)
+    rgb[...] = out[0].numpy()

@@ -11,7 +11,7 @@ import torch
 from sim_worlds import straight_path
 
 from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert, pose_2d
-from drivesim.sim.harmonize import OnnxHarmonizer, StatisticalHarmonizer
+from drivesim.sim.harmonize import OnnxHarmonizer, StatisticalHarmonizer, harmonize_view_uint8_
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.vehicle_library import VehicleModel
 from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer, fit_roi
@@ -216,6 +216,26 @@ def test_statistical_harmonizer_uint8_path_matches_the_torch_path():
         assert (out[~mask] == rgb[~mask]).all()
         assert not (out[mask] == rgb[mask]).all()
         assert np.abs(out.astype(int) - expected.astype(int)).max() <= 1
+
+
+def test_one_view_helper_takes_any_harmonizer():
+    """`harmonize_view_uint8_` runs a harmonizer without an in-place path (a learned one) through its float call and
+    changes only the masked pixels; the statistical one through its own uint8 path."""
+
+    class Gray:
+        def __call__(self, rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+            return torch.full_like(rgb, 0.5)
+
+    rgb = np.random.default_rng(2).integers(0, 256, size=(16, 24, 3), dtype=np.uint8)
+    mask = np.zeros((16, 24), dtype=bool)
+    mask[4:9, 6:15] = True
+    out = rgb.copy()
+    harmonize_view_uint8_(Gray(), out, mask)
+    assert (out[mask] == 128).all() and (out[~mask] == rgb[~mask]).all()
+    statistical, expected = rgb.copy(), rgb.copy()
+    harmonize_view_uint8_(StatisticalHarmonizer(), statistical, mask)
+    StatisticalHarmonizer().harmonize_view_uint8_(expected, mask)
+    assert (statistical == expected).all()
 
 
 def test_cpu_view_path_matches_the_torch_path(tmp_path):
