@@ -259,6 +259,13 @@ SECTIONS: tuple[Section, ...] = (
         ("car_realism.md", "car_realism.json", "car_realism.png"),
     ),
     Section(
+        "harmonizer",
+        "The learned harmonizer",
+        "the learned harmonizer against the statistical one: synthetic truth, the C2ST, time per view",
+        "python benchmarks/bench_harmonizer.py",
+        ("harmonizer.md", "harmonizer.json", "harmonizer.png"),
+    ),
+    Section(
         "occlusion",
         "Inserted cars in the right depth order",
         "background pixels shown through a car body over expert steps on each real drive",

@@ -2,8 +2,10 @@
 
 A harmonizer takes a batch of composited views and the mask of the inserted car and returns the adjusted views; only
 pixels under the mask may change. The default is statistical (per-channel colour statistics of the car moved toward
-those of its surroundings, Reinhard-style transfer); a learned model (the paper used iDIH, whose weights are not
-available offline) plugs in as an ONNX graph through `OnnxHarmonizer`.
+those of its surroundings, Reinhard-style transfer). `LearnedHarmonizer` runs a small network trained on the synthetic
+world's true look of inserted cars (`models/harmonizer.onnx`, made by `benchmarks/bench_harmonizer.py`); any other
+learned model (the paper used iDIH, whose weights are not available offline) plugs in as an ONNX graph through
+`OnnxHarmonizer`.
 
 Why not a library call: scikit-image's `exposure.match_histograms` matches whole images without masks and fully
 (a red car would become road-grey); what is needed here is a partial, masked, batched transfer of mean and spread
@@ -13,6 +15,7 @@ deviation and colour transform on one uint8 view in place (the simulator's CPU p
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import Protocol
 
@@ -21,7 +24,21 @@ import numpy as np
 import torch
 from torch.nn.functional import max_pool2d
 
-__all__ = ["Harmonizer", "OnnxHarmonizer", "StatisticalHarmonizer", "harmonize_view_uint8_"]
+__all__ = [
+    "HARMONIZERS",
+    "Harmonizer",
+    "LearnedHarmonizer",
+    "OnnxHarmonizer",
+    "StatisticalHarmonizer",
+    "harmonize_view_uint8_",
+    "make_harmonizer",
+]
+
+HARMONIZERS = ("statistical", "learned")
+LEARNED_MODEL = Path(__file__).resolve().parent / "models" / "harmonizer.onnx"
+LEARNED_RING_PX = 6
+"""Width of the ring of surrounding pixels the learned network pools around the car."""
+_LEARNED_MARGIN_PX = LEARNED_RING_PX + 3  # the ring plus the reach of the network's 3x3 convolutions
 
 
 class Harmonizer(Protocol):
@@ -171,3 +188,44 @@ def harmonize_view_uint8_(harmonizer: Harmonizer, rgb: np.ndarray, mask: np.ndar
     harmonized = harmonizer(view.to(torch.float32) / 255.0, car)
     out = torch.where(car[..., None], (harmonized * 255.0 + 0.5).clamp_(0, 255).to(torch.uint8), view)
     rgb[...] = out[0].numpy()
+
+
+class LearnedHarmonizer:
+    """The learned harmonizer (`LEARNED_MODEL`) run with onnxruntime; on one uint8 view it runs on the car's box and
+    the ring around it only (the network reads nothing farther), which gives what the whole view gives.
+
+    :param path: the .onnx file (the one shipped with drivesim by default).
+    """
+
+    def __init__(self, path: Path | str = LEARNED_MODEL):
+        self.onnx = OnnxHarmonizer(path)
+
+    def __call__(self, rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Harmonized copy of `rgb` (B, h, w, 3) float [0, 1] under `mask` (B, h, w) bool."""
+        return self.onnx(rgb, mask)
+
+    def harmonize_view_uint8_(self, rgb: np.ndarray, mask: np.ndarray) -> None:
+        """The same on one view, in place: `rgb` (h, w, 3) uint8 changes under `mask` (h, w) bool."""
+        left, top, width, height = cv2.boundingRect(mask.view(np.uint8))
+        if width == 0:
+            return
+        m = _LEARNED_MARGIN_PX
+        y0, y1 = max(top - m, 0), top + height + m
+        x0, x1 = max(left - m, 0), left + width + m
+        box = np.ascontiguousarray(rgb[y0:y1, x0:x1])
+        harmonize_view_uint8_(self.onnx, box, np.ascontiguousarray(mask[y0:y1, x0:x1]))
+        rgb[y0:y1, x0:x1] = box
+
+
+@functools.cache
+def _learned() -> LearnedHarmonizer:
+    return LearnedHarmonizer()
+
+
+def make_harmonizer(name: str) -> Harmonizer:
+    """The harmonizer called `name` (`HARMONIZERS`); the learned one's session is made once per process."""
+    if name == "statistical":
+        return StatisticalHarmonizer()
+    if name == "learned":
+        return _learned()
+    raise ValueError(f"harmonizer {name!r}: choose one of {', '.join(HARMONIZERS)}")

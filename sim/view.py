@@ -41,7 +41,7 @@ import inspect
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -54,7 +54,7 @@ from drivesim.sim.cpu_threads import governed_threads
 from drivesim.sim.fill import FillStats, fill_wedges_from_neighbours, inpaint_holes, pull_push_fill, widen_frame
 from drivesim.sim.frame_cache import FrameLayout, PreparedFrames, open_prepared_frames
 from drivesim.sim.geometry import invert, scale_intrinsics
-from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer
+from drivesim.sim.harmonize import Harmonizer, make_harmonizer
 from drivesim.sim.raster import PackedScene, Rasterizer, RenderResult, composite, material_row, merge_scenes
 from drivesim.sim.shading import contact_shadow_, contact_shadows_batched
 from drivesim.sim.warp import KernelWarp, WarpResult, forward_warp, rendered_region
@@ -94,7 +94,10 @@ class ViewConfig(pydantic.BaseModel):
     lighting: bool = True
     """Light inserted cars with the scene's mean colour and a directional light; off: their unlit base colour."""
     harmonization: bool = True
-    """Harmonize inserted cars toward their surroundings (the harmonizer; statistical by default)."""
+    """Harmonize inserted cars toward their surroundings (with `harmonizer`)."""
+    harmonizer: Literal["statistical", "learned"] = "statistical"
+    """statistical: the car's colour statistics moved toward its surroundings'; learned: a small network trained on
+    the synthetic world's true look of inserted cars (sim/models/harmonizer.onnx)."""
     directional_gain: float = pydantic.Field(0.8, ge=0.0)
     """Directional light colour as a multiple of the scene's mean colour (unitless)."""
     light_elevation_deg: float = pydantic.Field(0.0, ge=0.0, le=90.0)
@@ -199,7 +202,7 @@ class ViewSynthesizer:
     """Renders agents' camera views in a world (module docstring).
 
     :param world: the loaded world. :param config: the view settings.
-    :param device: torch device ("cpu", "cuda"). :param harmonizer: default `StatisticalHarmonizer()`.
+    :param device: torch device ("cpu", "cuda"). :param harmonizer: default the one `config.harmonizer` names.
     :param batched: render all views in one batch of torch operations (module docstring); None: on any device but
         the CPU, and only without `fill_frames` (neighbouring frames are filled view by view).
     """
@@ -223,7 +226,7 @@ class ViewSynthesizer:
         self._geometry_slot: dict[tuple, int] = {}
         self._geometry_meshes: list[list[Any]] = []
         self._geometry_of: OrderedDict[tuple[int, bool], tuple[Any, int, np.ndarray]] = OrderedDict()
-        self.harmonizer = harmonizer if harmonizer is not None else StatisticalHarmonizer()
+        self.harmonizer = harmonizer if harmonizer is not None else make_harmonizer(config.harmonizer)
         self.roi_px = x0, y0, w, h = fit_roi(config.roi_px, world.width_px, world.height_px)
         sx, sy = config.out_width_px / w, config.out_height_px / h
         # The region of interest is rendered as an image of its own: intrinsics scaled to the policy's resolution,

@@ -77,6 +77,25 @@ def test_render_threads_change_no_observation(world_dir: Path) -> None:
         obs_two, *_ = two.step(action)
 
 
+def test_harmonizer_key_reaches_the_view(world_dir: Path) -> None:
+    """`envs.config.harmonizer: learned` puts the learned harmonizer in the env's view; the episode is the same one
+    (same cars, same steps), drawn with the car's colours changed only where a car is seen."""
+    from drivesim.sim.harmonize import LearnedHarmonizer
+
+    plain, learned = _make(world_dir, "overtake"), _make(world_dir, "overtake", harmonizer="learned")
+    obs_plain, info_plain = plain.reset(seed=5)
+    obs_learned, info_learned = learned.reset(seed=5)
+    assert isinstance(learned.unwrapped.sim.renderer.harmonizer, LearnedHarmonizer)
+    assert info_plain["episode"] == info_learned["episode"]
+    differing = 0
+    for step in range(30):
+        action = np.array([0.4 * np.sin(step / 3.0)], np.float32)
+        obs_plain, *_ = plain.step(action)
+        obs_learned, _, _, _, info = learned.step(action)
+        differing += int(obs_plain.tobytes() != obs_learned.tobytes())
+    assert differing > 0
+
+
 def test_reward_terms_sum_to_the_reward(world_dir: Path) -> None:
     env = _make(world_dir, "overtake").unwrapped
     env.reset_state(5)

@@ -6,12 +6,19 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pydantic
 import pytest
 import torch
 from sim_worlds import straight_path
 
 from drivesim.sim.geometry import camera_mount, intrinsics_from_hfov, invert, pose_2d
-from drivesim.sim.harmonize import OnnxHarmonizer, StatisticalHarmonizer, harmonize_view_uint8_
+from drivesim.sim.harmonize import (
+    LEARNED_MODEL,
+    LearnedHarmonizer,
+    OnnxHarmonizer,
+    StatisticalHarmonizer,
+    harmonize_view_uint8_,
+)
 from drivesim.sim.mesh import Material, Mesh
 from drivesim.sim.vehicle_library import VehicleModel
 from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer, fit_roi
@@ -310,6 +317,43 @@ def test_onnx_harmonizer_bad_file_is_one_line(tmp_path):
     bad.write_bytes(b"not a graph")
     with pytest.raises(ValueError, match="not a usable ONNX model"):
         OnnxHarmonizer(bad)
+
+
+def test_learned_harmonizer_on_the_box_gives_what_the_whole_view_gives():
+    """The shipped learned harmonizer run on the car's box and ring (the simulator's CPU path) changes the view as
+    running it on the whole view does, only under the mask, and leaves a view without a car alone."""
+    assert LEARNED_MODEL.is_file(), "the learned harmonizer ships with drivesim (benchmarks/bench_harmonizer.py)"
+    harmonizer = LearnedHarmonizer()
+    rng = np.random.default_rng(3)
+    rgb = np.clip(rng.normal((110, 105, 100), 25, size=(64, 160, 3)), 0, 255).astype(np.uint8)
+    mask = np.zeros((64, 160), dtype=bool)
+    mask[30:44, 70:100] = True
+    rgb[mask] = np.clip(rng.normal((40, 45, 60), 10, size=(int(mask.sum()), 3)), 0, 255).astype(np.uint8)
+    whole = harmonizer(torch.from_numpy(rgb)[None].float() / 255.0, torch.from_numpy(mask)[None])[0]
+    whole = (whole * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy()
+    boxed = rgb.copy()
+    harmonizer.harmonize_view_uint8_(boxed, mask)
+    assert (boxed[~mask] == rgb[~mask]).all()
+    assert not (boxed[mask] == rgb[mask]).all()  # it does something to the car
+    assert np.abs(boxed.astype(int) - whole.astype(int)).max() <= 1
+    empty = rgb.copy()
+    harmonizer.harmonize_view_uint8_(empty, np.zeros_like(mask))
+    assert (empty == rgb).all()
+
+
+def test_view_config_names_the_harmonizer(tmp_path):
+    """`harmonizer: learned` puts the learned model in the view; an unknown name is refused."""
+    world = make_world(tmp_path)
+    cars = [CarPlacement(box_model(), 10, 0, 0)]
+    learned = ViewSynthesizer(world, ViewConfig(harmonizer="learned", camera_look=False))
+    assert isinstance(learned.harmonizer, LearnedHarmonizer)
+    statistical = ViewSynthesizer(world, ViewConfig(camera_look=False))
+    a, b = render_one(learned, cars), render_one(statistical, cars)
+    assert a.car_mask[0].any() and (a.car_mask[0] == b.car_mask[0]).all()
+    assert (a.rgb[0][~a.car_mask[0]] == b.rgb[0][~b.car_mask[0]]).all()
+    assert not (a.rgb[0][a.car_mask[0]] == b.rgb[0][b.car_mask[0]]).all()
+    with pytest.raises(pydantic.ValidationError, match="harmonizer"):
+        ViewConfig(harmonizer="idih")
 
 
 def _batch_request(world: World):

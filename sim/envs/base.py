@@ -161,7 +161,7 @@ class DrivingEnv(gymnasium.Env):
             roi = self.roi_px_of(world_index)
             self._renderers[world_index] = make_view_synthesizer(
                 world, roi, c.observation_width_px, c.observation_height_px, device=c.render_device,
-                render_threads=c.render_threads,
+                render_threads=c.render_threads, harmonizer=c.harmonizer,
             )  # fmt: skip
         return self._renderers[world_index]
 

@@ -102,6 +102,9 @@ class EnvConfig(BaseModel):
     render_device: str = "cpu"
     """torch device the views are rendered on: "cpu", or "cuda" (all the views of a world one process steps are
     rendered in one batch)."""
+    harmonizer: Literal["statistical", "learned"] = "statistical"
+    """How inserted cars are matched to the frame: statistical (colour statistics moved toward the surroundings') or
+    learned (a small network, sim/models/harmonizer.onnx)."""
     render_threads: int = Field(1, ge=1, le=16)
     """On the CPU, most threads each view's warp is split over (the same pixels), fewer while other processes hold
     the cores; 1 where envs already keep every core busy."""

@@ -82,8 +82,9 @@ def _display_renderer(env: Any, world: Any, width_px: int, height_px: int) -> An
     c = env.config
     roi = (0, 0, world.width_px, world.height_px)
     return make_view_synthesizer(
-        world, roi, width_px, height_px, device=c.render_device, render_threads=c.render_threads
-    )
+        world, roi, width_px, height_px, device=c.render_device, render_threads=c.render_threads,
+        harmonizer=c.harmonizer,
+    )  # fmt: skip
 
 
 def _drive(env: Any, seed: int, capture: Any, policy: Any, viewer: Any) -> tuple[list[np.ndarray], list[dict], dict]:
