@@ -2,7 +2,7 @@
 measured on held-out synthetic seeds (car PSNR / SSIM against the truth), on the real drives' C2ST, and in time.
 
 Run from the repository root:
-    .venv/bin/python benchmarks/bench_harmonizer.py [--write-model sim/models/harmonizer.onnx]
+    .venv/bin/python benchmarks/bench_harmonizer.py [--world WS/world] [--write-model sim/models/harmonizer.onnx]
 Trains on `--train-seeds`, measures on `--test-seeds` (pairs kept in `--cache`), writes `results/harmonizer.{md,json}`
 and `results/harmonizer.png` (per row: the true look, none, statistical, learned). `--write-model` also writes the
 trained ONNX there: `sim/models/harmonizer.onnx` is the one drivesim ships, made by this script's defaults.
@@ -25,6 +25,7 @@ from bench_car_realism import BOXES, REAL, WORLD_WIDTH_PX, crops_of, measure
 
 from drivesim.bench import car_realism as cr
 from drivesim.bench import harmonizer_training as ht
+from drivesim.bench.sim_steps import make_env, time_env_steps
 from drivesim.sim.harmonize import Harmonizer, LearnedHarmonizer, StatisticalHarmonizer, harmonize_view_uint8_
 
 HERE = Path(__file__).resolve().parent
@@ -57,8 +58,42 @@ def microseconds_per_view(harmonizer: Harmonizer, pairs: dict[str, np.ndarray], 
     return 1e6 * float(np.median(times))
 
 
+CAR_PARTS = ("raster", "composite", "lighting", "harmonize")
+
+
+def step_costs(world: str, steps: int, rounds: int) -> dict[str, dict[str, float]]:
+    """Per harmonizer, over `rounds` alternating rounds of `steps` car-drawn expert overtake steps on `world` (one
+    thread): the median car-drawn step and the mean ms of the car's parts (raster, composite, lighting, harmonize),
+    each the median over the rounds."""
+    per: dict[str, list[dict[str, float]]] = {"statistical": [], "learned": []}
+    for _ in range(rounds):
+        for name in per:
+            env = make_env("overtake", world, None, "eval", {"harmonizer": name})
+            times = time_env_steps(env, steps, seed=0, car_drawn_steps=steps, max_steps=40 * steps)
+            parts = times.mean_part_ms(True)
+            per[name].append({"step_ms": times.median_ms(True), "car_ms": sum(parts[k] for k in CAR_PARTS), **parts})
+            env.close()
+    return {name: {k: float(np.median([r[k] for r in rows])) for k in rows[0]} for name, rows in per.items()}
+
+
 def _pct(acc: tuple[float, float, float]) -> str:
     return f"{100 * acc[0]:.0f} % [{100 * acc[1]:.0f}, {100 * acc[2]:.0f}]"
+
+
+def _step_lines(costs: dict | None, args: argparse.Namespace) -> list[str]:
+    if not costs:
+        return []
+    ratio = costs["learned"]["car_ms"] / costs["statistical"]["car_ms"]
+    return [
+        f"A car-drawn overtake step on `{Path(args.world).parent.name}`'s world (expert actions, one thread; "
+        f"{args.step_rounds} alternating rounds of {args.steps_timed} car-drawn steps, medians over the rounds): the "
+        f"car's share is raster + composite + lighting + harmonize; learned / statistical x{ratio:.2f} (target 1.5).",
+        "",
+        "| harmonizer | car-drawn step ms (median) | car's share ms | harmonize ms |",
+        "|---|---:|---:|---:|",
+        *(f"| {name} | {c['step_ms']:.2f} | {c['car_ms']:.3f} | {c['harmonize']:.3f} |" for name, c in costs.items()),
+        "",
+    ]
 
 
 def report(args: argparse.Namespace, result: dict) -> None:
@@ -71,7 +106,9 @@ def report(args: argparse.Namespace, result: dict) -> None:
         f"- machine: {when['machine']}",
         f"- date: {when['date_utc']} UTC; took {result['seconds']:.0f} s",
         f"- command: `python benchmarks/bench_harmonizer.py --train-seeds {args.train_seeds} --test-seeds "
-        f"{args.test_seeds} --samples {args.samples} --steps {args.steps}`",
+        f"{args.test_seeds} --samples {args.samples} --steps {args.steps}"
+        + (f" --world {args.world}" if args.world else "")
+        + "`",
         f"- load: before {' / '.join(f'{x:.2f}' for x in result['load_before'])}; after "
         f"{' / '.join(str(x) for x in when['load_average_1_5_15_min'])}",
         "",
@@ -98,6 +135,7 @@ def report(args: argparse.Namespace, result: dict) -> None:
         "|---|---|---|---|",
         *(f"| {name} | " + " | ".join(_pct(c2st[name][level]) for level in C2ST_LEVELS) + " |" for name in c2st),
         "",
+        *_step_lines(result.get("step_costs"), args),
         "Pictures (`harmonizer.png`): test views around the car, per row the true look, then none, statistical, "
         "learned (each crop scaled to 96 x 64, the grid 2x, no smoothing). Time: one uint8 view harmonized in place "
         "as the simulator does it (the learned one on the car's box and ring), median.",
@@ -113,6 +151,9 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=800, help="training steps (minibatches of 32 views)")
     parser.add_argument("--cache", type=Path, default=None, help="folder keeping the pairs (default: a temporary one)")
     parser.add_argument("--write-model", type=Path, default=None, help="also write the trained ONNX here")
+    parser.add_argument("--world", default=None, help="a world folder: also time car-drawn steps with each")
+    parser.add_argument("--steps-timed", type=int, default=300, help="car-drawn steps per round (with --world)")
+    parser.add_argument("--step-rounds", type=int, default=3, help="alternating rounds (with --world)")
     parser.add_argument("--out", type=Path, default=RESULTS, help="markdown report (JSON and PNG beside it)")
     args = parser.parse_args()
     if not REAL.is_dir():
@@ -142,6 +183,8 @@ def main() -> int:
             "boxes": len(cr.load_boxes(BOXES)),
             "load_before": load_before,
         }
+        if args.world is not None:
+            result["step_costs"] = step_costs(args.world, args.steps_timed, args.step_rounds)
         ht.figure(test_pairs, harmonizers, args.out.with_suffix(".png"))
         if args.write_model is not None:
             args.write_model.parent.mkdir(parents=True, exist_ok=True)

@@ -151,6 +151,8 @@ class OnnxHarmonizer:
             raise FileNotFoundError(f"{path}: no such harmonization model")
         options = onnxruntime.SessionOptions()
         options.intra_op_num_threads = 1
+        options.inter_op_num_threads = 1
+        options.execution_mode = onnxruntime.ExecutionMode.ORT_SEQUENTIAL  # small graphs: no thread hand-offs
         try:
             self.session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         except Exception as error:  # onnxruntime raises its own exception types for unreadable graphs
@@ -199,6 +201,8 @@ class LearnedHarmonizer:
 
     def __init__(self, path: Path | str = LEARNED_MODEL):
         self.onnx = OnnxHarmonizer(path)
+        if len(self.onnx.input_names) != 1:
+            raise ValueError(f"{path}: the learned harmonizer takes one input (B, 4, h, w)")
 
     def __call__(self, rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Harmonized copy of `rgb` (B, h, w, 3) float [0, 1] under `mask` (B, h, w) bool."""
@@ -212,9 +216,15 @@ class LearnedHarmonizer:
         m = _LEARNED_MARGIN_PX
         y0, y1 = max(top - m, 0), top + height + m
         x0, x1 = max(left - m, 0), left + width + m
-        box = np.ascontiguousarray(rgb[y0:y1, x0:x1])
-        harmonize_view_uint8_(self.onnx, box, np.ascontiguousarray(mask[y0:y1, x0:x1]))
-        rgb[y0:y1, x0:x1] = box
+        box, car = rgb[y0:y1, x0:x1], mask[y0:y1, x0:x1]
+        # numpy straight into the session: the float batch path's torch conversions cost more than the network
+        image_mask = np.empty((1, 4, *car.shape), np.float32)
+        image_mask[0, :3] = box.transpose(2, 0, 1)
+        image_mask[0, :3] *= 1.0 / 255.0
+        image_mask[0, 3] = car
+        out = self.onnx.session.run(None, {self.onnx.input_names[0]: image_mask})[0][0]
+        harmonized = (out.transpose(1, 2, 0) * 255.0 + 0.5).clip(0, 255).astype(np.uint8)
+        box[car] = harmonized[car]
 
 
 @functools.cache
