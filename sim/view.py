@@ -54,7 +54,7 @@ from drivesim.sim.cpu_threads import governed_threads
 from drivesim.sim.fill import FillStats, fill_wedges_from_neighbours, inpaint_holes, pull_push_fill, widen_frame
 from drivesim.sim.frame_cache import FrameLayout, PreparedFrames, open_prepared_frames
 from drivesim.sim.geometry import invert, scale_intrinsics
-from drivesim.sim.harmonize import Harmonizer, make_harmonizer
+from drivesim.sim.harmonize import Harmonizer, StatisticalHarmonizer, make_harmonizer
 from drivesim.sim.raster import PackedScene, Rasterizer, RenderResult, composite, material_row, merge_scenes
 from drivesim.sim.shading import contact_shadow_, contact_shadows_batched
 from drivesim.sim.warp import KernelWarp, WarpResult, forward_warp, rendered_region
@@ -580,6 +580,13 @@ class ViewSynthesizer:
             views = torch.from_numpy(rgb).index_select(0, index)
             harmonized = self.harmonizer(views.to(torch.float32) / 255.0, mask)
             rgb[viewers] = _harmonized_uint8(views, harmonized, mask).numpy()
+        if self.monochrome and not isinstance(self.harmonizer, StatisticalHarmonizer):
+            # a gray car stays gray under the statistical transfer (equal channels, equal gains); other harmonizers
+            # may tint it, which a gray camera cannot show
+            for b in viewers:
+                car = car_mask[b]
+                luma = rgb[b][car].astype(np.float32) @ np.asarray(_LUMA, np.float32) + 0.5
+                rgb[b][car] = luma.astype(np.uint8)[:, None]
         timings["harmonize"] = 1e3 * (time.perf_counter() - start)
 
     def _insert_torch(
@@ -599,6 +606,9 @@ class ViewSynthesizer:
             start = time.perf_counter()
             harmonized = self.harmonizer(rgb_c.to(torch.float32) / 255.0, front)
             rgb_c = _harmonized_uint8(rgb_c, harmonized, front)
+            if self.monochrome and not isinstance(self.harmonizer, StatisticalHarmonizer):  # as `_harmonize_cpu`
+                gray = (rgb_c.to(torch.float32) @ luma + 0.5).clamp_(0, 255).to(torch.uint8)
+                rgb_c = torch.where(front[..., None], gray[..., None].expand_as(rgb_c), rgb_c)
             timings["harmonize"] = 1e3 * (time.perf_counter() - start)
         car_mask = torch.zeros((B, h, w), dtype=torch.bool, device=self.device).index_copy(0, index, front)
         return rgb.index_copy(0, index, rgb_c).cpu().numpy(), car_mask.cpu().numpy()

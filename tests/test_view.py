@@ -356,6 +356,18 @@ def test_view_config_names_the_harmonizer(tmp_path):
         ViewConfig(harmonizer="idih")
 
 
+@pytest.mark.parametrize("path", ["cpu", "torch"])
+def test_learned_harmonizer_keeps_a_gray_cameras_car_gray(tmp_path, path):
+    """On a monochrome camera the learned harmonizer's colour map may tint the car; the view draws it in luma again."""
+    world = make_world(tmp_path)
+    view = ViewSynthesizer(world, ViewConfig(harmonizer="learned", monochrome=True, camera_look=False))
+    if path == "torch":
+        view._insert_cpu = view._insert_torch
+    out = render_one(view, [CarPlacement(box_model((0.7, 0.3, 0.2)), 10, 0, 0)])
+    car = out.rgb[0][out.car_mask[0]].astype(int)
+    assert len(car) and (car.max(axis=1) - car.min(axis=1)).max() == 0
+
+
 def _batch_request(world: World):
     model_a, model_b = box_model((0.2, 0.3, 0.8)), box_model((0.7, 0.7, 0.2), size=(5.0, 2.0, 1.9))
     frames = np.array([0, 1, 2])
