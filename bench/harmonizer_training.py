@@ -5,8 +5,9 @@ placed at random ahead of a synthetic drive's frame, the simulator's view draws 
 contact shadow, no harmonization, no camera look), and the synthetic world's own renderer draws the same car into
 the same scene (its sun, sky and haze). The network sees the composite and the car's mask and predicts a colour
 transform of the car's pixels: a 3 x 4 affine map from masked statistics and pooled convolution features, times a
-per-pixel brightness gain from a small convolution head (both start at the identity). Its support is the car and a
-ring of `RING_PX` around it, so the simulator runs it on the car's box alone (`LearnedHarmonizer`).
+per-pixel brightness gain from a small convolution head (both start at the identity), all but the map at half the
+resolution. Its support is the car and a ring of `RING_PX` around it, so the simulator runs it on the car's box alone
+(`LearnedHarmonizer`).
 """
 
 from __future__ import annotations
@@ -19,13 +20,14 @@ import cv2
 import numpy as np
 import torch
 from torch import nn
-from torch.nn.functional import max_pool2d
+from torch.nn.functional import avg_pool2d, interpolate, max_pool2d
 
 from drivesim.bench.car_fidelity import world_from_drive
 from drivesim.bench.fidelity import image_metrics, render_drive
 from drivesim.sim.geometry import pose_2d, yaw_of
 from drivesim.sim.harmonize import LEARNED_RING_PX as RING_PX
-from drivesim.sim.harmonize import Harmonizer, OnnxHarmonizer, harmonize_view_uint8_
+from drivesim.sim.harmonize import LEARNED_SCALE as SCALE
+from drivesim.sim.harmonize import Harmonizer, LearnedHarmonizer, harmonize_view_uint8_
 from drivesim.sim.vehicle_library import VehicleLibrary
 from drivesim.sim.vehicles import sample_paint
 from drivesim.sim.view import CarPlacement, ViewConfig, ViewSynthesizer
@@ -76,42 +78,45 @@ def make_pairs(seed: int, samples: int) -> dict[str, np.ndarray]:
 
 
 class HarmonizerNet(nn.Module):
-    """(B, 4, h, w) RGB in [0, 1] + mask -> (B, 3, h, w): the car's pixels through a predicted affine colour map and
-    a per-pixel gain; the rest unchanged."""
+    """(B, 4, h, w) RGB in [0, 1] + mask (h, w even) -> (B, 3, h, w): the car's pixels through a predicted affine
+    colour map and a per-pixel gain; the rest unchanged. Everything but applying the colour map runs at half the
+    resolution (`LEARNED_SCALE`), which cuts the convolutions' cost fourfold."""
 
-    def __init__(self, width: int = 16) -> None:
+    def __init__(self, width: int = 8) -> None:
         super().__init__()
         self.features = nn.Sequential(
             nn.Conv2d(5, width, 3, padding=1), nn.ReLU(), nn.Conv2d(width, width, 3, padding=1), nn.ReLU()
         )
-        self.affine = nn.Sequential(nn.Linear(2 * width + 12, 64), nn.ReLU(), nn.Linear(64, 12))
+        self.affine = nn.Sequential(nn.Linear(2 * (3 + width) + 6, 64), nn.ReLU(), nn.Linear(64, 12))
         self.gain = nn.Conv2d(width, 1, 3, padding=1)
         for layer in (self.affine[-1], self.gain):
             nn.init.zeros_(layer.weight)
             nn.init.zeros_(layer.bias)
 
+    def head(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, 4, h, w) -> the colour map's 12 parameters (B, 12: 3 x 3 added to the identity, then the offset) and
+        the brightness gain at half resolution (B, 1, h / 2, w / 2), in [-1, 1] (1 + gain multiplies the colour)."""
+        small = avg_pool2d(x, SCALE)
+        rgb_s, mask_s = small[:, :3], small[:, 3:4]
+        r = RING_PX // SCALE
+        ring_s = max_pool2d(mask_s, 2 * r + 1, stride=1, padding=r) - mask_s
+        feats = self.features(torch.cat([rgb_s, mask_s, ring_s], dim=1))
+        # The car's and the ring's weighted means of colour and features and their colour spreads, as two matrix
+        # products (few graph nodes: the simulator runs this once per view).
+        weights = torch.cat([mask_s, ring_s], dim=1).flatten(2)  # (B, 2, n)
+        count = weights.sum(dim=2, keepdim=True).clamp_min(1.0)  # (B, 2, 1)
+        mean = weights @ torch.cat([rgb_s, feats], dim=1).flatten(2).transpose(1, 2) / count  # (B, 2, 3 + width)
+        square = weights @ (rgb_s * rgb_s).flatten(2).transpose(1, 2) / count  # (B, 2, 3)
+        spread = (square - mean[:, :, :3] ** 2).clamp_min(0.0).add(1e-6).sqrt()
+        params = self.affine(torch.cat([mean.flatten(1), spread.flatten(1)], dim=1))
+        return params, torch.tanh(self.gain(feats))
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         rgb, mask = x[:, :3], x[:, 3:4]
-        k = 2 * RING_PX + 1
-        ring = max_pool2d(mask, k, stride=1, padding=RING_PX) - mask
-
-        def masked_stats(weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            n = weight.sum(dim=(2, 3)).clamp_min(1.0)
-            mean = (rgb * weight).sum(dim=(2, 3)) / n
-            var = (((rgb - mean[..., None, None]) ** 2) * weight).sum(dim=(2, 3)) / n
-            return mean, (var + 1e-6).sqrt()
-
-        car_mean, car_std = masked_stats(mask)
-        ring_mean, ring_std = masked_stats(ring)
-        feats = self.features(torch.cat([rgb, mask, ring], dim=1))
-        pooled_car = (feats * mask).sum(dim=(2, 3)) / mask.sum(dim=(2, 3)).clamp_min(1.0)
-        pooled_ring = (feats * ring).sum(dim=(2, 3)) / ring.sum(dim=(2, 3)).clamp_min(1.0)
-        stats = torch.cat([car_mean, car_std, ring_mean, ring_std, pooled_car, pooled_ring], dim=1)
-        params = self.affine(stats)
+        params, gain = self.head(x)
         matrix = torch.eye(3, device=x.device)[None] + params[:, :9].reshape(-1, 3, 3)
-        bias = params[:, 9:12]
-        mapped = torch.einsum("bij,bjhw->bihw", matrix, rgb) + bias[..., None, None]
-        mapped = mapped * (1.0 + torch.tanh(self.gain(feats)))
+        mapped = torch.einsum("bij,bjhw->bihw", matrix, rgb) + params[:, 9:12, None, None]
+        mapped = mapped * (1.0 + interpolate(gain, scale_factor=SCALE, mode="bilinear", align_corners=False))
         return mask * mapped.clamp(0.0, 1.0) + (1.0 - mask) * rgb
 
 
@@ -142,19 +147,41 @@ def train(pairs: dict[str, np.ndarray], steps: int, seed: int) -> HarmonizerNet:
     return model.eval()
 
 
-def export_onnx(model: HarmonizerNet, path: Path, sample: torch.Tensor) -> float:
-    """Write the model as ONNX (any batch and size) and return the largest difference onnxruntime shows against
-    torch on `sample`."""
+class HeadGraph(nn.Module):
+    """The graph drivesim ships: one uint8 view or box (h, w, 3) and its car mask (h, w) uint8 -> the colour map's
+    parameters (12,) and the half-resolution gain (h / 2, w / 2) of `HarmonizerNet.head`; applying them to the car's
+    pixels is a few OpenCV calls in the simulator (`LearnedHarmonizer`), cheaper than the same in the graph."""
+
+    def __init__(self, net: HarmonizerNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, view: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        rgb = view.permute(2, 0, 1).to(torch.float32) * (1.0 / 255.0)
+        params, gain = self.net.head(torch.cat([rgb, mask.to(torch.float32)[None]], dim=0)[None])
+        return params[0], gain[0, 0]
+
+
+def export_onnx(model: HarmonizerNet, path: Path, views: np.ndarray, masks: np.ndarray) -> int:
+    """Write the model as the shipped ONNX graph (`HeadGraph`, any even size) and return the largest difference in
+    grey levels between the simulator's path (onnxruntime on the car's box, then OpenCV) and the torch model on the
+    whole uint8 `views` (B, h, w, 3) under `masks` (B, h, w)."""
+    graph = HeadGraph(model.eval())
+    sample = (torch.from_numpy(views[0]), torch.from_numpy(masks[0].astype(np.uint8)))
     torch.onnx.export(
-        model, (sample,), str(path), input_names=["image_mask"], output_names=["rgb"], opset_version=17,
-        dynamic_axes={"image_mask": {0: "b", 2: "h", 3: "w"}, "rgb": {0: "b", 2: "h", 3: "w"}}, dynamo=False,
+        graph, sample, str(path), input_names=["view", "mask"], output_names=["params", "gain"], opset_version=17,
+        dynamic_axes={"view": {0: "h", 1: "w"}, "mask": {0: "h", 1: "w"}, "gain": {0: "h2", 1: "w2"}}, dynamo=False,
     )  # fmt: skip
-    runtime = OnnxHarmonizer(path)
-    rgb = sample[:, :3].permute(0, 2, 3, 1)
-    mask = sample[:, 3] > 0.5
-    with torch.no_grad():
-        expected = model(sample).permute(0, 2, 3, 1)
-    return float((runtime(rgb, mask) - torch.where(mask[..., None], expected, rgb)).abs().max())
+    runtime = LearnedHarmonizer(path)
+    largest = 0
+    for view, mask in zip(views, masks, strict=True):
+        with torch.no_grad():
+            out = model(as_input(view[None], mask[None]))[0].permute(1, 2, 0)
+        expected = (out * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy()
+        got = view.copy()
+        runtime.harmonize_view_uint8_(got, mask)
+        largest = max(largest, int(np.abs(got.astype(int) - expected.astype(int)).max()))
+    return largest
 
 
 def harmonized(harmonizer: Harmonizer | None, view: np.ndarray, mask: np.ndarray) -> np.ndarray:

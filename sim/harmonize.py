@@ -38,7 +38,11 @@ HARMONIZERS = ("statistical", "learned")
 LEARNED_MODEL = Path(__file__).resolve().parent / "models" / "harmonizer.onnx"
 LEARNED_RING_PX = 6
 """Width of the ring of surrounding pixels the learned network pools around the car."""
-_LEARNED_MARGIN_PX = LEARNED_RING_PX + 3  # the ring plus the reach of the network's 3x3 convolutions
+LEARNED_SCALE = 2
+"""The learned network reads the view at 1 / LEARNED_SCALE of its resolution (an odd side is padded)."""
+# The ring plus the reach of the two feature convolutions pooled over it (3x3 each, at half resolution) plus one
+# half-resolution pixel of grid alignment; the gain head reaches less far.
+_LEARNED_MARGIN_PX = LEARNED_RING_PX + LEARNED_SCALE * 2 + LEARNED_SCALE
 
 
 class Harmonizer(Protocol):
@@ -133,6 +137,23 @@ class StatisticalHarmonizer:
         return torch.where(mask[..., None], adjusted.clamp_(0.0, 1.0), rgb)
 
 
+def _cpu_session(path: Path):
+    """A one-thread, sequential onnxruntime session of the graph at `path` (one line's error when it is missing or
+    unusable): small graphs called once per view gain nothing from threads but their hand-offs."""
+    import onnxruntime
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such harmonization model")
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads = 1
+    options.inter_op_num_threads = 1
+    options.execution_mode = onnxruntime.ExecutionMode.ORT_SEQUENTIAL
+    try:
+        return onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as error:  # onnxruntime raises its own exception types for unreadable graphs
+        raise ValueError(f"{path}: not a usable ONNX model ({str(error).splitlines()[0]})") from None
+
+
 class OnnxHarmonizer:
     """A learned harmonization model run with onnxruntime.
 
@@ -144,19 +165,7 @@ class OnnxHarmonizer:
     """
 
     def __init__(self, path: Path | str):
-        import onnxruntime
-
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no such harmonization model")
-        options = onnxruntime.SessionOptions()
-        options.intra_op_num_threads = 1
-        options.inter_op_num_threads = 1
-        options.execution_mode = onnxruntime.ExecutionMode.ORT_SEQUENTIAL  # small graphs: no thread hand-offs
-        try:
-            self.session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-        except Exception as error:  # onnxruntime raises its own exception types for unreadable graphs
-            raise ValueError(f"{path}: not a usable ONNX model ({str(error).splitlines()[0]})") from None
+        self.session = _cpu_session(Path(path))
         self.input_names = [i.name for i in self.session.get_inputs()]
         if len(self.input_names) not in (1, 2):
             raise ValueError(
@@ -193,38 +202,63 @@ def harmonize_view_uint8_(harmonizer: Harmonizer, rgb: np.ndarray, mask: np.ndar
 
 
 class LearnedHarmonizer:
-    """The learned harmonizer (`LEARNED_MODEL`) run with onnxruntime; on one uint8 view it runs on the car's box and
+    """The learned harmonizer (`LEARNED_MODEL`). Its graph, run with onnxruntime, reads one uint8 view or box
+    (h, w, 3) and the car's mask (h, w) uint8, h and w even, and returns a 3 x 4 colour map's parameters and a
+    half-resolution brightness gain; OpenCV applies them to the car's pixels. On a view it runs on the car's box and
     the ring around it only (the network reads nothing farther), which gives what the whole view gives.
 
     :param path: the .onnx file (the one shipped with drivesim by default).
     """
 
     def __init__(self, path: Path | str = LEARNED_MODEL):
-        self.onnx = OnnxHarmonizer(path)
-        if len(self.onnx.input_names) != 1:
-            raise ValueError(f"{path}: the learned harmonizer takes one input (B, 4, h, w)")
+        self.session = _cpu_session(Path(path))
+        inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
+        if [i.type for i in inputs] != ["tensor(uint8)", "tensor(uint8)"] or len(outputs) != 2:
+            raise ValueError(
+                f"{path}: the learned harmonizer reads a uint8 view (h, w, 3) and mask (h, w) and returns a colour "
+                "map's parameters and a gain"
+            )
+        self.input_names = [i.name for i in inputs]
 
     def __call__(self, rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """Harmonized copy of `rgb` (B, h, w, 3) float [0, 1] under `mask` (B, h, w) bool."""
-        return self.onnx(rgb, mask)
+        """Harmonized copy of `rgb` (B, h, w, 3) float [0, 1] under `mask` (B, h, w) bool (rounded to uint8 first)."""
+        views = (rgb.detach().cpu() * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).numpy()
+        for view, car in zip(views, mask.cpu().numpy(), strict=True):
+            if car.any():
+                cv2.copyTo(self._harmonized(view, car), car.view(np.uint8), view)
+        harmonized = torch.from_numpy(views).to(rgb.device, rgb.dtype) / 255.0
+        return torch.where(mask[..., None], harmonized, rgb)
 
     def harmonize_view_uint8_(self, rgb: np.ndarray, mask: np.ndarray) -> None:
         """The same on one view, in place: `rgb` (h, w, 3) uint8 changes under `mask` (h, w) bool."""
         left, top, width, height = cv2.boundingRect(mask.view(np.uint8))
         if width == 0:
             return
-        m = _LEARNED_MARGIN_PX
-        y0, y1 = max(top - m, 0), top + height + m
-        x0, x1 = max(left - m, 0), left + width + m
-        box, car = rgb[y0:y1, x0:x1], mask[y0:y1, x0:x1]
-        # numpy straight into the session: the float batch path's torch conversions cost more than the network
-        image_mask = np.empty((1, 4, *car.shape), np.float32)
-        image_mask[0, :3] = box.transpose(2, 0, 1)
-        image_mask[0, :3] *= 1.0 / 255.0
-        image_mask[0, 3] = car
-        out = self.onnx.session.run(None, {self.onnx.input_names[0]: image_mask})[0][0]
-        harmonized = (out.transpose(1, 2, 0) * 255.0 + 0.5).clip(0, 255).astype(np.uint8)
-        box[car] = harmonized[car]
+        m, s = _LEARNED_MARGIN_PX, LEARNED_SCALE
+        # The box starts on the network's half-resolution grid of the whole view, so both give the same result.
+        y0, x0 = max(top - m, 0) // s * s, max(left - m, 0) // s * s
+        y1 = min(y0 + -(-(top + height + m - y0) // s) * s, mask.shape[0])
+        x1 = min(x0 + -(-(left + width + m - x0) // s) * s, mask.shape[1])
+        box, car = rgb[y0:y1, x0:x1], mask[y0:y1, x0:x1].view(np.uint8)
+        cv2.copyTo(self._harmonized(box, car), car, box)
+
+    def _harmonized(self, view: np.ndarray, car: np.ndarray) -> np.ndarray:
+        """The car's harmonized colours over a whole uint8 view or box (h, w, 3) (used under the car's mask only)."""
+        h, w = car.shape
+        s = LEARNED_SCALE
+        view_in, car_in = np.ascontiguousarray(view), np.ascontiguousarray(car).view(np.uint8)
+        if h % s or w % s:  # the network halves the view: an odd side gets a dark, car-free row or column
+            view_in = np.pad(view_in, ((0, -h % s), (0, -w % s), (0, 0)))
+            car_in = np.pad(car_in, ((0, -h % s), (0, -w % s)))
+        params, gain = self.session.run(None, {self.input_names[0]: view_in, self.input_names[1]: car_in})
+        colour_map = np.empty((3, 4), np.float32)  # on 0-255 values
+        colour_map[:, :3] = params[:9].reshape(3, 3) + np.eye(3, dtype=np.float32)
+        colour_map[:, 3] = 255.0 * params[9:12]
+        mapped = cv2.transform(view_in.astype(np.float32), colour_map)
+        mapped *= 1.0 + cv2.resize(gain, (car_in.shape[1], car_in.shape[0]), interpolation=cv2.INTER_LINEAR)[..., None]
+        np.clip(mapped, 0.0, 255.0, out=mapped)
+        mapped += 0.5
+        return mapped[:h, :w].astype(np.uint8)
 
 
 @functools.cache

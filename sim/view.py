@@ -584,9 +584,7 @@ class ViewSynthesizer:
             # a gray car stays gray under the statistical transfer (equal channels, equal gains); other harmonizers
             # may tint it, which a gray camera cannot show
             for b in viewers:
-                car = car_mask[b]
-                luma = rgb[b][car].astype(np.float32) @ np.asarray(_LUMA, np.float32) + 0.5
-                rgb[b][car] = luma.astype(np.uint8)[:, None]
+                _gray_car_(rgb[b], car_mask[b])
         timings["harmonize"] = 1e3 * (time.perf_counter() - start)
 
     def _insert_torch(
@@ -918,3 +916,14 @@ def _warp(
         rgb, depth, K_src, T_dst_src, K_dst, width, height, roi=(m + x0, m + y0, bw, bh),
         fill_holes=cfg.fill_holes, source_index=source_index, use_kernel=source_index is None,
     )  # fmt: skip
+
+
+def _gray_car_(rgb: np.ndarray, mask: np.ndarray) -> None:
+    """Redraw the car under `mask` (h, w) bool in its luma (`_LUMA`, OpenCV's rounding), in place in the uint8 view
+    `rgb` (h, w, 3): OpenCV on the car's box, a few microseconds."""
+    left, top, width, height = cv2.boundingRect(mask.view(np.uint8))
+    if width == 0:
+        return
+    box = rgb[top : top + height, left : left + width]
+    gray = cv2.cvtColor(cv2.cvtColor(box, cv2.COLOR_RGB2GRAY), cv2.COLOR_GRAY2RGB)
+    cv2.copyTo(gray, mask[top : top + height, left : left + width].view(np.uint8), box)

@@ -1,6 +1,6 @@
 """The learned harmonizer's training (`bench/harmonizer_training.py`): pairs of the simulator's composite and the
-synthetic world's true look, a fit that brings the car closer to the truth, and an ONNX export onnxruntime runs as
-torch does."""
+synthetic world's true look, a fit that brings the car closer to the truth, and an ONNX export onnxruntime runs on
+the car's box as torch does on the whole view."""
 
 from __future__ import annotations
 
@@ -31,8 +31,8 @@ def test_pairs_training_and_export(tmp_path: Path) -> None:
     identity = ht.HarmonizerNet().eval()  # its last layers start at zero: the identity on the car
     model = ht.train(pairs, steps=60, seed=0)
     assert _masked_mse(model, pairs) < 0.8 * _masked_mse(identity, pairs)
-    difference = ht.export_onnx(model, tmp_path / "h.onnx", ht.as_input(pairs["composite"][:2], pairs["sim_mask"][:2]))
-    assert difference < 1e-4
+    difference = ht.export_onnx(model, tmp_path / "h.onnx", pairs["composite"][:2], pairs["sim_mask"][:2])
+    assert difference <= 1  # grey levels: onnxruntime on the car's box as torch on the whole view
 
 
 def test_seed_lists() -> None:
