@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from eval_fakes import FAKE, fake_world, lane_departure_record, pass_record
+from eval_fakes import FAKE, fake_world, lane_departure_record, pass_record, register_fake_envs
 
 from drivesim.pipeline.errors import ConfigError, InputError
 from drivesim.pipeline.workspace import Workspace
@@ -21,6 +21,13 @@ from drivesim.stages.evaluate.stage import run_eval
 from drivesim.stages.evaluate.worlds import world_labels, world_tables
 
 TESTS_DIR = Path(__file__).parent
+
+
+@pytest.fixture(autouse=True)
+def _fake_envs_registered() -> None:
+    """The fake env is registered in this process, as drivesim's tests of the fake env do, so that this file passes
+    alone and not only after another file registered it."""
+    register_fake_envs()
 
 
 def _make_run(
@@ -148,6 +155,9 @@ def test_a_short_drive_the_run_trained_on_is_evaluated_with_the_runs_own_config(
     cfg = EvalConfig(world=[str(short)], episodes=2, workers=1, policy=str(run), record="none")
     result = run_eval(Workspace(tmp_path / "ws"), cfg)
     assert result.summary.episodes == 2
+    ran_with = json.loads((result.path / "metrics.json").read_text())["env"]  # what ran, not the eval's defaults
+    assert ran_with["min_path_length_m"] == 40.0
+    assert ran_with["observation_height_px"] == SMALL_VIEW["observation_height_px"]
     plain = _make_run(tmp_path / "ws" / "runs" / "overtake-plain", [short], dict(SMALL_VIEW), (3, 16, 40))
     with pytest.raises(InputError, match="path of 50 m is too short"):  # without it: one line, as before
         run_eval(Workspace(tmp_path / "ws"), EvalConfig(world=[str(short)], episodes=2, workers=1, policy=str(plain)))

@@ -14,8 +14,11 @@ from pathlib import Path
 def figures(folder: Path) -> tuple[dict, float, str]:
     """(intervention with its interval, success, the harmonizer the evaluation drew with) of an eval folder."""
     metrics = json.loads((folder / "metrics.json").read_text())
-    manifest = (folder / "manifest.json").read_text()
-    harmonizer = "learned" if '"harmonizer": "learned"' in manifest else "statistical"
+    if "env" in metrics:  # the settings the episodes ran with (a run's own env config, then the overrides)
+        harmonizer = metrics["env"].get("harmonizer", "statistical")
+    else:  # older folders: the overrides only, right for policies trained with the statistical harmonizer
+        manifest = (folder / "manifest.json").read_text()
+        harmonizer = "learned" if '"harmonizer": "learned"' in manifest else "statistical"
     aggregate = metrics["aggregate"]
     return aggregate["intervention"], aggregate["success"]["value"], harmonizer
 

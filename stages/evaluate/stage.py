@@ -415,7 +415,9 @@ def _table_extras(
     notes: list[str],
 ) -> dict[str, Any]:
     """metrics.json's keys beside Table I: `baselines` (their rows), `trained_on` (the worlds a run's policy trained
-    on) and `geometry_note` (where the task's geometry differs from the paper's Table I setup)."""
+    on), `geometry_note` (where the task's geometry differs from the paper's Table I setup) and `env` (the settings
+    the episodes ran with: a run's own training env config, then the user's overrides; the manifest holds only the
+    latter's defaults)."""
     from drivesim.stages.evaluate.baselines import baseline_rows
     from drivesim.stages.evaluate.report import geometry_note
     from drivesim.stages.evaluate.worlds import training_worlds, world_label
@@ -431,6 +433,7 @@ def _table_extras(
             for w in sorted(trained, key=lambda w: (w.parent.parent.name == "towns", str(w)))  # its own world first
         ],
         "geometry_note": geometry_note(cfg.task, _as_dict(job.factory.kwargs.get("config"))),
+        "env": json.loads(json.dumps(_as_dict(job.factory.kwargs.get("config")), default=str)),
     }
 
 
