@@ -150,6 +150,7 @@ def _write_real(output: Path, methods: tuple[str, ...], overrides: list[str]) ->
 
 
 def main() -> None:
+    """Run the benchmark (or, with the hidden worker flags, one measuring subprocess) and write its results."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="8 frames: a smoke run")
     parser.add_argument("--frames", type=int, default=24)
@@ -167,34 +168,9 @@ def main() -> None:
         _write_real(args.output, tuple(args.methods.split(",")), args.overrides)
         return
 
-    from drivesim.bench.fidelity import depth_metrics
-
     n_frames = 8 if args.quick else args.frames
     load_1min = os.getloadavg()[0]
-    rows = []
-    with tempfile.TemporaryDirectory(prefix="bench-depth-") as tmp:
-        folder = Path(tmp)
-        start = time.perf_counter()
-        _render(folder, n_frames, args.seed)
-        print(
-            f"rendered {n_frames} frames at {WIDTH_PX}x{HEIGHT_PX} in {time.perf_counter() - start:.0f} s", flush=True
-        )
-        gt = np.load(folder / "gt_depth.npy", mmap_mode="r")
-        for method in ("plane", "mvs"):
-            overrides = args.overrides if method == "mvs" else []
-            cmd = [sys.executable, __file__, "--worker", str(folder), method]
-            cmd += [a for o in overrides for a in ("--set", o)]
-            result = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.splitlines()[-1])
-            depth = np.load(folder / f"depth_{method}.npy", mmap_mode="r")
-            evaluated = slice(3, n_frames - 3) if n_frames > 6 else slice(0, n_frames)
-            metrics = depth_metrics(np.asarray(depth[evaluated]), np.asarray(gt[evaluated]), 80.0)
-            per_1000_s = result["seconds"] / n_frames * 1000.0
-            rows.append((method, per_1000_s, result["peak_rss_mb"], metrics, result["summary"]))
-            print(
-                f"{method}: {per_1000_s / 60:.1f} min / 1000 frames, peak RSS {result['peak_rss_mb']:.0f} MB, "
-                f"AbsRel {metrics['abs_rel']:.3f}, delta1 {metrics['delta1']:.3f}",
-                flush=True,
-            )
+    rows = _measure_methods(n_frames, args.seed, args.overrides)
 
     command = "python benchmarks/bench_depth.py" + (" --quick" if args.quick else f" --frames {n_frames}")
     command += "".join(f" --set {o}" for o in args.overrides)
@@ -233,6 +209,38 @@ def main() -> None:
     args.output.with_suffix(".json").unlink(missing_ok=True)  # the real drives' part is rewritten with the file
     write_markdown(args.output, lines)
     update_json(args.output.with_suffix(".json"), "synthetic", raw)
+
+
+def _measure_methods(n_frames: int, seed: int, overrides_mvs: list[str]) -> list[tuple]:
+    """(method, s per 1000 frames, peak RSS MB, depth metrics, stage summary) of plane and mvs depth, each run in a
+    subprocess on a synthetic drive of `n_frames` rendered with its ground truth."""
+    from drivesim.bench.fidelity import depth_metrics
+
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench-depth-") as tmp:
+        folder = Path(tmp)
+        start = time.perf_counter()
+        _render(folder, n_frames, seed)
+        print(
+            f"rendered {n_frames} frames at {WIDTH_PX}x{HEIGHT_PX} in {time.perf_counter() - start:.0f} s", flush=True
+        )
+        gt = np.load(folder / "gt_depth.npy", mmap_mode="r")
+        for method in ("plane", "mvs"):
+            overrides = overrides_mvs if method == "mvs" else []
+            cmd = [sys.executable, __file__, "--worker", str(folder), method]
+            cmd += [a for o in overrides for a in ("--set", o)]
+            result = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.splitlines()[-1])
+            depth = np.load(folder / f"depth_{method}.npy", mmap_mode="r")
+            evaluated = slice(3, n_frames - 3) if n_frames > 6 else slice(0, n_frames)
+            metrics = depth_metrics(np.asarray(depth[evaluated]), np.asarray(gt[evaluated]), 80.0)
+            per_1000_s = result["seconds"] / n_frames * 1000.0
+            rows.append((method, per_1000_s, result["peak_rss_mb"], metrics, result["summary"]))
+            print(
+                f"{method}: {per_1000_s / 60:.1f} min / 1000 frames, peak RSS {result['peak_rss_mb']:.0f} MB, "
+                f"AbsRel {metrics['abs_rel']:.3f}, delta1 {metrics['delta1']:.3f}",
+                flush=True,
+            )
+    return rows
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ import tempfile
 import time
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 from _lib.report import write_markdown
 
@@ -134,9 +135,18 @@ def main() -> None:
     ]
     if len(comparable) > 1:
         lines += [f"Same seeds with every worker count gave {'identical' if same else 'DIFFERENT'} metrics.", ""]
-    table = [runs[-1], *others]
+    lines += _metrics_lines([runs[-1], *others], args.episodes)
+    raw = _raw_record(
+        cmd, world, args.task, (load_start, load_end), same if len(comparable) > 1 else None, runs + others
+    )
+    write_markdown(RESULTS, lines, raw)
+
+
+def _metrics_lines(table: list[dict[str, Any]], episodes: int) -> list[str]:
+    """The Table I metrics of each run in `table` beside the paper's, and their interventions by cause."""
+    lines: list[str] = []
     lines += [
-        f"## Metrics on this world ({args.episodes} episodes each, 95 % CI) beside the paper's Table I",
+        f"## Metrics on this world ({episodes} episodes each, 95 % CI) beside the paper's Table I",
         "",
         "| metric | " + " | ".join(_policy_name(r["policy"]) for r in table) + " | paper, garage | paper, outdoor |",
         "|---|" + "---|" * (len(table) + 2),
@@ -159,12 +169,19 @@ def main() -> None:
         "expert here is the privileged controller that sees the true state, a reference for the env.",
         "",
     ]
-    raw = {
+    return lines
+
+
+def _raw_record(
+    cmd: str, world: Path, task: str, loads: tuple[float, float], same: bool | None, runs: list[dict[str, Any]]
+) -> dict[str, Any]:
+    """The benchmark's JSON record: the command, the world, the loads and every run's figures."""
+    return {
         "command": cmd,
         "world": str(world),
-        "task": args.task,
-        "load_average_start_end": [load_start, load_end],
-        "same_metrics_every_worker_count": same if len(comparable) > 1 else None,
+        "task": task,
+        "load_average_start_end": list(loads),
+        "same_metrics_every_worker_count": same,
         "runs": [
             {
                 "policy": _policy_name(r["policy"]),
@@ -176,11 +193,10 @@ def main() -> None:
                 "aggregate": r["metrics"]["aggregate"],
                 "intervention_causes": r["metrics"]["intervention_causes"],
             }
-            for r in runs + others
+            for r in runs
         ],
         "paper_table_i": PAPER_TABLE_I,
     }
-    write_markdown(RESULTS, lines, raw)
 
 
 if __name__ == "__main__":

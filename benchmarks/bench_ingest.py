@@ -180,6 +180,7 @@ def _run_child(mode: str, recording: Path, kind: str, interpolation: str = "area
 
 
 def main() -> None:
+    """Run the benchmark (or, with the hidden worker flags, one measuring subprocess) and write its results."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smoke run: 200 frames")
     parser.add_argument("--frames", type=int, default=2000, help="camera frames per recording (default 2000)")
@@ -199,28 +200,7 @@ def main() -> None:
         print(json.dumps(result))
         return
 
-    n = 200 if args.quick else args.frames
-    rows = []
-    with tempfile.TemporaryDirectory(prefix="bench-ingest-") as tmp:
-        folder = Path(tmp)
-        for kind in ("raw", "jpeg"):
-            for frames in (n // 4, n):
-                t0 = time.perf_counter()
-                rec = make_recording(folder, kind, frames)
-                size_mb = rec.stat().st_size / 1e6
-                print(
-                    f"{kind}: {frames} frames, {size_mb:.0f} MB written in {time.perf_counter() - t0:.1f} s", flush=True
-                )
-                bare = _run_child("bare", rec, kind) if frames == n else None
-                ingest = _run_child("ingest", rec, kind)
-                rows.append((kind, "area", frames, size_mb, bare, ingest))
-                print(f"  bare {bare}\n  ingest {ingest}", flush=True)
-                if frames == n:
-                    linear = _run_child("ingest", rec, kind, "linear")
-                    rows.append((kind, "linear", frames, size_mb, bare, linear))
-                    print(f"  ingest linear {linear}", flush=True)
-                rec.unlink()
-
+    rows = _measure_rows(200 if args.quick else args.frames)
     lines = [
         "# Ingest throughput",
         "",
@@ -242,26 +222,7 @@ def main() -> None:
         "| bare CPU ms/frame | ingest CPU ms/frame | hash s | bare peak RSS MB | ingest peak RSS MB |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for kind, interpolation, frames, size_mb, bare, ingest in rows:
-        name = "Image bgr8" if kind == "raw" else "CompressedImage jpeg"
-        ingest_fps = ingest["frames"] / ingest["wall_s"]
-        ingest_cpu = 1e3 * ingest["cpu_s"] / ingest["frames"]
-        if bare is not None:
-            bare_fps = bare["frames"] / bare["wall_s"]
-            bare_cpu = 1e3 * bare["cpu_s"] / bare["frames"]
-            bare_cols = (
-                f"{bare_fps:.0f}",
-                f"{ingest_fps / bare_fps:.2f}",
-                f"{bare_cpu:.1f}",
-                f"{bare['peak_rss_mb']:.0f}",
-            )
-        else:
-            bare_cols = ("–", "–", "–", "–")
-        lines.append(
-            f"| {name} | {interpolation} | {frames} | {size_mb:.0f} | {bare_cols[0]} | {ingest_fps:.0f} | "
-            f"{bare_cols[1]} | {bare_cols[2]} | {ingest_cpu:.1f} | {ingest['hash_s']:.1f} | {bare_cols[3]} | "
-            f"{ingest['peak_rss_mb']:.0f} |"
-        )
+    lines += [_table_row(*row) for row in rows]
     lines += [
         "",
         f"Load average (1, 5, 15 min) at the end of the run: {', '.join(f'{x:.1f}' for x in os.getloadavg())}.",
@@ -269,6 +230,56 @@ def main() -> None:
     keys = ("camera", "resize", "frames", "recording_mb", "bare", "ingest")
     raw = {"quick": args.quick, "rows": [dict(zip(keys, r, strict=True)) for r in rows]}
     write_markdown(args.out, [*lines, ""], raw)
+
+
+def _measure_rows(n: int) -> list[tuple]:
+    """(camera kind, resize, frames, recording MB, bare figures, ingest figures) per recording: raw and JPEG camera
+    recordings of n / 4 and n frames, each ingested in a subprocess (the longer one also read bare and resized
+    linearly)."""
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench-ingest-") as tmp:
+        folder = Path(tmp)
+        for kind in ("raw", "jpeg"):
+            for frames in (n // 4, n):
+                t0 = time.perf_counter()
+                rec = make_recording(folder, kind, frames)
+                size_mb = rec.stat().st_size / 1e6
+                print(
+                    f"{kind}: {frames} frames, {size_mb:.0f} MB written in {time.perf_counter() - t0:.1f} s", flush=True
+                )
+                bare = _run_child("bare", rec, kind) if frames == n else None
+                ingest = _run_child("ingest", rec, kind)
+                rows.append((kind, "area", frames, size_mb, bare, ingest))
+                print(f"  bare {bare}\n  ingest {ingest}", flush=True)
+                if frames == n:
+                    linear = _run_child("ingest", rec, kind, "linear")
+                    rows.append((kind, "linear", frames, size_mb, bare, linear))
+                    print(f"  ingest linear {linear}", flush=True)
+                rec.unlink()
+    return rows
+
+
+def _table_row(kind: str, interpolation: str, frames: int, size_mb: float, bare: dict | None, ingest: dict) -> str:
+    """One markdown row of the ingest table."""
+    name = "Image bgr8" if kind == "raw" else "CompressedImage jpeg"
+    ingest_fps = ingest["frames"] / ingest["wall_s"]
+    ingest_cpu = 1e3 * ingest["cpu_s"] / ingest["frames"]
+    if bare is not None:
+        bare_fps = bare["frames"] / bare["wall_s"]
+        bare_cpu = 1e3 * bare["cpu_s"] / bare["frames"]
+        bare_cols = (
+            f"{bare_fps:.0f}",
+            f"{ingest_fps / bare_fps:.2f}",
+            f"{bare_cpu:.1f}",
+            f"{bare['peak_rss_mb']:.0f}",
+        )
+    else:
+        bare_cols = ("–", "–", "–", "–")
+    return (
+        f"| {name} | {interpolation} | {frames} | {size_mb:.0f} | {bare_cols[0]} | {ingest_fps:.0f} | "
+        f"{bare_cols[1]} | {bare_cols[2]} | {ingest_cpu:.1f} | {ingest['hash_s']:.1f} | {bare_cols[3]} | "
+        f"{ingest['peak_rss_mb']:.0f} |"
+    )
 
 
 if __name__ == "__main__":

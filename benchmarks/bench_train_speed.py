@@ -116,7 +116,29 @@ def measure(name: str, make_model: Any, steps: int, venv: VecEnv, threads: int =
 
 
 def learner_variants(steps: int, epochs: int, include_slow: bool) -> list[Row]:
+    """Every learner variant of the table, from sb3-contrib's defaults to drivesim's, on the cost-free env."""
     common = {"n_steps": 1024, "batch_size": 512, "n_epochs": epochs, "device": "cpu", "seed": 0, "verbose": 0}
+    rows = _sb3_contrib_rows(steps, common, include_slow)
+    rows += _drivesim_rows(steps, common)
+    plain = {
+        "features_extractor_class": EncoderExtractor,
+        "features_extractor_kwargs": SMALL_CNN,
+        "normalize_images": False,
+        "net_arch": [],
+    }
+    rows.append(
+        measure(
+            "plain PPO, same small CNN (no recurrence: the ceiling)",
+            lambda env: PPO("CnnPolicy", env, policy_kwargs=plain, **common),
+            steps,
+            cost_free_vec(),
+        )
+    )
+    return rows
+
+
+def _sb3_contrib_rows(steps: int, common: dict[str, Any], include_slow: bool) -> list[Row]:
+    """sb3-contrib's RecurrentPPO: its defaults (with `include_slow`), then with our small CNN and fused pass."""
     rows = []
     if include_slow:
         rows.append(
@@ -168,6 +190,13 @@ def learner_variants(steps: int, epochs: int, include_slow: bool) -> list[Row]:
             cost_free_vec(),
         )
     )
+    return rows
+
+
+def _drivesim_rows(steps: int, common: dict[str, Any]) -> list[Row]:
+    """drivesim's chunked recurrent PPO and its variants (threads, CNN, epochs, observation size, envs per step)."""
+    ours = {"conv_layers": SMALL_CNN["conv_layers"], "features_dim": 128, "input_pool": 2}
+    rows = []
     for seq in (16, 32):
         rows.append(
             measure(
@@ -230,20 +259,6 @@ def learner_variants(steps: int, epochs: int, include_slow: bool) -> list[Row]:
             steps,
             cost_free_vec(n_envs=8),
             note="rollout 256 steps per env",
-        )
-    )
-    plain = {
-        "features_extractor_class": EncoderExtractor,
-        "features_extractor_kwargs": SMALL_CNN,
-        "normalize_images": False,
-        "net_arch": [],
-    }
-    rows.append(
-        measure(
-            "plain PPO, same small CNN (no recurrence: the ceiling)",
-            lambda env: PPO("CnnPolicy", env, policy_kwargs=plain, **common),
-            steps,
-            cost_free_vec(),
         )
     )
     return rows
