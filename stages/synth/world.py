@@ -445,9 +445,10 @@ def _merged(meshes: list[Mesh]) -> Mesh:
     """Meshes of one material (and object id) as one mesh."""
     offsets = np.cumsum([0] + [len(m.vertices_m) for m in meshes[:-1]])
     coloured = all(m.vertex_rgb is not None for m in meshes)
+    index_type = np.int32 if offsets[-1] + len(meshes[-1].vertices_m) < 2**31 else np.int64  # half a long road's faces
     return Mesh(
         vertices_m=np.concatenate([m.vertices_m for m in meshes]),
-        faces=np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)]),
+        faces=np.concatenate([(m.faces + o).astype(index_type) for m, o in zip(meshes, offsets, strict=True)]),
         vertex_rgb=np.concatenate([m.vertex_rgb for m in meshes]) if coloured else None,
         material=meshes[0].material,
         object_id=meshes[0].object_id,
