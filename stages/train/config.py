@@ -53,6 +53,9 @@ class PPOConfig(_Section):
     """Passes over the buffer per update."""
     learning_rate: float = Field(3e-4, gt=0.0, le=1.0)
     """Adam learning rate."""
+    learning_rate_end_fraction: float = Field(1.0, ge=0.0, le=1.0)
+    """PPO's and the update phases' learning rates at the budget's end, as a fraction of their start; linear in the
+    budget spent (steps or time, the further); 1: constant."""
     gamma: float = Field(0.99, ge=0.0, le=1.0)
     """Discount factor per step."""
     gae_lambda: float = Field(0.95, ge=0.0, le=1.0)

@@ -21,6 +21,7 @@ from drivesim.pipeline.config import validation_line
 from drivesim.pipeline.errors import ConfigError, DrivesimError, Interrupted
 from drivesim.pipeline.workspace import MANIFEST_NAME
 from drivesim.policy.run_folder import CONFIG_JSON, RUNS_DIR
+from drivesim.stages.train.anneal import anneal_learning_rates
 from drivesim.stages.train.best import BEST_CHECKPOINT, BestPolicy
 from drivesim.stages.train.callbacks import RunState, TrainingCallback
 from drivesim.stages.train.config import TrainConfig
@@ -276,6 +277,7 @@ def train_in_folder(
             extra_checkpoint=lambda: return_stats(venv),
             best=best,
         )
+        anneal_learning_rates(model, cfg, callback.wall_s)
         remaining = cfg.total_steps - model.num_timesteps
         start_steps, start = model.num_timesteps, time.perf_counter()
         if remaining > 0:
