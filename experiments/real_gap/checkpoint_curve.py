@@ -55,12 +55,13 @@ def main() -> None:
     parser.add_argument("run", type=Path, help="a training run folder (runs/<task>-<time>) inside its workspace")
     parser.add_argument("--episodes", type=int, default=1000)
     parser.add_argument("--every", type=int, default=3, help="every Nth step checkpoint (the last one always)")
+    parser.add_argument("--last", type=int, default=0, help="instead of --every: the last N step checkpoints")
     parser.add_argument("--drivesim", default=os.environ.get("DRIVESIM", f"{sys.executable} -m drivesim.cli.main"))
     args = parser.parse_args()
     run = args.run.absolute()
     workspace = run.parent.parent
     steps_ckpts = sorted(run.glob("checkpoints/step-*.pt"))
-    chosen = steps_ckpts[args.every - 1 :: args.every]
+    chosen = steps_ckpts[-args.last :] if args.last else steps_ckpts[args.every - 1 :: args.every]
     if steps_ckpts and steps_ckpts[-1] not in chosen:
         chosen.append(steps_ckpts[-1])
     rows = [(0, run / "checkpoints" / "warm_start.pt", "warm start")]
