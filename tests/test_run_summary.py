@@ -180,6 +180,7 @@ def test_a_recording_gets_the_recording_preset_and_the_demo_preset_only_when_ask
     assert recording["train"]["total_steps"] > demo["train"]["total_steps"]
     assert recording["eval"]["episodes"] == 1000 and recording["eval"]["baseline_episodes"] == 200
     assert recording["train"]["warm_start"]["method"] == "expert" and recording["train"]["towns"] == []
+    assert recording["train"]["ppo"]["learning_rate_end_fraction"] == 0.0  # annealed: the final weights settle
     assert "device" not in recording["train"]  # no GPU: the stage's own default (cpu)
 
 
