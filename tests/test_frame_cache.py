@@ -90,9 +90,9 @@ def test_views_from_the_cache_are_the_views_prepared_in_memory_to_the_bit(tmp_pa
     assert prepared == []
 
 
-def test_the_cache_is_built_once_per_world_and_settings_and_costs_what_its_layout_says(tmp_path, monkeypatch):
-    """A second synthesizer, or two made at the same time, prepare no frame again; the file holds one record per
-    frame: the widened rgb and its float16 depth (8-byte aligned), padded to whole pages."""
+def test_the_cache_is_built_once_per_world_and_settings_and_stores_each_frame_compressed(tmp_path, monkeypatch):
+    """A second synthesizer, or two made at the same time, prepare no frame again; the file holds two LZ4 blocks per
+    frame (the widened rgb and its float16 depth) where the offsets say, smaller than the frames' raw bytes."""
     world = _world(tmp_path)
     prepared = _count_preparations(monkeypatch)
     made: list[ViewSynthesizer] = []
@@ -104,14 +104,26 @@ def test_the_cache_is_built_once_per_world_and_settings_and_costs_what_its_layou
     assert sorted(prepared) == list(range(world.frame_count))  # one build, by one of the two
     ViewSynthesizer(world, ViewConfig(**SMALL))
     assert len(prepared) == world.frame_count
-    layout = made[0]._prepared.layout
+    cache = made[0]._prepared
+    layout = cache.layout
     assert (layout.height_px, layout.width_px, layout.margin_px) == (25, 40, 10)
-    assert 4504 + 25 * 60 * 2 == 7504  # rgb 25 x 60 x 3 = 4500 bytes padded to 8, then float16 depth
-    assert layout.record_bytes == 8192  # a record starts on a page: 7504 bytes padded to 2 x 4096
+    assert (layout.rgb_bytes, layout.depth_bytes) == (25 * 60 * 3, 25 * 60 * 2)
 
     folders = [p for p in (world.root / frame_cache.CACHE_DIR_NAME).iterdir() if p.is_dir()]
     assert len(folders) == 1
-    assert (folders[0] / "frames.bin").stat().st_size == world.frame_count * layout.record_bytes
+    stored = (folders[0] / "frames.bin").stat().st_size
+    assert stored == cache.offsets[-1] and np.all(np.diff(cache.offsets) > 0)
+    assert stored < 0.8 * world.frame_count * (layout.rgb_bytes + layout.depth_bytes)
+
+
+def test_a_truncated_cache_file_is_refused(tmp_path):
+    """A frames.bin shorter than its offsets say (a disk that filled, a copy cut short) is not read."""
+    world = _world(tmp_path)
+    folder = ViewSynthesizer(world, ViewConfig(**SMALL))._prepared.folder
+    with open(folder / "frames.bin", "r+b") as f:
+        f.truncate(int(np.load(folder / "offsets.npy")[-1]) - 1)
+    with pytest.raises(OSError, match="its offsets say"):
+        frame_cache.PreparedFrames(folder)
 
 
 def test_a_changed_setting_or_world_is_never_served_a_stale_cache(tmp_path, monkeypatch):
@@ -174,7 +186,8 @@ def test_a_long_drive_keeps_only_the_frames_in_use_in_memory(tmp_path, monkeypat
     monkeypatch.setattr(view_module, "_FRAME_CACHE_SIZE", 4)
     vs = ViewSynthesizer(world, ViewConfig(**SMALL))
     layout = vs._prepared.layout
-    assert world.frame_count * layout.record_bytes == 61 * 8192
+    frame_bytes = layout.rgb_bytes + layout.depth_bytes
+    assert world.frame_count == 61
     tracemalloc.start()
     try:
         _render_drive(vs, range(world.frame_count))
@@ -182,7 +195,7 @@ def test_a_long_drive_keeps_only_the_frames_in_use_in_memory(tmp_path, monkeypat
     finally:
         tracemalloc.stop()
     held_bytes = sum(stat.size for stat in snapshot.statistics("filename"))
-    assert layout.used_bytes <= held_bytes <= 6 * layout.used_bytes
+    assert frame_bytes <= held_bytes <= 6 * frame_bytes
 
 
 def test_a_world_the_memory_cache_holds_whole_spends_no_disk(tmp_path, monkeypatch):
