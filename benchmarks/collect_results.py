@@ -210,6 +210,8 @@ SECTIONS: tuple[Section, ...] = (
             "scaling.md",
             "scaling.json",
             "scaling.png",
+            "scaling_view_cache.md",
+            "scaling_view_cache.json",
             "storage_fidelity.md",
             "storage_fidelity.json",
             "frame_storage.md",
