@@ -5,6 +5,7 @@ Learning itself is shown by experiments/learning/bench_learning.py, not here."""
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import signal
 import subprocess
@@ -29,6 +30,7 @@ from drivesim.sim.envs.registry import TASK_NAMES
 from drivesim.stages.train.best import BestPolicy
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
+from drivesim.stages.train.envs import EnvSource
 from drivesim.stages.train.recurrent import ChunkedRecurrentPPO
 from drivesim.stages.train.run import build_model
 from drivesim.stages.train.sb3_policy import DrivingLstmPolicy
@@ -144,6 +146,27 @@ def test_rollouts_run_with_their_own_thread_count() -> None:
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def _threads_after_making(env_fn: Any) -> int:
+    env_fn()
+    return torch.get_num_threads()
+
+
+def test_an_env_made_in_the_learners_process_leaves_it_its_threads() -> None:
+    """The learner's torch threads (learner_threads) survive the envs it makes in its own process (the batched
+    envs, the probe, the evaluations); an env made in a worker process takes worker_threads there."""
+    source = EnvSource("overtake", cost_free=True, config=TrainConfig().envs.config, worker_threads=1)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        source.make_env("eval")
+        source.make_vec(2, "dummy", seed=0).close()
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    with multiprocessing.get_context("forkserver").Pool(1) as pool:
+        assert pool.apply(_threads_after_making, (source.env_fn("train"),)) == 1
 
 
 @pytest.fixture(scope="module")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +32,8 @@ class EnvSource:
     :param config: the env config (`EnvsConfig.config`: the task's with the run's keys on top; pydantic models
         pickle for worker processes); None: the task's own (`default_config()`).
     :param cost_free: use `CostFreeDrivingEnv` instead of the simulator (speed of the learner alone; tests).
-    :param worker_threads: torch threads in each subprocess worker.
+    :param worker_threads: torch threads in each subprocess worker (an env made in this process leaves them as they
+        are: the learner's).
     :param processes: worker processes of the batched envs (1: in this process).
     """
 
@@ -113,9 +115,12 @@ class EnvSource:
 class _EnvFn:
     source: EnvSource
     mode: str
+    maker_pid: int = field(default_factory=os.getpid)
+    """The process that made this constructor: an env made there leaves its torch threads to the learner."""
 
     def __call__(self) -> gymnasium.Env:
-        _limit_worker_threads(self.source.worker_threads)
+        if os.getpid() != self.maker_pid:  # a subprocess or Ray worker: one env among several on the cores
+            _limit_worker_threads(self.source.worker_threads)
         if self.source.cost_free:
             from drivesim.stages.train.cost_free_env import CostFreeDrivingEnv
 
