@@ -17,6 +17,7 @@ worlds (leave-one-out) and on an unseen procedural town. `--budget-scale` < 1 sh
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
 import subprocess
@@ -105,7 +106,21 @@ def run_chain(name: str, recording: Path | None, ws: Path, scale: float) -> dict
         worlds = json.loads((runs[-1] / "config.json").read_text()).get("worlds", [])
         entry["trained_on"] = [Path(w).parent.name for w in worlds]
     entry["stages"] = [line.strip() for line in done.stdout.splitlines() if ": done in " in line]
-    return entry
+    return {**entry, **training_budget(entry.get("run"))}
+
+
+def training_budget(run: str | None) -> dict[str, float]:
+    """The PPO env steps a run trained for and their rate over its whole training time (the warm start's included),
+    from its progress.csv's last row; empty when the run folder or the file is gone."""
+    progress = Path(run) / "progress.csv" if run else None
+    if progress is None or not progress.is_file():
+        return {}
+    with progress.open() as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return {}
+    steps, wall_s = float(rows[-1]["steps"]), float(rows[-1]["wall_s"])
+    return {"train_env_steps": int(steps), "train_env_steps_per_s": round(steps / wall_s, 1) if wall_s > 0 else 0.0}
 
 
 def evaluate(ws: Path, policy: str, name: str, episodes: int, world: Path | None = None) -> dict[str, Any]:
@@ -173,13 +188,16 @@ def markdown(result: dict[str, Any]) -> list[str]:
         "",
     ]
     lines += [
-        "| drive | chain wall time | zero-shot: other real drives (success / intervention) | "
+        "| drive | chain wall time | PPO env steps (per s of the training, its warm start included) | "
+        "zero-shot: other real drives (success / intervention) | "
         f"unseen town {result.get('town') or '(not run)'} (success / intervention) | "
         "pass-left / right, static / dynamic success | zero-shot measured |",
-        "|---|---:|---|---|---|---|",
+        "|---|---:|---:|---|---|---|---|",
     ]
     for drive in result["drives"]:
         wall = f"{drive['chain_wall_s'] / 60:.1f} min"
+        steps = drive.get("train_env_steps")
+        budget = f"{steps / 1000:.0f}k ({drive['train_env_steps_per_s']:.0f})" if steps else "not recorded"
         zero = "; ".join(
             f"{other}: {_cell(r.get('success'))} / {_cell(r.get('intervention'))}"
             if "error" not in r
@@ -195,7 +213,7 @@ def markdown(result: dict[str, Any]) -> list[str]:
         split = " / ".join(_cell(scen.get(k)) for k in SCENARIO_ROWS)
         m = drive.get("zero_shot_measured")
         when = f"{m['date_utc']} UTC, code {m['commit']}, {m['episodes']} episodes" if m else "n/a"
-        lines.append(f"| {drive['drive']} | {wall} | {zero or 'n/a'} | {town_text} | {split} | {when} |")
+        lines.append(f"| {drive['drive']} | {wall} | {budget} | {zero or 'n/a'} | {town_text} | {split} | {when} |")
     return lines + [""]
 
 
@@ -209,7 +227,8 @@ def merge_results(results: list[dict[str, Any]]) -> dict[str, Any]:
             zero_shot = drive.get("zero_shot_measured")
             if not zero_shot and (drive.get("zero_shot") or drive.get("unseen_town")):
                 zero_shot = result.get("zero_shot_measured")
-            drives[drive["drive"]] = {**drive, "measured": own, "zero_shot_measured": zero_shot}
+            budget = {} if "train_env_steps" in drive else training_budget(drive.get("run"))
+            drives[drive["drive"]] = {**drive, **budget, "measured": own, "zero_shot_measured": zero_shot}
     newest = max(results, key=lambda r: r["measured"]["date_utc"])
     return {**newest, "commit": "per drive, below", "drives": [drives[name] for name in DRIVES if name in drives]}
 
