@@ -112,7 +112,7 @@ class FrameLayout:
 
 class PreparedFrames:
     """A built cache folder opened for reading (module docstring): `read(i)` gives frame i as the view prepares it,
-    as new arrays decoded from its blocks in the file."""
+    as new arrays decoded from its LZ4 block in the file."""
 
     def __init__(self, folder: Path) -> None:
         self.folder = Path(folder)
