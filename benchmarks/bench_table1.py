@@ -50,7 +50,14 @@ SCENARIO_ROWS = (
 """The report's scenario rows (`stages.evaluate.metrics.scenario_table`) the second table shows, in its order."""
 ROWS = ("random", "straight", "expert", "warm start", "final policy")
 UNSEEN_TOWN = 101
-FULL = {"total_steps": 1_000_000, "time_limit_s": 2400.0, "buffer_steps": 8192, "warm_steps": 8192, "warm_rounds": 8}
+FULL = {
+    "total_steps": 1_000_000,
+    "time_limit_s": 3600.0,
+    "chain_budget_s": 3600.0,
+    "buffer_steps": 8192,
+    "warm_steps": 8192,
+    "warm_rounds": 8,
+}
 
 
 def drivesim(ws: Path, *args: str, timeout_s: float | None = None) -> tuple[subprocess.CompletedProcess[str], float]:
@@ -75,6 +82,7 @@ def budget_overrides(scale: float) -> list[str]:
     sets = {
         "train.total_steps": max(buffer, int(FULL["total_steps"] * scale)),
         "train.time_limit_s": max(60.0, FULL["time_limit_s"] * scale),
+        "chain.budget_s": max(600.0, FULL["chain_budget_s"] * scale),
         "train.ppo.buffer_steps": buffer,
         "train.ppo.minibatch_steps": min(512, buffer // 2),
         "train.warm_start.iterations": max(1, round(FULL["warm_rounds"] * scale)),

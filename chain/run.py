@@ -12,6 +12,9 @@ that read files outside the workspace get a runner here (meshes: imported mesh f
 names, built first, and a new run folder unless a finished run of the same config and worlds exists, or an
 unfinished one that it continues from its last checkpoint; eval and export: the run that train made).
 
+A run preset's `chain` section is the budget of the whole command (`chain/budget.py`): training stops at what the
+stages before it left of it.
+
 On several recordings (`run_chain(..., more_recordings=[...])`) each recording first goes through the world-making
 stages in its own workspace (`chain/recordings.py`), then the rest of the chain runs once: train on every world, eval
 in every world.
@@ -20,11 +23,13 @@ in every world.
 from __future__ import annotations
 
 import functools
+import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from drivesim.chain.budget import ChainBudget, chain_budget
 from drivesim.chain.walk import StageRun, Walk, deep_merge, run_ingest, walk_chain
 from drivesim.pipeline.config import StageConfig, load_yaml_text, parse_override, preset_path, read_config_text
 from drivesim.pipeline.errors import ConfigError, DrivesimError
@@ -145,8 +150,16 @@ def _unfinished_run(ws: Workspace, cfg: StageConfig, towns: list[Path]) -> Path 
     return max(found)[1] if found else None
 
 
-def _run_train(walk: Walk, spec: StageSpec, cfg: StageConfig, recordings: Sequence[Path] = ()) -> StageResult:
-    """Train on the workspace's world, then the further recordings' worlds (`recordings`), then the towns."""
+def _run_train(
+    walk: Walk,
+    spec: StageSpec,
+    cfg: StageConfig,
+    recordings: Sequence[Path] = (),
+    budget: ChainBudget | None = None,
+    began: float = 0.0,
+) -> StageResult:
+    """Train on the workspace's world, then the further recordings' worlds (`recordings`), then the towns; with a
+    `budget`, until what the chain that began at the monotonic time `began` has left for training."""
     from drivesim.chain.towns import training_towns
     from drivesim.stages.train.stage import run_training
 
@@ -158,7 +171,8 @@ def _run_train(walk: Walk, spec: StageSpec, cfg: StageConfig, recordings: Sequen
         # The further recordings' worlds go to the train stage the way the towns' do: extra worlds after its own.
         extra = [*recordings, *training_towns(walk.ws, cfg)]  # type: ignore[arg-type]
         unfinished = None if walk.force else _unfinished_run(walk.ws, cfg, extra)
-        result = run_training(walk.ws, cfg, towns=extra, resume=unfinished)  # type: ignore[arg-type]
+        stop_by = None if budget is None else budget.training_stop_by(began, time.monotonic())
+        result = run_training(walk.ws, cfg, towns=extra, resume=unfinished, stop_by=stop_by)  # type: ignore[arg-type]
     walk.run_dir = result.path
     return result
 
@@ -251,12 +265,20 @@ def run_chain(
     from drivesim.chain.recordings import forget_set
     from drivesim.chain.registry import CHAIN
 
+    began = time.monotonic()
+    budget = chain_budget(overrides)
     _check_eval_entry_point(overrides, trust_entry_point)
     if more_recordings:
         if recording is None:
             raise ConfigError("several recordings: give the first one too (the demo drive is for a run on none)")
-        return _run_several(ws, [recording, *more_recordings], overrides, force, on_stage, trust_entry_point)
-    runners = {**RUNNERS, "eval": functools.partial(_run_eval, trust_entry_point=trust_entry_point)}
+        return _run_several(
+            ws, [recording, *more_recordings], overrides, force, on_stage, trust_entry_point, budget, began
+        )
+    runners = {
+        **RUNNERS,
+        "train": functools.partial(_run_train, budget=budget, began=began),
+        "eval": functools.partial(_run_eval, trust_entry_point=trust_entry_point),
+    }
     done = walk_chain(ws, recording, overrides, CHAIN, runners, force=force, on_stage=on_stage)
     forget_set(ws)  # a later `drivesim eval` evaluates in this recording's world alone
     return _chain_run(done)
@@ -269,6 +291,8 @@ def _run_several(
     force: bool,
     on_stage: Callable[[StageRun], None] | None,
     trust_entry_point: bool,
+    budget: ChainBudget,
+    began: float,
 ) -> ChainRun:
     """The chain on several recordings: each one's world-making stages (the first in the workspace, the others in
     `drives/<name>/`), then meshes, train on every world, eval in every world, export, once."""
@@ -283,7 +307,7 @@ def _run_several(
     further = [drive.world for drive in drives[1:]]
     runners = {
         **RUNNERS,
-        "train": functools.partial(_run_train, recordings=further),
+        "train": functools.partial(_run_train, recordings=further, budget=budget, began=began),
         "eval": functools.partial(
             _run_eval, trust_entry_point=trust_entry_point, worlds=[drive.world for drive in drives]
         ),

@@ -145,11 +145,14 @@ def chain_configs(chain: tuple[StageSpec, ...], overrides: dict[str, Any]) -> li
     """Every stage's config in order, checked before anything runs: a stage name outside the chain or a typo in the
     preset is one line.
 
-    :param overrides: stage name -> config overrides (a run preset); `synth` is accepted beside the chain's names.
+    :param overrides: stage name -> config overrides (a run preset); `synth` and the chain's budget (`chain`,
+        `chain/budget.py`) are accepted beside the chain's names.
     """
-    unknown = sorted(set(overrides) - {SYNTH, *(spec.name for spec in chain)})
+    from drivesim.chain.budget import CHAIN_SECTION
+
+    unknown = sorted(set(overrides) - {SYNTH, CHAIN_SECTION, *(spec.name for spec in chain)})
     if unknown:
-        names = ", ".join([SYNTH, *(spec.name for spec in chain)])
+        names = ", ".join([SYNTH, CHAIN_SECTION, *(spec.name for spec in chain)])
         raise ConfigError(f"run preset: unknown stage(s) {', '.join(unknown)}; stages: {names}")
     return [stage_config(spec.config_model, spec.preset, overrides.get(spec.name, {}), spec.name) for spec in chain]
 

@@ -54,7 +54,7 @@ def run_command(
         str | None,
         typer.Option(
             "--preset",
-            help="Run preset in configs/run/: recording (the default, at most 40 min of training), demo (5.5 min on "
+            help="Run preset in configs/run/: recording (the default, the whole chain in an hour), demo (5.5 min on "
             "a quiet 2-core VM), lane (a lane-keeping policy) or full.",
             show_default=False,
         ),
@@ -143,7 +143,11 @@ def _print_chain_result(result: ChainRun) -> None:
     from drivesim.cli.result import print_result, print_worlds
 
     total_s = sum(s.wall_s for s in result.stages)
-    console.print(f"[bold green]chain finished[/] in {total_s / 60:.1f} min", highlight=False)
+    trained = next((s.summary for s in result.stages if s.stage == "train" and not s.skipped), {})
+    training = ""
+    if trained.get("wall_s") is not None and trained.get("steps") is not None:
+        training = f" (training {trained['wall_s'] / 60:.1f} min, {trained['steps']} env steps)"
+    console.print(f"[bold green]chain finished[/] in {total_s / 60:.1f} min{training}", highlight=False)
     if result.report_html is not None:
         print_worlds(result.report_html.parent / "metrics.json")  # several recordings: a row each and pooled
         print_result(result.report_html.parent, report_line=False)  # the Table I rows and the worlds trained on

@@ -50,6 +50,8 @@ def test_run_walks_the_chain_then_skips_it(tmp_path: Path) -> None:
     tiny.write_text(yaml.safe_dump(TINY))
     ws = tmp_path / "ws"
     args = ["run", "--preset", "demo", "--config", str(tiny), "--set", "preprocess.depth.method=plane"]
+    # Training gets what the stages before it left of the hour; a re-run still finds the run fresh.
+    args += ["--set", "chain.budget_s=3600", "--set", "train.time_limit_s=3600"]
     done = drivesim(ws, *args, "--trust-entry-point")
     assert done.returncode == 0, done.stderr[-2000:]
     out = done.stdout
@@ -62,6 +64,10 @@ def test_run_walks_the_chain_then_skips_it(tmp_path: Path) -> None:
     assert len(report_lines) == 1
     report = Path(report_lines[0][len("report: ") :])
     assert report.is_file() and report.parent.parent == ws / "eval"
+    assert "chain finished in " in out and " env steps)" in out  # with the training's time and steps
+    run_dir = next((ws / "runs").iterdir())
+    time_limit_s = json.loads((run_dir / "manifest.json").read_text())["summary"]["time_limit_s"]
+    assert 3000 < time_limit_s <= 3600 - 420  # the hour less what eval and export keep, less the stages before
     check = json.loads((ws / "export" / "check.json").read_text())
     assert check["max_abs_diff"] <= 1e-4 and Path(check["run"]).parent == ws / "runs"
 

@@ -176,7 +176,8 @@ def test_a_recording_gets_the_recording_preset_and_the_demo_preset_only_when_ask
     assert chain_run.choose_run_preset("demo") == "demo"
     recording = chain_run.load_run_preset(chain_run.choose_run_preset(None))
     demo = chain_run.load_run_preset("demo")
-    assert demo["train"]["time_limit_s"] < recording["train"]["time_limit_s"] <= 2400  # at most 40 min of training
+    assert demo["train"]["time_limit_s"] < recording["train"]["time_limit_s"] <= 3600
+    assert recording["chain"]["budget_s"] == 3600  # the whole chain in an hour: training gets what is left of it
     assert recording["train"]["total_steps"] > demo["train"]["total_steps"]
     assert recording["eval"]["episodes"] == 1000 and recording["eval"]["baseline_episodes"] == 200
     assert recording["train"]["warm_start"]["method"] == "expert" and recording["train"]["towns"] == []

@@ -31,20 +31,24 @@ def learning_rate_factor(spent: float, end_fraction: float) -> float:
     return 1.0 - (1.0 - end_fraction) * spent
 
 
-def anneal_learning_rates(model: Any, cfg: TrainConfig, wall_s: Callable[[], float]) -> None:
+def anneal_learning_rates(
+    model: Any, cfg: TrainConfig, wall_s: Callable[[], float], time_limit_s: float | None = None
+) -> None:
     """Make `model`'s PPO learning rate and those of its update phases (the hooks holding an `optimizer`: the imitation
     regularizer, the lane target) follow the budget spent, down to `cfg.ppo.learning_rate_end_fraction` of their
     start at its end; nothing changes when that is 1.
 
     :param model: the ChunkedRecurrentPPO, its update phases already added. :param cfg: the run's config.
     :param wall_s: the run's training wall time so far, across resumes [s].
+    :param time_limit_s: the run's training time limit [s] where it is not cfg.time_limit_s (a chain's budget).
     """
     learning_rate, end_fraction = cfg.ppo.learning_rate, cfg.ppo.learning_rate_end_fraction
+    limit_s = cfg.time_limit_s if time_limit_s is None else time_limit_s
     if end_fraction >= 1.0:
         return
 
     def factor() -> float:
-        spent = budget_spent(model.num_timesteps, cfg.total_steps, wall_s(), cfg.time_limit_s)
+        spent = budget_spent(model.num_timesteps, cfg.total_steps, wall_s(), limit_s)
         return learning_rate_factor(spent, end_fraction)
 
     # SB3 reads lr_schedule at the start of every update (`_update_learning_rate`); its own progress counts steps only

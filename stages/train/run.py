@@ -66,6 +66,7 @@ class TrainOutcome:
     warm_start: dict[str, float]
     policy_steps: int = 0
     policy_eval: dict[str, float] = field(default_factory=dict)
+    time_limit_s: float | None = None
 
 
 def new_run_dir(workspace_root: Path, task: str) -> Path:
@@ -238,12 +239,20 @@ def _restore(model: ChunkedRecurrentPPO, path: Path, venv: VecNormalize) -> dict
 
 
 def train_in_folder(
-    run_dir: Path, cfg: TrainConfig, source: EnvSource, report: Callable[[str], None] = print, progress: Any = None
+    run_dir: Path,
+    cfg: TrainConfig,
+    source: EnvSource,
+    report: Callable[[str], None] = print,
+    progress: Any = None,
+    stop_by: float | None = None,
 ) -> TrainOutcome:
     """Train (or continue training) the run in `run_dir` until cfg.total_steps; write every file but the manifest.
 
     The folder holds after every PPO update a checkpoint and progress.csv, so a crash or Ctrl-C loses at most the
     rollout under way; calling this again on the same folder continues from the last checkpoint.
+
+    :param stop_by: a `time.monotonic()` time by which learning stops, besides cfg.time_limit_s (a chain's budget:
+        `chain/budget.py`); the learning rates anneal over whichever comes first.
     """
     torch.set_num_threads(cfg.learner_threads)
     last = run_dir / CHECKPOINTS / LAST_CHECKPOINT
@@ -262,6 +271,9 @@ def train_in_folder(
         model.set_logger(configure(str(run_dir / "tb"), ["tensorboard"]))
         _add_update_phases(model, cfg, labelled, placed, env_config)
         state, figures = _starting_state(model, run_dir, cfg, venv, report)
+        time_limit_s = effective_time_limit_s(cfg.time_limit_s, state.wall_s, stop_by)
+        if time_limit_s is not None and time_limit_s != cfg.time_limit_s:
+            report(f"training until {time_limit_s / 60:.1f} min of training time: the chain's budget leaves that")
         best = BestPolicy.load(run_dir / CHECKPOINTS / BEST_CHECKPOINT) if evaluator is not None else None
         callback = TrainingCallback(
             run_dir,
@@ -273,11 +285,11 @@ def train_in_folder(
             cfg.checkpoint_every_steps,
             progress=progress,
             timing=lambda: {**model.time_s, "simulator": timed.step_time_s},
-            time_limit_s=cfg.time_limit_s,
+            time_limit_s=time_limit_s,
             extra_checkpoint=lambda: return_stats(venv),
             best=best,
         )
-        anneal_learning_rates(model, cfg, callback.wall_s)
+        anneal_learning_rates(model, cfg, callback.wall_s, time_limit_s)
         remaining = cfg.total_steps - model.num_timesteps
         start_steps, start = model.num_timesteps, time.perf_counter()
         if remaining > 0:
@@ -312,11 +324,21 @@ def train_in_folder(
             policy_eval={"success_rate": kept_best.success_rate, "return_mean": kept_best.return_mean}
             if kept_best is not None
             else {},
+            time_limit_s=time_limit_s,
         )
     finally:
         venv.close()
         if evaluator is not None:
             evaluator.close()
+
+
+def effective_time_limit_s(time_limit_s: float | None, trained_s: float, stop_by: float | None) -> float | None:
+    """The run's training time limit [s]: `time_limit_s`, or less where the monotonic time `stop_by` comes first
+    (`trained_s` of the run's training time already spent); None for neither."""
+    if stop_by is None:
+        return time_limit_s
+    by_deadline = trained_s + max(stop_by - time.monotonic(), 0.0)
+    return by_deadline if time_limit_s is None else min(time_limit_s, by_deadline)
 
 
 def _periodic_evaluator(cfg: TrainConfig, source: EnvSource) -> PeriodicEvaluator | None:

@@ -9,6 +9,7 @@ finished files, write manifest.json and move the folder into place. `run_trainin
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
@@ -38,7 +39,7 @@ def _meshes_of(ws: Workspace) -> Path | None:
     return folder
 
 
-def _build(ctx: BuildContext) -> TrainSummary:
+def _build(ctx: BuildContext, stop_by: float | None = None) -> TrainSummary:
     from drivesim.pipeline.progress import console, progress_bar
     from drivesim.stages.train.envs import EnvSource
     from drivesim.stages.train.run import TrainingInterruptedError, train_in_folder
@@ -69,7 +70,7 @@ def _build(ctx: BuildContext) -> TrainSummary:
             console.print(line, highlight=False, soft_wrap=True)
 
         with progress_bar("train", total=cfg.total_steps) as bar:
-            outcome = train_in_folder(run_dir, cfg, source, report=report, progress=bar)
+            outcome = train_in_folder(run_dir, cfg, source, report=report, progress=bar, stop_by=stop_by)
     except Interrupted:
         raise
     except KeyboardInterrupt as e:  # outside the PPO updates (setup, warm start, final files): say how to go on
@@ -100,6 +101,7 @@ def _build(ctx: BuildContext) -> TrainSummary:
         policy_eval_success_rate=outcome.policy_eval.get("success_rate"),
         warm_start=cfg.warm_start.method != "none",
         worlds=[str(w) for w in source.worlds],
+        time_limit_s=None if outcome.time_limit_s is None else round(outcome.time_limit_s, 1),
     )
 
 
@@ -185,6 +187,7 @@ def run_training(
     resume: Path | None = None,
     on_start: Callable[[Path], None] | None = None,
     towns: list[Path] | None = None,
+    stop_by: float | None = None,
 ) -> StageResult[TrainSummary]:
     """Train a policy in a new run folder (or continue the unfinished run `resume`) and finish it with a manifest.
 
@@ -196,6 +199,8 @@ def run_training(
         reopens a finished run to train it further, and prints its header).
     :param towns: the world folders of the towns `cfg.towns` names, built upstream (`chain.towns.training_towns`);
         added after `worlds`. Refused when the config names towns and none are given.
+    :param stop_by: a `time.monotonic()` time by which learning stops besides cfg.time_limit_s (`drivesim run`'s
+        budget for the whole chain); not part of the run's config, so a re-run of the chain still finds the run.
     """
     from drivesim.stages.train.run import new_run_dir
 
@@ -207,6 +212,8 @@ def run_training(
     if cfg.ensemble > 1 and resume is None:
         return _train_ensemble(ws, cfg, worlds, on_start, towns)
     spec, external = training_inputs(ws, cfg, worlds, towns)
+    if stop_by is not None:
+        spec = replace(spec, build=functools.partial(_build, stop_by=stop_by))
     for upstream in spec.requires:  # a missing world is one line before the header names a run folder
         ws.require(upstream, spec.upstream_hints.get(upstream, f"drivesim {upstream}"))
     run_dir = resume if resume is not None else new_run_dir(ws.root, cfg.task)  # created: no other run takes it

@@ -44,3 +44,5 @@ class TrainSummary(StageSummary):
     """Whether the policy was warm-started from the expert."""
     worlds: list[str] = []
     """World folders trained on."""
+    time_limit_s: float | None = None
+    """Training time limit the run stopped at [s]: the config's, or what `drivesim run`'s budget left (None: none)."""
