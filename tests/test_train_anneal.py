@@ -56,6 +56,15 @@ def test_ppo_and_phase_rates_follow_the_budget() -> None:
     assert model.lr_schedule(1.0) == pytest.approx(cfg.ppo.learning_rate * 0.25)
 
 
+def test_a_shorter_time_limit_given_to_the_run_sets_the_pace() -> None:
+    """`drivesim run`'s budget can leave less than the config's time limit: the rates fall over what it left."""
+    cfg = load_config(TrainConfig, preset="train/lane", overrides=[*SMALL, "total_steps=1000000", "time_limit_s=100"])
+    cfg = cfg.model_copy(update={"ppo": cfg.ppo.model_copy(update={"learning_rate_end_fraction": 0.0})})
+    model = _fake_model(1e-3)
+    anneal_learning_rates(model, cfg, lambda: 25.0, time_limit_s=50.0)
+    assert model.lr_schedule(1.0) == pytest.approx(cfg.ppo.learning_rate * 0.5)  # half of 50 s, not a quarter of 100
+
+
 def test_end_fraction_one_changes_nothing() -> None:
     cfg = load_config(TrainConfig, preset="train/lane", overrides=[*SMALL, "total_steps=1000"])
     model = _fake_model(1e-3)

@@ -290,23 +290,9 @@ def train_in_folder(
             best=best,
         )
         anneal_learning_rates(model, cfg, callback.wall_s, time_limit_s)
-        remaining = cfg.total_steps - model.num_timesteps
-        start_steps, start = model.num_timesteps, time.perf_counter()
-        if remaining > 0:
-            try:
-                model.learn(remaining, callback=callback, reset_num_timesteps=False)
-            except KeyboardInterrupt:
-                kept = int(callback.state.rows[-1]["steps"]) if callback.state.rows else 0
-                raise TrainingInterruptedError(
-                    f"interrupted at {kept} env steps; the run keeps everything up to the last update in {run_dir}; "
-                    f"continue with `drivesim train --resume {run_dir}`"
-                ) from None
-        elapsed = time.perf_counter() - start
+        start_steps, elapsed = _learn(model, callback, cfg.total_steps, run_dir)
         if evaluator is not None and state.rows and "eval_success_rate" not in state.rows[-1]:
-            state.rows[-1].update(evaluator(model.policy))  # stopped by the time limit: evaluate the final policy
-            write_progress(run_dir / PROGRESS_CSV, state.rows)
-            if best is not None:
-                best.offer(state.rows[-1], int(model.num_timesteps), callback.policy_checkpoint)
+            _evaluate_final_policy(model, callback, evaluator, best, run_dir)  # stopped by the time limit
         kept_best = best if cfg.eval.keep_best and best is not None and best.success_rate is not None else None
         policy_steps = _write_chosen_policy(run_dir, cfg, model, venv, kept_best, max_curvature, report)
         if state.rows:
@@ -330,6 +316,41 @@ def train_in_folder(
         venv.close()
         if evaluator is not None:
             evaluator.close()
+
+
+def _learn(
+    model: ChunkedRecurrentPPO, callback: TrainingCallback, total_steps: int, run_dir: Path
+) -> tuple[int, float]:
+    """PPO until `total_steps` env steps or the callback's time limit; (env steps at the start, seconds learning).
+    Ctrl-C ends it with one line saying how to continue the run."""
+    remaining = total_steps - model.num_timesteps
+    start_steps, start = model.num_timesteps, time.perf_counter()
+    if remaining > 0:
+        try:
+            model.learn(remaining, callback=callback, reset_num_timesteps=False)
+        except KeyboardInterrupt:
+            kept = int(callback.state.rows[-1]["steps"]) if callback.state.rows else 0
+            raise TrainingInterruptedError(
+                f"interrupted at {kept} env steps; the run keeps everything up to the last update in {run_dir}; "
+                f"continue with `drivesim train --resume {run_dir}`"
+            ) from None
+    return start_steps, time.perf_counter() - start
+
+
+def _evaluate_final_policy(
+    model: ChunkedRecurrentPPO,
+    callback: TrainingCallback,
+    evaluator: PeriodicEvaluator,
+    best: BestPolicy | None,
+    run_dir: Path,
+) -> None:
+    """The held-back evaluation of the last update's weights, added to the last progress row (and offered as the best
+    policy), for a run that stopped between two evaluations."""
+    rows = callback.state.rows
+    rows[-1].update(evaluator(model.policy))
+    write_progress(run_dir / PROGRESS_CSV, rows)
+    if best is not None:
+        best.offer(rows[-1], int(model.num_timesteps), callback.policy_checkpoint)
 
 
 def effective_time_limit_s(time_limit_s: float | None, trained_s: float, stop_by: float | None) -> float | None:
