@@ -118,8 +118,8 @@ def run_chain(name: str, recording: Path | None, ws: Path, scale: float) -> dict
 
 
 def training_budget(run: str | None) -> dict[str, float]:
-    """The PPO env steps a run trained for and their rate over its whole training time (the warm start's included),
-    from its progress.csv's last row; empty when the run folder or the file is gone."""
+    """The PPO env steps a run trained for, their rate over its whole training time (the warm start's included) and
+    that time, from its progress.csv's last row; empty when the run folder or the file is gone."""
     progress = Path(run) / "progress.csv" if run else None
     if progress is None or not progress.is_file():
         return {}
@@ -128,7 +128,11 @@ def training_budget(run: str | None) -> dict[str, float]:
     if not rows:
         return {}
     steps, wall_s = float(rows[-1]["steps"]), float(rows[-1]["wall_s"])
-    return {"train_env_steps": int(steps), "train_env_steps_per_s": round(steps / wall_s, 1) if wall_s > 0 else 0.0}
+    return {
+        "train_env_steps": int(steps),
+        "train_env_steps_per_s": round(steps / wall_s, 1) if wall_s > 0 else 0.0,
+        "train_wall_s": round(wall_s, 1),
+    }
 
 
 def evaluate(ws: Path, policy: str, name: str, episodes: int, world: Path | None = None) -> dict[str, Any]:
@@ -206,6 +210,8 @@ def markdown(result: dict[str, Any]) -> list[str]:
         wall = f"{drive['chain_wall_s'] / 60:.1f} min"
         steps = drive.get("train_env_steps")
         budget = f"{steps / 1000:.0f}k ({drive['train_env_steps_per_s']:.0f})" if steps else "not recorded"
+        if steps and drive.get("train_wall_s"):
+            budget += f" in {drive['train_wall_s'] / 60:.1f} min"
         zero = "; ".join(
             f"{other}: {_cell(r.get('success'))} / {_cell(r.get('intervention'))}"
             if "error" not in r
@@ -235,7 +241,7 @@ def merge_results(results: list[dict[str, Any]]) -> dict[str, Any]:
             zero_shot = drive.get("zero_shot_measured")
             if not zero_shot and (drive.get("zero_shot") or drive.get("unseen_town")):
                 zero_shot = result.get("zero_shot_measured")
-            budget = {} if "train_env_steps" in drive else training_budget(drive.get("run"))
+            budget = {} if "train_wall_s" in drive else training_budget(drive.get("run"))
             drives[drive["drive"]] = {**drive, **budget, "measured": own, "zero_shot_measured": zero_shot}
     newest = max(results, key=lambda r: r["measured"]["date_utc"])
     return {**newest, "commit": "per drive, below", "drives": [drives[name] for name in DRIVES if name in drives]}
