@@ -94,6 +94,34 @@ def budget_overrides(scale: float) -> list[str]:
     return [a for key, value in sets.items() for a in ("--set", f"{key}={value}")]
 
 
+def preset_budgets(scale: float) -> dict[str, float | None]:
+    """The recording preset's budgets a chain runs with (after `budget_overrides(scale)`): the chain's wall-time
+    budget, training's own time limit and the learning rates' end fraction."""
+    from drivesim.chain.run import RECORDING_PRESET, load_run_preset
+
+    preset = load_run_preset(RECORDING_PRESET, overrides=budget_overrides(scale)[1::2])
+    train = preset.get("train", {})
+    return {
+        "chain_budget_s": preset.get("chain", {}).get("budget_s"),
+        "train_time_limit_s": train.get("time_limit_s"),
+        "learning_rate_end_fraction": train.get("ppo", {}).get("learning_rate_end_fraction"),
+    }
+
+
+def _budget_text(budgets: dict[str, float | None] | None) -> str:
+    """A drive's preset budgets in words ("" when not recorded)."""
+    if not budgets:
+        return ""
+    chain_s, limit_s = budgets.get("chain_budget_s"), budgets.get("train_time_limit_s")
+    parts = [f"the chain {chain_s / 60:.0f} min" if chain_s else "no chain budget"]
+    parts.append(f"training at most {limit_s / 60:.0f} min" if limit_s else "no training time limit")
+    end_fraction = budgets.get("learning_rate_end_fraction")
+    if end_fraction is not None:
+        annealed = "zero" if end_fraction == 0 else f"{end_fraction:g} of their start"
+        parts.append("constant learning rates" if end_fraction >= 1 else f"learning rates annealed to {annealed}")
+    return "; preset: " + ", ".join(parts)
+
+
 def _one_line(done: subprocess.CompletedProcess[str]) -> str:
     lines = (done.stderr.strip() or done.stdout.strip() or f"exit {done.returncode}").splitlines()
     return lines[-1][:300]
@@ -105,6 +133,7 @@ def run_chain(name: str, recording: Path | None, ws: Path, scale: float) -> dict
     done, wall_s = drivesim(ws, *args)
     entry: dict[str, Any] = {"drive": name, "recording": None if recording is None else str(recording)}
     entry.update(command="drivesim run" + ("" if recording is None else " REC") + (" (scaled)" if scale < 1 else ""))
+    entry["budgets"] = preset_budgets(scale)
     entry["chain_wall_s"] = round(wall_s, 1)
     if done.returncode != 0:
         return {**entry, "error": _one_line(done)}
@@ -255,7 +284,8 @@ def _measured_lines(result: dict[str, Any]) -> list[str]:
         if m:
             loads = m.get("load_average_1_5_15_min")
             load = f"load {loads[0]} at the start" if loads else m.get("load_note", "load not recorded")
-            lines.append(f"- {drive['drive']}: {m['date_utc']} UTC, {load}, code {m.get('commit')}")
+            budgets = _budget_text(drive.get("budgets"))
+            lines.append(f"- {drive['drive']}: {m['date_utc']} UTC, {load}, code {m.get('commit')}{budgets}")
     return ["Each drive's chain started:", "", *lines, ""] if lines else []
 
 
