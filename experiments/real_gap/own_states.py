@@ -39,7 +39,7 @@ def policy_episode(env: Any, seed: int, policy: Any) -> dict[str, Any]:
     side; the episode's side and end."""
     env.reset_state(seed)
     side = 1.0 if env.expert_target_offset() > 0.0 else -1.0  # + = the ego passes on the left
-    state, start, steps, info = None, True, [], {}
+    state, start, steps, info, unseen = None, True, [], {}, 0
     while True:
         rgb, mask = render_with_mask(env)
         obs = env.observation_from(rgb)
@@ -47,7 +47,8 @@ def policy_episode(env: Any, seed: int, policy: Any) -> dict[str, Any]:
         start = False
         steer = float(action[0, 0])
         expert = float(env.expert_action()[0])
-        steps.append((phase_of(env, bool(mask.any())), abs(steer - expert), (steer - expert) * side))
+        unseen = 0 if mask.any() else unseen + 1
+        steps.append((phase_of(env, bool(mask.any())), abs(steer - expert), (steer - expert) * side, unseen))
         _, terminated, truncated, info = env.advance(np.array([steer], dtype=np.float32))
         if terminated or truncated:
             break
@@ -72,6 +73,20 @@ def summarize(episodes: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+UNSEEN_BINS = ((1, 5), (6, 10), (11, 16), (17, 10_000))
+"""Steps since the other car was last in view (beside, out of view): 16 is the LSTM's training chunk."""
+
+
+def by_time_out_of_view(episodes: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """Beside and out of view: the mean signed error by steps since the car was last in view."""
+    out = {}
+    for low, high in UNSEEN_BINS:
+        steps = [s for e in episodes for s in e["steps"] if s[0] == PHASES[1] and low <= s[3] <= high]
+        signed = float(np.mean([s[2] for s in steps])) if steps else float("nan")
+        out[f"{low}-{high}" if high < 10_000 else f"{low}+"] = {"steps": len(steps), "signed_error": signed}
+    return out
+
+
 def markdown(name: str, args: argparse.Namespace, results: dict[str, dict[str, Any]]) -> str:
     """The results as a markdown report."""
     lines = [
@@ -92,6 +107,17 @@ def markdown(name: str, args: argparse.Namespace, results: dict[str, dict[str, A
                     f"| {policy} | {summary['episodes']} | {summary['success']:.3f} | {group} | {phase} | "
                     f"{row['steps']} | {row['abs_error']:.3f} | {row['signed_error']:+.3f} |"
                 )
+    lines += [
+        "",
+        "Beside and out of view, by steps since the car was last in view (10 steps a second; the LSTM trains on "
+        "16-step chunks): steps, mean signed error",
+        "",
+        "| policy | " + " | ".join(results[next(iter(results))]["by_time_out_of_view"]) + " |",
+        "|---|" + "---:|" * len(UNSEEN_BINS),
+    ]
+    for policy, summary in results.items():
+        cells = [f"{r['steps']}: {r['signed_error']:+.3f}" for r in summary["by_time_out_of_view"].values()]
+        lines.append(f"| {policy} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -106,7 +132,8 @@ def main() -> None:
     env = make_env(args.world, args.meshes, {})
     results = {}
     for label, policy in load_policies(args.run).items():
-        results[label] = summarize([policy_episode(env, seed, policy) for seed in range(args.episodes)])
+        episodes = [policy_episode(env, seed, policy) for seed in range(args.episodes)]
+        results[label] = {**summarize(episodes), "by_time_out_of_view": by_time_out_of_view(episodes)}
         print(label, json.dumps(results[label]["all"]), flush=True)
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"own_states_{args.name}.json").write_text(json.dumps(results, indent=2) + "\n")
