@@ -66,8 +66,8 @@ def summarize(episodes: list[dict[str, Any]]) -> dict[str, Any]:
             steps = [s for e in members for s in e["steps"] if phase == "all steps" or s[0] == phase]
             rows[phase] = {
                 "steps": len(steps),
-                "abs_error": float(np.mean([s[1] for s in steps])) if steps else float("nan"),
-                "signed_error": float(np.mean([s[2] for s in steps])) if steps else float("nan"),
+                "abs_error": float(np.mean([s[1] for s in steps])) if steps else None,
+                "signed_error": float(np.mean([s[2] for s in steps])) if steps else None,
             }
         out[group] = rows
     return out
@@ -82,7 +82,7 @@ def by_time_out_of_view(episodes: list[dict[str, Any]]) -> dict[str, dict[str, f
     out = {}
     for low, high in UNSEEN_BINS:
         steps = [s for e in episodes for s in e["steps"] if s[0] == PHASES[1] and low <= s[3] <= high]
-        signed = float(np.mean([s[2] for s in steps])) if steps else float("nan")
+        signed = float(np.mean([s[2] for s in steps])) if steps else None
         out[f"{low}-{high}" if high < 10_000 else f"{low}+"] = {"steps": len(steps), "signed_error": signed}
     return out
 
@@ -103,10 +103,11 @@ def markdown(name: str, args: argparse.Namespace, results: dict[str, dict[str, A
     for policy, summary in results.items():
         for group in ("all", "failed"):
             for phase, row in summary[group].items():
-                lines.append(
-                    f"| {policy} | {summary['episodes']} | {summary['success']:.3f} | {group} | {phase} | "
-                    f"{row['steps']} | {row['abs_error']:.3f} | {row['signed_error']:+.3f} |"
-                )
+                if row["steps"]:
+                    lines.append(
+                        f"| {policy} | {summary['episodes']} | {summary['success']:.3f} | {group} | {phase} | "
+                        f"{row['steps']} | {row['abs_error']:.3f} | {row['signed_error']:+.3f} |"
+                    )
     lines += [
         "",
         "Beside and out of view, by steps since the car was last in view (10 steps a second; the LSTM trains on "
@@ -116,7 +117,10 @@ def markdown(name: str, args: argparse.Namespace, results: dict[str, dict[str, A
         "|---|" + "---:|" * len(UNSEEN_BINS),
     ]
     for policy, summary in results.items():
-        cells = [f"{r['steps']}: {r['signed_error']:+.3f}" for r in summary["by_time_out_of_view"].values()]
+        cells = [
+            f"{r['steps']}: {r['signed_error']:+.3f}" if r["steps"] else "0"
+            for r in summary["by_time_out_of_view"].values()
+        ]
         lines.append(f"| {policy} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -136,7 +140,7 @@ def main() -> None:
         results[label] = {**summarize(episodes), "by_time_out_of_view": by_time_out_of_view(episodes)}
         print(label, json.dumps(results[label]["all"]), flush=True)
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f"own_states_{args.name}.json").write_text(json.dumps(results, indent=2) + "\n")
+    (RESULTS / f"own_states_{args.name}.json").write_text(json.dumps(results, indent=2, allow_nan=False) + "\n")
     (RESULTS / f"own_states_{args.name}.md").write_text(markdown(args.name, args, results))
 
 
