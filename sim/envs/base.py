@@ -33,6 +33,9 @@ from drivesim.sim.simulator import TIMING_KEYS, Simulator, make_view_synthesizer
 from drivesim.sim.world import World
 
 DEFAULT_OTHER_SIZE_M = (4.5, 1.9)
+MEMORY_SCALE_M = (10.0, 3.0)
+"""`memory_target`'s units: the other car's forward and left offsets from the ego are given in these metres."""
+MEMORY_CLIP = 3.0
 NAN = float("nan")
 
 
@@ -480,6 +483,20 @@ class DrivingEnv(gymnasium.Env):
         as the policy's picture shows them (mirrored with a mirrored episode): (2,) float32."""
         sign = -1.0 if self._mirrored else 1.0
         return np.array([sign * self._m["q_lat_m"], sign * self._m["q_rot_rad"]], dtype=np.float32)
+
+    def memory_target(self) -> np.ndarray:
+        """Where the other car is from the ego, as the policy's picture shows it (mirrored with a mirrored episode):
+        (forward / MEMORY_SCALE_M[0], left / MEMORY_SCALE_M[1]) in the ego's frame, clipped to +-MEMORY_CLIP, (2,)
+        float32; zeros without another car. Privileged: a training target, never an input."""
+        if not self.has_other:
+            return np.zeros(2, dtype=np.float32)
+        ego, other = self.sim.agents[0].state, self.sim.agents[1].state
+        dx, dy = other.x_m - ego.x_m, other.y_m - ego.y_m
+        cos, sin = math.cos(ego.yaw_rad), math.sin(ego.yaw_rad)
+        forward_m, left_m = cos * dx + sin * dy, -sin * dx + cos * dy
+        left_m = -left_m if self._mirrored else left_m
+        scaled = np.array([forward_m / MEMORY_SCALE_M[0], left_m / MEMORY_SCALE_M[1]], dtype=np.float32)
+        return np.clip(scaled, -MEMORY_CLIP, MEMORY_CLIP)
 
     def expert_action(self) -> np.ndarray:
         """The privileged expert's action for the current state, (1,) float32 (it steers to

@@ -111,6 +111,10 @@ class BatchedVecEnv(VecEnv):
         """The privileged expert's actions for every episode now, (n_envs, 1) float32."""
         return np.stack([env.expert_action() for env in self.envs])
 
+    def memory_targets(self) -> np.ndarray:
+        """Every episode's `memory_target` now, (n_envs, 2) float32."""
+        return np.stack([env.memory_target() for env in self.envs])
+
     def close(self) -> None:
         """Nothing to release."""
 

@@ -40,6 +40,9 @@ class PolicyConfig(_Section):
     """Initial log standard deviation of the Gaussian steering distribution (normalized steering units)."""
     sequence_length_steps: int = Field(16, ge=1)
     """Length of the fixed sequence chunks the recurrent training pass runs over [env steps]."""
+    memory_weight: float = Field(0.0, ge=0.0, le=100.0)
+    """Weight of an auxiliary loss in the cloning passes (warm start, imitation): a head on the LSTM predicts where the
+    other car is (privileged, a target only), so the LSTM keeps a car out of view; 0: off."""
 
 
 class PPOConfig(_Section):

@@ -138,6 +138,25 @@ class _EnvFn:
         )
 
 
+MEMORY_OUTPUTS = 2
+"""Columns of `memory_targets`: the other car's forward and left offsets from the ego."""
+
+
+def memory_targets(venv: VecEnv) -> np.ndarray:
+    """Where the other car is from each env's ego now (`DrivingEnv.memory_target`): (n_envs, 2) float32."""
+    own = getattr(venv, "memory_targets", None)
+    if callable(own):
+        return np.asarray(own(), np.float32).reshape(venv.num_envs, -1)
+    return np.stack([np.asarray(a, np.float32).reshape(-1) for a in venv.env_method("memory_target")])
+
+
+def expert_labels(venv: VecEnv, memory: bool) -> np.ndarray:
+    """The cloning's labels for every env now: the expert's action, then with `memory` the memory targets:
+    (n_envs, 1) or (n_envs, 3) float32."""
+    actions = expert_actions(venv)
+    return np.hstack([actions, memory_targets(venv)]) if memory else actions
+
+
 def expert_actions(venv: VecEnv) -> np.ndarray:
     """The privileged expert's action for every env of `venv` now: (n_envs, 1) float32."""
     own = getattr(venv, "expert_actions", None)

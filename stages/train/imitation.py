@@ -22,13 +22,13 @@ import torch
 from sb3_contrib.common.recurrent.type_aliases import RNNStates
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
-from drivesim.stages.train.envs import expert_actions
+from drivesim.stages.train.envs import expert_labels
 
 
 @dataclass
 class ChunkData:
-    """Sequence chunks: obs (K, L, C, H, W) uint8, starts (K, L), labels (K, L, 1), LSTM state at each chunk's start
-    (h, c) (K, layers, hidden)."""
+    """Sequence chunks: obs (K, L, C, H, W) uint8, starts (K, L), labels (K, L, 1 or 3), LSTM state at each chunk's
+    start (h, c) (K, layers, hidden)."""
 
     obs: np.ndarray
     starts: np.ndarray
@@ -51,24 +51,30 @@ def minibatches(total: int, batches: int, chunks_per_batch: int, rng: np.random.
     return [ids[i * size : (i + 1) * size] for i in range(batches)]
 
 
-def fit_to_labels(model: Any, data: ChunkData, batches: list[np.ndarray], optimizer: torch.optim.Optimizer) -> float:
+def fit_to_labels(
+    model: Any, data: ChunkData, batches: list[np.ndarray], optimizer: torch.optim.Optimizer, memory_weight: float = 0.0
+) -> float:
     """Fit the steering to the expert's labels on the given minibatches of chunks (negative log-likelihood; the
-    optimizer leaves the std alone); the mean loss of the last quarter of them."""
+    optimizer leaves the std alone), plus, with `memory_weight` > 0 and labels that carry them, `memory_weight` times
+    the memory head's squared error on the memory targets (`envs.memory_targets`); the mean loss of the last quarter
+    of them."""
     policy = model.policy
     policy.set_training_mode(True)
+    memory = memory_weight > 0 and data.labels.shape[-1] > 1 and getattr(policy, "memory_net", None) is not None
     losses = []
     for ids in batches:
         dev = policy.device
         obs = torch.from_numpy(data.obs[ids].reshape(-1, *data.obs.shape[2:])).to(dev)
         h = torch.from_numpy(np.ascontiguousarray(data.h[ids].swapaxes(0, 1))).to(dev)
         c = torch.from_numpy(np.ascontiguousarray(data.c[ids].swapaxes(0, 1))).to(dev)
-        _, log_prob, _ = policy.evaluate_actions(
-            obs.float(),
-            torch.from_numpy(data.labels[ids].reshape(-1, 1)).to(dev),
-            RNNStates((h, c), (h, c)),
-            torch.from_numpy(data.starts[ids].reshape(-1)).to(dev),
-        )
-        loss = -log_prob.mean()
+        labels = torch.from_numpy(data.labels[ids].reshape(-1, data.labels.shape[-1])).to(dev)
+        states, starts = RNNStates((h, c), (h, c)), torch.from_numpy(data.starts[ids].reshape(-1)).to(dev)
+        if memory:
+            log_prob, predicted = policy.clone_outputs(obs.float(), labels[:, :1], states, starts)
+            loss = -log_prob.mean() + memory_weight * torch.mean((predicted - labels[:, 1:]) ** 2)
+        else:
+            _, log_prob, _ = policy.evaluate_actions(obs.float(), labels[:, :1], states, starts)
+            loss = -log_prob.mean()
         optimizer.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
@@ -104,14 +110,15 @@ class StepLabels(VecEnvWrapper):
 
 
 class ExpertLabels(StepLabels):
-    """Records the expert's action for the state each step starts from, the last `steps` steps of all envs."""
+    """Records the expert's action for the state each step starts from (and with `memory` the memory targets,
+    `envs.expert_labels`), the last `steps` steps of all envs."""
 
-    def __init__(self, venv: VecEnv, steps: int) -> None:
-        super().__init__(venv, steps, expert_actions)
+    def __init__(self, venv: VecEnv, steps: int, memory: bool = False) -> None:
+        super().__init__(venv, steps, lambda v: expert_labels(v, memory))
 
     @property
     def labels(self) -> deque[np.ndarray]:
-        """The recorded expert actions, (n_envs, 1) each, oldest first."""
+        """The recorded labels, (n_envs, 1) or (n_envs, 3) each, oldest first."""
         return self.values
 
 
@@ -163,12 +170,20 @@ class ImitationRegularizer:
     :param model: the ChunkedRecurrentPPO. :param labels: the wrapper recording the rollout's expert labels.
     :param epochs: passes per update (in rollouts' worth of minibatches). :param learning_rate: Adam's.
     :param seed: the minibatch order's. :param history_steps: labelled states kept across updates (0: none).
+    :param memory_weight: the memory head's loss weight (`fit_to_labels`).
     """
 
     def __init__(
-        self, model: Any, labels: ExpertLabels, epochs: int, learning_rate: float, seed: int, history_steps: int = 0
+        self,
+        model: Any,
+        labels: ExpertLabels,
+        epochs: int,
+        learning_rate: float,
+        seed: int,
+        history_steps: int = 0,
+        memory_weight: float = 0.0,
     ) -> None:
-        self.model, self.labels, self.epochs = model, labels, epochs
+        self.model, self.labels, self.epochs, self.memory_weight = model, labels, epochs, memory_weight
         self.optimizer = cloning_optimizer(model, learning_rate)
         self.rng = np.random.default_rng(seed)
         self.history = LabelHistory(history_steps, model.sequence_length) if history_steps > 0 else None
@@ -211,6 +226,6 @@ class ImitationRegularizer:
             self.model.logger.record("train/imitation_history_steps", len(self.history) * self.model.sequence_length)
         per_batch = max(1, self.model.batch_size // self.model.sequence_length)
         batches = minibatches(len(data.obs), self.epochs * max(1, len(rollout.obs) // per_batch), per_batch, self.rng)
-        loss = fit_to_labels(self.model, data, batches, self.optimizer)
+        loss = fit_to_labels(self.model, data, batches, self.optimizer, self.memory_weight)
         self.model.logger.record("train/imitation_loss", loss)
         self.model.policy.set_training_mode(False)

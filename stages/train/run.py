@@ -25,7 +25,7 @@ from drivesim.stages.train.anneal import anneal_learning_rates
 from drivesim.stages.train.best import BEST_CHECKPOINT, BestPolicy
 from drivesim.stages.train.callbacks import RunState, TrainingCallback
 from drivesim.stages.train.config import TrainConfig
-from drivesim.stages.train.envs import EnvSource
+from drivesim.stages.train.envs import MEMORY_OUTPUTS, EnvSource
 from drivesim.stages.train.imitation import ExpertLabels, ImitationRegularizer
 from drivesim.stages.train.lane_aux import LanePositionAux, LanePositionLabels
 from drivesim.stages.train.periodic_eval import PeriodicEvaluator
@@ -180,6 +180,7 @@ def _make_model(cfg: TrainConfig, venv: Any) -> ChunkedRecurrentPPO:
             "lstm_hidden_size": pol.lstm_hidden_size,
             "n_lstm_layers": pol.lstm_layers,
             "log_std_init": pol.log_std_init,
+            "memory_outputs": MEMORY_OUTPUTS if pol.memory_weight > 0 else 0,
         },
         sequence_length=pol.sequence_length_steps,
         rollout_threads=cfg.rollout_threads,
@@ -383,7 +384,8 @@ def _training_envs(
         timed = TimedVecEnv(source.make_vec(cfg.envs.count, kind, cfg.seed + done_steps, address=cfg.envs.address))
     except (ValueError, FileNotFoundError) as e:  # the envs' one-line errors (short world, missing meshes, ...)
         raise DrivesimError(f"cannot make the {cfg.task} env: {str(e).splitlines()[0]}") from e
-    labelled = ExpertLabels(timed, cfg.steps_per_env()) if cfg.imitation.epochs > 0 else None
+    memory = cfg.policy.memory_weight > 0
+    labelled = ExpertLabels(timed, cfg.steps_per_env(), memory) if cfg.imitation.epochs > 0 else None
     placed = LanePositionLabels(labelled or timed, cfg.steps_per_env()) if cfg.lane_aux.epochs > 0 else None
     venv = VecNormalize(
         placed or labelled or timed, norm_obs=False, norm_reward=cfg.ppo.normalize_reward, gamma=cfg.ppo.gamma
@@ -403,8 +405,14 @@ def _add_update_phases(
         imitation = cfg.imitation
         model.update_hooks.append(
             ImitationRegularizer(
-                model, labelled, imitation.epochs, imitation.learning_rate, cfg.seed, imitation.history_steps
-            )
+                model,
+                labelled,
+                imitation.epochs,
+                imitation.learning_rate,
+                cfg.seed,
+                imitation.history_steps,
+                cfg.policy.memory_weight,
+            )  # fmt: skip
         )
     if placed is not None:
         scales = (float(env_config["max_lateral_m"]), float(env_config["max_rotation_rad"]))
@@ -438,7 +446,7 @@ def _starting_state(
             start = time.perf_counter()
             regularizers = [h for h in model.update_hooks if isinstance(h, ImitationRegularizer)]
             keep = regularizers[0].remember if regularizers else None
-            figures = warm_start(model, venv, cfg.warm_start, cfg.seed, report, keep=keep)
+            figures = warm_start(model, venv, cfg.warm_start, cfg.seed, report, keep, cfg.policy.memory_weight)
             state.wall_s = time.perf_counter() - start
             torch_save_atomic(
                 warm_path, {"policy": model.policy.driving_net_state(), "wall_s": state.wall_s, **return_stats(venv)}

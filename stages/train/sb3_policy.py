@@ -58,6 +58,8 @@ class DrivingLstmPolicy(RecurrentActorCriticPolicy):
     :param lstm_hidden_size: LSTM cells.
     :param n_lstm_layers: LSTM layers.
     :param log_std_init: initial log std of the steering distribution.
+    :param memory_outputs: outputs of a linear head on the LSTM that the cloning passes fit to where the other car is
+        (`clone_outputs`; 0: no head). It is not part of the driving net: not exported, not acted on.
     """
 
     def __init__(
@@ -71,6 +73,7 @@ class DrivingLstmPolicy(RecurrentActorCriticPolicy):
         lstm_hidden_size: int = 128,
         n_lstm_layers: int = 1,
         log_std_init: float = -1.0,
+        memory_outputs: int = 0,
         **kwargs: Any,
     ) -> None:
         self.arch = {
@@ -102,6 +105,9 @@ class DrivingLstmPolicy(RecurrentActorCriticPolicy):
             enable_critic_lstm=False,
             **kwargs,
         )
+        # Made after the optimizer PPO builds in super().__init__: only the cloning passes train the head.
+        self.memory_net = nn.Linear(lstm_hidden_size, memory_outputs) if memory_outputs > 0 else None
+        self.memory_net_outputs = int(memory_outputs)
 
     @staticmethod
     def _process_sequence(
@@ -144,6 +150,16 @@ class DrivingLstmPolicy(RecurrentActorCriticPolicy):
         latent, _ = self._process_sequence(features, lstm_states.pi, episode_starts, self.lstm_actor)
         distribution = self._get_action_dist_from_latent(latent)
         return self.value_net(latent), distribution.log_prob(actions), distribution.entropy()
+
+    def clone_outputs(
+        self, obs: torch.Tensor, actions: torch.Tensor, lstm_states: RNNStates, episode_starts: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Log-probabilities of `actions` over sequences and the memory head's prediction at each step (None without
+        a head): what the cloning passes fit."""
+        features = self.extract_features(obs)
+        latent, _ = self._process_sequence(features, lstm_states.pi, episode_starts, self.lstm_actor)
+        log_prob = self._get_action_dist_from_latent(latent).log_prob(actions)
+        return log_prob, (self.memory_net(latent) if self.memory_net is not None else None)
 
     def driving_net_state(self) -> dict[str, torch.Tensor]:
         """The weights under `DrivingNet`'s names (what a run folder's policy.pt holds)."""

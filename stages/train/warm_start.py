@@ -20,7 +20,7 @@ from sb3_contrib.common.recurrent.type_aliases import RNNStates
 from stable_baselines3.common.vec_env import VecEnv
 
 from drivesim.stages.train.config import WarmStartConfig
-from drivesim.stages.train.envs import expert_actions
+from drivesim.stages.train.envs import expert_labels
 from drivesim.stages.train.imitation import ChunkData, cloning_optimizer, fit_to_labels, minibatches, to_chunks
 from drivesim.stages.train.recurrent import ChunkedRecurrentPPO, ChunkedRolloutBuffer
 
@@ -38,15 +38,16 @@ def _collect(
     beta: float,
     rng: np.random.Generator,
     carry: dict,
+    memory: bool = False,
 ) -> tuple[ChunkData, float]:
-    """Drive `steps_per_env` steps per env (expert with probability beta); return `chunk_steps`-long chunks and the
-    expert share."""
+    """Drive `steps_per_env` steps per env (expert with probability beta); return `chunk_steps`-long chunks, labelled
+    with the expert's action (and with `memory` the memory targets), and the expert share."""
     policy, L, n = model.policy, chunk_steps, venv.num_envs
     layers, hidden = policy.lstm_actor.num_layers, policy.lstm_actor.hidden_size
     steps_per_env = max(L, steps_per_env // L * L)
     obs_buf = np.zeros((steps_per_env, n, *venv.observation_space.shape), np.uint8)
     starts = np.zeros((steps_per_env, n), np.float32)
-    labels = np.zeros((steps_per_env, n, 1), np.float32)
+    labels = np.zeros((steps_per_env, n, 3 if memory else 1), np.float32)
     hs = np.zeros((steps_per_env // L, n, layers, hidden), np.float32)
     cs = np.zeros_like(hs)
     expert_used = 0
@@ -59,10 +60,10 @@ def _collect(
             learner, _, _, new_state = policy.forward(
                 _on(policy, obs), RNNStates(state, state), _on(policy, start.astype(np.float32))
             )
-        label = expert_actions(venv)
+        label = expert_labels(venv, memory)
         use_expert = rng.random(n) < beta
         expert_used += int(use_expert.sum())
-        action = np.where(use_expert[:, None], label, learner.cpu().numpy().reshape(n, -1))
+        action = np.where(use_expert[:, None], label[:, :1], learner.cpu().numpy().reshape(n, -1))
         obs_buf[t], starts[t], labels[t] = obs, start, label
         next_obs, _, dones, _ = venv.step(np.clip(action, -1.0, 1.0).astype(np.float32))
         carry.update(obs=next_obs, start=dones.astype(np.float32), state=new_state.pi)
@@ -154,9 +155,11 @@ def warm_start(
     seed: int,
     report: Callable[[str], None] = print,
     keep: Callable[[ChunkData], None] | None = None,
+    memory_weight: float = 0.0,
 ) -> dict[str, float]:
     """DAgger from the expert, then the value fit; returns figures for the log (losses, expert share per round).
-    `keep`, when given, receives all the labelled chunks gathered (for the imitation regularizer's history)."""
+    `keep`, when given, receives all the labelled chunks gathered (for the imitation regularizer's history);
+    `memory_weight` > 0 also fits the policy's memory head (`imitation.fit_to_labels`)."""
     rng = np.random.default_rng(seed)
     policy = model.policy
     layers, hidden = policy.lstm_actor.num_layers, policy.lstm_actor.hidden_size
@@ -170,7 +173,8 @@ def warm_start(
     figures: dict[str, float] = {}
     for round_ in range(cfg.iterations):
         beta = cfg.beta**round_
-        new, share = _collect(model, venv, cfg.steps_per_iteration // n, chunk_steps, beta, rng, carry)
+        memory = memory_weight > 0 and getattr(policy, "memory_net", None) is not None
+        new, share = _collect(model, venv, cfg.steps_per_iteration // n, chunk_steps, beta, rng, carry, memory)
         data = _concat(data, new)
         # `epochs` passes over all data so far: round i costs i + 1 times round 0 (36 rounds' worth for 8 rounds).
         # Passes over one round's size instead would cost less but make 4.5x fewer gradient steps for 8 rounds and
@@ -178,7 +182,7 @@ def warm_start(
         batches = minibatches(
             len(data.obs), cfg.epochs * max(1, len(data.obs) // chunks_per_batch), chunks_per_batch, rng
         )
-        loss = fit_to_labels(model, data, batches, optimizer)
+        loss = fit_to_labels(model, data, batches, optimizer, memory_weight)
         figures[f"warm_start_bc_loss_{round_}"] = loss
         report(
             f"warm start round {round_}: expert drove {share:.0%} of {len(new.obs) * chunk_steps} "
