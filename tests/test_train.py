@@ -274,6 +274,11 @@ def _drivesim(ws: Path, *args: str) -> list[str]:
     return [sys.executable, "-m", "drivesim.cli.main", "--workspace", str(ws), *args]
 
 
+def _checkpointed_steps(path: Path) -> int:
+    """Env steps of a run's last checkpoint (0 while there is none: it is replaced atomically)."""
+    return int(torch.load(path, weights_only=True)["num_timesteps"]) if path.is_file() else 0
+
+
 def test_killed_run_resumes_with_nothing_lost(tmp_path: Path) -> None:
     """SIGKILL mid-run leaves an unfinished, resumable run; --resume finishes it from the last update."""
     ws = tmp_path / "ws"
@@ -282,16 +287,18 @@ def test_killed_run_resumes_with_nothing_lost(tmp_path: Path) -> None:
         _drivesim(ws, "train", "lane", "--total-steps", "100000", *sets), stdout=subprocess.PIPE, stderr=subprocess.PIPE
     )
     try:
-        deadline = time.time() + 60
+        deadline = time.time() + 90
         progress = None
         while time.time() < deadline:
             runs = list((ws / "runs").glob("lane-*")) if (ws / "runs").is_dir() else []
             if runs and (runs[0] / "progress.csv").is_file():
                 progress = runs[0] / "progress.csv"
-                if len(progress.read_text().splitlines()) >= 3:  # header + 2 updates
+                last = runs[0] / "checkpoints" / "last.pt"
+                # two updates logged and checkpointed (the checkpoint is written after its progress row)
+                if len(progress.read_text().splitlines()) >= 3 and _checkpointed_steps(last) >= 512:
                     break
             time.sleep(0.2)
-        assert progress is not None, "the run wrote no progress in 60 s"
+        assert progress is not None, "the run wrote no progress in 90 s"
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()

@@ -412,7 +412,7 @@ def _add_update_phases(
                 cfg.seed,
                 imitation.history_steps,
                 cfg.policy.memory_weight,
-            )  # fmt: skip
+            )
         )
     if placed is not None:
         scales = (float(env_config["max_lateral_m"]), float(env_config["max_rotation_rad"]))
