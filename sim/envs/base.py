@@ -36,6 +36,7 @@ DEFAULT_OTHER_SIZE_M = (4.5, 1.9)
 MEMORY_SCALE_M = (10.0, 3.0)
 """`memory_target`'s units: the other car's forward and left offsets from the ego are given in these metres."""
 MEMORY_CLIP = 3.0
+"""`memory_target` is clipped to +-this (a car far ahead or behind weighs no more than one 30 m away)."""
 NAN = float("nan")
 
 

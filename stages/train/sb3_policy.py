@@ -107,7 +107,6 @@ class DrivingLstmPolicy(RecurrentActorCriticPolicy):
         )
         # Made after the optimizer PPO builds in super().__init__: only the cloning passes train the head.
         self.memory_net = nn.Linear(lstm_hidden_size, memory_outputs) if memory_outputs > 0 else None
-        self.memory_net_outputs = int(memory_outputs)
 
     @staticmethod
     def _process_sequence(
