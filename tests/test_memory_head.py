@@ -95,7 +95,6 @@ def test_memory_labels_ride_with_the_expert_action_and_the_regularizer_fits_them
     torch.manual_seed(0)
     model, venv = _model(memory_outputs=2)
     labelled = ExpertLabels(venv, steps=64, memory=True)
-    model.env = labelled
     model.set_env(labelled)
     regularizer = ImitationRegularizer(model, labelled, epochs=4, learning_rate=3e-3, seed=0, memory_weight=1.0)
     model.update_hooks.append(regularizer)
