@@ -98,7 +98,9 @@ def test_memory_labels_ride_with_the_expert_action_and_the_regularizer_fits_them
     model.set_env(labelled)
     regularizer = ImitationRegularizer(model, labelled, epochs=4, learning_rate=3e-3, seed=0, memory_weight=1.0)
     model.update_hooks.append(regularizer)
+    head_before = model.policy.memory_net.weight.detach().clone()
     model.learn(64 * 4 * 2)
+    assert not torch.equal(head_before, model.policy.memory_net.weight)  # the regularizer fitted the head (PPO cannot)
     recorded = np.stack(list(labelled.labels))
     assert recorded.shape == (64, 4, 3)
     assert set(np.unique(recorded[:, :, 2])) <= {-1.0, 1.0}  # the side, beside the expert's steering
