@@ -20,6 +20,7 @@ import argparse
 import csv
 import json
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -127,14 +128,23 @@ def _one_line(done: subprocess.CompletedProcess[str]) -> str:
     return lines[-1][:300]
 
 
+def children_cpu_s() -> float:
+    """CPU time (user + system) of this process's finished children so far [s]."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def run_chain(name: str, recording: Path | None, ws: Path, scale: float) -> dict[str, Any]:
-    """The chain as a user runs it on one drive: its wall time, its run folder, or the one line it failed with."""
+    """The chain as a user runs it on one drive: its wall time, the share of the machine's cores it got (other
+    processes on a busy machine take the rest), its run folder, or the one line it failed with."""
     args = ["run", *([] if recording is None else [str(recording)]), *budget_overrides(scale)]
+    cpu_before_s = children_cpu_s()
     done, wall_s = drivesim(ws, *args)
     entry: dict[str, Any] = {"drive": name, "recording": None if recording is None else str(recording)}
     entry.update(command="drivesim run" + ("" if recording is None else " REC") + (" (scaled)" if scale < 1 else ""))
     entry["budgets"] = preset_budgets(scale)
     entry["chain_wall_s"] = round(wall_s, 1)
+    entry["chain_cpu_share"] = round((children_cpu_s() - cpu_before_s) / max(wall_s * (os.cpu_count() or 1), 1e-9), 3)
     if done.returncode != 0:
         return {**entry, "error": _one_line(done)}
     runs = sorted((ws / "runs").glob("overtake-*"))
@@ -285,7 +295,9 @@ def _measured_lines(result: dict[str, Any]) -> list[str]:
             loads = m.get("load_average_1_5_15_min")
             load = f"load {loads[0]} at the start" if loads else m.get("load_note", "load not recorded")
             budgets = _budget_text(drive.get("budgets"))
-            lines.append(f"- {drive['drive']}: {m['date_utc']} UTC, {load}, code {m.get('commit')}{budgets}")
+            share = drive.get("chain_cpu_share")
+            cores = "" if share is None else f", the chain used {100 * share:.0f} % of the cores"
+            lines.append(f"- {drive['drive']}: {m['date_utc']} UTC, {load}{cores}, code {m.get('commit')}{budgets}")
     return ["Each drive's chain started:", "", *lines, ""] if lines else []
 
 
