@@ -10,7 +10,7 @@ with a copy of every texture; the synth world hands it a new cut-down list every
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -143,7 +143,7 @@ class CellCulling:
         self._textures: dict[int, np.ndarray] = {}  # the made textures of the current packing's meshes
         self._held: dict[tuple[int, int], tuple[Piece, np.ndarray]] = {}  # (mesh, piece) -> piece, its faces' cells
         self.triangle_counts = [0] * len(self._sources)  # per mesh, filled by `_cell_stats`
-        stats = self._cell_stats()
+        stats, kept = self._cell_stats(whole_below_triangles)
         keys = np.concatenate([k for _, _, k, _, _ in stats] or [np.zeros(0, np.int64)])
         order = np.argsort(keys, kind="stable")
         self.cell_keys, starts = np.unique(keys[order], return_index=True)
@@ -161,17 +161,17 @@ class CellCulling:
             cells[i].append(np.searchsorted(self.cell_keys, k).astype(np.int32))
         self._piece_cells = [np.concatenate(c) if c else np.zeros(0, np.int32) for c in cells]
         self._piece_starts = [np.cumsum([0] + [len(x) for x in c[:-1]]) for c in cells]
-        if sum(self.triangle_counts) <= whole_below_triangles:
-            self._hold_whole()
+        if kept is not None:
+            self._hold_whole(kept)
         self._pack: tuple[np.ndarray, _Packed, np.ndarray] | None = None  # (made at xy, packing, its triangles' cells)
 
-    def _hold_whole(self) -> None:
-        """Hold every mesh whole, as one mesh in the whole mesh's order: packings then hold the same meshes as a
-        whole build's (their origin, the mean of their vertices, too)."""
+    def _hold_whole(self, pieces: list[list[Piece]]) -> None:
+        """Hold every mesh whole (from its `pieces`), as one mesh in the whole mesh's order: packings then hold the
+        same meshes as a whole build's (their origin, the mean of their vertices, too)."""
         for i, source in enumerate(self._sources):
             if isinstance(source, Mesh) or not self._pieces[i]:
                 continue
-            parts = [self._piece(i, j) for j in self._pieces[i]]
+            parts = pieces[i]
             order = np.argsort(np.concatenate([p.vertex_keys for p in parts]), kind="stable")
             where = np.empty(len(order), np.int64)
             where[order] = np.arange(len(order))  # a piece's vertex -> its place in the whole mesh
@@ -208,26 +208,38 @@ class CellCulling:
             return Piece(source, np.arange(len(source.faces)), np.arange(len(source.vertices_m)))
         return source[j]()
 
-    def _cell_stats(self) -> list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
-        """(mesh, piece, its cell keys, their faces' lower and upper xy bounds) for every piece with faces, each
-        piece made once and dropped (pieces of the same stretch one after another: they may share their making)."""
+    def _every_piece(self) -> Iterator[tuple[int, int, Piece]]:
+        """(mesh, piece, the piece made) for every piece of every mesh, the pieces of one stretch (the same index in
+        each mesh) one after another: they may share their making."""
         counts = [1 if isinstance(s, Mesh) else len(s) for s in self._sources]
-        stats = []
         for j in range(max(counts, default=0)):
             for i in range(len(self._sources)):
-                if j >= counts[i]:
-                    continue
-                mesh = self._piece(i, j).mesh
-                if not len(mesh.faces):
-                    continue
+                if j < counts[i]:
+                    yield i, j, self._piece(i, j)
+
+    def _cell_stats(
+        self, keep_below_triangles: int
+    ) -> tuple[list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]], list[list[Piece]] | None]:
+        """(mesh, piece, its cell keys, their faces' lower and upper xy bounds) for every piece with faces, each
+        piece made once; and the pieces with faces of each mesh given in pieces if the world has no more than
+        `keep_below_triangles` (None else: the pieces were dropped as soon as they were more)."""
+        stats = []
+        kept: list[list[Piece]] | None = [[] for _ in self._sources]
+        for i, j, piece in self._every_piece():
+            mesh = piece.mesh
+            if len(mesh.faces):
                 self.triangle_counts[i] += len(mesh.faces)
+                if kept is not None and sum(self.triangle_counts) > keep_below_triangles:
+                    kept = None
+                if kept is not None and not isinstance(self._sources[i], Mesh):
+                    kept[i].append(piece)
                 key, tri_xy = self._face_keys(mesh)
                 order = np.argsort(key, kind="stable")
                 keys, starts = np.unique(key[order], return_index=True)
                 lo = np.minimum.reduceat(tri_xy.min(1)[order], starts)
                 hi = np.maximum.reduceat(tri_xy.max(1)[order], starts)
                 stats.append((i, j, keys, lo, hi))
-        return stats
+        return stats, kept
 
     def near_cells(self, camera_xy_m: np.ndarray, distance_m: float) -> np.ndarray:
         """(cells,) bool: the cells that come within `distance_m` of the camera."""

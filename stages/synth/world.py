@@ -104,8 +104,8 @@ class SynthWorld:
         self.layout: Layout = place_scenery(self.road, config.road, config.scenery, world_rng)
         # the building groups' facade atlases are made when the camera comes near (`CellCulling`), not here
         # the meshes that grow with the road are made a stretch at a time as the camera comes near (`CellCulling`)
-        self._sources, facades = _build_sources(self.road, self.layout, config, texture_rng)
-        self._culling = CellCulling(self._sources, facades, WHOLE_WORLD_TRIANGLES)
+        self._sources, self._facades = _build_sources(self.road, self.layout, config, texture_rng)
+        self._culling = CellCulling(self._sources, self._facades, WHOLE_WORLD_TRIANGLES)
         release_freed_memory()  # the pieces' temporaries: a long road's build would keep them resident all along
         self._scratch = Scratch()
         self._sky = Sky(_cloud_cover(sky_rng), SKY_ZENITH_RGB, SKY_HORIZON_RGB, CLOUD_RGB, CLOUD_HEIGHT_M, CLOUD_TILE_M)
