@@ -127,6 +127,11 @@ class CellCulling:
     packing holds the cells within the view distance plus `MARGIN_M` of where it was made, and serves every camera
     within `MARGIN_M` of that place: each frame draws only its own cells' triangles of it (the same faces, in the
     same order).
+
+    :param meshes: the world's meshes, each whole or in pieces (`Source`).
+    :param textures: per mesh index, what makes that mesh's texture when a packing needs it (the mesh has none).
+    :param whole_below_triangles: a world of up to this many triangles is held whole, every mesh as one mesh in its
+        whole order: its packings are then those of the same meshes built whole, origin included.
     """
 
     CELL_M = 40.0
