@@ -5,7 +5,9 @@
 
 `world.road` is the centreline and `world.path` the right lane centre (the reference path a car drives); both are
 `RoadPath`s in the world's ENU frame (x east, y north, z up; the road starts at the origin heading east).
-Surfaces carry semantic object ids (`SEMANTIC_IDS`), readable with `render_full`.
+Surfaces carry semantic object ids (`SEMANTIC_IDS`), readable with `render_full`. The meshes that grow with the road
+are made a stretch at a time as a camera comes near (`render.CellCulling`), every random draw taken in the order of
+the whole build, so a seed keeps its world however long its road.
 """
 
 from __future__ import annotations
