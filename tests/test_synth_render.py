@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from drivesim.sim.geometry import invert, pose_2d
+from drivesim.sim.mesh import Mesh
 from drivesim.sim.raster import Rasterizer, pack_meshes
 from drivesim.stages.synth.config import SynthConfig
 from drivesim.stages.synth.render import CellCulling
@@ -99,7 +100,7 @@ def test_a_packing_holds_what_is_near_however_long_the_road():
             texels.append(len(packed.texels))
             triangles.append(len(packed.object_id))
         sizes[length_m] = (max(texels), max(triangles), world.triangle_count)
-        groups = [m for m in world._meshes if m.object_id == SEMANTIC_IDS["building"]]
+        groups = [m for m in world._sources if isinstance(m, Mesh) and m.object_id == SEMANTIC_IDS["building"]]
         made = world._culling._textures  # the facade atlases made and kept: those of the packing in use
         assert 0 < len(made) <= len(groups) // (3 if length_m > 2000 else 1)
     short, long = sizes[1000.0], sizes[4000.0]

@@ -10,7 +10,7 @@ with a copy of every texture; the synth world hands it a new cut-down list every
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,55 +104,186 @@ def _texture_info(textures: list[np.ndarray]) -> np.ndarray:
     return np.ascontiguousarray(np.stack([offsets, sizes[:, 0], sizes[:, 1]]).astype(np.int32))
 
 
+@dataclass(frozen=True)
+class Piece:
+    """Part of one of the world's meshes (the part of a stretch of road): a mesh whose faces index its own vertices,
+    and sort keys per face and per vertex that give their order in the whole mesh (not necessarily consecutive)."""
+
+    mesh: Mesh
+    face_keys: np.ndarray
+    vertex_keys: np.ndarray
+
+
+# a mesh of the world: the whole mesh, or the functions that make its pieces (each piece made when a camera comes near)
+Source = Mesh | Sequence[Callable[[], Piece]]
+
+
 class CellCulling:
     """The faces in the 40 m cells that come within the view distance of a camera, packed.
 
-    Faces keep their mesh (one texture, one material per kind) and their order; only the face list shrinks. Each
-    mesh's faces are sorted by cell once, so cutting costs the visible faces, not the world's. A packing holds the
-    cells within the view distance plus `MARGIN_M` of where it was made, and serves every camera within `MARGIN_M` of
-    that place: each frame draws only its own cells' triangles of it (the same faces, in the same order).
+    Faces keep their mesh (one texture, one material per kind) and their order; only the face list shrinks. A mesh
+    given in pieces is held only in the pieces that have faces in the current packing's cells: the others are made
+    when a packing needs them and dropped when it no longer does, so the faces held do not grow with the road. A
+    packing holds the cells within the view distance plus `MARGIN_M` of where it was made, and serves every camera
+    within `MARGIN_M` of that place: each frame draws only its own cells' triangles of it (the same faces, in the
+    same order).
+
+    :param meshes: the world's meshes, each whole or in pieces (`Source`).
+    :param textures: per mesh index, what makes that mesh's texture when a packing needs it (the mesh has none).
+    :param whole_below_triangles: a world of up to this many triangles is held whole, every mesh as one mesh in its
+        whole order: its packings are then those of the same meshes built whole, origin included.
     """
 
     CELL_M = 40.0
     MARGIN_M = 40.0
 
-    def __init__(self, meshes: list[Mesh], textures: dict[int, Callable[[], np.ndarray]] | None = None) -> None:
-        self.meshes = meshes
+    def __init__(
+        self,
+        meshes: Sequence[Source],
+        textures: dict[int, Callable[[], np.ndarray]] | None = None,
+        whole_below_triangles: int = 0,
+    ) -> None:
+        self._sources: list[Mesh | list[Callable[[], Piece]]] = [m if isinstance(m, Mesh) else list(m) for m in meshes]
         self._make_texture = dict(textures or {})  # mesh index -> what makes its texture (the mesh has none)
         self._textures: dict[int, np.ndarray] = {}  # the made textures of the current packing's meshes
-        self._order: list[np.ndarray] = []  # per mesh: its face indices sorted by cell
-        self._cells: list[np.ndarray] = []  # per mesh: the (global) cells it has faces in ...
-        self._bounds: list[np.ndarray] = []  # ... and where each one's faces start and end in `_order`
-        keys_per_mesh, lo_per_mesh, hi_per_mesh = [], [], []
-        for mesh in meshes:
-            tri_xy = mesh.vertices_m[mesh.faces][:, :, :2]  # (F, 3, 2)
-            ij = np.floor(tri_xy.mean(axis=1) / self.CELL_M).astype(np.int64)
-            key = ij[:, 0] * 1_000_003 + ij[:, 1]
-            order = np.argsort(key, kind="stable")
-            keys, starts = np.unique(key[order], return_index=True)
-            self._order.append(order.astype(np.int32))  # half the memory of a long road's faces
-            self._bounds.append(np.append(starts, len(order)))
-            keys_per_mesh.append(keys)
-            lo_per_mesh.append(np.minimum.reduceat(tri_xy.min(1)[order], starts) if len(order) else np.zeros((0, 2)))
-            hi_per_mesh.append(np.maximum.reduceat(tri_xy.max(1)[order], starts) if len(order) else np.zeros((0, 2)))
-        keys = np.concatenate(keys_per_mesh)
+        self._held: dict[tuple[int, int], tuple[Piece, np.ndarray]] = {}  # (mesh, piece) -> piece, its faces' cells
+        self.triangle_counts = [0] * len(self._sources)  # per mesh, filled by `_cell_stats`
+        stats, kept = self._cell_stats(whole_below_triangles)
+        keys = np.concatenate([k for _, _, k, _, _ in stats] or [np.zeros(0, np.int64)])
         order = np.argsort(keys, kind="stable")
         self.cell_keys, starts = np.unique(keys[order], return_index=True)
-        lo = np.minimum.reduceat(np.concatenate(lo_per_mesh)[order], starts).astype(np.float64)
-        hi = np.maximum.reduceat(np.concatenate(hi_per_mesh)[order], starts).astype(np.float64)
+        lo = np.concatenate([lo for _, _, _, lo, _ in stats] or [np.zeros((0, 2))])[order]
+        hi = np.concatenate([hi for _, _, _, _, hi in stats] or [np.zeros((0, 2))])[order]
+        lo = np.minimum.reduceat(lo, starts).astype(np.float64) if len(starts) else np.zeros((0, 2))
+        hi = np.maximum.reduceat(hi, starts).astype(np.float64) if len(starts) else np.zeros((0, 2))
         self.cell_centre = (lo + hi) / 2
         self.cell_radius = np.linalg.norm(hi - lo, axis=1) / 2
-        self._cells = [np.searchsorted(self.cell_keys, k) for k in keys_per_mesh]
+        # per mesh: its pieces with faces, and the cells each one has faces in (flat, with where each piece's start)
+        self._pieces: list[list[int]] = [[] for _ in self._sources]
+        cells: list[list[np.ndarray]] = [[] for _ in self._sources]
+        for i, j, k, _, _ in stats:
+            self._pieces[i].append(j)
+            cells[i].append(np.searchsorted(self.cell_keys, k).astype(np.int32))
+        self._piece_cells = [np.concatenate(c) if c else np.zeros(0, np.int32) for c in cells]
+        self._piece_starts = [np.cumsum([0] + [len(x) for x in c[:-1]]) for c in cells]
+        if kept is not None:
+            self._hold_whole(kept)
         self._pack: tuple[np.ndarray, _Packed, np.ndarray] | None = None  # (made at xy, packing, its triangles' cells)
+
+    def _hold_whole(self, pieces: list[list[Piece]]) -> None:
+        """Hold every mesh whole (from its `pieces`), as one mesh in the whole mesh's order: packings then hold the
+        same meshes as a whole build's (their origin, the mean of their vertices, too)."""
+        for i, source in enumerate(self._sources):
+            if isinstance(source, Mesh) or not self._pieces[i]:
+                continue
+            parts = pieces[i]
+            order = np.argsort(np.concatenate([p.vertex_keys for p in parts]), kind="stable")
+            where = np.empty(len(order), np.int64)
+            where[order] = np.arange(len(order))  # a piece's vertex -> its place in the whole mesh
+            offsets = np.cumsum([0] + [len(p.mesh.vertices_m) for p in parts[:-1]])
+            faces = np.concatenate([where[p.mesh.faces + o] for p, o in zip(parts, offsets, strict=True)])
+            faces = faces[np.argsort(np.concatenate([p.face_keys for p in parts]), kind="stable")]
+
+            def joined(name: str, parts: list[Piece] = parts, order: np.ndarray = order) -> np.ndarray | None:
+                arrays = [getattr(p.mesh, name) for p in parts]
+                return None if arrays[0] is None else np.concatenate(arrays)[order]
+
+            self._sources[i] = dataclasses.replace(
+                parts[0].mesh,
+                vertices_m=joined("vertices_m"),
+                faces=faces.astype(parts[0].mesh.faces.dtype),
+                vertex_rgb=joined("vertex_rgb"),
+                uv=joined("uv"),
+                normals=joined("normals"),
+            )
+            self._piece_cells[i] = np.unique(self._piece_cells[i])
+            self._pieces[i], self._piece_starts[i] = [0], np.zeros(1, np.int64)
+
+    @classmethod
+    def _face_keys(cls, mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+        """Each face's cell key, and its corners' xy (F, 3, 2)."""
+        tri_xy = mesh.vertices_m[mesh.faces][:, :, :2]
+        ij = np.floor(tri_xy.mean(axis=1) / cls.CELL_M).astype(np.int64)
+        return ij[:, 0] * 1_000_003 + ij[:, 1], tri_xy
+
+    def _piece(self, i: int, j: int) -> Piece:
+        """Piece `j` of mesh `i` (a whole mesh is its own one piece)."""
+        source = self._sources[i]
+        if isinstance(source, Mesh):
+            return Piece(source, np.arange(len(source.faces)), np.arange(len(source.vertices_m)))
+        return source[j]()
+
+    def _every_piece(self) -> Iterator[tuple[int, int, Piece]]:
+        """(mesh, piece, the piece made) for every piece of every mesh, the pieces of one stretch (the same index in
+        each mesh) one after another: they may share their making."""
+        counts = [1 if isinstance(s, Mesh) else len(s) for s in self._sources]
+        for j in range(max(counts, default=0)):
+            for i in range(len(self._sources)):
+                if j < counts[i]:
+                    yield i, j, self._piece(i, j)
+
+    def _cell_stats(
+        self, keep_below_triangles: int
+    ) -> tuple[list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]], list[list[Piece]] | None]:
+        """(mesh, piece, its cell keys, their faces' lower and upper xy bounds) for every piece with faces, each
+        piece made once; and the pieces with faces of each mesh given in pieces if the world has no more than
+        `keep_below_triangles` (None else: the pieces were dropped as soon as they were more)."""
+        stats = []
+        kept: list[list[Piece]] | None = [[] for _ in self._sources]
+        for i, j, piece in self._every_piece():
+            mesh = piece.mesh
+            if len(mesh.faces):
+                self.triangle_counts[i] += len(mesh.faces)
+                if kept is not None and sum(self.triangle_counts) > keep_below_triangles:
+                    kept = None
+                if kept is not None and not isinstance(self._sources[i], Mesh):
+                    kept[i].append(piece)
+                key, tri_xy = self._face_keys(mesh)
+                order = np.argsort(key, kind="stable")
+                keys, starts = np.unique(key[order], return_index=True)
+                lo = np.minimum.reduceat(tri_xy.min(1)[order], starts)
+                hi = np.maximum.reduceat(tri_xy.max(1)[order], starts)
+                stats.append((i, j, keys, lo, hi))
+        return stats, kept
 
     def near_cells(self, camera_xy_m: np.ndarray, distance_m: float) -> np.ndarray:
         """(cells,) bool: the cells that come within `distance_m` of the camera."""
         return np.linalg.norm(self.cell_centre - camera_xy_m, axis=1) - self.cell_radius < distance_m
 
-    def textured(self, indices: Iterable[int], keep: bool = True) -> list[Mesh]:
-        """The meshes `indices` with their textures (those made on demand made, or taken from the current packing's);
+    def _held_piece(self, i: int, j: int, held: dict[tuple[int, int], tuple[Piece, np.ndarray]]) -> tuple:
+        """Piece `j` of mesh `i` and its faces' cells: the one held, else made; recorded in `held`."""
+        part = self._held.get((i, j))
+        if part is None:
+            piece = self._piece(i, j)
+            part = (piece, np.searchsorted(self.cell_keys, self._face_keys(piece.mesh)[0]))
+        held[(i, j)] = part
+        return part
+
+    def visible_meshes(self, near: np.ndarray, keep: bool = True) -> tuple[list[Mesh], np.ndarray]:
+        """The meshes with only the faces in the cells `near` (a mask over `cell_keys`), textures included, and each
+        of their faces' cell (in the order of the meshes' faces). With `keep`, the pieces made are held until a later
+        call no longer needs them (and the textures made kept as the current packing's)."""
+        indices, meshes, face_cells = [], [], []
+        held: dict[tuple[int, int], tuple[Piece, np.ndarray]] = {}
+        for i in range(len(self._sources)):
+            if not len(self._pieces[i]):
+                continue
+            hit = np.flatnonzero(np.logical_or.reduceat(near[self._piece_cells[i]], self._piece_starts[i]))
+            if not len(hit):
+                continue
+            parts = [self._held_piece(i, self._pieces[i][h], held) for h in hit]
+            mesh, cells = _joined(parts, near)
+            indices.append(i)
+            meshes.append(mesh)
+            face_cells.append(cells)
+        if keep:
+            self._held = held
+        textured = self._textured(indices, meshes, keep)
+        return textured, np.concatenate(face_cells) if face_cells else np.zeros(0, np.int64)
+
+    def _textured(self, indices: list[int], meshes: list[Mesh], keep: bool) -> list[Mesh]:
+        """`meshes` (of indices `indices`) with their textures made on demand (or taken from the current packing's);
         with `keep`, the made ones are kept as the current packing's (and the others dropped)."""
-        indices = list(indices)
         made = {}
         for i in indices:
             if i in self._make_texture:
@@ -160,31 +291,13 @@ class CellCulling:
         if keep:
             self._textures = made
         return [
-            dataclasses.replace(self.meshes[i], texture_rgb=made[i]) if i in made else self.meshes[i] for i in indices
+            dataclasses.replace(m, texture_rgb=made[i]) if i in made else m
+            for i, m in zip(indices, meshes, strict=True)
         ]
 
-    def visible_meshes(self, near: np.ndarray) -> tuple[list[Mesh], np.ndarray]:
-        """The meshes with only the faces in the cells `near` (a mask over `cell_keys`), textures included, and each
-        of their faces' cell (in the order of the meshes' faces)."""
-        indices, faces_of, face_cells = [], {}, []
-        for i, (order, cells, bounds) in enumerate(zip(self._order, self._cells, self._bounds, strict=True)):
-            at = np.flatnonzero(near[cells])
-            if not len(at):
-                continue
-            if len(at) == len(cells):
-                faces = np.arange(len(order))
-            else:
-                faces = np.sort(np.concatenate([order[bounds[k] : bounds[k + 1]] for k in at]))
-            cell_of_face = np.empty(len(order), np.int64)
-            cell_of_face[order] = np.repeat(cells, np.diff(bounds))
-            indices.append(i)
-            faces_of[i] = faces
-            face_cells.append(cell_of_face[faces])
-        meshes = [
-            dataclasses.replace(mesh, faces=mesh.faces[faces_of[i]])
-            for i, mesh in zip(indices, self.textured(indices), strict=True)
-        ]
-        return meshes, np.concatenate(face_cells) if face_cells else np.zeros(0, np.int64)
+    def whole_meshes(self) -> list[Mesh]:
+        """Every mesh whole (each piece made), textures included; nothing held."""
+        return self.visible_meshes(np.ones(len(self.cell_keys), bool), keep=False)[0]
 
     def scene(self, camera_xy_m: np.ndarray, view_distance_m: float) -> tuple[_Packed, np.ndarray | None]:
         """The packing that holds the cells within `view_distance_m` of the camera, and which of its triangles lie
@@ -197,6 +310,41 @@ class CellCulling:
         _, packed, face_cells = self._pack
         keep = self.near_cells(xy, view_distance_m)[face_cells]
         return packed, None if keep.all() else np.flatnonzero(keep)
+
+    @property
+    def held_triangles(self) -> int:
+        """Triangles in the pieces held (those of the current packing) and the whole meshes."""
+        return sum(len(p.mesh.faces) for p, _ in self._held.values()) + sum(
+            len(s.faces) for s in self._sources if isinstance(s, Mesh)
+        )
+
+
+def _joined(parts: list[tuple[Piece, np.ndarray]], near: np.ndarray) -> tuple[Mesh, np.ndarray]:
+    """One mesh of the pieces `parts` (each with its faces' cells) with only the faces in the cells `near`, in the
+    whole mesh's face order, and those faces' cells."""
+    chosen = [np.flatnonzero(near[cells]) for _, cells in parts]
+    first = parts[0][0].mesh
+    if len(parts) == 1 and len(chosen[0]) == len(first.faces):
+        return first, parts[0][1]
+    offsets = np.cumsum([0] + [len(p.mesh.vertices_m) for p, _ in parts[:-1]])
+    faces = np.concatenate([p.mesh.faces[c] + o for (p, _), c, o in zip(parts, chosen, offsets, strict=True)])
+    keys = np.concatenate([p.face_keys[c] for (p, _), c in zip(parts, chosen, strict=True)])
+    cells = np.concatenate([cells[c] for (_, cells), c in zip(parts, chosen, strict=True)])
+    order = np.argsort(keys, kind="stable")
+
+    def joined(name: str) -> np.ndarray | None:
+        arrays = [getattr(p.mesh, name) for p, _ in parts]
+        return None if arrays[0] is None else np.concatenate(arrays)
+
+    mesh = dataclasses.replace(
+        first,
+        vertices_m=joined("vertices_m"),
+        faces=faces[order].astype(np.int32 if offsets[-1] + len(parts[-1][0].mesh.vertices_m) < 2**31 else np.int64),
+        vertex_rgb=joined("vertex_rgb"),
+        uv=joined("uv"),
+        normals=joined("normals"),
+    )
+    return mesh, cells[order]
 
 
 def lighting_row(lighting: Lighting) -> np.ndarray:

@@ -5,7 +5,9 @@
 
 `world.road` is the centreline and `world.path` the right lane centre (the reference path a car drives); both are
 `RoadPath`s in the world's ENU frame (x east, y north, z up; the road starts at the origin heading east).
-Surfaces carry semantic object ids (`SEMANTIC_IDS`), readable with `render_full`.
+Surfaces carry semantic object ids (`SEMANTIC_IDS`), readable with `render_full`. The meshes that grow with the road
+are made a stretch at a time as a camera comes near (`render.CellCulling`), every random draw taken in the order of
+the whole build, so a seed keeps its world however long its road.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from drivesim.sim.vehicles import GROUP_NAMES, VehicleShape, build_vehicle_meshe
 from drivesim.stages.synth import textures
 from drivesim.stages.synth.config import CameraConfig, SynthConfig, SynthWorldConfig
 from drivesim.stages.synth.primitives import MeshBuffer, box, icosphere, prism, quad_faces
-from drivesim.stages.synth.render import CellCulling, Scratch, Sky, render_packed
+from drivesim.stages.synth.render import CellCulling, Piece, Scratch, Sky, Source, render_packed
 from drivesim.stages.synth.road import RoadPath, build_centreline
 from drivesim.stages.synth.scenery import (
     CURB_TOP_WIDTH_M,
@@ -49,6 +51,9 @@ LAWN_CHUNK_TILES = 20_000
 GROUND_Z_M = -0.03
 FACADE_ATLAS_WIDTH_PX = 1024
 BUILDING_GROUP_M = 160.0  # buildings share a facade atlas within squares of this size
+# a world of up to this many triangles is held whole (as a world made whole: its frames are those to the bit); a
+# larger one a stretch at a time (its packings' origin differs, so a few pixels on edges differ, see the notebook)
+WHOLE_WORLD_TRIANGLES = 600_000
 
 SUN_DIR_WORLD = np.array([0.45, -0.55, 0.70])  # towards the sun: south-east, about 44 degrees up
 SKY_ZENITH_RGB = np.array([0.33, 0.52, 0.80], np.float32)
@@ -100,9 +105,10 @@ class SynthWorld:
         self.path: RoadPath = self.road.offset(-0.5 * config.road.lane_width_m)
         self.layout: Layout = place_scenery(self.road, config.road, config.scenery, world_rng)
         # the building groups' facade atlases are made when the camera comes near (`CellCulling`), not here
-        self._meshes, facades = _build_meshes(self.road, self.layout, config, texture_rng)
-        self._culling = CellCulling(self._meshes, facades)
-        release_freed_memory()  # the meshes' temporaries: a long road's build would keep them resident all along
+        # the meshes that grow with the road are made a stretch at a time as the camera comes near (`CellCulling`)
+        self._sources, self._facades = _build_sources(self.road, self.layout, config, texture_rng)
+        self._culling = CellCulling(self._sources, self._facades, WHOLE_WORLD_TRIANGLES)
+        release_freed_memory()  # the pieces' temporaries: a long road's build would keep them resident all along
         self._scratch = Scratch()
         self._sky = Sky(_cloud_cover(sky_rng), SKY_ZENITH_RGB, SKY_HORIZON_RGB, CLOUD_RGB, CLOUD_HEIGHT_M, CLOUD_TILE_M)
 
@@ -123,13 +129,13 @@ class SynthWorld:
     @property
     def triangle_count(self) -> int:
         """Triangles in the world."""
-        return sum(m.triangle_count for m in self._meshes)
+        return sum(self._culling.triangle_counts)
 
     @property
     def meshes(self) -> list[Mesh]:
         """Every surface of the world as world-frame meshes, textures included (made on each call: a long road's
-        facades take hundreds of MB)."""
-        return self._culling.textured(range(len(self._meshes)), keep=False)
+        meshes and facades take hundreds of MB)."""
+        return self._culling.whole_meshes()
 
     def lighting(self, T_world_camera: np.ndarray) -> Lighting:
         """Sun and sky light for a camera at `T_world_camera`."""
@@ -170,40 +176,76 @@ def _cloud_cover(rng: np.random.Generator) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------- meshes
-def _build_meshes(
+# The meshes that grow with the road are made a stretch at a time (`Piece`s, made when a camera comes near): every
+# random draw is taken up front, in the order of the whole build, so that a seed keeps its world.
+STRETCH_M = 160.0  # a piece holds this much road (the road's ribbons) or a square of this size (the rest)
+KEY_STRIDE = 1 << 16  # face keys of objects (trees, cars): object index * KEY_STRIDE + the face's index in the object
+
+
+def _build_sources(
     road: RoadPath, layout: Layout, cfg: SynthWorldConfig, rng: np.random.Generator
-) -> tuple[list[Mesh], dict[int, Callable[[], np.ndarray]]]:
-    """The world's meshes, and for those whose texture is made on demand (the building groups' facade atlases: the
-    mesh has its uv but no texture) the function that makes it, by index in the list."""
+) -> tuple[list[Source], dict[int, Callable[[], np.ndarray]]]:
+    """The world's meshes, whole or in pieces, and for those whose texture is made on demand (the building groups'
+    facade atlases: the mesh has its uv but no texture) the function that makes it, by index in the list."""
     road_cfg = cfg.road
-    meshes = [
-        _road_mesh(road, road_cfg, rng),
-        *_sidewalk_meshes(road, road_cfg, rng),
-        *_ground_meshes(road, cfg, rng),
+    sources: list[Source] = [
+        _road_pieces(road, road_cfg, rng),
+        *_sidewalk_pieces(road, road_cfg, rng),
+        *_ground_sources(road, cfg, rng),
     ]
     facades: dict[int, Callable[[], np.ndarray]] = {}
     for mesh, make_atlas in _building_meshes(layout):
         if mesh.triangle_count:
-            facades[len(meshes)] = make_atlas
-            meshes.append(mesh)
-    meshes += [*_tree_meshes(layout, rng), *_car_meshes(layout)]
-    kept = [i for i, m in enumerate(meshes) if m.triangle_count]
-    index = {old: new for new, old in enumerate(kept)}
-    return [meshes[i] for i in kept], {index[i]: f for i, f in facades.items()}
+            facades[len(sources)] = make_atlas
+            sources.append(mesh)
+    sources += [*_tree_pieces(layout, rng), *_car_pieces(layout)]
+    return sources, facades
 
 
-def _stations(road: RoadPath, period_m: float) -> np.ndarray:
-    """Arc lengths of whole texture periods, each split into ROAD_STATION_M steps: (P, n+1)."""
-    n_periods = int(road.length_m // period_m)
+@dataclass(frozen=True)
+class _Look:
+    """How a piece's MeshBuffer becomes a mesh (`MeshBuffer.build`'s arguments)."""
+
+    material: Material
+    object_id: int
+    texture_rgb: np.ndarray | None = None
+    smooth: bool = False
+    coloured: bool = False
+
+    def __call__(self, buf: MeshBuffer) -> Mesh:
+        """The mesh of `buf`."""
+        return buf.build(self.material, self.object_id, self.texture_rgb, smooth=self.smooth, coloured=self.coloured)
+
+
+def _by_square(xy_m: np.ndarray) -> list[np.ndarray]:
+    """Indices of the points `xy_m` (N, 2) grouped by STRETCH_M squares, increasing within each group."""
+    if not len(xy_m):
+        return []
+    ij = np.floor(np.asarray(xy_m, float) / STRETCH_M).astype(np.int64)
+    key = ij[:, 0] * 1_000_003 + ij[:, 1]
+    order = np.argsort(key, kind="stable")
+    _, starts = np.unique(key[order], return_index=True)
+    return np.split(order, starts[1:])
+
+
+def _stations(period_m: float, periods: range) -> np.ndarray:
+    """Arc lengths of the texture periods `periods`, each split into ROAD_STATION_M steps: (P, n+1)."""
     steps = int(round(period_m / ROAD_STATION_M))
-    return np.arange(n_periods)[:, None] * period_m + np.linspace(0.0, period_m, steps + 1)[None, :]
+    return np.arange(periods.start, periods.stop)[:, None] * period_m + np.linspace(0.0, period_m, steps + 1)[None, :]
 
 
 def _ribbon(
-    road: RoadPath, period_m: float, lat_left_m: float, lat_right_m: float, z_left_m: float, z_right_m: float
+    road: RoadPath,
+    period_m: float,
+    lat_left_m: float,
+    lat_right_m: float,
+    z_left_m: float,
+    z_right_m: float,
+    periods: range,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A strip between two offsets of the centreline, one texture period per piece (so uv stay in [0, 1])."""
-    st = _stations(road, period_m)
+    """A strip between two offsets of the centreline over the texture periods `periods`, one period per piece (so
+    uv stay in [0, 1]); faces from 0."""
+    st = _stations(period_m, periods)
     P, n = st.shape
     pts, _, normals = road.frames(st.ravel())
     left = pts + lat_left_m * normals
@@ -220,44 +262,79 @@ def _ribbon(
     return verts, faces, uv
 
 
-def _road_mesh(road: RoadPath, road_cfg, rng: np.random.Generator) -> Mesh:
+@dataclass(frozen=True)
+class _Strip:
+    """One ribbon of a mesh of ribbons: offsets and heights (`_ribbon`), u running right to left, a colour (None:
+    textured)."""
+
+    lat_left_m: float
+    lat_right_m: float
+    z_left_m: float
+    z_right_m: float
+    flip_u: bool = False
+    rgb: np.ndarray | None = None
+
+
+def _ribbon_pieces(road: RoadPath, period_m: float, strips: list[_Strip], look: _Look) -> list[Callable[[], Piece]]:
+    """A mesh of the ribbons `strips` (one after the other, each along the whole road) in pieces of STRETCH_M."""
+    n_periods = int(road.length_m // period_m)
+    step = max(1, int(STRETCH_M // period_m))
+    return [
+        functools.partial(_ribbon_piece, road, period_m, strips, look, range(p, min(p + step, n_periods)))
+        for p in range(0, n_periods, step)
+    ]
+
+
+def _ribbon_piece(road: RoadPath, period_m: float, strips: list[_Strip], look: _Look, periods: range) -> Piece:
+    """The texture periods `periods` of every ribbon of `strips`."""
+    n_periods = int(road.length_m // period_m)
+    buf = MeshBuffer()
+    keys, vertex_keys = [], []
+    for r, strip in enumerate(strips):
+        v, f, uv = _ribbon(
+            road, period_m, strip.lat_left_m, strip.lat_right_m, strip.z_left_m, strip.z_right_m, periods
+        )
+        if strip.flip_u:
+            uv[:, 0] = 1.0 - uv[:, 0]
+        faces_per_period = len(f) // len(periods)
+        keys.append((r * n_periods + periods.start) * faces_per_period + np.arange(len(f)))
+        vertex_keys.append((r * n_periods + periods.start) * (len(v) // len(periods)) + np.arange(len(v)))
+        buf.add(v, f, uv=uv if strip.rgb is None else None, rgb=strip.rgb)
+    return Piece(look(buf), np.concatenate(keys), np.concatenate(vertex_keys))
+
+
+def _road_pieces(road: RoadPath, road_cfg, rng: np.random.Generator) -> list[Callable[[], Piece]]:
     half = road_half_width_m(road_cfg)
     tex = textures.asphalt_texture(rng, textures.RoadLayout(road_cfg.lane_width_m, half, road_cfg.edge_lines))
-    buf = MeshBuffer()
-    v, f, uv = _ribbon(road, textures.DASH_PERIOD_M, half, -half, 0.0, 0.0)
-    buf.add(v, f, uv=uv)
     mat = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.05, 0.05, 0.05), shininess=16.0, roughness=0.8)
-    return buf.build(mat, SEMANTIC_IDS["road"], texture_rgb=tex)
+    look = _Look(mat, SEMANTIC_IDS["road"], texture_rgb=tex)
+    return _ribbon_pieces(road, textures.DASH_PERIOD_M, [_Strip(half, -half, 0.0, 0.0)], look)
 
 
-def _sidewalk_meshes(road: RoadPath, road_cfg, rng: np.random.Generator) -> list[Mesh]:
+def _sidewalk_pieces(road: RoadPath, road_cfg, rng: np.random.Generator) -> list[list[Callable[[], Piece]]]:
+    """The sidewalks (textured) and the curbs (coloured), each in pieces."""
     half = road_half_width_m(road_cfg)
     h = road_cfg.curb_height_m
     outer = sidewalk_outer_m(road_cfg)
     period = 3.0
     paving = textures.paving_texture(rng, road_cfg.sidewalk_width_m, period)
-    walk = MeshBuffer()
-    curb = MeshBuffer()
     curb_rgb = np.array([0.72, 0.72, 0.70])
+    walks, curbs = [], []
     for side in (1.0, -1.0):
         a, b = side * (half + CURB_TOP_WIDTH_M), side * outer
-        v, f, uv = _ribbon(road, period, max(a, b), min(a, b), h, h)
-        if side < 0:
-            uv[:, 0] = 1.0 - uv[:, 0]
-        walk.add(v, f, uv=uv)
+        walks.append(_Strip(max(a, b), min(a, b), h, h, flip_u=side < 0))
         # curb face (road -> curb top), curb top, and the outer face down to the ground
         for lat0, lat1, z0, z1, shade in (
             (side * half, side * half, 0.0, h, 0.85),
             (side * half, side * (half + CURB_TOP_WIDTH_M), h, h, 1.0),
             (side * outer, side * outer, h, GROUND_Z_M, 0.8),
         ):
-            v, f, _ = _ribbon(road, period, lat0, lat1, z0, z1)
-            curb.add(v, f, rgb=curb_rgb * shade)
+            curbs.append(_Strip(lat0, lat1, z0, z1, rgb=curb_rgb * shade))
     walk_mat = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.03, 0.03, 0.03), roughness=0.9)
     curb_mat = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.03, 0.03, 0.03), roughness=0.9)
     return [
-        walk.build(walk_mat, SEMANTIC_IDS["sidewalk"], texture_rgb=paving),
-        curb.build(curb_mat, SEMANTIC_IDS["sidewalk"], coloured=True),
+        _ribbon_pieces(road, period, walks, _Look(walk_mat, SEMANTIC_IDS["sidewalk"], texture_rgb=paving)),
+        _ribbon_pieces(road, period, curbs, _Look(curb_mat, SEMANTIC_IDS["sidewalk"], coloured=True)),
     ]
 
 
@@ -271,35 +348,82 @@ def _lawn_box(road: RoadPath, cfg: SynthWorldConfig) -> tuple[float, float, floa
     return float(x0), float(x1), float(y0), float(y1)
 
 
-def _lawn_tiles(road: RoadPath, cfg: SynthWorldConfig, rng: np.random.Generator) -> np.ndarray:
-    """(T, 6) lawn tiles: x, y, size, the parent 10 m tile's x, y, its quarter turns. The 10 m grid covers the road's
-    bounding box plus `ground_margin_m`; tiles near the road are split into 2.5 m sub-tiles and those entirely under
-    the road and sidewalks dropped. Made as arrays: a list of tuples took several times the memory on a long road."""
+def _sub_offsets() -> np.ndarray:
+    """(16, 2) corners of the 2.5 m sub-tiles in a 10 m tile, row by row."""
+    sub = GROUND_TILE_M / 4
+    return np.stack(np.meshgrid(np.arange(4) * sub, np.arange(4) * sub), -1).reshape(-1, 2)
+
+
+@dataclass(frozen=True)
+class _LawnGrid:
+    """The 10 m lawn grid over the road's bounding box plus `ground_margin_m`, tile by tile in row order (y rows of
+    x): each tile's texture turn (quarter turns), and for tiles near the road (split into 2.5 m sub-tiles) which
+    sub-tiles are shown (bit k: sub-tile k of `_sub_offsets`; those entirely under the road and sidewalks are not)."""
+
+    xs_m: np.ndarray
+    ys_m: np.ndarray
+    turns: np.ndarray
+    near: np.ndarray
+    shown: np.ndarray
+
+
+def _lawn_grid(road: RoadPath, cfg: SynthWorldConfig, rng: np.random.Generator) -> _LawnGrid:
+    """The lawn grid of `road`, its texture turns drawn from `rng`."""
     x0, x1, y0, y1 = _lawn_box(road, cfg)
-    gx, gy = (a.ravel() for a in np.meshgrid(np.arange(x0, x1, GROUND_TILE_M), np.arange(y0, y1, GROUND_TILE_M)))
-    turns = rng.integers(0, 4, len(gx))  # each tile's texture turned by a multiple of 90 degrees: no visible tiling
+    xs, ys = np.arange(x0, x1, GROUND_TILE_M), np.arange(y0, y1, GROUND_TILE_M)
+    turns = rng.integers(0, 4, len(xs) * len(ys)).astype(np.int8)  # no visible tiling
     tree = cKDTree(np.column_stack([road.x_m, road.y_m]))
     paved_m = sidewalk_outer_m(cfg.road)
-    road_m = tree.query(np.column_stack([gx, gy]) + GROUND_TILE_M / 2)[0]
-    near = road_m < paved_m + GROUND_TILE_M
-    whole = ~near
     sub = GROUND_TILE_M / 4
-    offsets = np.stack(np.meshgrid(np.arange(4) * sub, np.arange(4) * sub), -1).reshape(-1, 2)
-    parents = np.column_stack([gx[near], gy[near]])
-    corners = parents[:, None, :] + offsets[None]  # (P, 16, 2)
-    probe = corners[:, :, None, :] + np.array([[0, 0], [1, 0], [0, 1], [1, 1], [0.5, 0.5]]) * sub
-    hidden = tree.query(probe.reshape(-1, 2))[0].reshape(len(parents), 16, 5).max(-1) < paved_m - 0.05
-    shown = ~hidden
-    subs = np.column_stack([
-        corners[shown], np.full(int(shown.sum()), sub), np.repeat(parents, shown.sum(1), axis=0),
-        np.repeat(turns[near], shown.sum(1)),
-    ])  # fmt: skip
+    probe_at = np.array([[0, 0], [1, 0], [0, 1], [1, 1], [0.5, 0.5]]) * sub
+    near = np.zeros(len(turns), bool)
+    shown = np.zeros(len(turns), np.uint16)
+    rows = max(1, LAWN_CHUNK_TILES // max(len(xs), 1))  # a few rows at a time: the working arrays stay small
+    for r0 in range(0, len(ys), rows):
+        gx, gy = (a.ravel() for a in np.meshgrid(xs, ys[r0 : r0 + rows]))
+        at = slice(r0 * len(xs), r0 * len(xs) + len(gx))
+        is_near = tree.query(np.column_stack([gx, gy]) + GROUND_TILE_M / 2)[0] < paved_m + GROUND_TILE_M
+        corners = np.column_stack([gx[is_near], gy[is_near]])[:, None, :] + _sub_offsets()[None]  # (P, 16, 2)
+        probe = corners[:, :, None, :] + probe_at
+        hidden = tree.query(probe.reshape(-1, 2))[0].reshape(len(corners), 16, 5).max(-1) < paved_m - 0.05
+        near[at] = is_near
+        shown[at][is_near] = (~hidden * (1 << np.arange(16))).sum(1)
+    return _LawnGrid(xs, ys, turns, near, shown)
+
+
+def _lawn_piece(grid: _LawnGrid, look: _Look, block: tuple[int, int]) -> Piece:
+    """The lawn tiles of the STRETCH_M square `block` (column, row) of the grid; a tile's faces keep their order in
+    the whole lawn (the whole tiles in grid order, then the sub-tiles)."""
+    per = int(STRETCH_M // GROUND_TILE_M)
+    nx = len(grid.xs_m)
+    ix = np.arange(block[0] * per, min((block[0] + 1) * per, nx))
+    iy = np.arange(block[1] * per, min((block[1] + 1) * per, len(grid.ys_m)))
+    g = (iy[:, None] * nx + ix[None, :]).ravel()
+    gx, gy = grid.xs_m[g % nx], grid.ys_m[g // nx]
+    whole = ~grid.near[g]
     wholes = np.column_stack([gx[whole], gy[whole], np.full(int(whole.sum()), GROUND_TILE_M), gx[whole], gy[whole]])
-    return np.concatenate([np.column_stack([wholes, turns[whole]]), subs.reshape(-1, 6)]).astype(float)
+    split = g[~whole]
+    bits = ((grid.shown[split][:, None] >> np.arange(16)) & 1).astype(bool)  # (P, 16)
+    parents = np.column_stack([gx[~whole], gy[~whole]])
+    corners = parents[:, None, :] + _sub_offsets()[None]
+    subs = np.column_stack([
+        corners[bits], np.full(int(bits.sum()), GROUND_TILE_M / 4), np.repeat(parents, bits.sum(1), axis=0),
+        np.repeat(grid.turns[split], bits.sum(1)),
+    ])  # fmt: skip
+    tiles = np.concatenate([np.column_stack([wholes, grid.turns[g[whole]]]), subs.reshape(-1, 6)]).astype(float)
+    tile_keys = np.concatenate([g[whole], len(grid.turns) + (split[:, None] * 16 + np.arange(16))[bits]])
+    buf = MeshBuffer()
+    if len(tiles):
+        verts, faces, uv = _lawn_quads(tiles)
+        buf.add(verts, faces, uv=uv)
+    return Piece(
+        look(buf), (tile_keys[:, None] * 2 + np.arange(2)).ravel(), (tile_keys[:, None] * 4 + np.arange(4)).ravel()
+    )
 
 
 def _lawn_quads(tiles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Vertices (4T, 3), faces (2T, 3) and uv (4T, 2) of (T, 6) lawn tiles (`_lawn_tiles`), faces from 0."""
+    """Vertices (4T, 3), faces (2T, 3) and uv (4T, 2) of (T, 6) lawn tiles (x, y, size, the parent 10 m tile's x, y,
+    its quarter turns), faces from 0."""
     n = len(tiles)
     unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
     verts = np.zeros((n, 4, 3))
@@ -315,21 +439,23 @@ def _lawn_quads(tiles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return verts.reshape(-1, 3), faces, np.clip(uv, 0.0, 1.0).reshape(-1, 2)
 
 
-def _ground_meshes(road: RoadPath, cfg: SynthWorldConfig, rng: np.random.Generator) -> list[Mesh]:
-    """Textured lawn tiles around the road (`_lawn_tiles`) and coarse far tiles to the horizon.
+def _ground_sources(road: RoadPath, cfg: SynthWorldConfig, rng: np.random.Generator) -> list[Source]:
+    """Textured lawn tiles around the road (`_LawnGrid`, in STRETCH_M squares) and coarse far tiles to the horizon.
 
     The rasterizer pays for every triangle's screen area, hidden or not, so lawn is not laid under the pavement.
     """
-    x0, x1, y0, y1 = _lawn_box(road, cfg)
-    tiles = _lawn_tiles(road, cfg, rng)
-    lawn = MeshBuffer()
-    for start in range(0, len(tiles), LAWN_CHUNK_TILES):  # in chunks: the float64 working arrays stay small
-        verts, faces, uv = _lawn_quads(tiles[start : start + LAWN_CHUNK_TILES])
-        lawn.add(verts, faces, uv=uv)
+    grid = _lawn_grid(road, cfg, rng)
     grass = textures.grass_texture(rng, GROUND_TILE_M)
     mat = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.02, 0.02, 0.02), roughness=1.0)
-    meshes = [lawn.build(mat, SEMANTIC_IDS["ground"], texture_rgb=grass)]
+    look = _Look(mat, SEMANTIC_IDS["ground"], texture_rgb=grass)
+    per = int(STRETCH_M // GROUND_TILE_M)
+    blocks = [(bx, by) for by in range(-(-len(grid.ys_m) // per)) for bx in range(-(-len(grid.xs_m) // per))]
+    lawn = [functools.partial(_lawn_piece, grid, look, block) for block in blocks]
+    return [lawn, _far_mesh(*_lawn_box(road, cfg))]
 
+
+def _far_mesh(x0: float, x1: float, y0: float, y1: float) -> Mesh:
+    """Coarse ground tiles around the lawn box (x0, x1, y0, y1) to FAR_EXTENT_M from its centre."""
     far = MeshBuffer()
     cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
     fx = np.arange(cx - FAR_EXTENT_M, cx + FAR_EXTENT_M, FAR_TILE_M)
@@ -342,8 +468,7 @@ def _ground_meshes(road: RoadPath, cfg: SynthWorldConfig, rng: np.random.Generat
             v = np.concatenate([v, v[::-1] + [0, FAR_TILE_M, 0]])
             far.add(v, np.array([[0, 1, 2], [0, 2, 3]]))
     far_mat = Material(diffuse_rgb=(0.36, 0.44, 0.27), specular_rgb=(0.0, 0.0, 0.0), roughness=1.0)
-    meshes.append(far.build(far_mat, SEMANTIC_IDS["ground"]))
-    return meshes
+    return far.build(far_mat, SEMANTIC_IDS["ground"])
 
 
 def _building_meshes(layout: Layout) -> list[tuple[Mesh, Callable[[], np.ndarray]]]:
@@ -397,48 +522,130 @@ def _back_wall(b: Building) -> int:
     return 1 if b.road_side > 0 else 3
 
 
-def _tree_meshes(layout: Layout, rng: np.random.Generator) -> list[Mesh]:
+def _crown_draws(rng: np.random.Generator, n_vertices: int) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """A tree crown's random draws, in the world's order: vertex bumps, vertical stretch, light noise, green tint."""
+    bumps = rng.standard_normal(n_vertices)
+    stretch = float(rng.uniform(1.0, 1.35))
+    noise = rng.standard_normal(n_vertices)
+    tint = float(rng.uniform(0.7, 1.2))
+    return bumps, stretch, noise, tint
+
+
+def _tree_pieces(layout: Layout, rng: np.random.Generator) -> list[list[Callable[[], Piece]]]:
+    """The trees' crowns and trunks, each in pieces of STRETCH_M squares. Every crown's draws are taken from `rng`
+    here, tree after tree (as the whole build took them), and the generator's state before each kept: a piece
+    draws its crowns again from those states."""
+    n_vertices = len(icosphere(1)[0])
+    states = []
+    for _ in layout.trees:
+        state = rng.bit_generator.state
+        states.append((state["state"]["state"], state["has_uint32"], state["uinteger"]))
+        _crown_draws(rng, n_vertices)
+    inc = rng.bit_generator.state["state"]["inc"]
+    groups = _by_square(np.array([[t.x_m, t.y_m] for t in layout.trees]).reshape(-1, 2))
+    leaf = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.02, 0.03, 0.02), shininess=8.0, roughness=0.9)
+    bark = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.0, 0.0, 0.0), roughness=1.0)
+    crowns = _Look(leaf, SEMANTIC_IDS["vegetation"], smooth=True, coloured=True)
+    trunks = _Look(bark, SEMANTIC_IDS["vegetation"], smooth=True, coloured=True)
+    return [
+        [functools.partial(_crown_piece, layout.trees, states, inc, crowns, idx) for idx in groups],
+        [functools.partial(_trunk_piece, layout.trees, trunks, idx) for idx in groups],
+    ]
+
+
+def _generator_at(inc: int, state: tuple[int, int, int]) -> np.random.Generator:
+    """A PCG64 generator with increment `inc` at the (state, has_uint32, uinteger) `state`."""
+    rng = np.random.Generator(np.random.PCG64())
+    rng.bit_generator.state = {
+        "bit_generator": "PCG64", "state": {"state": state[0], "inc": inc}, "has_uint32": state[1],
+        "uinteger": state[2],
+    }  # fmt: skip
+    return rng
+
+
+def _crown_piece(trees: list, states: list[tuple[int, int, int]], inc: int, look: _Look, idx: np.ndarray) -> Piece:
+    """The crowns of the trees `idx`, each from its own draws (`states`)."""
     sphere_v, sphere_f = icosphere(1)
     crowns = MeshBuffer()
+    for k in idx:
+        t = trees[k]
+        bumps, stretch, noise, tint = _crown_draws(_generator_at(inc, states[k]), len(sphere_v))
+        scale = np.array([1.0, 1.0, stretch]) * t.crown_radius_m
+        centre = np.array([t.x_m, t.y_m, t.trunk_height_m + 0.8 * scale[2]])
+        cv = sphere_v * (1.0 + 0.16 * bumps)[:, None] * scale + centre
+        # darker underneath and inside, lighter on top
+        light = 0.7 + 0.35 * (sphere_v[:, 2] + 1) / 2 + 0.08 * noise
+        base = np.array([0.24, 0.40, 0.15]) * t.shade * np.array([1.0, 1.0, tint])
+        crowns.add(cv, sphere_f, rgb=base[None, :] * light[:, None], normals=sphere_v)
+    keys = (np.asarray(idx, np.int64)[:, None] * KEY_STRIDE + np.arange(len(sphere_f))).ravel()
+    vertex_keys = (np.asarray(idx, np.int64)[:, None] * KEY_STRIDE + np.arange(len(sphere_v))).ravel()
+    return Piece(look(crowns), keys, vertex_keys)
+
+
+def _trunk_piece(trees: list, look: _Look, idx: np.ndarray) -> Piece:
+    """The trunks of the trees `idx`."""
     trunks = MeshBuffer()
-    for t in layout.trees:
+    keys, vertex_keys = [], []
+    for k in idx:
+        t = trees[k]
         v, f, n = prism(
             np.array([t.x_m, t.y_m, t.trunk_height_m / 2]), 0.14 + 0.03 * t.crown_radius_m, t.trunk_height_m + 0.6, 6
         )
         trunks.add(v, f, rgb=np.array([0.38, 0.28, 0.20]) * t.shade, normals=n)
-        bumps = 1.0 + 0.16 * rng.standard_normal(len(sphere_v))
-        scale = np.array([1.0, 1.0, rng.uniform(1.0, 1.35)]) * t.crown_radius_m
-        centre = np.array([t.x_m, t.y_m, t.trunk_height_m + 0.8 * scale[2]])
-        cv = sphere_v * bumps[:, None] * scale + centre
-        # darker underneath and inside, lighter on top
-        light = 0.7 + 0.35 * (sphere_v[:, 2] + 1) / 2 + 0.08 * rng.standard_normal(len(sphere_v))
-        base = np.array([0.24, 0.40, 0.15]) * t.shade * np.array([1.0, 1.0, rng.uniform(0.7, 1.2)])
-        crowns.add(cv, sphere_f, rgb=base[None, :] * light[:, None], normals=sphere_v)
-    leaf = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.02, 0.03, 0.02), shininess=8.0, roughness=0.9)
-    bark = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.0, 0.0, 0.0), roughness=1.0)
-    return [
-        crowns.build(leaf, SEMANTIC_IDS["vegetation"], smooth=True, coloured=True),
-        trunks.build(bark, SEMANTIC_IDS["vegetation"], smooth=True, coloured=True),
-    ]
+        keys.append(k * KEY_STRIDE + np.arange(len(f)))
+        vertex_keys.append(k * KEY_STRIDE + np.arange(len(v)))
+    return Piece(look(trunks), np.concatenate(keys), np.concatenate(vertex_keys))
 
 
-def _car_meshes(layout: Layout) -> list[Mesh]:
-    """Parked cars: sedans from the vehicle builder (`sim.vehicles`) at each car's size and paint colour, merged into
-    one mesh per material group (body paint colour per vertex)."""
+def _car_pieces(layout: Layout) -> list[list[Callable[[], Piece]]]:
+    """Parked cars: one mesh per material group (`_ParkedCars`), each in pieces of STRETCH_M squares."""
+    if not layout.cars:
+        return []
+    cars = _ParkedCars(layout.cars)
+    groups = _by_square(np.array([[c.x_m, c.y_m] for c in layout.cars]))
+    return [[functools.partial(cars.piece, idx, g) for idx in groups] for g in range(len(GROUP_NAMES))]
+
+
+class _ParkedCars:
+    """The parked cars' meshes: sedans from the vehicle builder (`sim.vehicles`) at each car's size and paint colour,
+    merged into one mesh per material group (body paint colour per vertex), a stretch at a time. The last few
+    stretches' cars are kept: each stretch's pieces of the five groups are made one after another."""
+
+    KEPT = 8
+
+    def __init__(self, cars: list) -> None:
+        self.cars = cars
+        self._made: dict[tuple[int, ...], list[Mesh]] = {}
+
+    def _meshes(self, idx: np.ndarray) -> list[list[Mesh]]:
+        """Per material group, the meshes of the cars `idx` (in the world frame)."""
+        key = tuple(int(k) for k in idx)
+        if key not in self._made:
+            if len(self._made) >= self.KEPT:
+                self._made.pop(next(iter(self._made)))
+            self._made[key] = [_car_group_meshes(self.cars[k]) for k in idx]
+        return [[car[g] for car in self._made[key]] for g in range(len(GROUP_NAMES))]
+
+    def piece(self, idx: np.ndarray, group: int) -> Piece:
+        """Material group `group` of the cars `idx`."""
+        meshes = self._meshes(idx)[group]
+        keys = np.concatenate([k * KEY_STRIDE + np.arange(len(m.faces)) for k, m in zip(idx, meshes, strict=True)])
+        vertex_keys = [k * KEY_STRIDE + np.arange(len(m.vertices_m)) for k, m in zip(idx, meshes, strict=True)]
+        return Piece(_merged(meshes), keys.astype(np.int64), np.concatenate(vertex_keys).astype(np.int64))
+
+
+def _car_group_meshes(car) -> list[Mesh]:
+    """A parked car's meshes, one per material group, in the world frame."""
     white_paint = Material(diffuse_rgb=(1.0, 1.0, 1.0), specular_rgb=(0.05, 0.05, 0.05), shininess=96.0, roughness=0.25)
-    groups: list[list[Mesh]] = [[] for _ in GROUP_NAMES]
-    for car in layout.cars:
-        shape = VehicleShape(
-            body_type="sedan", length_m=car.length_m, width_m=car.width_m, height_m=PARKED_CAR_HEIGHT_M,
-            hood_fraction=0.28, cabin_fraction=0.5, trunk_fraction=0.22, wheel_radius_m=0.32,
-            belt_fraction=0.68, windscreen_rake=1.3, rear_rake=1.1,
-        )  # fmt: skip
-        meshes = build_vehicle_meshes(shape, white_paint, "light", SEMANTIC_IDS["car"])
-        meshes[0].vertex_rgb = np.tile(np.asarray(car.rgb, np.float32), (len(meshes[0].vertices_m), 1))
-        T = pose_2d(car.x_m, car.y_m, car.yaw_rad)
-        for group, mesh in zip(groups, meshes, strict=True):
-            group.append(mesh.transformed(T))
-    return [_merged(group) for group in groups if group]
+    shape = VehicleShape(
+        body_type="sedan", length_m=car.length_m, width_m=car.width_m, height_m=PARKED_CAR_HEIGHT_M,
+        hood_fraction=0.28, cabin_fraction=0.5, trunk_fraction=0.22, wheel_radius_m=0.32,
+        belt_fraction=0.68, windscreen_rake=1.3, rear_rake=1.1,
+    )  # fmt: skip
+    meshes = build_vehicle_meshes(shape, white_paint, "light", SEMANTIC_IDS["car"])
+    meshes[0].vertex_rgb = np.tile(np.asarray(car.rgb, np.float32), (len(meshes[0].vertices_m), 1))
+    T = pose_2d(car.x_m, car.y_m, car.yaw_rad)
+    return [mesh.transformed(T) for mesh in meshes]
 
 
 def _merged(meshes: list[Mesh]) -> Mesh:
