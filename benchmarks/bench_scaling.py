@@ -12,7 +12,9 @@ that process: the CLI's imports, ~300 MB with torch, included), and the load ave
 (the recording, trace/, preprocessed/, world/): bytes on disk, per frame and per minute of driving, file by file.
 
 Usage: python benchmarks/bench_scaling.py [--minutes 1,5,30] [--depth-method auto] [--keep DIR]
-With --keep, the env steps/s of the shortest and the longest world are also measured alternately (3 runs each).
+With --keep, the shortest and the longest world are also measured alternately: a bare env's steps/s (3 runs each,
+--alternate-steps) and `drivesim train lane`'s training env steps/s from its progress.csv (2 runs each, --train-steps).
+With --keep and --reuse-measured, the stages of a kept workspace are read back and only the env is measured again.
 Writes benchmarks/results/scaling.md, scaling.json and scaling.png (cost vs drive length per stage).
 """
 
@@ -32,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from _lib.report import measured_now, write_markdown
+from _lib.train_run import train_stage_row
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
@@ -156,6 +159,23 @@ def measure_length(work: Path, minutes: float, depth_method: str, sim_steps: int
     return {"minutes": minutes, "frames": frames, "runs": [asdict(r) for r in runs], "disk_bytes": disk}
 
 
+def remeasure_sim(work: Path, length: dict[str, Any], sim_steps: int) -> dict[str, Any]:
+    """A read-back length with its `sim` row measured again on its kept world (the env's code changes most often)."""
+    ws = work / f"{length['minutes']:g}min"
+    sim_args = ["bench", "sim", "--world", str(ws / "world"), "--tasks", "lane", "--steps", str(sim_steps), "--json"]
+    sim = asdict(run_stage(ws, "sim", length["minutes"], length["frames"], drivesim(ws, *sim_args)))
+    return {**length, "runs": [r for r in length["runs"] if r["stage"] != "sim"] + [sim]}
+
+
+def stages_measured(report: Path) -> str:
+    """When the stages read back with --reuse-measured were measured: the date of the report written beside them."""
+    try:
+        earlier = json.loads(report.with_suffix(".json").read_text())
+        return earlier.get("stages_measured") or earlier["measured"]["date_utc"] + " UTC"
+    except (OSError, KeyError, ValueError):
+        return "an earlier run (date unknown)"
+
+
 def _disk_row(minutes: float, frames: int, artifact: str, files: dict[str, int]) -> dict[str, Any]:
     """One artifact's row: MB, KB per frame, MB per minute of driving, and its three largest files' KB per frame."""
     total = sum(files.values())
@@ -247,6 +267,15 @@ def markdown(raw: dict[str, Any]) -> list[str]:
         "The load is beside each run. The view cache is what the first env writes beside a world of more than 2048 "
         "frames (`sim/frame_cache.py`): a cache the simulator rebuilds, counted apart from the workspace.",
         "",
+    ]
+    if "stages_measured" in raw:
+        lines += [
+            f"The rows of synth, ingest, preprocess and build-world and the disk table were measured at "
+            f"{raw['stages_measured']} (read back with --reuse-measured from the kept workspaces); the sim rows and "
+            "the alternating env steps/s at the date above.",
+            "",
+        ]
+    lines += [
         "| stage | minutes | frames | wall s | ms/frame | stage s | peak RSS MB | load before/after | notes |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
@@ -320,11 +349,19 @@ def targets(raw: dict[str, Any]) -> list[str]:
         sim = [_run(length, "sim")["extra"]["steps_per_s"] for length in (short, long)]
         steps = {"steps": raw["sim_steps"], "repeats": 1, "short_steps_per_s": sim[0], "long_steps_per_s": sim[1]}
     lines.append(
-        f"- env steps/s (lane, one env, {steps['steps']} steps, {steps['repeats']} alternating runs each, median): "
-        f"{steps['long_steps_per_s']:.0f} on the {long['minutes']:g}-minute world against "
+        f"- env steps/s (lane, one bare env, {steps['steps']} steps, {steps['repeats']} alternating runs each, "
+        f"median): {steps['long_steps_per_s']:.0f} on the {long['minutes']:g}-minute world against "
         f"{steps['short_steps_per_s']:.0f} on the {short['minutes']:g}-minute one "
         f"({_within(steps['long_steps_per_s'] / steps['short_steps_per_s'], 0.1)})"
     )
+    train = raw.get("train_interleaved")
+    if train:
+        lines.append(
+            f"- training env steps/s (`{train['command']}`, its progress.csv, {train['repeats']} alternating runs "
+            f"each, median): {train['long_steps_per_s']:.0f} on the {long['minutes']:g}-minute world against "
+            f"{train['short_steps_per_s']:.0f} on the {short['minutes']:g}-minute one "
+            f"({_within(train['long_steps_per_s'] / train['short_steps_per_s'], 0.1)})"
+        )
     for artifact in ("workspace (trace + preprocessed + world)", "workspace and view cache"):
         worst = max(r["mb_per_min"] for r in raw["disk"] if r["artifact"] == artifact)
         lines.append(
@@ -332,6 +369,29 @@ def targets(raw: dict[str, Any]) -> list[str]:
             f"(target 150: {'met' if worst <= 150 else 'not met'})"
         )
     return lines
+
+
+def train_interleaved(work: Path, lengths: list[float], steps: int, repeats: int = 2) -> dict[str, Any]:
+    """Training env steps/s of `drivesim train lane` (the preset's loop, towns left out, no evaluation within the
+    budget) on the shortest and the longest world, alternately `repeats` times each; the medians of the rates
+    the runs' progress.csv report."""
+    measured: dict[str, list[float]] = {"short": [], "long": []}
+    command = ""
+    for _ in range(repeats):
+        for key, minutes in (("short", lengths[0]), ("long", lengths[-1])):
+            print(f"[{time.strftime('%H:%M:%S')}] drivesim train lane on the {minutes:g}-minute world ...", flush=True)
+            world = work / f"{minutes:g}min" / "world"
+            row = train_stage_row(world, "lane", steps, eval_every=10 * steps, eval_episodes=1)
+            measured[key].append(row["last_progress_row"]["steps_per_s_run"])
+            command = row["command"].replace(str(world), "WORLD")
+    return {
+        "command": command,
+        "steps": steps,
+        "repeats": repeats,
+        "runs": measured,
+        "short_steps_per_s": statistics.median(measured["short"]),
+        "long_steps_per_s": statistics.median(measured["long"]),
+    }
 
 
 def steps_interleaved(work: Path, lengths: list[float], steps: int, repeats: int = 3) -> dict[str, Any]:
@@ -409,6 +469,15 @@ def main() -> None:
     parser.add_argument("--minutes", default="1,5,30", help="drive lengths in minutes, comma-separated")
     parser.add_argument("--depth-method", default="auto", help="preprocess depth.method (default: the chain's)")
     parser.add_argument("--sim-steps", type=int, default=3000, help="env steps of the steps/s measurement")
+    parser.add_argument(
+        "--alternate-steps", type=int, default=10000, help="with --keep: env steps of each alternating steps/s run"
+    )
+    parser.add_argument(
+        "--train-steps",
+        type=int,
+        default=16384,
+        help="with --keep: env steps of each alternating `drivesim train lane` run (0: none)",
+    )
     parser.add_argument("--keep", type=Path, default=None, help="keep the workspaces in this folder")
     parser.add_argument("--output", type=Path, default=RESULTS / "scaling.md", help="markdown report to write")
     parser.add_argument(
@@ -439,8 +508,9 @@ def main() -> None:
         for m in minutes:
             done = work / f"{m:g}min" / "length.json"
             if args.reuse_measured and done.is_file():
-                print(f"{m:g} min: read back from {done}", flush=True)
-                raw["lengths"].append(json.loads(done.read_text()))
+                print(f"{m:g} min: read back from {done}; the env's steps/s measured again", flush=True)
+                raw["lengths"].append(remeasure_sim(work, json.loads(done.read_text()), args.sim_steps))
+                raw["stages_measured"] = stages_measured(args.output)
                 continue
             raw["lengths"].append(measure_length(work, m, args.depth_method, args.sim_steps))
             done.write_text(json.dumps(raw["lengths"][-1]))
@@ -451,7 +521,9 @@ def main() -> None:
             shutil.rmtree(work, ignore_errors=True)
     if len(minutes) >= 2 and args.keep is not None:
         print(f"[{time.strftime('%H:%M:%S')}] env steps/s, alternating worlds ...", flush=True)
-        raw["steps_interleaved"] = steps_interleaved(work, minutes, args.sim_steps)
+        raw["steps_interleaved"] = steps_interleaved(work, minutes, args.alternate_steps)
+        if args.train_steps > 0:
+            raw["train_interleaved"] = train_interleaved(work, minutes, args.train_steps)
     raw["load_end"] = load_1min()
     raw["uptime_end"] = uptime_line()
     raw["disk"] = disk_rows(raw["lengths"])

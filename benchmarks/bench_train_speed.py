@@ -18,11 +18,7 @@ Writes benchmarks/results/train_speed.md and train_speed.json (with the load ave
 from __future__ import annotations
 
 import argparse
-import csv
 import os
-import subprocess
-import sys
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -30,6 +26,7 @@ from typing import Any
 
 import torch
 from _lib.report import write_markdown
+from _lib.train_run import train_stage_row
 from sb3_contrib import RecurrentPPO
 from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
 from stable_baselines3 import PPO
@@ -44,8 +41,6 @@ from drivesim.stages.train.recurrent import ChunkedRecurrentPPO, TimedVecEnv
 from drivesim.stages.train.sb3_policy import DrivingLstmPolicy, EncoderExtractor
 
 RESULTS = Path(__file__).parent / "results" / "train_speed.md"
-PROGRESS_KEYS = ("steps", "wall_s", "steps_per_s_run", "time_rollout_s", "time_optimization_s", "time_imitation_s",
-                 "time_simulator_s", "eval_success_rate", "eval_return_mean")  # fmt: skip
 SHAPE = (3, 64, 160)
 SMALL_CNN = {"conv_layers": [[16, 5, 2], [32, 3, 2], [64, 3, 1]], "features_dim": 128, "input_pool": 2}
 FULL_RES_CNN = {"conv_layers": [[16, 5, 3], [32, 3, 2], [64, 3, 2]], "features_dim": 128, "input_pool": 1}
@@ -262,29 +257,6 @@ def _drivesim_rows(steps: int, common: dict[str, Any]) -> list[Row]:
         )
     )
     return rows
-
-
-def train_stage_row(world: Path, task: str, steps: int, eval_every: int, eval_episodes: int) -> dict[str, Any]:
-    """`drivesim train` in a fresh workspace for `steps` env steps; its last progress.csv row and its wall time."""
-    with tempfile.TemporaryDirectory(prefix="bench-train-speed-") as tmp:
-        command = [
-            sys.executable, "-m", "drivesim.cli.main", "--workspace", tmp, "train", task, "--world", str(world),
-            "--total-steps", str(steps), "--set", "towns=[]", "--set", f"eval.every_steps={eval_every}",
-            "--set", f"eval.episodes={eval_episodes}",
-        ]  # fmt: skip
-        began = time.perf_counter()
-        done = subprocess.run(command, capture_output=True, text=True, check=False)
-        wall_s = time.perf_counter() - began
-        if done.returncode != 0:
-            sys.exit(f"drivesim train failed (exit {done.returncode}):\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}")
-        progress = next(Path(tmp, "runs").glob("*/progress.csv"))
-        rows = list(csv.DictReader(progress.open()))
-    last = {k: float(v) for k, v in rows[-1].items() if k in PROGRESS_KEYS and v}
-    print(
-        f"drivesim train: {last['steps']:.0f} steps, {last['steps_per_s_run']} env steps/s, {wall_s:.0f} s", flush=True
-    )
-    command_line = "drivesim " + " ".join(command[3:]).replace(tmp, "WS")
-    return {"command": command_line, "updates": len(rows), "command_wall_s": wall_s, "last_progress_row": last}
 
 
 def bare_loop_row(world: Path, task: str, steps: int) -> Row:

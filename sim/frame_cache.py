@@ -100,12 +100,17 @@ class FrameLayout:
         """The (rgb (H, W + 2m, 3) uint8, depth (H, W + 2m) float16) arrays of a frame's block: views of one new
         writable buffer."""
         H, wide = self.height_px, self.wide_width_px
-        raw = np.frombuffer(lz4.block.decompress(block, uncompressed_size=self.rgb_bytes + self.depth_bytes), np.uint8)
-        if raw.size != self.rgb_bytes + self.depth_bytes:
-            raise OSError(f"a frame of {raw.size} bytes, the layout says {self.rgb_bytes + self.depth_bytes}")
-        frame = np.empty(self.depth_offset + self.depth_bytes, dtype=np.uint8)
-        frame[: self.rgb_bytes] = raw[: self.rgb_bytes]
-        frame[self.depth_offset :] = raw[self.rgb_bytes :]
+        size = self.rgb_bytes + self.depth_bytes
+        decoded = lz4.block.decompress(block, uncompressed_size=size, return_bytearray=True)
+        if len(decoded) != size:
+            raise OSError(f"a frame of {len(decoded)} bytes, the layout says {size}")
+        raw = np.frombuffer(decoded, np.uint8)
+        if self.depth_offset == self.rgb_bytes:  # the depth already starts 8-byte aligned: no copy (a read's ~10 %)
+            frame = raw
+        else:
+            frame = np.empty(self.depth_offset + self.depth_bytes, dtype=np.uint8)
+            frame[: self.rgb_bytes] = raw[: self.rgb_bytes]
+            frame[self.depth_offset :] = raw[self.rgb_bytes :]
         rgb = frame[: self.rgb_bytes].reshape(H, wide, 3)
         return rgb, frame[self.depth_offset :].view(np.float16).reshape(H, wide)
 
