@@ -184,12 +184,13 @@ def insert_car(
     view: str = "rear",
     harmonizer: Harmonizer | None = None,
     light_elevation_deg: float = 0.0,
+    light_gain: float = 1.0,
 ) -> tuple[np.ndarray, tuple[int, int, int, int]]:
     """`frame` (h, w, 3) uint8 with `model` inserted at the place of `box`, seen from its `view` side
     (`VIEW_YAW_RAD`), drawn at `level` (`LEVELS`), and the inserted car's own box (x0, y0, x1, y1) px; only a region
     around the box is rendered. `harmonizer`: the harmonization level's (None: the simulator's statistical one);
     `light_elevation_deg`: the directional light's elevation as the view's setting of that name (0: from the
-    viewpoint, 90: from overhead)."""
+    viewpoint, 90: from overhead); `light_gain`: the scene's light (ambient and directional) times this."""
     if level not in LEVELS:
         raise ValueError(f"level {level!r}: choose one of {LEVELS}")
     if view not in VIEW_YAW_RAD:
@@ -207,7 +208,8 @@ def insert_car(
         mean = frame.reshape(-1, 3).mean(axis=0) / 255.0
         elevation_rad = np.deg2rad(light_elevation_deg)
         direction = [0.0, np.sin(elevation_rad), np.cos(elevation_rad)]  # travelling down and forward, camera frame
-        lights = np.concatenate([mean, direction, _DIRECTIONAL_GAIN * mean]).astype(np.float32)[None]
+        ambient = light_gain * mean
+        lights = np.concatenate([ambient, direction, _DIRECTIONAL_GAIN * ambient]).astype(np.float32)[None]
     raster = Rasterizer(x1 - x0, y1 - y0, cull_back_faces=True)
     drawn = raster.render(_level_meshes(model, level), T, K_roi, lighting=lights)
     out = frame.copy()

@@ -1,15 +1,18 @@
-"""Probe: does the C2ST move with the body's light ramp or with number plates?
+"""Probe: does the C2ST move with the body's light ramp, number plates or the strength of the scene's light?
 
 The default crops of `what_separates.py` (the car drawn at a world's 320 px with the camera's look), with the library's
 cars rebuilt under one change each: the body's occlusion floor (`BODY_OCCLUSION_FLOOR`, the light factor at the
-ground) raised, and white number plates (EU size, 520 x 110 mm, retroreflective white) on both ends. Prints the
-C2ST accuracy and the row profile of each arm.
+ground) raised, white number plates (EU size, 520 x 110 mm, retroreflective white) on both ends, and the scene's
+light (ambient from the frame's mean, and the directional light) scaled by `--light-gains`. Prints the C2ST
+accuracy and the row profile of each arm.
 
-    .venv/bin/python experiments/car_look/parts_probe.py   # ~1 min per arm
+    .venv/bin/python experiments/car_look/parts_probe.py [--light-gains 1.5,2,3] [--skip-parts]   # ~1 min an arm
 """
 
 from __future__ import annotations
 
+import argparse
+import functools
 import sys
 from pathlib import Path
 
@@ -38,13 +41,21 @@ def _with_plates(original):
 
 
 def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--light-gains", default="", help="comma-separated gains of the scene's light (arms)")
+    parser.add_argument("--skip-parts", action="store_true", help="only the shipped car and the light arms")
+    args = parser.parse_args()
     boxes = ws.cr.load_boxes(ws.BOXES)
-    floor0, trim0 = vehicles.BODY_OCCLUSION_FLOOR, vehicles._trim
-    arms = [("as shipped", floor0, False), ("plates", floor0, True)]
-    arms += [(f"occlusion floor {f}", f, False) for f in (0.6, 1.0)] + [("floor 0.6 + plates", 0.6, True)]
-    for name, floor, plates in arms:
+    floor0, trim0, insert0 = vehicles.BODY_OCCLUSION_FLOOR, vehicles._trim, ws.cr.insert_car
+    arms = [("as shipped", floor0, False, 1.0)]
+    if not args.skip_parts:
+        arms += [("plates", floor0, True, 1.0)] + [(f"occlusion floor {f}", f, False, 1.0) for f in (0.6, 1.0)]
+        arms += [("floor 0.6 + plates", 0.6, True, 1.0)]
+    arms += [(f"light x{g}", floor0, False, float(g)) for g in args.light_gains.split(",") if g]
+    for name, floor, plates, gain in arms:
         vehicles.BODY_OCCLUSION_FLOOR = floor
         vehicles._trim = _with_plates(trim0) if plates else trim0
+        ws.cr.insert_car = functools.partial(insert0, light_gain=gain)
         real, inserted, _, _ = ws.default_crops(boxes)
         correct = ws.accuracy(real, inserted)
         profile = np.round(inserted.mean(axis=(0, 2))[::8]).astype(int)
