@@ -205,3 +205,19 @@ def test_a_world_the_memory_cache_holds_whole_spends_no_disk(tmp_path, monkeypat
     rgb, _ = _render_drive(ViewSynthesizer(world, ViewConfig(**SMALL)), range(0, world.frame_count, 5))
     assert rgb.std() > 0
     assert not (world.root / "view_cache").exists()
+
+
+@pytest.mark.parametrize("height_px, width_px, margin_px", [(4, 6, 1), (3, 5, 0)])
+def test_a_decoded_frame_is_its_encoded_arrays_writable_whether_its_depth_starts_aligned_or_not(
+    height_px, width_px, margin_px
+):
+    layout = frame_cache.FrameLayout(height_px, width_px, margin_px)
+    assert (layout.rgb_bytes % 8 == 0) == (height_px == 4)  # the first layout decodes in place, the second copies
+    rng = np.random.default_rng(0)
+    shape = (height_px, layout.wide_width_px)
+    rgb = rng.integers(0, 256, (*shape, 3), dtype=np.uint8)
+    depth_m = rng.uniform(0.5, 80.0, shape).astype(np.float32)
+    out_rgb, out_depth = layout.decode(layout.encode(rgb, depth_m))
+    np.testing.assert_array_equal(out_rgb, rgb)
+    np.testing.assert_array_equal(out_depth, depth_m.astype(np.float16))
+    assert out_rgb.flags.writeable and out_depth.flags.writeable and out_depth.flags.aligned
