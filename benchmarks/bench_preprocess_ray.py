@@ -243,7 +243,7 @@ def report(args: argparse.Namespace, raw: dict) -> list[str]:
         "",
         f"- date: {start['date_utc']} UTC; machine: {start['machine']}; 1-min load average "
         f"{start['load_average_1_5_15_min'][0]} at the start, {end['load_average_1_5_15_min'][0]} at the end "
-        "(other work shared the cores)",
+        "(the benchmark's own runs count in it)",
         f"- drive: {raw['trace']}, {n} frames; depth: mvs at its default settings; reproduce: `{cmd}`",
         "",
         "| run | wall (s) | s per frame | frames / s, steady state | Ray's overhead against it |",

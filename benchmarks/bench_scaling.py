@@ -221,13 +221,14 @@ def plot(raw: dict[str, Any], path: Path) -> None:
             axes[0].plot(minutes, [1000.0 * r["wall_s"] / max(r["frames"], 1) for r in runs], "o-", label=stage)
         axes[1].plot(minutes, [r["peak_rss_mb"] for r in runs], "o-", label=stage)
     sim = [next(r for r in length["runs"] if r["stage"] == "sim") for length in lengths]
-    axes[2].plot(minutes, [r["extra"]["steps_per_s"] for r in sim], "o-", label="lane, one env, one run")
-    steps = raw.get("steps_interleaved")
-    if steps:
-        axes[2].plot(
-            [minutes[0], minutes[-1]], [steps["short_steps_per_s"], steps["long_steps_per_s"]], "s--",
-            label=f"median of {steps['repeats']} alternating runs",
-        )  # fmt: skip
+    axes[2].plot(minutes, [r["extra"]["steps_per_s"] for r in sim], "o-", label="bare env (lane), one run")
+    for key, label in (("steps_interleaved", "bare env"), ("train_interleaved", "drivesim train lane")):
+        steps = raw.get(key)
+        if steps:
+            axes[2].plot(
+                [minutes[0], minutes[-1]], [steps["short_steps_per_s"], steps["long_steps_per_s"]], "s--",
+                label=f"{label}, median of {steps['repeats']} alternating runs",
+            )  # fmt: skip
     axes[2].set_ylim(bottom=0)
     for name in (*ARTIFACTS, "workspace"):
         parts = WORKSPACE_ARTIFACTS if name == "workspace" else (name,)
