@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import psutil
 import pytest
 import torch
@@ -163,6 +164,23 @@ def test_terminated_training_stops_its_worker_processes_and_says_how_to_resume(t
     assert out_path.read_text().splitlines()[0].startswith(f"training lane to 100000 env steps in {run_dir}")
     _assert_all_end(workers)
     assert not list(ws.glob(".tmp-*")) and (run_dir / "checkpoints" / "last.pt").is_file()
+
+
+def test_subprocess_envs_close_after_a_step_interrupted_between_two_replies() -> None:
+    """Ctrl-C can land after one worker's reply to a step was read and before the next: close() then stops the
+    workers within seconds instead of waiting forever for the reply already read."""
+    from drivesim.stages.train.envs import EnvSource
+
+    source = EnvSource("lane", cost_free=True, config=TrainConfig().envs.config, worker_threads=1)
+    venv = source.make_vec(2, "subproc", seed=0)
+    workers = [psutil.Process(p.pid) for p in venv.processes]
+    venv.reset()
+    venv.step_async(np.zeros((2, *venv.action_space.shape), dtype=np.float32))
+    venv.remotes[0].recv()  # the first reply read, as step_wait does before an interrupt
+    start = time.monotonic()
+    venv.close()
+    assert time.monotonic() - start < 15 and venv.closed
+    _assert_all_end(workers)
 
 
 # ---------------------------------------------------------------- the CLI's error boundary, in this process

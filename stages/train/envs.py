@@ -22,6 +22,26 @@ def _limit_worker_threads(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
+class _StoppableSubprocVecEnv(SubprocVecEnv):
+    """SB3's SubprocVecEnv whose close after a step interrupted mid-way (Ctrl-C, SIGTERM) does not hang.
+
+    SB3's close waits for every worker's reply to the step under way, but the replies read before the interrupt are
+    gone, so it would wait forever on those; here the workers are stopped instead (their envs hold nothing to save).
+    """
+
+    def close(self) -> None:  # noqa: D102
+        if self.waiting and not self.closed:
+            for process in self.processes:
+                process.terminate()
+            for process in self.processes:
+                process.join(timeout=10)
+            for remote in self.remotes:
+                remote.close()
+            self.closed = True
+            return
+        super().close()
+
+
 @dataclass
 class EnvSource:
     """Makes the training, vectorized and evaluation environments of a run.
@@ -78,7 +98,7 @@ class EnvSource:
             venv: VecEnv = BatchedVecEnv(*batch, self.env_config(), seed)
             return venv
         if kind == "subproc" and count > 1:
-            venv = SubprocVecEnv([self.env_fn(mode) for _ in range(count)], start_method="forkserver")
+            venv = _StoppableSubprocVecEnv([self.env_fn(mode) for _ in range(count)], start_method="forkserver")
         else:
             venv = DummyVecEnv([self.env_fn(mode) for _ in range(count)])
         venv.seed(seed)

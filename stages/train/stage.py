@@ -19,6 +19,7 @@ from pathlib import Path
 from drivesim.pipeline.errors import DrivesimError, Interrupted
 from drivesim.pipeline.stage import BuildContext, StageResult, StageSpec, run_stage
 from drivesim.pipeline.workspace import MANIFEST_NAME, Workspace
+from drivesim.policy.run_folder import CONFIG_JSON
 from drivesim.stages.train.config import TrainConfig
 from drivesim.stages.train.summary import TrainSummary
 
@@ -42,7 +43,7 @@ def _meshes_of(ws: Workspace) -> Path | None:
 def _build(ctx: BuildContext, stop_by: float | None = None) -> TrainSummary:
     from drivesim.pipeline.progress import console, progress_bar
     from drivesim.stages.train.envs import EnvSource
-    from drivesim.stages.train.run import TrainingInterruptedError, train_in_folder
+    from drivesim.stages.train.run import train_in_folder
 
     cfg = ctx.config
     assert isinstance(cfg, TrainConfig)
@@ -63,23 +64,14 @@ def _build(ctx: BuildContext, stop_by: float | None = None) -> TrainSummary:
         worker_threads=cfg.envs.worker_threads,
         processes=cfg.envs.processes,
     )
-    try:
-        # The run's lines (each warm-start round, resumes, the chosen weights) as they happen, above the bar: the
-        # warm start alone takes minutes, with the bar still at 0 steps.
-        def report(line: str) -> None:
-            console.print(line, highlight=False, soft_wrap=True)
 
-        with progress_bar("train", total=cfg.total_steps) as bar:
-            outcome = train_in_folder(run_dir, cfg, source, report=report, progress=bar, stop_by=stop_by)
-    except Interrupted:
-        raise
-    except KeyboardInterrupt as e:  # outside the PPO updates (setup, warm start, final files): say how to go on
-        if not (run_dir / "config.json").is_file():
-            raise
-        raise TrainingInterruptedError(
-            f"interrupted; the run keeps everything up to its last update in {run_dir}; continue with "
-            f"`drivesim train --resume {run_dir}`"
-        ) from e
+    # The run's lines (each warm-start round, resumes, the chosen weights) as they happen, above the bar: the
+    # warm start alone takes minutes, with the bar still at 0 steps.
+    def report(line: str) -> None:
+        console.print(line, highlight=False, soft_wrap=True)
+
+    with progress_bar("train", total=cfg.total_steps) as bar:
+        outcome = train_in_folder(run_dir, cfg, source, report=report, progress=bar, stop_by=stop_by)
     # The finished files move into the folder run_stage writes the manifest in and moves into place.
     for entry in run_dir.iterdir():
         os.replace(entry, ctx.dir / entry.name)
@@ -218,12 +210,35 @@ def run_training(
         ws.require(upstream, spec.upstream_hints.get(upstream, f"drivesim {upstream}"))
     run_dir = resume if resume is not None else new_run_dir(ws.root, cfg.task)  # created: no other run takes it
     # One process trains a run folder at a time (`--resume` twice is refused by the lock).
-    with _empty_run_removed_on_failure(run_dir, new=resume is None), ws.lock(f"runs/{run_dir.name}"):
+    with (
+        _says_how_to_resume(run_dir),
+        _empty_run_removed_on_failure(run_dir, new=resume is None),
+        ws.lock(f"runs/{run_dir.name}"),
+    ):
         if on_start is not None:
             on_start(run_dir)
         return run_stage(
             ws, spec, cfg, force=True, external=external, artifact=f"runs/{run_dir.name}", work_dir=run_dir
         )
+
+
+@contextmanager
+def _says_how_to_resume(run_dir: Path) -> Iterator[None]:
+    """Ctrl-C or a stop signal anywhere in a run that has its config.json (setup, warm start, the PPO updates, the
+    final files, the folder's lock) ends with the line saying how to continue it; before that, as any command."""
+    from drivesim.stages.train.run import TrainingInterruptedError
+
+    try:
+        yield
+    except Interrupted:
+        raise
+    except KeyboardInterrupt as e:
+        if not (run_dir / CONFIG_JSON).is_file():
+            raise
+        raise TrainingInterruptedError(
+            f"interrupted; the run keeps everything up to its last update in {run_dir}; continue with "
+            f"`drivesim train --resume {run_dir}`"
+        ) from e
 
 
 @contextmanager
