@@ -36,7 +36,9 @@ def main() -> int:
     real, shipped, matched, ratios = [], [], [], []
     for i, b in enumerate(boxes):
         frame = cr.load_frame(ws.REAL, b.drive, b.frame)
-        small, K_small, box_small = cr.reduced_view(frame, cr.drive_intrinsics(ws.REAL, b.drive), b.box, 320)
+        small, K_small, box_small = cr.reduced_view(
+            frame, cr.drive_intrinsics(ws.REAL, b.drive), b.box, ws.WORLD_WIDTH_PX
+        )
         car = cr.library_car(i, 0)
         real.append(cr.crop(frame, b.box, width_px=ws.WORLD_WIDTH_PX))
         image, own_box = cr.insert_car(small, K_small, box_small, car, "camera", b.view)
