@@ -10,7 +10,11 @@ No crop may share its content with a crop of the other class, so the drives are 
 into one half's frames take their donors from the other half, and each half has its own C2ST (real crops of that half
 against its inserted crops); the two halves' out-of-fold results are pooled.
 
-    .venv/bin/python experiments/car_look/photo_probe.py   # ~1 min
+    .venv/bin/python experiments/car_look/photo_probe.py [--any-side] [--whole-box] [--raw]   # ~2 min
+
+`--any-side`: donors from cars seen from any side; `--whole-box`: the donor's whole box (its own outline and the
+background around it) over the drawn car's box, the harmonizer and the camera's look still applied to the
+silhouette; `--raw`: the photograph as it is, without the harmonizer and the camera's look.
 """
 
 from __future__ import annotations
@@ -26,6 +30,8 @@ import what_separates as ws  # noqa: E402
 
 cr = ws.cr
 HALVES = ({"0001", "06"}, {"00", "07"})
+WHOLE_BOX = "--whole-box" in sys.argv  # the donor's whole box, its outline and background too, not the silhouette only
+RAW = "--raw" in sys.argv  # the photograph as it is: no harmonizer and no camera look over it
 ANY_SIDE = "--any-side" in sys.argv  # donors from every side: each used about once, not a few used many times
 
 
@@ -54,9 +60,10 @@ def _with_photo(donor: np.ndarray):
             r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
             stretched = cv2.resize(donor, (int(c1 - c0), int(r1 - r0)), interpolation=cv2.INTER_LINEAR)
             window = region[r0:r1, c0:c1]
-            inside = mask[r0:r1, c0:c1]
+            inside = np.ones_like(mask[r0:r1, c0:c1]) if WHOLE_BOX else mask[r0:r1, c0:c1]
             window[inside] = stretched[inside]
-        original(harmonizer, region, mask)
+        if not RAW:
+            original(harmonizer, region, mask)
 
     return harmonize
 
@@ -81,7 +88,7 @@ def _half_crops(boxes: list, test_drives: set[str], donor_drives: set[str]) -> t
         pool = every_donor if ANY_SIDE else (donors.get(b.view) or every_donor)
         cr.harmonize_view_uint8_ = _with_photo(pool[i % len(pool)])
         try:
-            image, own_box = cr.insert_car(small, K_small, box_small, car, "camera", b.view)
+            image, own_box = cr.insert_car(small, K_small, box_small, car, "harmonization" if RAW else "camera", b.view)
         finally:
             cr.harmonize_view_uint8_ = original
         photo.append(cr.crop(image, own_box))
