@@ -39,15 +39,11 @@ def main() -> int:
     boxes = cr.load_boxes(ws.BOXES)
     real, shipped, on_cleared = [], [], []
     for i, b in enumerate(boxes):
-        frame = cr.load_frame(ws.REAL, b.drive, b.frame)
-        small, K_small, box_small = cr.reduced_view(
-            frame, cr.drive_intrinsics(ws.REAL, b.drive), b.box, ws.WORLD_WIDTH_PX
-        )
-        car = cr.library_car(i, 0)
-        real.append(cr.crop(frame, b.box, width_px=ws.WORLD_WIDTH_PX))
-        image, own_box = cr.insert_car(small, K_small, box_small, car, "camera", b.view)
-        shipped.append(cr.crop(image, own_box))
-        image, own_box = cr.insert_car(cleared(small, box_small, args.grow), K_small, box_small, car, "camera", b.view)
+        scene = ws.scene_of(i, b)
+        real.append(scene.real)
+        shipped.append(scene.shipped)
+        frame = cleared(scene.small, scene.box_small, args.grow)
+        image, own_box = cr.insert_car(frame, scene.K_small, scene.box_small, scene.car, "camera", b.view)
         on_cleared.append(cr.crop(image, own_box))
     real_crops = np.stack(real)
     for name, crops in (("as shipped", shipped), ("over the cleared box", on_cleared)):

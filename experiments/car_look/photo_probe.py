@@ -77,18 +77,14 @@ def _half_crops(boxes: list, test_drives: set[str], donor_drives: set[str]) -> t
     for i, b in enumerate(boxes):
         if b.drive not in test_drives:
             continue
-        frame = cr.load_frame(ws.REAL, b.drive, b.frame)
-        small, K_small, box_small = cr.reduced_view(
-            frame, cr.drive_intrinsics(ws.REAL, b.drive), b.box, ws.WORLD_WIDTH_PX
-        )
-        car = cr.library_car(i, 0)
-        real.append(cr.crop(frame, b.box, width_px=ws.WORLD_WIDTH_PX))
-        image, own_box = cr.insert_car(small, K_small, box_small, car, "camera", b.view)
-        shipped.append(cr.crop(image, own_box))
+        scene = ws.scene_of(i, b)
+        real.append(scene.real)
+        shipped.append(scene.shipped)
         pool = every_donor if ANY_SIDE else (donors.get(b.view) or every_donor)
         cr.harmonize_view_uint8_ = _with_photo(pool[i % len(pool)])
         try:
-            image, own_box = cr.insert_car(small, K_small, box_small, car, "harmonization" if RAW else "camera", b.view)
+            level = "harmonization" if RAW else "camera"
+            image, own_box = cr.insert_car(scene.small, scene.K_small, scene.box_small, scene.car, level, b.view)
         finally:
             cr.harmonize_view_uint8_ = original
         photo.append(cr.crop(image, own_box))

@@ -55,13 +55,11 @@ def main() -> int:
             if b.drive not in test_drives:
                 continue
             sides.append(b.view)
-            frame = cr.load_frame(ws.REAL, b.drive, b.frame)
-            small, K, box = cr.reduced_view(frame, cr.drive_intrinsics(ws.REAL, b.drive), b.box, ws.WORLD_WIDTH_PX)
-            real.append(cr.crop(frame, b.box, width_px=ws.WORLD_WIDTH_PX))
-            car, donor = cr.library_car(i, 0), donors[i % len(donors)]
-            image, own = cr.insert_car(small, K, box, car, "camera", b.view)
-            crops["as shipped"].append(cr.crop(image, own))
-            blended_all.append(cr.crop(ours_blended(small, image), own))
+            scene = ws.scene_of(i, b)
+            small, K, box, car, donor = scene.small, scene.K_small, scene.box_small, scene.car, donors[i % len(donors)]
+            real.append(scene.real)
+            crops["as shipped"].append(scene.shipped)
+            blended_all.append(cr.crop(ours_blended(small, scene.image), scene.own_box))
             cr.harmonize_view_uint8_ = pp._with_photo(donor)
             try:
                 image, own = cr.insert_car(small, K, box, car, "camera", b.view)

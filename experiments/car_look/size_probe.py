@@ -35,17 +35,13 @@ def main() -> int:
     boxes = cr.load_boxes(ws.BOXES)
     real, shipped, matched, ratios = [], [], [], []
     for i, b in enumerate(boxes):
-        frame = cr.load_frame(ws.REAL, b.drive, b.frame)
-        small, K_small, box_small = cr.reduced_view(
-            frame, cr.drive_intrinsics(ws.REAL, b.drive), b.box, ws.WORLD_WIDTH_PX
-        )
-        car = cr.library_car(i, 0)
-        real.append(cr.crop(frame, b.box, width_px=ws.WORLD_WIDTH_PX))
-        image, own_box = cr.insert_car(small, K_small, box_small, car, "camera", b.view)
-        shipped.append(cr.crop(image, own_box))
+        scene = ws.scene_of(i, b)
+        real.append(scene.real)
+        shipped.append(scene.shipped)
+        own_box, box_small = scene.own_box, scene.box_small
         ratio = (own_box[3] - own_box[1]) / max(1, box_small[3] - box_small[1])
         ratios.append(ratio)
-        image, own_box = _drawn_at_distance_scale(small, K_small, box_small, car, b.view, ratio)
+        image, own_box = _drawn_at_distance_scale(scene.small, scene.K_small, box_small, scene.car, b.view, ratio)
         matched.append(cr.crop(image, own_box))
     real_crops = np.stack(real)
     p10, p50, p90 = np.percentile(ratios, [10, 50, 90])

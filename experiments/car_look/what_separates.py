@@ -11,6 +11,7 @@ mean and contrast equalized, the top or bottom half only; accuracy by box height
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -22,6 +23,35 @@ ROOT = Path(__file__).resolve().parents[2]
 BOXES = ROOT / "benchmarks" / "data" / "real_car_boxes.json"
 REAL = ROOT.parent / "shared" / "data" / "real"
 WORLD_WIDTH_PX = 320
+
+
+@dataclass(frozen=True)
+class BoxScene:
+    """One hand-marked box at a world's resolution: its real crop, the reduced frame, intrinsics and box, the library
+    car the benchmark inserts there, that car drawn as shipped and its crop."""
+
+    real: np.ndarray
+    small: np.ndarray
+    K_small: np.ndarray
+    box_small: tuple[int, int, int, int]
+    car: cr.VehicleModel
+    image: np.ndarray
+    own_box: tuple[int, int, int, int]
+
+    @property
+    def shipped(self) -> np.ndarray:
+        """The crop of the car as shipped, cut at its own drawn box."""
+        return cr.crop(self.image, self.own_box)
+
+
+def scene_of(index: int, b: cr.CarBox) -> BoxScene:
+    """Box `index` of the boxes file at a world's resolution, with the benchmark's car drawn as shipped."""
+    frame = cr.load_frame(REAL, b.drive, b.frame)
+    small, K_small, box_small = cr.reduced_view(frame, cr.drive_intrinsics(REAL, b.drive), b.box, WORLD_WIDTH_PX)
+    car = cr.library_car(index, 0)
+    image, own_box = cr.insert_car(small, K_small, box_small, car, "camera", b.view)
+    real = cr.crop(frame, b.box, width_px=WORLD_WIDTH_PX)
+    return BoxScene(real, small, K_small, box_small, car, image, own_box)
 
 
 def default_crops(boxes: list[cr.CarBox]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
