@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -91,21 +91,13 @@ def main() -> int:
         ],
     }
     for name, patches in variants.items():
-        with _all(patches):
+        with ExitStack() as stack:
+            for name_of_part, make in patches:
+                stack.enter_context(wrapped(name_of_part, make))
             inserted = crops(boxes)
         acc, low, high = cr.accuracy_interval(ws.accuracy(real, inserted)[None])
         print(f"{name}: {100 * acc:.0f} % [{100 * low:.0f}, {100 * high:.0f}]", flush=True)
     return 0
-
-
-@contextmanager
-def _all(patches: list[tuple[str, Callable]]) -> Iterator[None]:
-    if not patches:
-        yield
-        return
-    (name, make), rest = patches[0], patches[1:]
-    with wrapped(name, make), _all(rest):
-        yield
 
 
 if __name__ == "__main__":

@@ -1,35 +1,30 @@
-"""Overtaking success by pass side over all episodes, for several policies evaluated on the same seeds.
-
-Left: the front car starts right of the lane centre (other_lateral_m < 0), so the ego passes on its left.
+"""Overtaking success by pass side over all episodes, for several policies evaluated on the same seeds: the eval's
+own "passing on the left / right" scenarios (its metrics.json), side by side.
 
     python3 experiments/real_gap/by_side.py expert=WS/eval/E final=WS/eval/F ...
 """
 
 from __future__ import annotations
 
-import csv
+import json
 import sys
 from pathlib import Path
 
+SIDES = ("passing on the left", "passing on the right")
 
-def success_by_side(folder: Path) -> dict[str, tuple[float, int]]:
-    """Side -> (success rate, episodes) from an eval folder's episodes.csv."""
-    with open(folder / "episodes.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    out = {}
-    for side in ("left", "right"):
-        chosen = [r for r in rows if (float(r["other_lateral_m"]) < 0) == (side == "left")]
-        won = sum(r["success"] == "True" for r in chosen)
-        out[side] = (won / max(len(chosen), 1), len(chosen))
-    return out
+
+def success_by_side(folder: Path) -> list[tuple[float, int]]:
+    """(success rate, episodes) per side of `SIDES`, from an eval folder's metrics.json."""
+    scenarios = {s["scenario"]: s for s in json.loads((folder / "metrics.json").read_text())["scenarios"]}
+    return [(scenarios[side]["success"]["value"], scenarios[side]["episodes"]) for side in SIDES]
 
 
 def main(args: list[str]) -> int:
     print("| policy | pass left | pass right |\n|---|---:|---:|")
     for arg in args:
         name, folder = arg.split("=", 1)
-        sides = success_by_side(Path(folder))
-        print(f"| {name} | " + " | ".join(f"{rate:.3f} ({n})" for rate, n in sides.values()) + " |")
+        cells = " | ".join(f"{rate:.3f} ({n})" for rate, n in success_by_side(Path(folder)))
+        print(f"| {name} | {cells} |")
     return 0
 
 
